@@ -1,0 +1,33 @@
+# shellcheck shell=bash
+# The one place that sets up the environment of every process in this workspace
+# (setup, tests, CI, demos, benchmarks, nodes started by hand). Source it:
+#     source scripts/env.sh
+# or prefix a command with scripts/ws:   scripts/ws python bench/bench_sim.py
+#
+# DDS discovery must never leave this machine: ROS 2 Jazzy multicasts to the LAN
+# unless ROS_AUTOMATIC_DISCOVERY_RANGE is LOCALHOST. We force it (not default it):
+# a rig that really needs the network must edit this line on purpose.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export ROS_STATIC_PEERS=""
+export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+# Domain 0 unless the caller chose one (the test command picks a random one per run).
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-0}"
+# Headless defaults for matplotlib / SDL (gamepad) so nothing opens a window.
+export MPLBACKEND="${MPLBACKEND:-Agg}"
+export SDL_VIDEODRIVER="${SDL_VIDEODRIVER:-dummy}"
+export PYTHONUNBUFFERED=1
+
+CGAIL_WS="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+export CGAIL_WS
+if [ -f "$CGAIL_WS/.venv/bin/activate" ]; then
+    # shellcheck disable=SC1091
+    source "$CGAIL_WS/.venv/bin/activate"
+fi
+if [ -f "$CGAIL_WS/install/setup.bash" ]; then
+    # colcon's setup scripts reference unset variables; relax -u while sourcing.
+    _cgail_u=$(set +o | grep nounset)
+    set +u
+    # shellcheck disable=SC1091
+    source "$CGAIL_WS/install/setup.bash"
+    eval "$_cgail_u"
+fi

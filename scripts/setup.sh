@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Idempotent workspace setup: .venv with the pinned requirements, then colcon build.
+# Safe to re-run: pip runs only when requirements.txt changed, colcon build is incremental.
+#   bash scripts/setup.sh            # everything
+#   CGAIL_SKIP_BUILD=1 bash scripts/setup.sh   # venv only
+set -euo pipefail
+WS="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$WS"
+PY="${PYTHON:-python3}"
+
+log() { printf '[setup] %s\n' "$*" >&2; }
+
+# 1. Python >= 3.10 with venv (Debian: apt-get install python3 python3-venv).
+if ! "$PY" -c 'import sys, venv; assert sys.version_info >= (3, 10)' 2>/dev/null; then
+    echo "[setup] error: expected python3 >= 3.10 with the venv module, found: $("$PY" --version 2>&1 || echo none)." >&2
+    echo "[setup] On Debian: sudo apt-get install python3 python3-venv" >&2
+    exit 1
+fi
+
+# 2. The virtual environment.
+if [ ! -x .venv/bin/python ]; then
+    log "creating .venv with $("$PY" --version)"
+    "$PY" -m venv .venv
+fi
+
+# 3. Pinned requirements, only when requirements.txt changed since the last install.
+stamp=.venv/.requirements.sha256
+want=$(sha256sum requirements.txt | cut -d' ' -f1)
+if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
+    log "installing requirements.txt into .venv (first run: about 2 minutes)"
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt
+    echo "$want" > "$stamp"
+else
+    log "requirements up to date"
+fi
+
+# 4. Front-end assets for the GUI (three.js from the npm registry), if npm is present.
+if [ -f src/cgail_planner/web/package.json ] && [ ! -d src/cgail_planner/web/node_modules ]; then
+    if command -v npm >/dev/null 2>&1; then
+        log "installing GUI assets with npm"
+        (cd src/cgail_planner/web && npm ci --no-audit --no-fund --silent)
+    else
+        log "warning: npm not found; the GUI needs it (Debian: apt-get install npm)"
+    fi
+fi
+
+# 5. colcon build (incremental, symlinked so edits to python sources need no rebuild).
+if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
+    # shellcheck disable=SC1091
+    source scripts/env.sh
+    log "colcon build"
+    colcon --log-base log build --symlink-install --event-handlers console_cohesion- summary+ \
+        2>&1 | grep -v -E '^(Starting|Finished) >>>' >&2
+fi
+log "ready"

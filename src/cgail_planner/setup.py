@@ -1,0 +1,45 @@
+"""ament_python package cgail_planner; see package.xml for the description."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'cgail_planner'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
+    ],
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='C-GAIL catheter maintainers',
+    maintainer_email='maintainers@cgail-catheter.dev',
+    description='''C-GAIL catheter path planner: deformable beating-aorta simulator, demonstrations, C-GAIL/GAIL trainer, ONNX planner node, bag recording/metrics, guidance GUI, rig launcher.''',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    extras_require={'test': ['pytest']},
+    entry_points={
+        'console_scripts': [
+            'planner_node = cgail_planner.nodes.planner_node:main',
+            'phantom_node = cgail_planner.nodes.phantom_node:main',
+            'operator_node = cgail_planner.nodes.operator_node:main',
+            'gui_node = cgail_planner.nodes.gui_node:main',
+            'rig_launch = cgail_planner.system.launcher:main',
+            'bag_record = cgail_planner.bags.record:main',
+            'bag_play = cgail_planner.bags.play:main',
+            'bag_metrics = cgail_planner.bags.metrics_cli:main',
+            'sim_render = cgail_planner.sim.render:main',
+            'make_demos = cgail_planner.learning.demos_cli:main',
+            'train = cgail_planner.learning.train:main',
+            'evaluate = cgail_planner.learning.evaluate:main',
+            'export_onnx = cgail_planner.learning.export:main',
+            'insilico_session = cgail_planner.system.session:main',
+        ],
+    },
+)
