@@ -1,0 +1,349 @@
+"""A small multi-node launcher (ROS 2 ``launch`` is not installable from PyPI).
+
+Starts a named set of nodes with their YAML parameters, either as child processes (default,
+one process per node, like ``ros2 launch``) or all in this process on one multi-threaded
+executor (``--in-process``), forwards SIGINT/SIGTERM, and shuts everything down cleanly:
+SIGINT to every child, then SIGTERM after ``--shutdown-timeout`` seconds, then SIGKILL.
+
+Usage (pip-only workspace; ``ros2 run cgail_planner rig_launch ...`` on a full ROS install)::
+
+    scripts/ws rig_launch src/cgail_planner/config/launch/sim_rig.yaml
+    scripts/ws rig_launch sim_rig.yaml --only aurora sim_aurora --in-process
+
+The launcher refuses to start when ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset (DDS would
+multicast onto the network): run it through ``scripts/ws`` (which sources ``scripts/env.sh``)
+or pass ``--allow-unset-discovery-range`` on purpose.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+import contextlib
+from dataclasses import dataclass
+import importlib
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from typing import Any, IO
+
+import yaml
+
+from cgail_planner.system.launch_spec import (
+    LaunchSpec,
+    LaunchSpecError,
+    load_launch_file,
+    load_params_file,
+    NodeSpec,
+    ros_params_yaml,
+)
+
+
+def find_executable(package: str, executable: str) -> str:
+    """Locate ``lib/<package>/<executable>`` on AMENT_PREFIX_PATH (what ``ros2 run`` does)."""
+    prefixes = [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+    for prefix in prefixes:
+        cand = Path(prefix) / 'lib' / package / executable
+        if cand.is_file() and os.access(cand, os.X_OK):
+            return str(cand)
+    raise LaunchSpecError(
+        f'executable {executable!r} of package {package!r} not found under lib/{package}/ of '
+        f'AMENT_PREFIX_PATH={prefixes}; build the workspace (bash scripts/setup.sh) and run '
+        'through scripts/ws')
+
+
+def node_command(node: NodeSpec, params_dir: Path) -> list[str]:
+    """The command line that starts ``node`` as a child process."""
+    if node.command:
+        cmd = list(node.command)
+    else:
+        cmd = [find_executable(node.package, node.executable)]
+    cmd += list(node.args)
+    if not node.ros:
+        return cmd
+    cmd += ['--ros-args', '-r', f'__node:={node.name}']
+    if node.parameters_file:
+        cmd += ['--params-file', node.parameters_file]
+    if node.parameters:
+        pfile = params_dir / f'{node.name}.yaml'
+        pfile.write_text(yaml.safe_dump(ros_params_yaml(node)))
+        cmd += ['--params-file', str(pfile)]
+    for src, dst in node.remappings.items():
+        cmd += ['-r', f'{src}:={dst}']
+    return cmd
+
+
+@dataclass
+class _Child:
+    spec: NodeSpec
+    cmd: list[str]
+    proc: subprocess.Popen[bytes] | None = None
+    restarts: int = 0
+    pump: threading.Thread | None = None
+
+
+class ProcessLauncher:
+    """Runs every node of a spec as a child process and supervises them.
+
+    Args:
+        spec: What to start.
+        out: Where the children's prefixed output goes (default stdout).
+        shutdown_timeout: Seconds to wait after SIGINT before SIGTERM (and again before
+            SIGKILL).
+    """
+
+    def __init__(self, spec: LaunchSpec, *, out: IO[str] | None = None,
+                 shutdown_timeout: float = 5.0) -> None:
+        if shutdown_timeout <= 0:
+            raise ValueError(f'shutdown_timeout must be > 0 s, found {shutdown_timeout}')
+        self.spec = spec
+        self.out = out or sys.stdout
+        self.shutdown_timeout = shutdown_timeout
+        self._tmp = tempfile.TemporaryDirectory(prefix=f'launch_{spec.name}_')
+        self._children = [_Child(n, node_command(n, Path(self._tmp.name))) for n in spec.nodes]
+        self._stop = threading.Event()
+        self._out_lock = threading.Lock()
+        self.exit_code = 0
+
+    # -- output ------------------------------------------------------------------------
+    def _emit(self, name: str, line: str) -> None:
+        with self._out_lock:
+            self.out.write(f'[{name}] {line}')
+            if not line.endswith('\n'):
+                self.out.write('\n')
+            self.out.flush()
+
+    def _pump(self, child: _Child) -> None:
+        proc = child.proc
+        if proc is None or proc.stdout is None:
+            return
+        for raw in iter(proc.stdout.readline, b''):
+            self._emit(child.spec.name, raw.decode(errors='replace'))
+        proc.stdout.close()
+
+    # -- lifecycle -----------------------------------------------------------------------
+    def _spawn(self, child: _Child) -> None:
+        env = dict(os.environ)
+        env.update(child.spec.env)
+        env.setdefault('PYTHONUNBUFFERED', '1')
+        child.proc = subprocess.Popen(
+            child.cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            env=env, start_new_session=True)  # own session: only we forward signals
+        child.pump = threading.Thread(target=self._pump, args=(child,), daemon=True)
+        child.pump.start()
+        self._emit('launch', f'started {child.spec.name} (pid {child.proc.pid}): '
+                   f'{" ".join(child.cmd)}')
+
+    def start(self) -> None:
+        """Start every child in spec order."""
+        for child in self._children:
+            self._spawn(child)
+
+    def request_stop(self, *_: Any) -> None:
+        """Ask the supervisor loop to shut everything down (signal-handler safe)."""
+        self._stop.set()
+
+    def pids(self) -> dict[str, int]:
+        """PIDs of the running children by node name."""
+        return {c.spec.name: c.proc.pid for c in self._children
+                if c.proc is not None and c.proc.poll() is None}
+
+    def supervise(self, poll_s: float = 0.1, max_duration: float | None = None) -> int:
+        """Block until stopped, a required child exits, or every child exited.
+
+        Returns:
+            The launch's exit code: 0 after a clean requested shutdown, else the first
+            non-zero exit code of a required child (or 1).
+        """
+        t0 = time.monotonic()
+        while not self._stop.is_set():
+            if max_duration is not None and time.monotonic() - t0 > max_duration:
+                self._emit('launch', f'max duration {max_duration:.1f} s reached')
+                break
+            alive = 0
+            for child in self._children:
+                proc = child.proc
+                if proc is None:
+                    continue
+                code = proc.poll()
+                if code is None:
+                    alive += 1
+                    continue
+                if child.spec.required:
+                    self._emit('launch', f'required node {child.spec.name} exited with code '
+                               f'{code}; shutting down')
+                    self.exit_code = code or 1
+                    self._stop.set()
+                    break
+                if child.spec.respawn:
+                    child.restarts += 1
+                    delay = min(0.5 * 2 ** (child.restarts - 1), 10.0)
+                    self._emit('launch', f'{child.spec.name} exited with code {code}; '
+                               f'respawn #{child.restarts} in {delay:.1f} s')
+                    child.proc = None
+                    time.sleep(delay)
+                    if not self._stop.is_set():
+                        self._spawn(child)
+                        alive += 1
+                    continue
+                if code != 0:
+                    self._emit('launch', f'{child.spec.name} exited with code {code}')
+                child.proc = None
+            if alive == 0 and not self._stop.is_set():
+                self._emit('launch', 'all processes exited')
+                break
+            self._stop.wait(poll_s)
+        self.shutdown()
+        return self.exit_code
+
+    def shutdown(self) -> None:
+        """SIGINT every running child (reverse start order), then escalate."""
+        running = [c for c in reversed(self._children)
+                   if c.proc is not None and c.proc.poll() is None]
+        for sig, label in ((signal.SIGINT, 'SIGINT'), (signal.SIGTERM, 'SIGTERM'),
+                           (signal.SIGKILL, 'SIGKILL')):
+            running = [c for c in running if c.proc is not None and c.proc.poll() is None]
+            if not running:
+                break
+            for c in running:
+                assert c.proc is not None
+                self._emit('launch', f'sending {label} to {c.spec.name} (pid {c.proc.pid})')
+                with contextlib.suppress(ProcessLookupError):
+                    c.proc.send_signal(sig)
+            deadline = time.monotonic() + self.shutdown_timeout
+            for c in running:
+                assert c.proc is not None
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+        for c in self._children:
+            if c.pump is not None:
+                c.pump.join(timeout=1.0)
+            if c.proc is not None and c.proc.returncode not in (None, 0, -signal.SIGINT):
+                self._emit('launch', f'{c.spec.name} finished with code {c.proc.returncode}')
+        self._tmp.cleanup()
+
+    def __enter__(self) -> ProcessLauncher:
+        self.start()
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.request_stop()
+        self.shutdown()
+
+
+def _import_plugin(plugin: str) -> Callable[..., Any]:
+    module_name, _, attr = plugin.partition(':')
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise LaunchSpecError(f'plugin {plugin!r}: cannot import {module_name!r}: {exc}') from exc
+    try:
+        return getattr(module, attr)  # type: ignore[no-any-return]
+    except AttributeError as exc:
+        raise LaunchSpecError(f'plugin {plugin!r}: module {module_name!r} has no {attr!r}') \
+            from exc
+
+
+def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
+                   out: IO[str] | None = None) -> int:
+    """Run every ROS node of ``spec`` in this process on one MultiThreadedExecutor.
+
+    Plain (``ros: false``) processes are still started as children. Node classes are built as
+    ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r', '__node:=<name>'])``, so a
+    node class must forward ``**kwargs`` to ``rclpy.node.Node.__init__``. Lifecycle nodes are
+    configured and activated.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    plain = LaunchSpec(spec.name, tuple(n for n in spec.nodes if not n.ros)) \
+        if any(not n.ros for n in spec.nodes) else None
+    ros_nodes = [n for n in spec.nodes if n.ros]
+    missing = [n.name for n in ros_nodes if not n.plugin]
+    if missing:
+        raise LaunchSpecError(f'--in-process needs a plugin (module:Class) for node(s) {missing}')
+    children = ProcessLauncher(plain, out=out) if plain else None
+    if children:
+        children.start()
+    rclpy.init()
+    executor = MultiThreadedExecutor()
+    nodes = []
+    code = 0
+    try:
+        for spec_node in ros_nodes:
+            params = {}
+            if spec_node.parameters_file:
+                params.update(load_params_file(spec_node.parameters_file, spec_node.name))
+            params.update(spec_node.parameters)
+            cls = _import_plugin(spec_node.plugin)
+            node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+                       cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'])
+            if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
+                node.trigger_configure()
+                node.trigger_activate()
+            nodes.append(node)
+            executor.add_node(node)
+        deadline = None if max_duration is None else time.monotonic() + max_duration
+        while rclpy.ok() and (deadline is None or time.monotonic() < deadline):
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        if children:
+            children.request_stop()
+            children.shutdown()
+            code = children.exit_code
+    return code
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='rig_launch', description=__doc__.split('\n\n')[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument('launch_file', help='launch YAML (see cgail_planner.system.launch_spec)')
+    parser.add_argument('--only', nargs='+', metavar='NODE', help='start only these nodes')
+    parser.add_argument('--in-process', action='store_true',
+                        help='run all ROS nodes in this process on one executor')
+    parser.add_argument('--max-duration', type=float, default=None,
+                        help='stop everything after this many seconds')
+    parser.add_argument('--shutdown-timeout', type=float, default=5.0,
+                        help='seconds between SIGINT, SIGTERM and SIGKILL at shutdown')
+    parser.add_argument('--allow-unset-discovery-range', action='store_true',
+                        help='start even if ROS_AUTOMATIC_DISCOVERY_RANGE is unset')
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') and \
+            not args.allow_unset_discovery_range:
+        print('rig_launch: ROS_AUTOMATIC_DISCOVERY_RANGE is unset, so DDS would multicast onto '
+              'the network; run through scripts/ws (sources scripts/env.sh) or pass '
+              '--allow-unset-discovery-range', file=sys.stderr)
+        return 2
+    try:
+        spec = load_launch_file(args.launch_file).select(args.only)
+        if args.in_process:
+            return run_in_process(spec, max_duration=args.max_duration)
+        launcher = ProcessLauncher(spec, shutdown_timeout=args.shutdown_timeout)
+    except LaunchSpecError as exc:
+        print(f'rig_launch: {exc}', file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGINT, launcher.request_stop)
+    signal.signal(signal.SIGTERM, launcher.request_stop)
+    launcher.start()
+    return launcher.supervise(max_duration=args.max_duration)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
