@@ -1,0 +1,82 @@
+"""Configuration of the catheter navigation environment (one frozen dataclass, validated)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+
+from cgail_planner.sim.catheter import CatheterConfig, THETA_MAX_DEFAULT
+from cgail_planner.sim.reward import RewardConfig
+
+#: Simulation modes: ``static`` = rigid wall; ``dynamic`` = PBD wall + heartbeat + moving target.
+MODES = ("static", "dynamic")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines a :class:`~cgail_planner.sim.env.CatheterNavEnv`.
+
+    Invalid values raise ``ValueError`` at construction, naming the field and the allowed range.
+    """
+
+    mode: str = "static"
+    """``static`` (rigid wall) or ``dynamic`` (deformable wall, heartbeat, moving target)."""
+    anatomy: str = "default"
+    """Name of a built-in anatomy (``cgail_planner.sim.anatomy.build_anatomy``)."""
+    dt: float = 0.1
+    """Control time step, s (0.1 s: 0.5 mm insertion per step at 5 mm/s); in [1 ms, 2 s]."""
+    max_steps: int = 2000
+    """Steps before truncation (2000 x 0.1 s = 200 s, past the 3-min rig limit); in [1, 1e6]."""
+    theta_max: float = THETA_MAX_DEFAULT
+    """Initial maximal bending angle, rad (paper: 90 deg; the curriculum lowers it); (0, pi]."""
+    segment_length: float = 0.050
+    """Steerable segment length L, m (paper: 50 mm); in [1 mm, 0.5 m]."""
+    outer_diameter: float = 0.007
+    """Catheter outer diameter, m (paper: 7 mm); in [0.5 mm, 20 mm]."""
+    max_insertion_speed: float = 0.005
+    """Maximal insertion speed, m/s (paper: 5 mm/s); in (0, 0.1]."""
+    ray_length: float = 0.040
+    """Length of every observation ray, m (hits are normalised by it); in [5 mm, 0.2 m]."""
+    position_scale: float = 0.15
+    """Tip positions are observed as ``(p - origin) / position_scale``, m; in [1 cm, 10 m]."""
+    body_spacing: float = 0.005
+    """Spacing of the body points handed to the deformable wall, m; in [0.5 mm, 0.1 m]."""
+    scenario_seed: int = 0
+    """Seed of the target sampling (the scenario set is fixed per anatomy and seed); >= 0."""
+    n_waypoints: int = 100
+    """Waypoints per centerline (paper: ~100); in [10, 1000]."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Reward values and thresholds (paper Table I)."""
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, found {self.mode!r}")
+        if not isinstance(self.anatomy, str) or not self.anatomy:
+            raise ValueError(f"anatomy must be a non-empty anatomy name, found {self.anatomy!r}")
+        if not isinstance(self.max_steps, int) or not 1 <= self.max_steps <= 1_000_000:
+            raise ValueError(f"max_steps must be an int in [1, 1000000], found {self.max_steps!r}")
+        if not isinstance(self.scenario_seed, int) or self.scenario_seed < 0:
+            raise ValueError(f"scenario_seed must be an int >= 0, found {self.scenario_seed!r}")
+        if not isinstance(self.n_waypoints, int) or not 10 <= self.n_waypoints <= 1000:
+            raise ValueError(
+                f"n_waypoints must be an int in [10, 1000], found {self.n_waypoints!r}")
+        for name, low, high in (
+            ("ray_length", 0.005, 0.2), ("position_scale", 0.01, 10.0),
+            ("body_spacing", 5e-4, 0.1),
+        ):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and low <= value <= high):
+                raise ValueError(f"{name} must be in [{low}, {high}], found {value!r}")
+        if not isinstance(self.reward, RewardConfig):
+            raise ValueError(f"reward must be a RewardConfig, found {type(self.reward).__name__}")
+        self.catheter  # noqa: B018 - validates dt, theta_max, segment_length, ...
+
+    @property
+    def catheter(self) -> CatheterConfig:
+        """The catheter's constraints as a :class:`CatheterConfig`."""
+        return CatheterConfig(
+            theta_max=self.theta_max, segment_length=self.segment_length,
+            outer_diameter=self.outer_diameter, max_insertion_speed=self.max_insertion_speed,
+            dt=self.dt,
+        )
