@@ -1,0 +1,159 @@
+"""Reading and writing rosbag2 MCAP bags with rosbags (no rosbag2/ros2cli here).
+
+* :class:`BagWriter` writes raw CDR messages to a rosbag2 (version 9, MCAP storage) directory,
+  storing each topic's offered QoS profiles in ``metadata.yaml`` exactly as rosbag2 does
+  (``offered_qos_profiles``) and free-form ``custom_data`` (e.g. ``condition: cgail``).
+  :meth:`BagWriter.flush` closes the pending MCAP chunk and flushes it to disk.
+* :func:`open_bag` / :func:`iter_raw` read a bag directory or a bare ``.mcap`` file and turn
+  every failure of a missing, truncated or corrupt bag into one :class:`BagError` naming the
+  path and the problem.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
+from pathlib import Path
+import struct
+
+from rosbags.interfaces import Connection, Qos
+from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.typesys import get_typestore, Stores
+from rosbags.typesys.store import Typestore
+
+from cgail_planner.bags.errors import BagError
+
+#: Type store of every bag written and read here.
+TYPESTORE: Typestore = get_typestore(Stores.ROS2_JAZZY)
+
+#: Exceptions the rosbags reader raises on broken files (wrapped into BagError).
+_READ_ERRORS = (ReaderError, struct.error, EOFError, KeyError, IndexError, ValueError,
+                UnicodeDecodeError, AssertionError, OSError)
+
+
+class BagWriter:
+    """Write raw CDR messages into a new rosbag2 MCAP bag directory.
+
+    Not thread-safe: one thread (the recorder's writer thread) owns it.
+
+    Args:
+        path: Bag directory to create; must not exist.
+        custom_data: ``metadata.yaml`` custom_data entries (strings).
+    """
+
+    def __init__(self, path: Path | str, custom_data: dict[str, str] | None = None) -> None:
+        self.path = Path(path)
+        try:
+            self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            for key, value in (custom_data or {}).items():
+                self._writer.set_custom_data(key, str(value))
+            self._writer.open()
+        except WriterError as exc:
+            raise BagError(f'{self.path}: cannot create bag ({exc})') from None
+        self._connections: dict[str, Connection] = {}
+        self.count = 0
+
+    def add_topic(self, topic: str, msgtype: str, qos: Sequence[Qos] = ()) -> None:
+        """Declare a topic (``msgtype`` like ``geometry_msgs/msg/PoseStamped``) and its QoS."""
+        if topic in self._connections:
+            return
+        try:
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=TYPESTORE, offered_qos_profiles=list(qos))
+        except (WriterError, KeyError) as exc:
+            raise BagError(f'{self.path}: cannot add topic {topic} of type {msgtype} '
+                           f'(expected a ROS 2 Jazzy message type; {exc})') from None
+
+    def has_topic(self, topic: str) -> bool:
+        """Whether :meth:`add_topic` was called for ``topic``."""
+        return topic in self._connections
+
+    def write(self, topic: str, timestamp_ns: int, data: bytes | memoryview) -> None:
+        """Append one serialized (CDR) message received at ``timestamp_ns``."""
+        conn = self._connections.get(topic)
+        if conn is None:
+            raise BagError(f'{self.path}: topic {topic} was not added before writing')
+        self._writer.write(conn, int(timestamp_ns), bytes(data))
+        self.count += 1
+
+    def flush(self) -> None:
+        """Move buffered messages to the file (close the pending MCAP chunk, fsync-free flush).
+
+        rosbags keeps the open chunk in memory; closing it and flushing the file bounds what
+        a hard kill can lose. The summary/index is still written only by :meth:`close`.
+        """
+        storage = self._writer.storage
+        if storage is None:
+            return
+        chunk = getattr(storage, 'chunk', None)
+        if chunk is not None and chunk.bio.tell() and hasattr(storage, 'close_chunk'):
+            storage.close_chunk()
+        bio = getattr(storage, 'bio', None)
+        if bio is not None:
+            bio.flush()
+
+    def close(self) -> None:
+        """Write the MCAP summary and ``metadata.yaml``; idempotent."""
+        if self._writer.storage is not None:
+            self._writer.close()
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _describe(path: Path, exc: BaseException) -> str:
+    detail = str(exc) or type(exc).__name__
+    if isinstance(exc, FileNotFoundError):
+        return f'{path}: no such bag (expected a rosbag2 directory or an .mcap file)'
+    return (f'{path}: truncated or corrupt bag, cannot read it '
+            f'(expected a complete rosbag2 MCAP bag; {type(exc).__name__}: {detail})')
+
+
+@contextmanager
+def open_bag(path: Path | str) -> Iterator[Reader]:
+    """Open a bag for reading; every read error inside the block becomes a :class:`BagError`.
+
+    Args:
+        path: rosbag2 directory (with ``metadata.yaml``) or a bare ``.mcap`` file.
+    """
+    bag = Path(path)
+    try:
+        reader = Reader(bag)
+        reader.open()
+    except _READ_ERRORS as exc:
+        raise BagError(_describe(bag, exc)) from None
+    try:
+        yield reader
+    except BagError:
+        raise
+    except _READ_ERRORS as exc:
+        raise BagError(_describe(bag, exc)) from None
+    finally:
+        with suppress(*_READ_ERRORS):
+            reader.close()
+
+
+def bag_custom_data(reader: Reader) -> dict[str, str]:
+    """The bag's ``metadata.yaml`` custom_data (empty for a bare .mcap file)."""
+    meta = getattr(reader.storage, 'metadata', None)
+    custom = getattr(meta, 'custom', None)
+    return dict(custom or {})
+
+
+def iter_raw(
+    reader: Reader, topics: Sequence[str] | None = None, start_ns: int | None = None
+) -> Iterator[tuple[Connection, int, bytes]]:
+    """Raw messages ``(connection, log_time_ns, cdr_bytes)`` in log-time order.
+
+    Args:
+        reader: An open reader (from :func:`open_bag`).
+        topics: Only these topics (None: all).
+        start_ns: Skip messages logged before this time.
+    """
+    conns = [c for c in reader.connections if topics is None or c.topic in topics]
+    if not conns:
+        return
+    yield from reader.messages(connections=conns, start=start_ns)

@@ -1,0 +1,272 @@
+"""Offline in-vitro metrics of one trial and across conditions (paper section IV-C).
+
+Pure numpy/scipy (no rclpy). A trial is given as time-stamped arrays (SI units, see
+:class:`TrialData`); :mod:`cgail_planner.bags.reader` builds them from a bag.
+
+Definitions (documented choices where the paper leaves room):
+
+* **Trial window.** The trial starts at ``t_0``, the first tip pose at or after the first goal
+  (target) message, and lasts at most ``time_limit`` (3 minutes, the paper's protocol). Samples
+  after ``t_0 + time_limit`` are ignored: the paper stops the experiment there.
+* **Duration** ``T = t_g - t_0`` with ``t_g`` the last tip pose in the window (the operator ends
+  the recording when done; a trial cut by the time limit has ``T <= time_limit``).
+* **Tracking error** ``T_r(t) = ||p^d_t - p_t||``. The path in effect at ``t`` (the latest
+  ``planner/path`` received at or before ``t``, so replanning is honoured) is B-spline fitted and
+  resampled (:func:`~cgail_planner.core.path_fit.fit_path`); ``p^d_t`` is the closest point of
+  that resampled path to ``p_t``. Samples before the first path are left out. Reported: mean,
+  std (population) and max over the samples.
+* **Targeting error** ``T_a = min_t ||q_g(t) - p_t||`` over the window, with ``q_g(t)`` the latest
+  goal at ``t`` (the target may move).
+* **Success**: ``||q_g(t) - p_t|| <= success_radius`` (epsilon, 10 mm by default as in the
+  simulator) at some sample within the 3-minute window. ``time_to_target`` is the first such
+  time after ``t_0``.
+* **Curvature** of the tip trajectory: the window's positions are resampled at a uniform
+  arc length (``curvature_spacing``, 1 mm) and the Menger curvature of each consecutive triple is
+  taken; mean and std in mm^-1 as the paper reports (internally 1/m). Noise in the EM positions
+  raises it strongly at small spacings; a stationary tip contributes nothing.
+* **Across conditions**: the Kruskal-Wallis H test (``scipy.stats.kruskal``) per metric between
+  the conditions' per-trial values; significant when ``p < 0.05``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import kruskal
+
+from cgail_planner.core.path_fit import (
+    closest_points,
+    discrete_curvature,
+    fit_path,
+    PathFitConfig,
+    polyline_length,
+    resample_by_arc_length,
+)
+
+FloatArray = NDArray[np.float64]
+
+#: Significance level of the Kruskal-Wallis test (paper: 0.05).
+ALPHA = 0.05
+
+
+class MetricsError(ValueError):
+    """A trial cannot be evaluated (no tip poses, no goal, no path in the window...)."""
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """Settings of the offline metrics."""
+
+    time_limit: float = 180.0
+    """Maximum operation time (s) after which a trial is stopped and counted as failed unless
+    the target was reached; > 0 (paper: 3 minutes)."""
+
+    success_radius: float = 0.010
+    """epsilon (m): the target counts as reached when the tip is within it; > 0."""
+
+    path_fit: PathFitConfig = field(default_factory=PathFitConfig)
+    """B-spline fit and resampling of the planned path (desired path of T_r)."""
+
+    curvature_spacing: float = 1e-3
+    """Arc-length step (m) of the trajectory resampling before the curvature; > 0."""
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.time_limit) and self.time_limit > 0.0):
+            raise ValueError(f'time_limit must be a positive number of seconds, '
+                             f'found {self.time_limit}')
+        if not (math.isfinite(self.success_radius) and self.success_radius > 0.0):
+            raise ValueError(f'success_radius must be a positive number of metres, '
+                             f'found {self.success_radius}')
+        if not (math.isfinite(self.curvature_spacing) and self.curvature_spacing > 0.0):
+            raise ValueError(f'curvature_spacing must be a positive number of metres, '
+                             f'found {self.curvature_spacing}')
+
+
+@dataclass(frozen=True)
+class TrialData:
+    """Time-stamped data of one trial (times in s, positions in m, any common time origin)."""
+
+    name: str
+    """Trial name (the bag's name)."""
+    condition: str
+    """Condition label, e.g. ``cgail`` or ``centerline``."""
+    tip_t: FloatArray
+    """``(K,)`` tip pose times, non-decreasing."""
+    tip_p: FloatArray
+    """``(K, 3)`` tip positions (EM tracker)."""
+    goal_t: FloatArray
+    """``(G,)`` goal (target) message times, non-decreasing."""
+    goal_p: FloatArray
+    """``(G, 3)`` goal positions."""
+    path_t: FloatArray
+    """``(P,)`` planned-path message times, non-decreasing."""
+    paths: tuple[FloatArray, ...]
+    """``P`` planned paths, each ``(N_i, 3)`` waypoints."""
+
+
+@dataclass(frozen=True)
+class TrialMetrics:
+    """Metrics of one trial (SI units: m, s, 1/m)."""
+
+    name: str
+    condition: str
+    samples: int
+    """Tip poses in the trial window."""
+    tracking_mean: float
+    tracking_std: float
+    tracking_max: float
+    targeting_error: float
+    duration: float
+    success: bool
+    time_to_target: float
+    """Seconds from t_0 to the first sample within epsilon; NaN if never reached."""
+    timed_out: bool
+    """The recording went on past the time limit (the window was cut)."""
+    curvature_mean: float
+    curvature_std: float
+    path_length: float
+    """Length (m) of the last desired path used."""
+
+
+@dataclass(frozen=True)
+class KruskalResult:
+    """Kruskal-Wallis test of one metric across conditions."""
+
+    metric: str
+    statistic: float
+    pvalue: float
+    """NaN when the test is undefined (fewer than 2 conditions, or all values equal)."""
+
+    @property
+    def significant(self) -> bool:
+        """True when p < 0.05 (paper's level)."""
+        return bool(self.pvalue < ALPHA)
+
+
+def _check_times(name: str, t: FloatArray, p: FloatArray) -> None:
+    if t.ndim != 1 or p.ndim != 2 or p.shape != (len(t), 3):
+        raise MetricsError(f'{name}: expected times (K,) and positions (K, 3), '
+                           f'found {t.shape} and {p.shape}')
+    if len(t) > 1 and np.any(np.diff(t) < 0.0):
+        raise MetricsError(f'{name}: times must be non-decreasing')
+
+
+def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None) -> TrialMetrics:
+    """Compute the metrics of one trial (see the module docstring for the definitions).
+
+    Raises:
+        MetricsError: No tip pose, no goal, no path, or no tip pose after the first goal/path.
+    """
+    cfg = config or MetricsConfig()
+    tip_t = np.asarray(trial.tip_t, dtype=np.float64)
+    tip_p = np.asarray(trial.tip_p, dtype=np.float64)
+    goal_t = np.asarray(trial.goal_t, dtype=np.float64)
+    goal_p = np.asarray(trial.goal_p, dtype=np.float64)
+    _check_times('tip poses', tip_t, tip_p)
+    _check_times('goals', goal_t, goal_p)
+    where = f'trial {trial.name!r}'
+    if len(tip_t) == 0:
+        raise MetricsError(f'{where}: expected tip poses, found none')
+    if len(goal_t) == 0:
+        raise MetricsError(f'{where}: expected at least one goal (target), found none')
+    if len(trial.paths) == 0 or len(trial.paths) != len(trial.path_t):
+        raise MetricsError(f'{where}: expected at least one planned path with a time, found '
+                           f'{len(trial.paths)} paths and {len(trial.path_t)} times')
+    finite = np.all(np.isfinite(tip_p), axis=1) & np.isfinite(tip_t)
+    tip_t, tip_p = tip_t[finite], tip_p[finite]
+
+    start = np.searchsorted(tip_t, goal_t[0], side='left')
+    if start >= len(tip_t):
+        raise MetricsError(f'{where}: expected tip poses after the first goal, found none')
+    t0 = float(tip_t[start])
+    end = np.searchsorted(tip_t, t0 + cfg.time_limit, side='right')
+    timed_out = bool(end < len(tip_t))
+    t = tip_t[start:end]
+    p = tip_p[start:end]
+
+    gi = np.searchsorted(goal_t, t, side='right') - 1
+    to_goal = np.linalg.norm(goal_p[gi] - p, axis=1)
+    reached = np.flatnonzero(to_goal <= cfg.success_radius)
+    success = bool(len(reached) > 0)
+    time_to_target = float(t[reached[0]] - t0) if success else math.nan
+
+    path_t = np.asarray(trial.path_t, dtype=np.float64)
+    pi = np.searchsorted(path_t, t, side='right') - 1
+    errors = np.full(len(t), np.nan)
+    length = math.nan
+    for k in np.unique(pi[pi >= 0]):
+        sel = pi == k
+        desired = fit_path(trial.paths[int(k)], cfg.path_fit)
+        errors[sel], _ = closest_points(p[sel], desired)
+        length = polyline_length(desired)
+    tracked = errors[np.isfinite(errors)]
+    if len(tracked) == 0:
+        raise MetricsError(f'{where}: expected tip poses after the first planned path, '
+                           f'found none')
+
+    curv = np.zeros(0)
+    if polyline_length(p) >= 2.0 * cfg.curvature_spacing:
+        curv = discrete_curvature(resample_by_arc_length(p, cfg.curvature_spacing))
+    return TrialMetrics(
+        name=trial.name,
+        condition=trial.condition,
+        samples=len(t),
+        tracking_mean=float(np.mean(tracked)),
+        tracking_std=float(np.std(tracked)),
+        tracking_max=float(np.max(tracked)),
+        targeting_error=float(np.min(to_goal)),
+        duration=float(t[-1] - t0),
+        success=success,
+        time_to_target=time_to_target,
+        timed_out=timed_out,
+        curvature_mean=float(np.mean(curv)) if len(curv) else math.nan,
+        curvature_std=float(np.std(curv)) if len(curv) else math.nan,
+        path_length=length,
+    )
+
+
+#: Metrics compared across conditions: attribute name -> (label, unit, scale from SI).
+COMPARED_METRICS: Mapping[str, tuple[str, str, float]] = {
+    'tracking_mean': ('tracking error T_r', 'mm', 1e3),
+    'targeting_error': ('targeting error T_a', 'mm', 1e3),
+    'duration': ('duration T', 's', 1.0),
+    'curvature_mean': ('curvature', 'mm^-1', 1e-3),
+}
+
+
+def group_by_condition(trials: Sequence[TrialMetrics]) -> dict[str, list[TrialMetrics]]:
+    """Trials grouped by condition, conditions in first-seen order."""
+    groups: dict[str, list[TrialMetrics]] = {}
+    for trial in trials:
+        groups.setdefault(trial.condition, []).append(trial)
+    return groups
+
+
+def kruskal_by_condition(
+    trials: Sequence[TrialMetrics], metrics: Sequence[str] = tuple(COMPARED_METRICS)
+) -> list[KruskalResult]:
+    """Kruskal-Wallis H test of each metric between the conditions' per-trial values.
+
+    Returns NaN statistic/p-value for a metric when fewer than two conditions have finite
+    values or when all values are identical (the test is undefined there).
+    """
+    groups = group_by_condition(trials)
+    results = []
+    for metric in metrics:
+        samples = []
+        for members in groups.values():
+            values = np.array([getattr(m, metric) for m in members], dtype=np.float64)
+            values = values[np.isfinite(values)]
+            if len(values):
+                samples.append(values)
+        stat, pvalue = math.nan, math.nan
+        pooled = np.concatenate(samples) if samples else np.zeros(0)
+        if len(samples) >= 2 and np.ptp(pooled) > 0.0:
+            res = kruskal(*samples)
+            stat, pvalue = float(res.statistic), float(res.pvalue)
+        results.append(KruskalResult(metric, stat, pvalue))
+    return results
