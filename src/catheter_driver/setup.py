@@ -20,7 +20,8 @@ setup(
     zip_safe=True,
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
-    description='''Sleeve-based relay insertion driver (CAN), gamepad joy node (SDL2) and joystick teleop with a deadman button.''',
+    description=('Sleeve-based relay insertion driver (CAN), gamepad joy node (SDL2) and '
+                 'joystick teleop with a deadman button.'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
