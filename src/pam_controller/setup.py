@@ -20,7 +20,9 @@ setup(
     zip_safe=True,
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
-    description='''Pressure control of the four pneumatic artificial muscles that bend the catheter tip (CAN through python-can), bending model with hysteresis, simulated regulator bank.''',
+    description=('Pressure control of the four pneumatic artificial muscles that bend the '
+                 'catheter tip (CAN through python-can), bending model with hysteresis, '
+                 'simulated regulator bank.'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
