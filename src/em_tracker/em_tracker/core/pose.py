@@ -1,0 +1,168 @@
+"""Pose maths of the tracker: NDI -> ROS conventions, registration, validation.
+
+Conventions: the Aurora reports the sensor pose in the field-generator frame ``aurora`` as a
+quaternion in NDI order ``(q0, qx, qy, qz)`` (scalar first) and a position in mm. ROS wants
+``(x, y, z, w)`` and metres. The registration ``aurora -> phantom`` is a rigid transform
+``T_phantom_aurora`` (maps points in the aurora frame to the phantom frame).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+MM_TO_M = 1e-3
+
+
+def ndi_quat_to_ros(quat_wxyz: Sequence[float]) -> np.ndarray:
+    """Reorder an NDI quaternion ``(q0, qx, qy, qz)`` to ROS ``(x, y, z, w)``."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    return np.array([x, y, z, w])
+
+
+def mm_to_m(values_mm: Sequence[float] | np.ndarray) -> np.ndarray:
+    """Convert millimetres to metres."""
+    return np.asarray(values_mm, dtype=float) * MM_TO_M
+
+
+def quat_xyzw_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)``."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd)."""
+    m = np.asarray(rot, dtype=float)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    if trace > 0:
+        s = 2.0 * math.sqrt(trace + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s]
+    quat = np.array(q)
+    quat /= np.linalg.norm(quat)
+    return -quat if quat[3] < 0 else quat
+
+
+@dataclass(frozen=True)
+class Registration:
+    """Rigid registration ``aurora -> phantom`` as a 4x4 homogeneous matrix (metres).
+
+    Attributes:
+        matrix: ``T_phantom_aurora``; rotation block orthonormal with det +1, last row 0 0 0 1.
+    """
+
+    matrix: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = np.asarray(self.matrix, dtype=float)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise ValueError(f'registration must be a finite 4x4 matrix, found {self.matrix!r}')
+        if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
+            raise ValueError(f'registration last row must be [0, 0, 0, 1], found {m[3]}')
+        rot = m[:3, :3]
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
+            raise ValueError('registration rotation must be orthonormal with det +1, '
+                             f'found {rot.tolist()}')
+        object.__setattr__(self, 'matrix', m)
+
+    @classmethod
+    def identity(cls) -> Registration:
+        """The identity registration (phantom frame = field-generator frame)."""
+        return cls(np.eye(4))
+
+    @classmethod
+    def from_flat(cls, values: Sequence[float]) -> Registration:
+        """Build from 16 row-major values (4x4) or 7 values ``[tx ty tz qx qy qz qw]`` (m).
+
+        Raises:
+            ValueError: wrong length, non-unit quaternion or non-rigid matrix.
+        """
+        vals = [float(v) for v in values]
+        if len(vals) == 16:
+            return cls(np.array(vals).reshape(4, 4))
+        if len(vals) == 7:
+            q = np.array(vals[3:])
+            norm = float(np.linalg.norm(q))
+            if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
+                raise ValueError(f'registration quaternion must have unit norm, found {norm!r}')
+            m = np.eye(4)
+            m[:3, :3] = quat_xyzw_to_matrix(q / norm)
+            m[:3, 3] = vals[:3]
+            return cls(m)
+        raise ValueError('registration must have 16 values (4x4 row-major) or 7 values '
+                         f'(tx ty tz qx qy qz qw), found {len(vals)}')
+
+    def apply(self, position_m: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray,
+                                                                             np.ndarray]:
+        """Map a pose from the aurora frame to the phantom frame."""
+        rot = self.matrix[:3, :3]
+        pos = rot @ np.asarray(position_m, dtype=float) + self.matrix[:3, 3]
+        quat = matrix_to_quat_xyzw(rot @ quat_xyzw_to_matrix(quat_xyzw))
+        return pos, quat
+
+
+@dataclass(frozen=True)
+class TipPose:
+    """A validated tip pose in the phantom frame, SI units.
+
+    Attributes:
+        position_m: (3,) position, m.
+        quat_xyzw: (4,) unit quaternion, ROS order.
+        rms_error_m: RMS fit error reported by the tracker, m.
+    """
+
+    position_m: np.ndarray
+    quat_xyzw: np.ndarray
+    rms_error_m: float
+
+
+def convert_sample(quat_wxyz: Sequence[float], position_mm: Sequence[float], error_mm: float,
+                   registration: Registration, *, max_abs_position_m: float) -> TipPose:
+    """Turn one NDI transform into a :class:`TipPose` in the phantom frame.
+
+    Args:
+        quat_wxyz: NDI quaternion (q0, qx, qy, qz).
+        position_mm: position in the field-generator frame, mm.
+        error_mm: RMS error, mm.
+        registration: ``aurora -> phantom``.
+        max_abs_position_m: reject positions farther than this from the field generator, m.
+
+    Raises:
+        ValueError: NaN/inf values, a quaternion far from unit norm, or a position outside the
+            plausible volume; the message names the value found and what was expected.
+    """
+    q = np.asarray(quat_wxyz, dtype=float)
+    p = np.asarray(position_mm, dtype=float)
+    if q.shape != (4,) or p.shape != (3,):
+        raise ValueError(f'expected 4 quaternion and 3 position values, found {q.shape}, '
+                         f'{p.shape}')
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p)) and math.isfinite(error_mm)):
+        raise ValueError(f'expected finite pose values, found q={q.tolist()} '
+                         f'p={p.tolist()} error={error_mm!r}')
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 0.01:
+        raise ValueError(f'expected a unit quaternion (|q| within 0.01 of 1), found |q|={norm}')
+    p_m = mm_to_m(p)
+    if float(np.max(np.abs(p_m))) > max_abs_position_m:
+        raise ValueError(f'expected |x|,|y|,|z| <= {max_abs_position_m} m, found '
+                         f'{p_m.tolist()}')
+    if error_mm < 0:
+        raise ValueError(f'expected a non-negative RMS error, found {error_mm!r} mm')
+    pos, quat = registration.apply(p_m, ndi_quat_to_ros(q / norm))
+    return TipPose(position_m=pos, quat_xyzw=quat, rms_error_m=float(error_mm) * MM_TO_M)

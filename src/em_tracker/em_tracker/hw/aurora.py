@@ -1,0 +1,380 @@
+"""Host side of the NDI Aurora link, through ndicapi (``ndicapy``).
+
+ndicapi does the port handling, command framing, CRCs and reply parsing; this module only
+sequences the start-up and turns its results into :class:`TrackingReply` records (device
+units, as read) or exceptions of :mod:`em_tracker.core.errors`.
+
+Start-up (:meth:`NdiAurora.connect`): ``ndiOpen`` -> ``INIT:`` -> ``COMM:`` baud change ->
+optional SROM images (``PVWR``) -> ``PHSR:02`` / ``PINIT:hh`` for every handle that needs
+initialising -> ``PHSR:03`` / ``PENA:hh<priority>`` for every handle that needs enabling ->
+``TSTART:``. Polling: ``TX:0001`` (or ``BX:0001``). Shutdown: ``TSTOP:``.
+
+Known ndicapi hazard, and why :class:`IsolatedAurora` exists: when a reply fails (bad CRC,
+timeout) *and* its bytes are not valid UTF-8 (line noise), ``ndicapy.ndiCommand`` dereferences a
+NULL object and the process dies with SIGSEGV (observed with ndicapi 3.7.6). The node therefore
+runs ndicapi in a child process by default; a crash there is reported as a disconnect and the
+link is re-established with backoff.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import asdict, dataclass, field
+import json
+import os
+import select
+import subprocess
+import sys
+import time
+from typing import Any, Protocol
+
+from em_tracker.core.errors import (
+    DeviceDisconnected,
+    DeviceError,
+    DeviceTimeout,
+    EmTrackerError,
+    ProtocolError,
+)
+
+# ndicapi error codes (host-side, see ndicapi.h).
+NDI_BAD_CRC = 0x100
+NDI_OPEN_ERROR = 0x101
+NDI_BAD_COMM = 0x102
+NDI_TIMEOUT = 0x103
+NDI_WRITE_ERROR = 0x104
+NDI_READ_ERROR = 0x105
+
+_BAUD_DIGIT = {9600: '0', 14400: '1', 19200: '2', 38400: '3', 57600: '4', 115200: '5',
+               921600: '6', 1228739: '7', 230400: 'A'}
+
+
+@dataclass(frozen=True)
+class AuroraSettings:
+    """What the host needs to bring an Aurora to tracking.
+
+    Attributes:
+        port: serial device path.
+        baud: rate requested with COMM after INIT.
+        priority: PENA tracking priority letter (D, S or B).
+        use_bx: poll with BX (binary) instead of TX (text).
+        srom_files: ``(handle, path)`` SROM images to write before PINIT.
+    """
+
+    port: str
+    baud: int = 115200
+    priority: str = 'D'
+    use_bx: bool = False
+    srom_files: tuple[tuple[int, str], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.baud not in _BAUD_DIGIT:
+            raise ValueError(f'baud must be one of {sorted(_BAUD_DIGIT)}, found {self.baud!r}')
+        if self.priority not in ('D', 'S', 'B'):
+            raise ValueError(f"priority must be 'D', 'S' or 'B', found {self.priority!r}")
+
+
+@dataclass(frozen=True)
+class ToolReading:
+    """One handle of a tracking reply, device units.
+
+    Attributes:
+        handle: port handle.
+        visible: a transform was reported (False for MISSING/DISABLED).
+        quat_wxyz: NDI quaternion (q0, qx, qy, qz); zeros when not visible.
+        position_mm: position in the field-generator frame, mm; zeros when not visible.
+        error_mm: RMS error, mm.
+        port_status: 32-bit port status.
+        frame_number: device frame number.
+    """
+
+    handle: int
+    visible: bool
+    quat_wxyz: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    position_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    error_mm: float = 0.0
+    port_status: int = 0
+    frame_number: int = 0
+
+
+@dataclass(frozen=True)
+class TrackingReply:
+    """One TX/BX reply.
+
+    Attributes:
+        tools: readings of the enabled handles.
+        system_status: 16-bit system status.
+        host_time: monotonic time at which the reply was complete, s.
+    """
+
+    tools: tuple[ToolReading, ...]
+    system_status: int
+    host_time: float = field(default_factory=time.monotonic)
+
+
+class AuroraDevice(Protocol):
+    """What the node needs from a tracker (ndicapi, a child process, or a test fake)."""
+
+    def connect(self) -> list[int]:
+        """Open, initialise, enable tools and start tracking; return the enabled handles."""
+        ...
+
+    def read(self) -> TrackingReply:
+        """Poll one tracking reply (blocks up to the device timeout)."""
+        ...
+
+    def close(self) -> None:
+        """Stop tracking if possible and release the port; never raises."""
+        ...
+
+
+def _ndicapy() -> Any:
+    try:
+        import ndicapy
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DeviceError('ndicapy is missing: pip install ndicapi==3.7.6') from exc
+    return ndicapy
+
+
+class NdiAurora:
+    """An Aurora driven in-process through ndicapi.
+
+    Args:
+        settings: port, baud, priority, TX/BX, SROM images.
+    """
+
+    def __init__(self, settings: AuroraSettings) -> None:
+        self.settings = settings
+        self._ndi = _ndicapy()
+        self._dev: Any = None
+        self.handles: list[int] = []
+
+    def _error(self, command: str, exc: BaseException) -> EmTrackerError:
+        code = int(self._ndi.ndiGetError(self._dev)) if self._dev is not None else -1
+        text = f'{command}: {exc}'
+        if code in (NDI_READ_ERROR, NDI_WRITE_ERROR, NDI_OPEN_ERROR):
+            return DeviceDisconnected(text)
+        if code == NDI_TIMEOUT:
+            return DeviceTimeout(text)
+        if code == NDI_BAD_CRC:
+            return ProtocolError(text)
+        if isinstance(exc, UnicodeDecodeError):
+            return ProtocolError(f'{command}: undecodable reply ({exc})')
+        return DeviceError(text, code)
+
+    def command(self, text: str) -> str:
+        """Send one command through ``ndiCommand``; return the reply without CRC.
+
+        Raises:
+            DeviceDisconnected, DeviceTimeout, ProtocolError, DeviceError: as ndicapi reports.
+        """
+        if self._dev is None:
+            raise DeviceDisconnected(f'{text}: port {self.settings.port} is not open')
+        try:
+            reply = self._ndi.ndiCommand(self._dev, text)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise self._error(text, exc) from exc
+        return '' if reply is None else str(reply)
+
+    def _phsr(self, option: str) -> list[int]:
+        self.command(f'PHSR:{option}')
+        count = int(self._ndi.ndiGetPHSRNumberOfHandles(self._dev))
+        return [int(self._ndi.ndiGetPHSRHandle(self._dev, i)) for i in range(count)]
+
+    def connect(self) -> list[int]:
+        """Run the start-up sequence and return the enabled handles."""
+        self.close()
+        if not os.path.exists(self.settings.port):
+            raise DeviceDisconnected(f'serial port {self.settings.port} does not exist')
+        dev = self._ndi.ndiOpen(self.settings.port)
+        if dev is None:
+            raise DeviceDisconnected(f'ndiOpen could not open {self.settings.port}')
+        self._dev = dev
+        self.command('INIT:')
+        if self.settings.baud != 9600:
+            self.command(f'COMM:{_BAUD_DIGIT[self.settings.baud]}0000')
+        for handle, path in self.settings.srom_files:
+            if self._ndi.ndiPVWRFromFile(self._dev, handle, path) != 0:
+                raise DeviceError(f'PVWR of {path} on handle {handle:02X} failed (error '
+                                  f'{int(self._ndi.ndiGetError(self._dev)):#x})')
+        for _ in range(4):  # splitters can reveal more handles once initialised
+            pending = self._phsr('02')
+            if not pending:
+                break
+            for handle in pending:
+                self.command(f'PINIT:{handle:02X}')
+        for handle in self._phsr('03'):
+            self.command(f'PENA:{handle:02X}{self.settings.priority}')
+        self.handles = self._phsr('04')
+        self.command('TSTART:')
+        return list(self.handles)
+
+    def read(self) -> TrackingReply:
+        """Poll ``TX:0001`` or ``BX:0001`` and read every enabled handle through ndicapi."""
+        ndi = self._ndi
+        binary = self.settings.use_bx
+        self.command('BX:0001' if binary else 'TX:0001')
+        now = time.monotonic()
+        get_transform = ndi.ndiGetBXTransform if binary else ndi.ndiGetTXTransform
+        get_status = ndi.ndiGetBXPortStatus if binary else ndi.ndiGetTXPortStatus
+        get_frame = ndi.ndiGetBXFrame if binary else ndi.ndiGetTXFrame
+        get_system = ndi.ndiGetBXSystemStatus if binary else ndi.ndiGetTXSystemStatus
+        tools = []
+        for handle in self.handles:
+            key = bytes([handle])
+            transform = get_transform(self._dev, key)
+            status = int(get_status(self._dev, key)) & 0xFFFFFFFF
+            frame = int(get_frame(self._dev, key)) & 0xFFFFFFFF
+            if isinstance(transform, str):  # 'MISSING' or 'DISABLED'
+                tools.append(ToolReading(handle, False, port_status=status, frame_number=frame))
+                continue
+            values = tuple(float(v) for v in transform)
+            tools.append(ToolReading(handle, True, values[0:4], values[4:7],  # type: ignore
+                                     values[7], status, frame))
+        return TrackingReply(tuple(tools), int(get_system(self._dev)) & 0xFFFF, now)
+
+    def close(self) -> None:
+        """Send TSTOP if possible and close the port."""
+        if self._dev is None:
+            return
+        with contextlib.suppress(OSError, UnicodeDecodeError):
+            self._ndi.ndiCommand(self._dev, 'TSTOP:')
+        with contextlib.suppress(OSError):
+            self._ndi.ndiClose(self._dev)
+        self._dev = None
+
+
+# ---------------------------------------------------------------------- child-process wrapper
+_ERRORS: dict[str, type[EmTrackerError]] = {
+    'DeviceDisconnected': DeviceDisconnected, 'DeviceTimeout': DeviceTimeout,
+    'ProtocolError': ProtocolError, 'DeviceError': DeviceError,
+}
+
+
+class IsolatedAurora:
+    """:class:`NdiAurora` running in a child process (``python -m em_tracker.hw.aurora``).
+
+    Requests and replies are JSON lines on the child's stdin/stdout. If the child dies (e.g.
+    SIGSEGV inside ndicapi) or does not answer within ``reply_timeout_s``, it is killed and the
+    call raises :class:`DeviceDisconnected` / :class:`DeviceTimeout`.
+
+    Args:
+        settings: as for :class:`NdiAurora`.
+        reply_timeout_s: longest wait for one answer, s.
+    """
+
+    def __init__(self, settings: AuroraSettings, reply_timeout_s: float = 7.0) -> None:
+        self.settings = settings
+        self.reply_timeout_s = reply_timeout_s
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._buffer = b''
+
+    def _spawn(self) -> subprocess.Popen[bytes]:
+        self._kill()
+        self._buffer = b''
+        self._proc = subprocess.Popen(
+            [sys.executable, '-m', 'em_tracker.hw.aurora'], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0)
+        return self._proc
+
+    def _kill(self) -> None:
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=5)
+        for stream in (proc.stdin, proc.stdout):
+            if stream is not None:
+                stream.close()
+
+    def _call(self, request: dict[str, Any], timeout_s: float) -> dict[str, Any]:
+        proc = self._proc
+        if proc is None or proc.poll() is not None or proc.stdin is None or proc.stdout is None:
+            raise DeviceDisconnected('tracker process is not running')
+        try:
+            proc.stdin.write(json.dumps(request).encode() + b'\n')
+        except (BrokenPipeError, OSError) as exc:
+            self._kill()
+            raise DeviceDisconnected(f'tracker process gone: {exc}') from exc
+        deadline = time.monotonic() + timeout_s
+        fd = proc.stdout.fileno()
+        while b'\n' not in self._buffer:
+            left = deadline - time.monotonic()
+            ready = select.select([fd], [], [], max(left, 0.0))[0] if left > 0 else []
+            if not ready:
+                self._kill()
+                raise DeviceTimeout(f'no answer from the tracker within {timeout_s} s')
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                code = proc.wait(timeout=5)
+                self._kill()
+                raise DeviceDisconnected(f'tracker process exited with code {code}')
+            self._buffer += chunk
+        line, self._buffer = self._buffer.split(b'\n', 1)
+        answer: dict[str, Any] = json.loads(line)
+        if not answer.get('ok'):
+            cls = _ERRORS.get(answer.get('error', ''), DeviceError)
+            if cls is DeviceError:
+                raise DeviceError(answer.get('message', ''), int(answer.get('code', -1)))
+            raise cls(answer.get('message', ''))
+        return answer
+
+    def connect(self) -> list[int]:
+        """Start a fresh child and run the start-up sequence in it."""
+        self._spawn()
+        settings = asdict(self.settings)
+        answer = self._call({'op': 'connect', 'settings': settings},
+                            self.reply_timeout_s * 4)
+        return [int(h) for h in answer['handles']]
+
+    def read(self) -> TrackingReply:
+        """Poll one reply through the child."""
+        answer = self._call({'op': 'read'}, self.reply_timeout_s)
+        tools = tuple(ToolReading(t['handle'], t['visible'], tuple(t['quat_wxyz']),
+                                  tuple(t['position_mm']), t['error_mm'], t['port_status'],
+                                  t['frame_number']) for t in answer['tools'])
+        # The child's clock is the same CLOCK_MONOTONIC as ours.
+        return TrackingReply(tools, int(answer['system_status']), float(answer['host_time']))
+
+    def close(self) -> None:
+        """Ask the child to stop tracking, then end it."""
+        if self._proc is not None and self._proc.poll() is None:
+            with contextlib.suppress(EmTrackerError):
+                self._call({'op': 'close'}, 2.0)
+        self._kill()
+
+
+def _serve_child() -> None:
+    """Child side of :class:`IsolatedAurora`: JSON requests on stdin, answers on stdout."""
+    out = sys.stdout.buffer
+    device: NdiAurora | None = None
+    for raw in sys.stdin.buffer:
+        request = json.loads(raw)
+        answer: dict[str, Any] = {'ok': True}
+        try:
+            if request['op'] == 'connect':
+                s = dict(request['settings'])
+                s['srom_files'] = tuple((int(h), str(p)) for h, p in s['srom_files'])
+                device = NdiAurora(AuroraSettings(**s))
+                answer['handles'] = device.connect()
+            elif request['op'] == 'read':
+                if device is None:
+                    raise DeviceDisconnected('read before connect')
+                reply = device.read()
+                answer.update(tools=[asdict(t) for t in reply.tools],
+                              system_status=reply.system_status, host_time=reply.host_time)
+            elif request['op'] == 'close':
+                if device is not None:
+                    device.close()
+                answer['closed'] = True
+        except EmTrackerError as exc:
+            answer = {'ok': False, 'error': type(exc).__name__, 'message': str(exc),
+                      'code': getattr(exc, 'code', -1)}
+        out.write(json.dumps(answer).encode() + b'\n')
+        out.flush()
+        if request['op'] == 'close':
+            break
+
+
+if __name__ == '__main__':
+    _serve_child()
