@@ -1,0 +1,97 @@
+"""Markdown tables and box plots of trial metrics (the paper's Fig. "in-vitro comparison")."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import math
+from pathlib import Path
+
+import numpy as np
+
+from cgail_planner.core.metrics import (
+    COMPARED_METRICS,
+    group_by_condition,
+    KruskalResult,
+    TrialMetrics,
+)
+
+
+def _fmt(value: float, digits: int = 2) -> str:
+    return 'n/a' if not math.isfinite(value) else f'{value:.{digits}f}'
+
+
+def _mean_std(values: Sequence[float], scale: float, digits: int) -> str:
+    arr = np.array(values, dtype=np.float64) * scale
+    arr = arr[np.isfinite(arr)]
+    if len(arr) == 0:
+        return 'n/a'
+    return f'{arr.mean():.{digits}f} ± {arr.std():.{digits}f}'
+
+
+def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult]) -> str:
+    """The per-trial table, the per-condition summary and the Kruskal-Wallis p-values."""
+    lines = ['## Trials', '',
+             '| trial | condition | samples | T_r mean (mm) | T_r std (mm) | T_r max (mm) '
+             '| T_a (mm) | T (s) | success | curvature (mm^-1) |',
+             '|---|---|---:|---:|---:|---:|---:|---:|---|---:|']
+    for m in trials:
+        success = 'yes' if m.success else ('no (time limit)' if m.timed_out else 'no')
+        lines.append(
+            f'| {m.name} | {m.condition} | {m.samples} | {_fmt(m.tracking_mean * 1e3)} '
+            f'| {_fmt(m.tracking_std * 1e3)} | {_fmt(m.tracking_max * 1e3)} '
+            f'| {_fmt(m.targeting_error * 1e3)} | {_fmt(m.duration, 1)} | {success} '
+            f'| {_fmt(m.curvature_mean * 1e-3, 4)} ± {_fmt(m.curvature_std * 1e-3, 4)} |')
+    lines += ['', '## Conditions (mean ± std over trials)', '',
+              '| condition | trials | success rate | T_r (mm) | T_a (mm) | T (s) '
+              '| curvature (mm^-1) |',
+              '|---|---:|---:|---:|---:|---:|---:|']
+    for condition, members in group_by_condition(trials).items():
+        rate = sum(m.success for m in members) / len(members)
+        lines.append(
+            f'| {condition} | {len(members)} | {rate:.0%} '
+            f'| {_mean_std([m.tracking_mean for m in members], 1e3, 2)} '
+            f'| {_mean_std([m.targeting_error for m in members], 1e3, 2)} '
+            f'| {_mean_std([m.duration for m in members], 1.0, 1)} '
+            f'| {_mean_std([m.curvature_mean for m in members], 1e-3, 4)} |')
+    lines += ['', '## Kruskal-Wallis test between conditions (significant: p < 0.05)', '',
+              '| metric | H | p | significant |', '|---|---:|---:|---|']
+    for test in tests:
+        label = COMPARED_METRICS.get(test.metric, (test.metric, '', 1.0))[0]
+        verdict = 'n/a' if not math.isfinite(test.pvalue) else (
+            'yes' if test.significant else 'no')
+        lines.append(f'| {label} | {_fmt(test.statistic, 3)} | {_fmt(test.pvalue, 4)} '
+                     f'| {verdict} |')
+    return '\n'.join(lines) + '\n'
+
+
+def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
+              path: Path) -> Path:
+    """Write one box plot per compared metric (conditions side by side) to a PNG."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    groups = group_by_condition(trials)
+    pvalues = {t.metric: t.pvalue for t in tests}
+    metrics = list(COMPARED_METRICS.items())
+    fig, axes = plt.subplots(1, len(metrics), figsize=(4.0 * len(metrics), 4.0))
+    for ax, (metric, (label, unit, scale)) in zip(np.atleast_1d(axes), metrics, strict=True):
+        data = []
+        for members in groups.values():
+            values = np.array([getattr(m, metric) for m in members], dtype=np.float64) * scale
+            data.append(values[np.isfinite(values)])
+        ax.boxplot(data, tick_labels=list(groups), showmeans=True)
+        for i, values in enumerate(data, start=1):
+            ax.scatter(np.full(len(values), i), values, s=12, alpha=0.6, zorder=3)
+        pvalue = pvalues.get(metric, math.nan)
+        mark = ' *' if math.isfinite(pvalue) and pvalue < 0.05 else ''
+        ptext = f'p = {pvalue:.3g}{mark}' if math.isfinite(pvalue) else 'p = n/a'
+        ax.set_title(f'{label}\n(Kruskal-Wallis {ptext})', fontsize=10)
+        ax.set_ylabel(unit)
+        ax.grid(axis='y', alpha=0.3)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
