@@ -1,0 +1,283 @@
+"""``aurora_node``: NDI Aurora tip pose -> ``em_tracker/tip_pose`` (node name ``aurora``).
+
+A plain ``rclpy`` Node with configure/activate semantics: the constructor is *configure*
+(parameters declared, validated into a :class:`TrackerConfig`; bad values raise ``ValueError``;
+publishers created) and *activates* at once by starting the reader thread. ``destroy_node`` is
+*deactivate + cleanup* (TSTOP, port closed, thread joined).
+
+The reader thread owns every blocking serial call: it runs the start-up sequence, polls the
+device at its frame rate, validates and converts each new frame, and hands poses to the
+executor through a deque and a guard condition. Disconnects and repeated bad replies close the
+link and retry with exponential backoff; the state is published on ``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import collections
+from collections.abc import Callable
+import threading
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from geometry_msgs.msg import PoseStamped
+from std_msgs.msg import Float64
+
+from em_tracker.core.config import TrackerConfig
+from em_tracker.core.errors import DeviceError, EmTrackerError, ProtocolError
+from em_tracker.core.pose import Registration, TipPose, convert_sample
+from em_tracker.core.tracking import LinkState, TrackerHealth
+from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
+from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
+
+DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
+
+_DEFAULTS = TrackerConfig()
+# name -> (default, description, range (low, high) or None)
+_PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
+    'port': (_DEFAULTS.port, 'serial device of the Aurora (or a sim_aurora pty/symlink)', None),
+    'baud': (_DEFAULTS.baud, 'baud rate set with COMM after INIT (9600..230400)', None),
+    'tool_handle': (_DEFAULTS.tool_handle, 'port handle to publish; 0 = first enabled', (0, 255)),
+    'priority': (_DEFAULTS.priority, 'PENA tracking priority: D, S or B', None),
+    'srom_files': ('', "comma-separated 'hh:/path/tool.rom' SROM images written with PVWR",
+                   None),
+    'use_bx': (_DEFAULTS.use_bx, 'poll with binary BX:0001 instead of TX:0001', None),
+    'rate_hz': (_DEFAULTS.rate_hz, 'device frame rate followed by the poller, Hz', (1.0, 1000.0)),
+    'registration': ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                     'aurora->phantom: 7 values [tx ty tz qx qy qz qw] (m) or 16 (4x4 row-major)',
+                     None),
+    'frame_id': (_DEFAULTS.frame_id, 'frame_id of the published pose', None),
+    'max_abs_position_m': (_DEFAULTS.max_abs_position_m,
+                           'reject readings with a coordinate beyond this, m', (0.01, 10.0)),
+    'reply_timeout_s': (_DEFAULTS.reply_timeout_s, 'longest wait for a reply, s', (0.1, 60.0)),
+    'max_consecutive_errors': (_DEFAULTS.max_consecutive_errors,
+                               'bad replies in a row before reconnecting', (1, 1000)),
+    'reconnect_initial_s': (_DEFAULTS.reconnect_initial_s, 'first reconnect delay, s',
+                            (0.01, 60.0)),
+    'reconnect_max_s': (_DEFAULTS.reconnect_max_s, 'max reconnect delay, s', (0.01, 600.0)),
+    'stale_after_s': (_DEFAULTS.stale_after_s, 'diagnostics STALE after this long without a '
+                      'new frame, s', (0.01, 60.0)),
+    'diagnostics_period_s': (_DEFAULTS.diagnostics_period_s, '/diagnostics period, s',
+                             (0.05, 60.0)),
+    'isolate_device': (_DEFAULTS.isolate_device,
+                       'run ndicapi in a child process (a crash there cannot kill the node)',
+                       None),
+}
+
+
+def _descriptor(description: str, bounds: tuple[float, float] | None,
+                default: object) -> ParameterDescriptor:
+    desc = ParameterDescriptor(description=description)
+    if bounds is not None and isinstance(default, int) and not isinstance(default, bool):
+        desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
+                                           step=1)]
+    elif bounds is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
+                                                        to_value=float(bounds[1]), step=0.0)]
+    return desc
+
+
+def default_device(config: TrackerConfig) -> AuroraDevice:
+    """ndicapi device for ``config`` (in a child process unless ``isolate_device`` is off)."""
+    srom = tuple((int(h, 16), p) for h, _, p in (e.partition(':') for e in config.srom_files))
+    settings = AuroraSettings(port=config.port, baud=config.baud, priority=config.priority,
+                              use_bx=config.use_bx, srom_files=srom)
+    if config.isolate_device:
+        return IsolatedAurora(settings, reply_timeout_s=config.reply_timeout_s)
+    return NdiAurora(settings)
+
+
+class AuroraNode(Node):
+    """Publishes the Aurora tip pose, its RMS error and diagnostics.
+
+    Args:
+        device_factory: builds the device from the config (tests pass a fake).
+        **kwargs: forwarded to ``Node`` (e.g. ``parameter_overrides``).
+
+    Raises:
+        ValueError: a parameter is out of range or malformed (raised while constructing).
+    """
+
+    def __init__(self, *, device_factory: DeviceFactory | None = None, **kwargs) -> None:
+        super().__init__('aurora', **kwargs)
+        for name, (default, description, bounds) in _PARAMS.items():
+            self.declare_parameter(name, default, _descriptor(description, bounds, default))
+        self.config = self._build_config()
+        self._pose_pub = self.create_publisher(PoseStamped, 'em_tracker/tip_pose',
+                                               qos_profile_sensor_data)
+        self._rms_pub = self.create_publisher(Float64, 'em_tracker/rms_error',
+                                              qos_profile_sensor_data)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                               QoSProfile(depth=10))
+        self.health = TrackerHealth()
+        self._lock = threading.Lock()
+        self._queue: collections.deque[tuple[TipPose, float]] = collections.deque(maxlen=64)
+        self._guard = self.create_guard_condition(self._on_new_pose)
+        self._diag_timer = self.create_timer(self.config.diagnostics_period_s,
+                                             self._on_diagnostics_timer)
+        self._device = (device_factory or default_device)(self.config)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='aurora_reader', daemon=True)
+        self._thread.start()
+
+    def _build_config(self) -> TrackerConfig:
+        get = self.get_parameter
+        srom = tuple(e.strip() for e in str(get('srom_files').value).split(',') if e.strip())
+        return TrackerConfig(
+            port=get('port').value, baud=get('baud').value, tool_handle=get('tool_handle').value,
+            priority=get('priority').value, srom_files=srom, use_bx=get('use_bx').value,
+            rate_hz=get('rate_hz').value,
+            registration=Registration.from_flat(list(get('registration').value)),
+            frame_id=get('frame_id').value, max_abs_position_m=get('max_abs_position_m').value,
+            reply_timeout_s=get('reply_timeout_s').value,
+            max_consecutive_errors=get('max_consecutive_errors').value,
+            reconnect_initial_s=get('reconnect_initial_s').value,
+            reconnect_max_s=get('reconnect_max_s').value,
+            stale_after_s=get('stale_after_s').value,
+            diagnostics_period_s=get('diagnostics_period_s').value,
+            isolate_device=get('isolate_device').value)
+
+    # ------------------------------------------------------------------ reader thread
+    def _run(self) -> None:
+        cfg = self.config
+        delay = cfg.reconnect_initial_s
+        while not self._stop.is_set():
+            with self._lock:
+                self.health.link = LinkState.CONNECTING
+            try:
+                handles = self._device.connect()
+                handle = cfg.tool_handle or (handles[0] if handles else 0)
+                if handle not in handles:
+                    raise DeviceError(f'expected tool handle {handle:02X} among the enabled '
+                                      f'handles, found {[f"{h:02X}" for h in handles]}')
+                with self._lock:
+                    self.health.link = LinkState.TRACKING
+                    self.health.frames.reset()
+                delay = cfg.reconnect_initial_s
+                self._poll(handle)
+            except EmTrackerError as exc:
+                with self._lock:
+                    self.health.last_error = f'{type(exc).__name__}: {exc}'
+                self.get_logger().warning(f'Aurora link lost: {exc}; retrying in {delay:.2f} s',
+                                          throttle_duration_sec=5.0)
+            self._device.close()
+            if self._stop.is_set():
+                break
+            with self._lock:
+                self.health.link = LinkState.DISCONNECTED
+                self.health.reconnects += 1
+            self._stop.wait(delay)
+            delay = min(2.0 * delay, cfg.reconnect_max_s)
+        with self._lock:
+            self.health.link = LinkState.STOPPED
+
+    def _poll(self, handle: int) -> None:
+        cfg = self.config
+        period = 1.0 / cfg.rate_hz
+        errors = 0
+        next_poll = time.monotonic()
+        while not self._stop.is_set():
+            wait = next_poll - time.monotonic()
+            if wait > 0 and self._stop.wait(wait):
+                return
+            try:
+                reply = self._device.read()
+            except (ProtocolError, DeviceError) as exc:
+                errors += 1
+                with self._lock:
+                    self.health.bad_replies += 1
+                    self.health.last_error = f'{type(exc).__name__}: {exc}'
+                if errors >= cfg.max_consecutive_errors:
+                    raise
+                next_poll = time.monotonic() + 0.25 * period
+                continue
+            errors = 0
+            tool = next((t for t in reply.tools if t.handle == handle), None)
+            if tool is None:
+                raise DeviceError(f'expected handle {handle:02X} in the tracking reply, found '
+                                  f'{[f"{t.handle:02X}" for t in reply.tools]}')
+            with self._lock:
+                new = self.health.frames.update(tool.frame_number)
+                self.health.system_status = reply.system_status
+            if not new:
+                next_poll = time.monotonic() + 0.002
+                continue
+            next_poll = reply.host_time + 0.95 * period
+            self._accept(tool.visible, tool.quat_wxyz, tool.position_mm, tool.error_mm,
+                         tool.port_status, reply.host_time)
+
+    def _accept(self, visible: bool, quat_wxyz, position_mm, error_mm: float, port_status: int,
+                host_time: float) -> None:
+        with self._lock:
+            self.health.port_status = port_status
+            self.health.tool_visible = visible
+            self.health.last_frame_time = host_time
+            if not visible:
+                return
+            try:
+                pose = convert_sample(quat_wxyz, position_mm, error_mm, self.config.registration,
+                                      max_abs_position_m=self.config.max_abs_position_m)
+            except ValueError as exc:
+                self.health.rejected += 1
+                self.health.tool_visible = False
+                self.health.last_error = f'rejected reading: {exc}'
+                return
+            self.health.rms_error_mm = float(error_mm)
+            self._queue.append((pose, host_time))
+        self._guard.trigger()
+
+    # ------------------------------------------------------------------ executor callbacks
+    def _on_new_pose(self) -> None:
+        now_ros = self.get_clock().now()
+        now_mono = time.monotonic()
+        while self._queue:
+            pose, host_time = self._queue.popleft()
+            age_ns = int(max(0.0, now_mono - host_time) * 1e9)
+            stamp = rclpy.time.Time(nanoseconds=now_ros.nanoseconds - age_ns,
+                                    clock_type=now_ros.clock_type).to_msg()
+            self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
+            self._rms_pub.publish(Float64(data=pose.rms_error_m))
+            with self._lock:
+                self.health.published += 1
+
+    def _on_diagnostics_timer(self) -> None:
+        with self._lock:
+            level, message = self.health.level(time.monotonic(), self.config.stale_after_s)
+            values = self.health.values()
+        values['port'] = self.config.port
+        values['protocol'] = 'BX' if self.config.use_bx else 'TX'
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [diagnostic_status('aurora: EM tracker', f'ndi_aurora:{self.config.port}',
+                                        level, message, values)]
+        self._diag_pub.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Stop the reader thread (TSTOP, port closed) and destroy the node."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=self.config.reply_timeout_s + 2.0)
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Run the node: ``scripts/ws ros2run em_tracker aurora_node --ros-args -p port:=...``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = AuroraNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

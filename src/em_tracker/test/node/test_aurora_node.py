@@ -1,0 +1,282 @@
+"""aurora_node in-process: parameters, topics, QoS, diagnostics, units, faults, backoff."""
+
+from __future__ import annotations
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+import rclpy
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from std_msgs.msg import Float64
+
+from em_tracker.core.errors import DeviceDisconnected, DeviceError, ProtocolError
+from em_tracker.hw.aurora import ToolReading, TrackingReply
+from em_tracker.hw.sim_aurora import ScriptedTrajectory, SimAurora
+from em_tracker.nodes.aurora_node import AuroraNode
+
+BAD_PARAM = (ValueError, InvalidParameterValueException, InvalidParameterTypeException)
+
+
+@pytest.fixture
+def ctx():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+class FakeDevice:
+    """AuroraDevice fake: a scripted list of readings or exceptions, then repeats the last."""
+
+    def __init__(self, script, handles=(0x0A,)):
+        self.script = list(script)
+        self.handles = list(handles)
+        self.connects = 0
+        self.connect_times: list[float] = []
+        self.fail_connects = 0
+        self.closed = 0
+        self.frame = 0
+
+    def connect(self):
+        self.connects += 1
+        self.connect_times.append(time.monotonic())
+        if self.fail_connects > 0:
+            self.fail_connects -= 1
+            raise DeviceDisconnected('no such port')
+        return self.handles
+
+    def read(self):
+        time.sleep(0.002)
+        item = self.script.pop(0) if len(self.script) > 1 else self.script[0]
+        if isinstance(item, Exception):
+            raise item
+        self.frame += 1
+        return TrackingReply((ToolReading(frame_number=self.frame, **item),), 0,
+                             time.monotonic())
+
+    def close(self):
+        self.closed += 1
+
+
+VALID = dict(handle=0x0A, visible=True, quat_wxyz=(0.5, 0.5, 0.5, 0.5),
+             position_mm=(10.0, -20.0, -150.0), error_mm=0.3, port_status=0x31)
+
+
+class Harness:
+    def __init__(self, node):
+        self.node = node
+        self.sub_node = rclpy.create_node('aurora_test_listener')
+        self.poses: list[PoseStamped] = []
+        self.rms: list[float] = []
+        self.diags: list[DiagnosticStatus] = []
+        self.sub_node.create_subscription(PoseStamped, 'em_tracker/tip_pose', self.poses.append,
+                                          qos_profile_sensor_data)
+        self.sub_node.create_subscription(Float64, 'em_tracker/rms_error',
+                                          lambda m: self.rms.append(m.data),
+                                          qos_profile_sensor_data)
+        self.sub_node.create_subscription(
+            DiagnosticArray, '/diagnostics', lambda m: self.diags.extend(m.status),
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(node)
+        self.executor.add_node(self.sub_node)
+
+    def spin_until(self, predicate, timeout=5.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.executor.spin_once(timeout_sec=0.02)
+            if predicate():
+                return True
+        return False
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.sub_node.destroy_node()
+
+
+def make(fake, **params):
+    overrides = [Parameter('diagnostics_period_s', value=0.1)]
+    overrides += [Parameter(k, value=v) for k, v in params.items()]
+    factory = None if fake is None else (lambda cfg: fake)
+    return Harness(AuroraNode(device_factory=factory, parameter_overrides=overrides))
+
+
+@pytest.mark.parametrize('name,value', [
+    ('baud', 1234), ('priority', 'X'), ('registration', [1.0, 2.0, 3.0]),
+    ('registration', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]), ('rate_hz', 0.0),
+    ('tool_handle', 300), ('srom_files', 'zz:/x.rom'), ('port', ''), ('frame_id', ''),
+    ('reconnect_max_s', 0.02), ('tool_handle', 'ten'),
+])
+def test_bad_parameters_raise_at_construction(ctx, name, value):
+    with pytest.raises(BAD_PARAM):
+        AuroraNode(device_factory=lambda cfg: FakeDevice([VALID]),
+                   parameter_overrides=[Parameter(name, value=value)])
+
+
+def test_publishers_qos_and_defaults(ctx):
+    h = make(FakeDevice([VALID]))
+    try:
+        node = h.node
+        topics = {name: types for name, types in node.get_publisher_names_and_types_by_node(
+            'aurora', '/')}
+        assert topics['/em_tracker/tip_pose'] == ['geometry_msgs/msg/PoseStamped']
+        assert topics['/em_tracker/rms_error'] == ['std_msgs/msg/Float64']
+        assert topics['/diagnostics'] == ['diagnostic_msgs/msg/DiagnosticArray']
+        info = node.get_publishers_info_by_topic('/em_tracker/tip_pose')[0]
+        assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        diag = node.get_publishers_info_by_topic('/diagnostics')[0]
+        assert diag.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+        assert node.config.frame_id == 'phantom' and node.config.rate_hz == 40.0
+    finally:
+        h.close()
+
+
+def test_pose_units_quaternion_order_and_registration(ctx):
+    # Registration: +90 deg about z, then translate by (1, 2, 3) m.
+    s = math.sqrt(0.5)
+    h = make(FakeDevice([VALID]), registration=[1.0, 2.0, 3.0, 0.0, 0.0, s, s])
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 3 and h.rms)
+        msg = h.poses[-1]
+        assert msg.header.frame_id == 'phantom'
+        p = msg.pose.position
+        # (10, -20, -150) mm -> (0.01, -0.02, -0.15) m, rotated: (0.02, 0.01, -0.15) + t.
+        assert (p.x, p.y, p.z) == pytest.approx((1.02, 2.01, 2.85), abs=1e-9)
+        q = msg.pose.orientation
+        # NDI (w x y z) = (.5 .5 .5 .5) -> ROS (x y z w), then left-multiplied by Rz(90).
+        rz = np.array([0.0, 0.0, s, s])
+        qa = np.array([0.5, 0.5, 0.5, 0.5])
+        x1, y1, z1, w1 = rz
+        x2, y2, z2, w2 = qa
+        expected = np.array([w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                             w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                             w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+                             w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2])
+        got = np.array([q.x, q.y, q.z, q.w])
+        assert min(np.abs(got - expected).max(), np.abs(got + expected).max()) < 1e-9
+        assert h.rms[-1] == pytest.approx(0.3e-3)
+    finally:
+        h.close()
+
+
+def _last_level(h):
+    return h.diags[-1].level if h.diags else None
+
+
+def test_diagnostics_ok_then_warn_on_missing(ctx):
+    fake = FakeDevice([VALID] * 20 + [dict(handle=0x0A, visible=False, port_status=0x71)])
+    h = make(fake)
+    try:
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.OK)
+        status = h.diags[-1]
+        assert status.hardware_id.startswith('ndi_aurora:')
+        keys = {kv.key: kv.value for kv in status.values}
+        assert int(keys['frames_received']) > 0 and keys['link'] == 'tracking'
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.WARN)
+        assert 'MISSING' in h.diags[-1].message and 'out of volume' in h.diags[-1].message
+    finally:
+        h.close()
+
+
+def test_broken_coil_is_error_and_nan_is_rejected(ctx):
+    nan = dict(VALID, position_mm=(float('nan'), 0.0, 0.0))
+    fake = FakeDevice([nan, nan, dict(handle=0x0A, visible=False, port_status=0x131)])
+    h = make(fake)
+    try:
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.ERROR)
+        assert 'coil' in h.diags[-1].message
+        assert h.node.health.rejected == 2
+        assert h.poses == []
+    finally:
+        h.close()
+
+
+def test_bad_replies_are_counted_then_reconnect_with_backoff(ctx):
+    fake = FakeDevice([ProtocolError('bad CRC')] * 3 + [DeviceError('ERROR0C', 0x0C)] * 3
+                      + [VALID])
+    fake.fail_connects = 0
+    h = make(fake, max_consecutive_errors=4, reconnect_initial_s=0.05, reconnect_max_s=0.4)
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 2)
+        assert h.node.health.bad_replies == 6
+        assert fake.connects == 2  # 4 consecutive errors forced one reconnect
+    finally:
+        h.close()
+
+
+def test_connect_failures_back_off_exponentially(ctx):
+    fake = FakeDevice([VALID])
+    fake.fail_connects = 4
+    h = make(fake, reconnect_initial_s=0.05, reconnect_max_s=0.15)
+    try:
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.ERROR, timeout=3.0)
+        assert h.spin_until(lambda: len(h.poses) >= 1, timeout=5.0)
+        gaps = np.diff(fake.connect_times)
+        assert gaps[0] == pytest.approx(0.05, abs=0.04)
+        assert gaps[1] == pytest.approx(0.10, abs=0.05)
+        assert gaps[2] == pytest.approx(0.15, abs=0.05) and gaps[3] == pytest.approx(0.15,
+                                                                                     abs=0.05)
+        assert h.node.health.reconnects == 4
+    finally:
+        h.close()
+
+
+def test_wrong_tool_handle_reported(ctx):
+    h = make(FakeDevice([VALID]), tool_handle=0x0B, reconnect_initial_s=0.05)
+    try:
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.ERROR)
+        keys = {kv.key: kv.value for kv in h.diags[-1].values}
+        assert 'expected tool handle 0B' in keys['last_error']
+    finally:
+        h.close()
+
+
+@pytest.mark.parametrize('use_bx', [False, True])
+def test_node_through_ndicapi_to_simulated_aurora(ctx, tmp_path, use_bx):
+    """Full start-up handshake node -> ndicapi (child process) -> pty -> simulated Aurora."""
+    traj = ScriptedTrajectory([0.0, 100.0], [[10.0, 20.0, -200.0], [10.0, 20.0, -200.0]],
+                              [[1.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]])
+    sim = SimAurora(traj, link_path=str(tmp_path / 'aurora')).start()
+    h = make(None, port=sim.port, use_bx=use_bx, reconnect_initial_s=0.05)
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 5, timeout=8.0)
+        p = h.poses[-1].pose.position
+        assert (p.x, p.y, p.z) == pytest.approx((0.010, 0.020, -0.200), abs=1e-6)
+        names = [c.split(':')[0] for c in sim.stats.commands[:9]]
+        assert names == ['INIT', 'COMM', 'PHSR', 'PINIT', 'PHSR', 'PHSR', 'PENA', 'PHSR',
+                         'TSTART']
+        assert sim.stats.baud == 115200
+        assert sim.stats.commands[9].startswith('BX:0001' if use_bx else 'TX:0001')
+        # disconnect: diagnostics ERROR, then recovery after the device comes back
+        sim.disconnect()
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.ERROR, timeout=5.0)
+        sim.reconnect()
+        n = len(h.poses)
+        assert h.spin_until(lambda: len(h.poses) > n + 3, timeout=8.0)
+        assert h.node.health.reconnects >= 1
+    finally:
+        h.close()
+        sim.close()
+
+
+def test_node_survives_garbage_that_crashes_ndicapi(ctx, tmp_path):
+    """Non-UTF-8 garbage in a failed reply segfaults ndicapy; the child process absorbs it."""
+    sim = SimAurora(link_path=str(tmp_path / 'aurora')).start()
+    h = make(None, port=sim.port, reconnect_initial_s=0.05)
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 3, timeout=8.0)
+        sim.inject(garbage=1, garbage_bytes=b'\xff\xfe\xfd', bad_crc=1)
+        n = len(h.poses)
+        assert h.spin_until(lambda: h.node.health.reconnects >= 1, timeout=5.0)
+        assert h.spin_until(lambda: len(h.poses) > n + 3, timeout=8.0)
+        assert h.node.health.link.value == 'tracking'
+    finally:
+        h.close()
+        sim.close()
