@@ -163,13 +163,17 @@ class PamSupervisor:
                                       'found one (release pam_controller/estop first)')
             target = self.model.pressures_for_bend(bend)
         except CommandRejectedError as err:
-            self.rejected_count += 1
-            self.last_rejection = str(err)
+            self.note_rejection(err)
             raise
         self._target = target
         self._last_command = now
         self._phase = Phase.ACTIVE
         return target.copy()
+
+    def note_rejection(self, err: Exception) -> None:
+        """Count a command refused before it reached :meth:`command` (e.g. a bad message)."""
+        self.rejected_count += 1
+        self.last_rejection = str(err)
 
     def engage_estop(self) -> None:
         """Vent now and refuse commands until :meth:`release_estop`."""

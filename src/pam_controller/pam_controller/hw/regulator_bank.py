@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass, field
+import math
 from typing import Protocol
 
 import can
@@ -22,6 +23,43 @@ from pam_controller.errors import DeviceUnavailableError, ProtocolError
 from pam_controller.hw import can_protocol as proto
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """How the host reaches the bank and decides it is gone."""
+
+    interface: str = 'virtual'
+    """python-can interface (``virtual`` for the simulated rig and tests, ``socketcan`` on
+    the rig)."""
+    channel: str = 'pam0'
+    """python-can channel (``can0`` on the rig)."""
+    bitrate: int = 1_000_000
+    """Bit rate, bit/s (ignored by ``virtual``). In [10000, 1000000]."""
+    heartbeat_period_s: float = 0.1
+    """Period of ``PAM_HOST_HEARTBEAT``, s; must stay below the bank's 0.5 s host timeout.
+    In [0.01, 0.4]."""
+    device_timeout_s: float = 0.3
+    """No ``PAM_MEASURED`` for this long: the bank counts as disconnected, s. In [0.02, 10]."""
+    reconnect_initial_s: float = 0.2
+    """First reconnect delay, s; doubles per failed attempt. In (0, 60]."""
+    reconnect_max_s: float = 5.0
+    """Largest reconnect delay, s. In [reconnect_initial_s, 600]."""
+
+    def __post_init__(self) -> None:
+        if not self.interface:
+            raise ValueError('interface must be a non-empty python-can interface name, found ""')
+        if not self.channel:
+            raise ValueError('channel must be a non-empty channel name, found ""')
+        if not 10_000 <= self.bitrate <= 1_000_000:
+            raise ValueError(f'bitrate must be in [10000, 1000000], found {self.bitrate}')
+        ranges = {'heartbeat_period_s': (0.01, 0.4), 'device_timeout_s': (0.02, 10.0),
+                  'reconnect_initial_s': (1e-6, 60.0),
+                  'reconnect_max_s': (self.reconnect_initial_s, 600.0)}
+        for name, (lo, hi) in ranges.items():
+            value = getattr(self, name)
+            if not (math.isfinite(value) and lo <= value <= hi):
+                raise ValueError(f'{name} must be in [{lo}, {hi}], found {value}')
 
 
 @dataclass

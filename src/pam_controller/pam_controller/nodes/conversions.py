@@ -1,0 +1,70 @@
+"""Messages <-> core types for the pam_controller node (no logic beyond the mapping)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+import math
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+import numpy as np
+from numpy.typing import NDArray
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+
+from pam_controller.core.bending_model import BEND_JOINT_NAMES, CHAMBER_LABELS
+from pam_controller.errors import CommandRejectedError
+
+PRESSURE_LAYOUT_LABEL = ','.join(CHAMBER_LABELS)
+"""``layout.dim[0].label`` of ``pam/pressures``: the chamber order of ``data``."""
+
+
+def bend_from_joint_state(msg: JointState) -> NDArray[np.float64]:
+    """``[alpha, gamma]`` (rad) from a bend command; other joints in the message are ignored.
+
+    Raises:
+        CommandRejectedError: a bend joint is missing or has no position.
+    """
+    names = list(msg.name)
+    positions = list(msg.position)
+    if len(positions) != len(names):
+        raise CommandRejectedError(
+            f'expected one position per joint name, found {len(names)} names and '
+            f'{len(positions)} positions')
+    missing = [n for n in BEND_JOINT_NAMES if n not in names]
+    if missing:
+        raise CommandRejectedError(
+            f'expected joints {list(BEND_JOINT_NAMES)}, found {names} (missing {missing})')
+    return np.array([float(positions[names.index(n)]) for n in BEND_JOINT_NAMES])
+
+
+def bend_to_joint_state(bend: Sequence[float], stamp: Time) -> JointState:
+    """JointState with ``bend_alpha``, ``bend_gamma`` positions (rad)."""
+    msg = JointState()
+    msg.header.stamp = stamp
+    msg.name = list(BEND_JOINT_NAMES)
+    msg.position = [float(b) for b in bend]
+    return msg
+
+
+def pressures_to_multiarray(pressures_pa: Sequence[float]) -> Float64MultiArray:
+    """Four chamber pressures (Pa) in the documented layout."""
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=PRESSURE_LAYOUT_LABEL, size=4, stride=4)]
+    msg.layout.data_offset = 0
+    msg.data = [float(p) for p in pressures_pa]
+    return msg
+
+
+def diagnostic_status(name: str, hardware_id: str, level: bytes, message: str,
+                      values: Iterable[tuple[str, object]]) -> DiagnosticStatus:
+    """A DiagnosticStatus; floats are written with 6 significant digits, NaN as ``nan``."""
+    def fmt(v: object) -> str:
+        if isinstance(v, float):
+            return 'nan' if math.isnan(v) else f'{v:.6g}'
+        if isinstance(v, (list, tuple, np.ndarray)):
+            return '[' + ', '.join(fmt(float(x)) for x in v) + ']'
+        return str(v)
+
+    return DiagnosticStatus(level=level, name=name, hardware_id=hardware_id, message=message,
+                            values=[KeyValue(key=k, value=fmt(v)) for k, v in values])

@@ -1,0 +1,352 @@
+"""pam_controller node: bend commands -> four PAM pressures over CAN, measured bend back.
+
+Lifecycle node (``main`` configures and activates it). Topics, QoS and parameters: see
+``docs/interfaces.md``. All maths and safety rules live in ``core/`` (``BendingModel``,
+``PamSupervisor``) and the CAN protocol in ``hw/``; this file only wires them to ROS.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, Header
+from std_srvs.srv import SetBool
+
+from pam_controller.core.bending_model import BendingModel, BendingModelConfig
+from pam_controller.core.hysteresis import HysteresisConfig
+from pam_controller.core.supervisor import (
+    Backoff,
+    BankMode,
+    PamSupervisor,
+    Phase,
+    SupervisorConfig,
+)
+from pam_controller.errors import CommandRejectedError, DeviceUnavailableError
+from pam_controller.hw import can_protocol as proto
+from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
+from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
+from pam_controller.nodes import conversions as conv
+
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+ERROR_FAULTS = frozenset({'FAULT_STUCK', 'FAULT_OVERPRESSURE'})
+
+# name: (default, description, (low, high) or None). Defaults equal the dataclass defaults.
+PARAMETERS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
+    'can_interface': ('virtual', 'python-can interface: virtual (simulated rig) or socketcan',
+                      None),
+    'can_channel': ('pam0', 'python-can channel (e.g. can0 on the rig)', None),
+    'can_bitrate': (1_000_000, 'CAN bit rate, bit/s (ignored by virtual)', (10_000, 1_000_000)),
+    'simulate_regulators': (True, 'run a simulated regulator bank in-process on the channel',
+                            None),
+    'sim_time_constant_s': (0.08, 'simulated regulator time constant, s', (0.001, 10.0)),
+    'control_rate_hz': (50.0, 'control loop rate: setpoints sent, frames read, s^-1',
+                        (1.0, 500.0)),
+    'heartbeat_period_s': (0.1, 'host heartbeat period, s (bank vents after 0.5 s without)',
+                           (0.01, 0.4)),
+    'diagnostics_period_s': (0.5, 'period of /diagnostics, s', (0.05, 10.0)),
+    'device_timeout_s': (0.3, 'no measured frame for this long = disconnected, s', (0.02, 10.0)),
+    'reconnect_initial_s': (0.2, 'first reconnect delay (doubles), s', (0.001, 60.0)),
+    'reconnect_max_s': (5.0, 'largest reconnect delay, s', (0.001, 600.0)),
+    'command_timeout_s': (0.5, 'watchdog: vent when the last command is older, s', (0.01, 60.0)),
+    'max_pressure_rate_pa_s': (600e3, 'setpoint slew limit per chamber, Pa/s', (1.0, 1e7)),
+    'vent_pressure_pa': (0.0, 'safe pressure on watchdog / e-stop, Pa gauge', (0.0, 400e3)),
+    'min_pressure_pa': (0.0, 'lowest chamber pressure ever commanded, Pa', (0.0, 400e3)),
+    'max_pressure_pa': (300e3, 'pressure cap: highest chamber pressure ever commanded, Pa',
+                        (1.0, 400e3)),
+    'bias_pressure_pa': (150e3, 'common-mode pressure of each antagonistic pair, Pa',
+                         (0.0, 400e3)),
+    'max_bend_rad': (math.pi / 2, 'bend cap: largest hypot(alpha, gamma) accepted, rad',
+                     (1e-3, math.pi / 2)),
+    'hysteresis_gain_rad_per_pa': (2 * math.pi * 1e-6, 'bend per differential pressure, rad/Pa',
+                                   (1e-9, 1e-3)),
+    'hysteresis_fraction': (0.5, 'share of the gain in the play operators', (0.0, 0.95)),
+    'hysteresis_play_count': (8, 'number of play operators', (1, 64)),
+    'hysteresis_max_threshold_pa': (100e3, 'largest play threshold, Pa', (1.0, 400e3)),
+    'hysteresis_density_decay': (1.0, 'exponential decay of play weights', (0.0, 20.0)),
+}
+
+
+class PamNode(LifecycleNode):
+    """Node ``pam_controller`` (see the module docstring).
+
+    Raises:
+        ValueError: a parameter out of range or inconsistent (at construction).
+    """
+
+    def __init__(self, **kwargs: object) -> None:
+        super().__init__('pam_controller', **kwargs)  # type: ignore[arg-type]
+        p = {name: self._declare(name, *spec) for name, spec in PARAMETERS.items()}
+        hyst = HysteresisConfig(
+            gain=p['hysteresis_gain_rad_per_pa'], hysteresis_fraction=p['hysteresis_fraction'],
+            play_count=p['hysteresis_play_count'],
+            max_threshold=p['hysteresis_max_threshold_pa'],
+            density_decay=p['hysteresis_density_decay'])
+        self.model_config = BendingModelConfig(
+            min_pressure_pa=p['min_pressure_pa'], max_pressure_pa=p['max_pressure_pa'],
+            bias_pressure_pa=p['bias_pressure_pa'], max_bend_rad=p['max_bend_rad'],
+            hysteresis=hyst)
+        self.supervisor_config = SupervisorConfig(
+            command_timeout_s=p['command_timeout_s'],
+            max_pressure_rate_pa_s=p['max_pressure_rate_pa_s'],
+            vent_pressure_pa=p['vent_pressure_pa'])
+        self.link = LinkConfig(
+            interface=p['can_interface'], channel=p['can_channel'], bitrate=p['can_bitrate'],
+            heartbeat_period_s=p['heartbeat_period_s'], device_timeout_s=p['device_timeout_s'],
+            reconnect_initial_s=p['reconnect_initial_s'], reconnect_max_s=p['reconnect_max_s'])
+        self.sim_config = SimRegulatorConfig(
+            interface=self.link.interface, channel=self.link.channel,
+            time_constant_s=p['sim_time_constant_s']) if p['simulate_regulators'] else None
+        self.control_period_s = 1.0 / p['control_rate_hz']
+        self.diagnostics_period_s = p['diagnostics_period_s']
+        # Checks the vent pressure against the limits now, so a bad one raises here.
+        self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
+                                        time.monotonic())
+        self.sim: SimRegulatorBank | None = None
+        self.bank = CanRegulatorBank(self.link.interface, self.link.channel, self.link.bitrate)
+        self.backoff = Backoff(self.link.reconnect_initial_s, self.link.reconnect_max_s)
+        self._active = False
+        self._timers: list = []
+        self._reset_link_state()
+
+    def _declare(self, name: str, default: object, description: str,
+                 bounds: tuple[float, float] | None) -> object:
+        desc = ParameterDescriptor(name=name, description=description)
+        if bounds is not None and isinstance(default, float):
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
+        elif bounds is not None and isinstance(default, int) and not isinstance(default, bool):
+            desc.integer_range = [IntegerRange(
+                from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
+        return self.declare_parameter(name, default, desc).value
+
+    def _reset_link_state(self) -> None:
+        self.last_rx: float | None = None
+        self.opened_at: float | None = None
+        self.link_error = 'not connected yet'
+        self.measured_pa = np.full(4, np.nan)
+        self.bend_estimate = np.full(2, np.nan)
+        self.bank_status: proto.Status | None = None
+        self.bad_frames_recent = 0
+        self._next_heartbeat = 0.0
+
+    # ---- lifecycle -----------------------------------------------------------------------
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        if self.sim_config is not None:
+            self.sim = SimRegulatorBank(self.sim_config)
+            self.sim.start()
+        self.pub_pressures = self.create_lifecycle_publisher(
+            Float64MultiArray, 'pam/pressures', qos_profile_sensor_data)
+        self.pub_bend = self.create_lifecycle_publisher(
+            JointState, 'catheter/bend_state', qos_profile_sensor_data)
+        self.pub_diag = self.create_lifecycle_publisher(
+            DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
+        self.sub_command = self.create_subscription(
+            JointState, 'catheter/bend_command', self._on_bend_command, COMMAND_QOS)
+        self.srv_estop = self.create_service(SetBool, 'pam_controller/estop', self._on_estop)
+        self._timers = [self.create_timer(self.control_period_s, self._on_control_timer),
+                        self.create_timer(self.diagnostics_period_s, self._on_diagnostics_timer)]
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
+                                        time.monotonic())
+        self._reset_link_state()
+        self._active = True
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        self._send_vent(BankMode.IDLE)
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._active = False
+        self._send_vent(BankMode.IDLE)
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        self._timers = []
+        self.bank.close()
+        if self.sim is not None:
+            self.sim.stop()
+            self.sim = None
+
+    def destroy_node(self) -> None:
+        self._release()
+        super().destroy_node()
+
+    # ---- callbacks -----------------------------------------------------------------------
+    def _on_bend_command(self, msg: JointState) -> None:
+        if not self._active:
+            return
+        try:
+            bend = conv.bend_from_joint_state(msg)
+        except CommandRejectedError as err:
+            self.supervisor.note_rejection(err)
+            self._log_rejection(err)
+            return
+        try:
+            self.supervisor.command(bend, time.monotonic())
+        except CommandRejectedError as err:
+            self._log_rejection(err)
+
+    def _log_rejection(self, err: CommandRejectedError) -> None:
+        self.get_logger().warning(f'bend command rejected, nothing sent: {err}',
+                                  throttle_duration_sec=1.0)
+
+    def _on_estop(self, request: SetBool.Request, response: SetBool.Response
+                  ) -> SetBool.Response:
+        if request.data:
+            self.supervisor.engage_estop()
+            self._send_vent(BankMode.VENT)
+            response.message = 'e-stop engaged: chambers vented, commands refused'
+        else:
+            self.supervisor.release_estop()
+            response.message = 'e-stop released: vented until the next command'
+        self.get_logger().warning(response.message)
+        response.success = True
+        return response
+
+    def _send_vent(self, mode: BankMode) -> None:
+        try:
+            if self.bank.is_open:
+                self.bank.send_heartbeat(mode)
+                self.bank.send_setpoints(self.supervisor.setpoints_pa)
+        except DeviceUnavailableError as err:
+            self._link_failed(str(err), time.monotonic())
+
+    def _link_failed(self, reason: str, now: float) -> None:
+        self.link_error = reason
+        self.bank.close()
+        delay = self.backoff.failed(now)
+        self.get_logger().error(f'{reason}; retrying in {delay:.2f} s',
+                                throttle_duration_sec=1.0)
+
+    def _on_control_timer(self) -> None:
+        if not self._active:
+            return
+        now = time.monotonic()
+        silent = (self.bank.is_open and self.opened_at is not None
+                  and now - (self.last_rx or self.opened_at) > self.link.device_timeout_s)
+        if silent and self.backoff.due(now):
+            self._link_failed(f'no frame from the regulator bank for '
+                              f'{now - (self.last_rx or self.opened_at or now):.2f} s', now)
+        if not self.bank.is_open and self.backoff.due(now):
+            try:
+                self.bank.open()
+                self.opened_at = now
+            except DeviceUnavailableError as err:
+                self._link_failed(str(err), now)
+        try:
+            self._exchange(now)
+        except DeviceUnavailableError as err:
+            self._link_failed(str(err), now)
+
+    def _exchange(self, now: float) -> None:
+        fb = self.bank.poll()
+        if fb.bad_frames:
+            self.bad_frames_recent += fb.bad_frames
+            self.get_logger().warning(f'{fb.bad_frames} malformed CAN frame(s) ignored: '
+                                      f'{fb.last_error}', throttle_duration_sec=1.0)
+        if fb.status is not None:
+            self.bank_status = fb.status
+        for pressures in fb.measured:
+            self.measured_pa = pressures
+            self.bend_estimate = self.supervisor.model.bend_from_pressures(pressures)
+        if fb.measured:
+            self.last_rx = now
+            self.opened_at = now
+            self.link_error = ''
+            self.backoff.succeeded()
+            stamp = self.get_clock().now().to_msg()
+            self.pub_pressures.publish(conv.pressures_to_multiarray(self.measured_pa))
+            self.pub_bend.publish(conv.bend_to_joint_state(self.bend_estimate, stamp))
+        out = self.supervisor.tick(now)
+        if not self.bank.is_open:
+            return
+        self.bank.send_setpoints(out.setpoints_pa)
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + self.link.heartbeat_period_s
+            self.bank.send_heartbeat(out.mode)
+
+    def _on_diagnostics_timer(self) -> None:
+        if not self._active:
+            return
+        self.pub_diag.publish(DiagnosticArray(
+            header=Header(stamp=self.get_clock().now().to_msg()), status=[self.diagnostics()]))
+
+    def diagnostics(self) -> DiagnosticStatus:
+        """The bank's DiagnosticStatus from the current state (level, message, values)."""
+        sup, st = self.supervisor, self.bank_status
+        faults = sorted(st.faults) if st is not None else []
+        connected = self.last_rx is not None and not self.link_error
+        if not connected:
+            level, msg = DiagnosticStatus.ERROR, f'regulator bank disconnected: {self.link_error}'
+        elif st is not None and (st.state is proto.BankState.FAULT or ERROR_FAULTS & set(faults)):
+            level, msg = DiagnosticStatus.ERROR, f'regulator bank fault: {", ".join(faults)}'
+        elif sup.phase is Phase.ESTOP:
+            level, msg = DiagnosticStatus.WARN, 'e-stop engaged: vented'
+        elif sup.phase is Phase.STALE:
+            level, msg = DiagnosticStatus.WARN, 'command watchdog expired: vented'
+        elif faults or self.bad_frames_recent:
+            level, msg = DiagnosticStatus.WARN, f'bank warnings: {faults}, ' \
+                f'{self.bad_frames_recent} malformed frame(s)'
+        else:
+            level, msg = DiagnosticStatus.OK, f'{sup.phase.value}'
+        values = [
+            ('connected', connected), ('phase', sup.phase.value),
+            ('estop', sup.estop_engaged),
+            ('bank_state', st.state.name if st is not None else 'unknown'),
+            ('faults', ','.join(faults)),
+            ('channel_fault_mask', st.channel_fault_mask if st is not None else 0),
+            ('supply_pressure_pa', st.supply_pressure_pa if st is not None else float('nan')),
+            ('measured_pa', self.measured_pa), ('setpoints_pa', sup.setpoints_pa),
+            ('target_pa', sup.target_pa), ('bend_estimate_rad', self.bend_estimate),
+            ('rejected_commands', sup.rejected_count), ('last_rejection', sup.last_rejection),
+            ('malformed_frames_total', self.bank.bad_frames_total),
+            ('lost_frames_total', self.bank.lost_frames),
+            ('reconnect_attempts', self.backoff.attempts),
+            ('next_retry_s', self.backoff.seconds_to_next(time.monotonic())),
+        ]
+        self.bad_frames_recent = 0
+        return conv.diagnostic_status('pam_controller: regulator bank',
+                                      f'can:{self.link.interface}:{self.link.channel}',
+                                      level, msg, values)
+
+
+def main(args: list[str] | None = None) -> None:
+    """Console script ``pam_node``: build, configure and activate the node, spin."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PamNode()
+        node.trigger_configure()
+        node.trigger_activate()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
