@@ -28,7 +28,8 @@ TYPESTORE: Typestore = get_typestore(Stores.ROS2_JAZZY)
 
 #: Exceptions the rosbags reader raises on broken files (wrapped into BagError).
 _READ_ERRORS = (ReaderError, struct.error, EOFError, KeyError, IndexError, ValueError,
-                UnicodeDecodeError, AssertionError, OSError)
+                UnicodeDecodeError, AssertionError, OSError, TypeError, OverflowError,
+                MemoryError)
 
 
 class BagWriter:
@@ -148,6 +149,10 @@ def iter_raw(
 ) -> Iterator[tuple[Connection, int, bytes]]:
     """Raw messages ``(connection, log_time_ns, cdr_bytes)`` in log-time order.
 
+    When the whole bag is read (no ``start_ns``), the number of messages of each connection is
+    checked against the bag's index: a chunk whose records were damaged (read as nothing)
+    raises :class:`BagError` at the end instead of silently losing messages.
+
     Args:
         reader: An open reader (from :func:`open_bag`).
         topics: Only these topics (None: all).
@@ -156,4 +161,13 @@ def iter_raw(
     conns = [c for c in reader.connections if topics is None or c.topic in topics]
     if not conns:
         return
-    yield from reader.messages(connections=conns, start=start_ns)
+    counts = dict.fromkeys((c.id for c in conns), 0)
+    for conn, timestamp, raw in reader.messages(connections=conns, start=start_ns):
+        counts[conn.id] += 1
+        yield conn, timestamp, raw
+    if start_ns is None:
+        for conn in conns:
+            if conn.msgcount and counts[conn.id] != conn.msgcount:
+                raise BagError(f'{reader.path}: truncated or corrupt bag, topic {conn.topic}: '
+                               f'expected {conn.msgcount} messages (bag index), read '
+                               f'{counts[conn.id]}')

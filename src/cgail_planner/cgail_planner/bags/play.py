@@ -126,7 +126,8 @@ class BagPlayer:
         while not halt.is_set():
             wall0 = time.monotonic()
             with open_bag(cfg.bag) as reader:
-                for conn, log_ns, raw in iter_raw(reader, list(self.publishers), first_ns):
+                start = first_ns if cfg.start_offset > 0.0 else None
+                for conn, log_ns, raw in iter_raw(reader, list(self.publishers), start):
                     due = wall0 + (log_ns - first_ns) * 1e-9 / cfg.rate
                     delay = due - time.monotonic()
                     if delay > 0.0 and halt.wait(delay):

@@ -1,0 +1,248 @@
+"""Recorder/player round trip in-process, SIGINT/SIGTERM during recording, bad bags."""
+
+from collections.abc import Callable
+import os
+from pathlib import Path
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.interfaces import QosDurability, QosReliability
+
+from cgail_planner.bags.bagio import BagWriter, iter_raw, open_bag, TYPESTORE
+from cgail_planner.bags.errors import BagError
+from cgail_planner.bags.play import BagPlayer, PlayerConfig
+from cgail_planner.bags.qos import COMMAND, LATCHED, SENSOR
+from cgail_planner.bags.record import BagRecorder, RecorderConfig
+
+FIXTURE = Path(__file__).resolve().parents[4] / 'bags' / 'fixtures' / 'cgail_trial'
+T0 = 1_700_000_000 * 10**9
+T = TYPESTORE.types
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()
+
+
+def spin_until(executor, predicate: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.05)
+    return predicate()
+
+
+def header(ns: int, frame: str = 'phantom'):
+    return T['std_msgs/msg/Header'](
+        stamp=T['builtin_interfaces/msg/Time'](sec=ns // 10**9, nanosec=ns % 10**9),
+        frame_id=frame)
+
+
+def pose(ns: int, x: float):
+    return T['geometry_msgs/msg/PoseStamped'](header=header(ns), pose=T['geometry_msgs/msg/Pose'](
+        position=T['geometry_msgs/msg/Point'](x=x, y=-x, z=2 * x),
+        orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.6, w=0.8)))
+
+
+def make_source_bag(path: Path) -> None:
+    """20 poses (reliable), 20 joint states (best effort) at 50 Hz and one latched path."""
+    with BagWriter(path, custom_data={'condition': 'roundtrip'}) as w:
+        w.add_topic('/rt/path', 'nav_msgs/msg/Path', [LATCHED])
+        w.add_topic('/rt/pose', 'geometry_msgs/msg/PoseStamped', [COMMAND])
+        w.add_topic('/rt/joints', 'sensor_msgs/msg/JointState', [SENSOR])
+        path_msg = T['nav_msgs/msg/Path'](header=header(T0),
+                                          poses=[pose(T0, 0.001 * i) for i in range(7)])
+        w.write('/rt/path', T0, TYPESTORE.serialize_cdr(path_msg, 'nav_msgs/msg/Path'))
+        for i in range(20):
+            ns = T0 + (i + 1) * 20_000_000
+            w.write('/rt/pose', ns,
+                    TYPESTORE.serialize_cdr(pose(ns, 0.01 * i), 'geometry_msgs/msg/PoseStamped'))
+            joints = T['sensor_msgs/msg/JointState'](
+                header=header(ns, ''), name=['bend_alpha', 'bend_gamma'],
+                position=np.array([0.1 * i, -0.05 * i]), velocity=np.array([], float),
+                effort=np.array([], float))
+            w.write('/rt/joints', ns + 1000,
+                    TYPESTORE.serialize_cdr(joints, 'sensor_msgs/msg/JointState'))
+
+
+def as_plain(msg):
+    """Decoded message -> nested tuples/lists (numpy arrays as lists) for equality."""
+    if isinstance(msg, np.ndarray):
+        return msg.tolist()
+    if isinstance(msg, list | tuple):
+        return [as_plain(x) for x in msg]
+    if hasattr(msg, '__dataclass_fields__'):
+        return {k: as_plain(getattr(msg, k)) for k in msg.__dataclass_fields__}
+    return msg
+
+
+def decoded(bag: Path) -> tuple[dict[str, list], dict[str, object]]:
+    msgs: dict[str, list] = {}
+    qos: dict[str, object] = {}
+    with open_bag(bag) as reader:
+        for conn in reader.connections:
+            qos[conn.topic] = conn.ext.offered_qos_profiles
+        for conn, _, raw in iter_raw(reader):
+            msgs.setdefault(conn.topic, []).append(
+                as_plain(TYPESTORE.deserialize_cdr(raw, conn.msgtype)))
+    return msgs, qos
+
+
+def test_play_then_record_round_trip_keeps_every_decoded_field(ros, tmp_path: Path) -> None:
+    source = tmp_path / 'source'
+    make_source_bag(source)
+    player_node = rclpy.create_node('bag_player_rt')
+    recorder_node = rclpy.create_node('bag_recorder_rt')
+    executor = SingleThreadedExecutor()
+    executor.add_node(recorder_node)
+    recorder = BagRecorder(recorder_node, RecorderConfig(
+        output=tmp_path / 'copy', topics=('rt/path', '/rt/pose', 'rt/joints'),
+        discovery_period=0.1, flush_period=0.2))
+    player = BagPlayer(player_node, PlayerConfig(bag=source, rate=1.0,
+                                                 wait_for_subscribers=10.0))
+    assert spin_until(executor, lambda: len(recorder.topics) == 3, 10.0), recorder.topics
+    done = threading.Event()
+    count: list[int] = []
+    thread = threading.Thread(target=lambda: (count.append(player.play()), done.set()))
+    thread.start()
+    assert spin_until(executor, lambda: done.is_set() and recorder.received >= 41, 15.0)
+    thread.join()
+    # Latched: a subscriber joining after playback still gets the path.
+    late: list[bytes] = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    from nav_msgs.msg import Path as PathMsg
+    recorder_node.create_subscription(PathMsg, '/rt/path', late.append, latched, raw=True)
+    assert spin_until(executor, lambda: len(late) == 1, 5.0)
+    assert recorder.stop() == 41
+    player_node.destroy_node()
+    recorder_node.destroy_node()
+
+    assert count == [41]
+    original, _ = decoded(source)
+    copy, qos = decoded(tmp_path / 'copy')
+    assert copy == original
+    assert qos['/rt/path'][0].durability == QosDurability.TRANSIENT_LOCAL
+    assert qos['/rt/path'][0].reliability == QosReliability.RELIABLE
+    assert qos['/rt/joints'][0].reliability == QosReliability.BEST_EFFORT
+    assert late[0] == TYPESTORE.serialize_cdr(
+        TYPESTORE.deserialize_cdr(late[0], 'nav_msgs/msg/Path'), 'nav_msgs/msg/Path')
+
+
+def test_rate_and_start_offset_set_the_timing(ros, tmp_path: Path) -> None:
+    source = tmp_path / 'source'
+    make_source_bag(source)
+    node = rclpy.create_node('bag_player_timing')
+    fast = BagPlayer(node, PlayerConfig(bag=source, rate=4.0, topics=('rt/pose',)))
+    start = time.monotonic()
+    assert fast.play() == 20
+    elapsed = time.monotonic() - start
+    assert 0.38 / 4 <= elapsed < 1.0  # 0.38 s of poses at 4x
+    offset = BagPlayer(node, PlayerConfig(bag=source, start_offset=0.2, topics=('rt/pose',)))
+    assert offset.play() == 11  # poses at 0.20 .. 0.40 s
+    stop = threading.Event()
+    looping = BagPlayer(node, PlayerConfig(bag=source, rate=10.0, loop=True,
+                                           topics=('rt/pose',)))
+    timer = threading.Timer(0.3, stop.set)
+    timer.start()
+    assert looping.play(stop) > 20
+    node.destroy_node()
+
+
+def damaged_copy(tmp_path: Path, damage: Callable[[bytes], bytes]) -> Path:
+    bag = tmp_path / 'cut'
+    shutil.copytree(FIXTURE, bag)
+    mcap = bag / 'cgail_trial.mcap'
+    mcap.write_bytes(damage(mcap.read_bytes()))
+    return bag
+
+
+@pytest.mark.parametrize('damage', [
+    lambda b: b[: len(b) // 2],
+    lambda b: b[:-40],
+    lambda b: b[:8],
+    lambda b: b[:30000] + bytes(x ^ 0xFF for x in b[30000:30200]) + b[30200:],
+    lambda b: b[:2000] + bytes(5000) + b[7000:],
+], ids=['half', 'footer', 'magic-only', 'flipped-bytes', 'zeroed-chunk'])
+def test_player_reports_a_damaged_bag_clearly(ros, tmp_path: Path, damage) -> None:
+    node = rclpy.create_node('bag_player_bad')
+    bag = damaged_copy(tmp_path, damage)
+    with pytest.raises(BagError, match=r'cut: truncated or corrupt bag'):
+        BagPlayer(node, PlayerConfig(bag=bag, rate=100.0)).play()
+    node.destroy_node()
+
+
+def test_player_reports_missing_bags_and_topics(ros, tmp_path: Path) -> None:
+    node = rclpy.create_node('bag_player_missing')
+    with pytest.raises(BagError, match='no such bag'):
+        BagPlayer(node, PlayerConfig(bag=tmp_path / 'missing'))
+    with pytest.raises(BagError, match=r"expected topics \['/nope'\] to play, found none"):
+        BagPlayer(node, PlayerConfig(bag=FIXTURE, topics=('nope',)))
+    node.destroy_node()
+
+
+@pytest.mark.parametrize(('field', 'value', 'match'), [
+    ('rate', 0.0, 'rate must be a positive factor'),
+    ('start_offset', -1.0, 'start_offset must be >= 0'),
+    ('wait_for_subscribers', -1.0, 'wait_for_subscribers must be >= 0'),
+])
+def test_player_config_validation(field: str, value: float, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        PlayerConfig(bag=FIXTURE, **{field: value})
+
+
+def test_recorder_config_validation(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match='topics must name at least one topic'):
+        RecorderConfig(output=tmp_path / 'x')
+    with pytest.raises(ValueError, match='flush_period must be > 0'):
+        RecorderConfig(output=tmp_path / 'x', topics=('a',), flush_period=0.0)
+
+
+@pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM])
+def test_signal_during_recording_leaves_a_complete_bag(ros, tmp_path: Path, signum) -> None:
+    from std_msgs.msg import String
+
+    out = tmp_path / 'rec'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'cgail_planner.bags.record', '-o', str(out), 'sig/chatter',
+         '--condition', 'cgail', '--discovery-period', '0.1', '--flush-period', '0.2'],
+        env=os.environ.copy(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        node = rclpy.create_node('sig_talker')
+        pub = node.create_publisher(String, 'sig/chatter', QoSProfile(
+            depth=200, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + 20.0
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.get_subscription_count() == 1, 'the recorder never subscribed'
+        for i in range(150):
+            pub.publish(String(data=f'msg {i}'))
+            time.sleep(0.002)
+        proc.send_signal(signum)
+        output, _ = proc.communicate(timeout=20.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, output
+    assert 'wrote 150 messages' in output
+    with open_bag(out) as reader:
+        from cgail_planner.bags.bagio import bag_custom_data
+        assert bag_custom_data(reader) == {'condition': 'cgail'}
+        got = [TYPESTORE.deserialize_cdr(raw, c.msgtype).data for c, _, raw in iter_raw(reader)]
+    assert got == [f'msg {i}' for i in range(150)]
+    node.destroy_node()
