@@ -159,6 +159,7 @@ class SimRegulatorBank:
             if decoded.mode is BankMode.CLEAR_FAULTS:
                 self._faults.clear()
                 self._channel_fault_mask = 0
+                self._track_error_since[:] = np.nan
                 self.mode = BankMode.IDLE
             else:
                 self.mode = decoded.mode
