@@ -223,6 +223,10 @@ class NdiAurora:
             key = bytes([handle])
             transform = get_transform(self._dev, key)
             status = int(get_status(self._dev, key)) & 0xFFFFFFFF
+            if binary and status >> 7 == 0x1FFFFFF:
+                # ndicapi sign-extends a BX status byte >= 0x80 over the upper bytes; only
+                # the low byte (occupied..partially-out bits) is trustworthy then.
+                status &= 0xFF
             frame = int(get_frame(self._dev, key)) & 0xFFFFFFFF
             if isinstance(transform, str):  # 'MISSING' or 'DISABLED'
                 tools.append(ToolReading(handle, False, port_status=status, frame_number=frame))

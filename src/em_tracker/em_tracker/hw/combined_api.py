@@ -32,11 +32,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 import enum
 import math
+import re
 import struct
 
 from em_tracker.core.errors import ProtocolError
 
 CR = b'\r'
+_NAME = re.compile(r'[A-Z0-9]+')
 LF = b'\n'
 BX_START = b'\xc4\xa5'
 
@@ -171,20 +173,20 @@ def decode_command(frame: bytes) -> Command:
         text = frame.decode('ascii')
     except UnicodeDecodeError as exc:
         raise ProtocolError(f'expected an ASCII command, found {frame!r}') from exc
-    if ':' in text:
-        name, rest = text.split(':', 1)
+    sep = min((i for i in (text.find(':'), text.find(' ')) if i >= 0), default=len(text))
+    name = text[:sep]
+    if not _NAME.fullmatch(name):
+        raise ProtocolError(f'expected an upper-case command name, found {name!r}')
+    if sep < len(text) and text[sep] == ':':
+        rest = text[sep + 1:]
         if len(rest) < 4:
             raise ProtocolError(f'expected 4 CRC digits after {name}:, found {rest!r}')
         params, crc_text = rest[:-4], rest[-4:]
-        expected = '{:04X}'.format(crc16((name + ':' + params).encode('ascii')))
+        expected = f'{crc16((name + ":" + params).encode("ascii")):04X}'
         if crc_text.upper() != expected:
             raise ProtocolError(f'expected command CRC {expected}, found {crc_text!r}')
-    elif ' ' in text:
-        name, params = text.split(' ', 1)
     else:
-        name, params = text, ''
-    if not name or not name.isalnum() or (not name.isupper() and not name.isdigit()):
-        raise ProtocolError(f'expected an upper-case command name, found {name!r}')
+        params = text[sep + 1:]
     return Command(name=name, params=params)
 
 

@@ -19,17 +19,17 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, qos_profile_sensor_data
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from geometry_msgs.msg import PoseStamped
+from rclpy.qos import qos_profile_sensor_data, QoSProfile
 from std_msgs.msg import Float64
 
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.errors import DeviceError, EmTrackerError, ProtocolError
-from em_tracker.core.pose import Registration, TipPose, convert_sample
+from em_tracker.core.pose import convert_sample, Registration, TipPose
 from em_tracker.core.tracking import LinkState, TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
