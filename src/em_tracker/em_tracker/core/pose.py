@@ -17,7 +17,7 @@ import numpy as np
 MM_TO_M = 1e-3
 
 
-def ndi_quat_to_ros(quat_wxyz: Sequence[float]) -> np.ndarray:
+def ndi_quat_to_ros(quat_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:
     """Reorder an NDI quaternion ``(q0, qx, qy, qz)`` to ROS ``(x, y, z, w)``."""
     w, x, y, z = (float(v) for v in quat_wxyz)
     return np.array([x, y, z, w])
@@ -28,7 +28,7 @@ def mm_to_m(values_mm: Sequence[float] | np.ndarray) -> np.ndarray:
     return np.asarray(values_mm, dtype=float) * MM_TO_M
 
 
-def quat_xyzw_to_matrix(q: Sequence[float]) -> np.ndarray:
+def quat_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)``."""
     x, y, z, w = (float(v) for v in q)
     return np.array([

@@ -325,6 +325,9 @@ class IsolatedAurora:
 
     def connect(self) -> list[int]:
         """Start a fresh child and run the start-up sequence in it."""
+        if not os.path.exists(self.settings.port):
+            self._kill()
+            raise DeviceDisconnected(f'serial port {self.settings.port} does not exist')
         self._spawn()
         settings = asdict(self.settings)
         answer = self._call({'op': 'connect', 'settings': settings},

@@ -42,7 +42,7 @@ import numpy as np
 from em_tracker.core.errors import ProtocolError
 from em_tracker.hw import combined_api as api
 
-PoseSource = Callable[[float], tuple[Sequence[float], Sequence[float]]]
+PoseSource = Callable[[float], tuple[Sequence[float] | np.ndarray, Sequence[float] | np.ndarray]]
 """``t_s -> (position_mm (3,), quat_wxyz (4,))`` in the field-generator frame."""
 
 

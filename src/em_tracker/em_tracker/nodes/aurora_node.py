@@ -5,17 +5,16 @@ A plain ``rclpy`` Node with configure/activate semantics: the constructor is *co
 publishers created) and *activates* at once by starting the reader thread. ``destroy_node`` is
 *deactivate + cleanup* (TSTOP, port closed, thread joined).
 
-The reader thread owns every blocking serial call: it runs the start-up sequence, polls the
-device at its frame rate, validates and converts each new frame, and hands poses to the
-executor through a deque and a guard condition. Disconnects and repeated bad replies close the
-link and retry with exponential backoff; the state is published on ``/diagnostics``.
+The reader thread (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) owns every blocking
+serial call: start-up sequence, polling at the device frame rate, validation and conversion,
+reconnects with exponential backoff. It hands poses to the executor through a deque and a guard
+condition; the link state is published on ``/diagnostics``.
 """
 
 from __future__ import annotations
 
 import collections
 from collections.abc import Callable
-import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -28,10 +27,9 @@ from rclpy.qos import qos_profile_sensor_data, QoSProfile
 from std_msgs.msg import Float64
 
 from em_tracker.core.config import TrackerConfig
-from em_tracker.core.errors import DeviceError, EmTrackerError, ProtocolError
-from em_tracker.core.pose import convert_sample, Registration, TipPose
-from em_tracker.core.tracking import LinkState, TrackerHealth
+from em_tracker.core.pose import Registration, TipPose
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
+from em_tracker.hw.tracker_loop import TrackerLoop
 from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
@@ -113,16 +111,22 @@ class AuroraNode(Node):
                                               qos_profile_sensor_data)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                QoSProfile(depth=10))
-        self.health = TrackerHealth()
-        self._lock = threading.Lock()
         self._queue: collections.deque[tuple[TipPose, float]] = collections.deque(maxlen=64)
         self._guard = self.create_guard_condition(self._on_new_pose)
         self._diag_timer = self.create_timer(self.config.diagnostics_period_s,
                                              self._on_diagnostics_timer)
-        self._device = (device_factory or default_device)(self.config)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name='aurora_reader', daemon=True)
-        self._thread.start()
+        self._loop = TrackerLoop((device_factory or default_device)(self.config), self.config,
+                                 self._on_pose_from_reader, self._on_link_warning)
+        self.health = self._loop.health
+        self._loop.start()
+
+    def _on_pose_from_reader(self, pose: TipPose, host_time: float) -> None:
+        # Reader thread: hand over to the executor (deque append and trigger are thread-safe).
+        self._queue.append((pose, host_time))
+        self._guard.trigger()
+
+    def _on_link_warning(self, message: str) -> None:
+        self.get_logger().warning(message, throttle_duration_sec=5.0)
 
     def _build_config(self) -> TrackerConfig:
         get = self.get_parameter
@@ -141,95 +145,6 @@ class AuroraNode(Node):
             diagnostics_period_s=get('diagnostics_period_s').value,
             isolate_device=get('isolate_device').value)
 
-    # ------------------------------------------------------------------ reader thread
-    def _run(self) -> None:
-        cfg = self.config
-        delay = cfg.reconnect_initial_s
-        while not self._stop.is_set():
-            with self._lock:
-                self.health.link = LinkState.CONNECTING
-            try:
-                handles = self._device.connect()
-                handle = cfg.tool_handle or (handles[0] if handles else 0)
-                if handle not in handles:
-                    raise DeviceError(f'expected tool handle {handle:02X} among the enabled '
-                                      f'handles, found {[f"{h:02X}" for h in handles]}')
-                with self._lock:
-                    self.health.link = LinkState.TRACKING
-                    self.health.frames.reset()
-                delay = cfg.reconnect_initial_s
-                self._poll(handle)
-            except EmTrackerError as exc:
-                with self._lock:
-                    self.health.last_error = f'{type(exc).__name__}: {exc}'
-                self.get_logger().warning(f'Aurora link lost: {exc}; retrying in {delay:.2f} s',
-                                          throttle_duration_sec=5.0)
-            self._device.close()
-            if self._stop.is_set():
-                break
-            with self._lock:
-                self.health.link = LinkState.DISCONNECTED
-                self.health.reconnects += 1
-            self._stop.wait(delay)
-            delay = min(2.0 * delay, cfg.reconnect_max_s)
-        with self._lock:
-            self.health.link = LinkState.STOPPED
-
-    def _poll(self, handle: int) -> None:
-        cfg = self.config
-        period = 1.0 / cfg.rate_hz
-        errors = 0
-        next_poll = time.monotonic()
-        while not self._stop.is_set():
-            wait = next_poll - time.monotonic()
-            if wait > 0 and self._stop.wait(wait):
-                return
-            try:
-                reply = self._device.read()
-            except (ProtocolError, DeviceError) as exc:
-                errors += 1
-                with self._lock:
-                    self.health.bad_replies += 1
-                    self.health.last_error = f'{type(exc).__name__}: {exc}'
-                if errors >= cfg.max_consecutive_errors:
-                    raise
-                next_poll = time.monotonic() + 0.25 * period
-                continue
-            errors = 0
-            tool = next((t for t in reply.tools if t.handle == handle), None)
-            if tool is None:
-                raise DeviceError(f'expected handle {handle:02X} in the tracking reply, found '
-                                  f'{[f"{t.handle:02X}" for t in reply.tools]}')
-            with self._lock:
-                new = self.health.frames.update(tool.frame_number)
-                self.health.system_status = reply.system_status
-            if not new:
-                next_poll = time.monotonic() + 0.002
-                continue
-            next_poll = reply.host_time + 0.95 * period
-            self._accept(tool.visible, tool.quat_wxyz, tool.position_mm, tool.error_mm,
-                         tool.port_status, reply.host_time)
-
-    def _accept(self, visible: bool, quat_wxyz, position_mm, error_mm: float, port_status: int,
-                host_time: float) -> None:
-        with self._lock:
-            self.health.port_status = port_status
-            self.health.tool_visible = visible
-            self.health.last_frame_time = host_time
-            if not visible:
-                return
-            try:
-                pose = convert_sample(quat_wxyz, position_mm, error_mm, self.config.registration,
-                                      max_abs_position_m=self.config.max_abs_position_m)
-            except ValueError as exc:
-                self.health.rejected += 1
-                self.health.tool_visible = False
-                self.health.last_error = f'rejected reading: {exc}'
-                return
-            self.health.rms_error_mm = float(error_mm)
-            self._queue.append((pose, host_time))
-        self._guard.trigger()
-
     # ------------------------------------------------------------------ executor callbacks
     def _on_new_pose(self) -> None:
         now_ros = self.get_clock().now()
@@ -241,11 +156,11 @@ class AuroraNode(Node):
                                     clock_type=now_ros.clock_type).to_msg()
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
-            with self._lock:
+            with self._loop.lock:
                 self.health.published += 1
 
     def _on_diagnostics_timer(self) -> None:
-        with self._lock:
+        with self._loop.lock:
             level, message = self.health.level(time.monotonic(), self.config.stale_after_s)
             values = self.health.values()
         values['port'] = self.config.port
@@ -258,9 +173,7 @@ class AuroraNode(Node):
 
     def destroy_node(self) -> None:
         """Stop the reader thread (TSTOP, port closed) and destroy the node."""
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=self.config.reply_timeout_s + 2.0)
+        self._loop.stop(timeout_s=self.config.reply_timeout_s + 2.0)
         super().destroy_node()
 
 
