@@ -36,7 +36,6 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import kruskal
 
 from cgail_planner.core.path_fit import (
     closest_points,
@@ -266,6 +265,8 @@ def kruskal_by_condition(
         stat, pvalue = math.nan, math.nan
         pooled = np.concatenate(samples) if samples else np.zeros(0)
         if len(samples) >= 2 and np.ptp(pooled) > 0.0:
+            from scipy.stats import kruskal  # slow import (~1 s): only when comparing
+
             res = kruskal(*samples)
             stat, pvalue = float(res.statistic), float(res.pvalue)
         results.append(KruskalResult(metric, stat, pvalue))
