@@ -1,0 +1,362 @@
+"""Position-based dynamics of the aortic wall (XPBD, Gauss-Seidel, numba).
+
+Model (Mueller et al. 2007, "Position based dynamics"; Macklin et al. 2016, "XPBD: position-based
+simulation of compliant constrained dynamics", for time-step-independent stiffness):
+
+* particles = the mesh vertices; mass ``m_i = density * thickness * A_i`` with ``A_i`` one third
+  of the area of the triangles around vertex ``i``;
+* **stretch**: a distance constraint ``C = |x_i - x_j| - L0`` on every mesh edge. Its stiffness is
+  the membrane stiffness of the wall, ``k_e = E h A_e / L0^2`` with ``A_e`` the area of the (one
+  or two) triangles sharing the edge; for an equilateral mesh this is the classic
+  ``sqrt(3)/2 E h`` of a spring network that matches a membrane of Young's modulus E and
+  thickness h. The material stiffens with strain (Fung-type curve): the spring uses the secant
+  stiffness ``k_e g(eps)`` with ``g(eps) = (exp(b eps) - 1) / (b eps)`` for ``eps > 0``
+  (``g = 1`` in compression; ``b eps`` capped at 5), so a uniaxially stretched membrane follows
+  ``sigma(eps) = E / b (exp(b eps) - 1)``. ``g`` is evaluated once per substep from the
+  strain at its start (lagged secant) to keep the inner loop free of ``exp``;
+* **bending**: the edge-pair (isometric "hinge") form, a distance constraint between the two
+  vertices opposite each interior edge, stiffness ``bending_ratio * k_e``;
+* **tethering**: a zero-length spring from each particle to its rest position, stiffness
+  ``tether_stiffness * A_i``: the support of the surrounding tissue (mediastinum, pericardium);
+* **fixed rings** (``Anatomy.fixed_vertices``) have inverse mass 0 and stay at rest;
+* **annulus ring** (``Anatomy.annulus_vertices``) is kinematic, placed by the heartbeat;
+* **damping**: velocities decay as ``exp(-damping dt)`` before the prediction;
+* **contact**: the catheter's capsule chain, :func:`cgail_planner.sim.contact.project_contacts`,
+  projected after the elastic constraints in every iteration and twice more at the end, so the
+  wall ends each step outside the catheter.
+
+XPBD: each constraint has compliance ``alpha = 1 / k`` and a Lagrange multiplier ``lambda``;
+``d_lambda = (-C - alpha~ lambda) / (sum w |grad C|^2 + alpha~)`` with ``alpha~ = alpha / dt^2``.
+All loops are sequential (Gauss-Seidel) and deterministic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+from numba import njit
+import numpy as np
+
+from cgail_planner.sim.contact import project_contacts
+
+#: Cap of ``b eps`` in the stiffening law: beyond it the secant stiffness stays at
+#: ``g(_Z_MAX) ~ 29.5`` (strain 0.32 for b = 15.7, far past physiological stretch), which keeps
+#: forces finite when a coarse mesh is indented locally.
+_Z_MAX = 5.0
+
+__all__ = [
+    "PBDConfig",
+    "WallTopology",
+    "build_topology",
+    "internal_forces",
+    "predict",
+    "secant_factor",
+    "solve",
+]
+
+
+@dataclass(frozen=True)
+class PBDConfig:
+    """Material and solver parameters of the PBD wall (SI units)."""
+
+    youngs_modulus: float = 0.5e6
+    """Small-strain Young's modulus E of the wall material, Pa (0.5 MPa; estimate from the
+    Moens-Korteweg wave speed, see ANATOMY.md); in [1e3, 1e8]. Calibrate with
+    :mod:`cgail_planner.sim.calibration`."""
+    stiffening: float = 15.7
+    """Fung exponent b of the stress-strain curve ``sigma = E / b (exp(b eps) - 1)``
+    (dimensionless; 15.7 puts 80 kPa at a stretch of 1.08 with E = 0.5 MPa, Jadidi 2020,
+    PMC6982607); in [0, 100]. 0 gives a linear material."""
+    thickness: float = 0.0025
+    """Wall thickness h, m (2.5 mm; MESA, Turkbey 2014); in [0.1 mm, 10 mm]."""
+    density: float = 1100.0
+    """Wall density, kg/m^3 (~1,100 for soft tissue); in [100, 10000]."""
+    tether_stiffness: float = 5.0e5
+    """Stiffness per unit wall area of the zero-length tether to the rest shape, N/m^3
+    (estimate: with E h = 1,250 N/m the root motion decays along the aorta over
+    ``sqrt(E h / k) ~ 50 mm``); in [0, 1e9]."""
+    bending_ratio: float = 0.05
+    """Stiffness of each bending (hinge) spring as a fraction of the stretch stiffness of its
+    edge (a numerical regulariser against crumpling; estimate); in [0, 1]."""
+    iterations: int = 10
+    """Gauss-Seidel iterations per substep; in [1, 1000]."""
+    substeps: int = 1
+    """Substeps per :meth:`step` (each solves the constraints with ``dt / substeps``);
+    in [1, 100]."""
+    damping: float = 20.0
+    """Velocity damping rate, 1/s: velocities are multiplied by ``exp(-damping dt)`` each
+    substep (heavily damped tissue; estimate); in [0, 1e4]."""
+    contact_margin: float = 0.002
+    """Extra reach of the contact broad phase beyond the catheter radius, m (covers wall
+    motion within a substep); in [0, 0.05]."""
+    penetration_tolerance: float = 5e-5
+    """Geometric penetration below this depth is reported as 0, m (the residual of the
+    iterative contact projection); in [0, 1 mm]."""
+
+    def __post_init__(self) -> None:
+        for name, low, high in (
+            ("youngs_modulus", 1e3, 1e8), ("stiffening", 0.0, 100.0),
+            ("thickness", 1e-4, 1e-2), ("density", 100.0, 1e4),
+            ("tether_stiffness", 0.0, 1e9), ("bending_ratio", 0.0, 1.0),
+            ("damping", 0.0, 1e4), ("contact_margin", 0.0, 0.05),
+            ("penetration_tolerance", 0.0, 1e-3),
+        ):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float))
+                                               and math.isfinite(value)
+                                               and low <= value <= high):
+                raise ValueError(f"{name} must be in [{low}, {high}], found {value!r}")
+        for name, low, high in (("iterations", 1, 1000), ("substeps", 1, 100)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise ValueError(f"{name} must be an int in [{low}, {high}], found {value!r}")
+
+
+@dataclass(frozen=True)
+class WallTopology:
+    """Constraint sets and per-particle quantities of one mesh (rest shape), SI units."""
+
+    rest: np.ndarray
+    """(N, 3) rest positions, m."""
+    mass: np.ndarray
+    """(N,) particle masses, kg."""
+    area: np.ndarray
+    """(N,) vertex area shares, m^2."""
+    inv_mass: np.ndarray
+    """(N,) inverse masses, 1/kg; 0 for fixed and annulus (kinematic) particles."""
+    edges: np.ndarray
+    """(E, 2) mesh edges (stretch constraints)."""
+    edge_rest: np.ndarray
+    """(E,) rest lengths, m."""
+    edge_k: np.ndarray
+    """(E,) small-strain stretch stiffness ``E h A_e / L0^2``, N/m."""
+    hinges: np.ndarray
+    """(H, 2) vertex pairs opposite interior edges (bending constraints)."""
+    hinge_rest: np.ndarray
+    """(H,) rest distances, m."""
+    hinge_k: np.ndarray
+    """(H,) bending spring stiffness, N/m."""
+    tether_k: np.ndarray
+    """(N,) tether stiffness, N/m (0 for kinematic particles)."""
+    fixed: np.ndarray
+    """(K,) fixed particle indices."""
+    annulus: np.ndarray
+    """(R,) annulus particle indices driven by the heartbeat (fixed ones excluded)."""
+    max_edge: float
+    """Longest rest edge, m."""
+
+
+def build_topology(vertices: np.ndarray, faces: np.ndarray, fixed: np.ndarray,
+                   annulus: np.ndarray, config: PBDConfig) -> WallTopology:
+    """Derive the constraints of a closed triangle mesh (caps included) from its rest shape.
+
+    Args:
+        vertices: (N, 3) rest positions, m.
+        faces: (M, 3) triangles (all of them: caps keep their shape too).
+        fixed: indices held at rest.
+        annulus: indices prescribed by the heartbeat.
+        config: material parameters.
+    """
+    x = np.ascontiguousarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    n = x.shape[0]
+    if x.ndim != 2 or x.shape[1] != 3 or n < 3:
+        raise ValueError(f"vertices must have shape (N>=3, 3), found {x.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or f.size == 0:
+        raise ValueError(f"faces must have shape (M>=1, 3), found {f.shape}")
+    if f.min() < 0 or f.max() >= n:
+        raise ValueError(
+            f"faces must index vertices in [0, {n - 1}], found [{f.min()}, {f.max()}]")
+    fixed = np.unique(np.asarray(fixed, dtype=np.int64))
+    annulus = np.setdiff1d(np.asarray(annulus, dtype=np.int64), fixed)
+    for name, idx in (("fixed", fixed), ("annulus", annulus)):
+        if idx.size and (idx.min() < 0 or idx.max() >= n):
+            raise ValueError(f"{name} vertex indices must be in [0, {n - 1}], found {idx}")
+
+    tri = x[f]
+    face_area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]),
+                                      axis=1)
+    area = np.zeros(n)
+    np.add.at(area, f.ravel(), np.repeat(face_area / 3.0, 3))
+    if np.any(area <= 0):
+        raise ValueError(f"every vertex must belong to a triangle of non-zero area, found "
+                         f"{int(np.sum(area <= 0))} that do not")
+    mass = config.density * config.thickness * area
+    kinematic = np.zeros(n, dtype=bool)
+    kinematic[fixed] = True
+    kinematic[annulus] = True
+    inv_mass = np.where(kinematic, 0.0, 1.0 / mass)
+
+    # Edges with their adjacent faces (local edge k = (f_k, f_{k+1}), opposite vertex f_{k+2}).
+    he = np.stack([f, np.roll(f, -1, axis=1)], axis=2).reshape(-1, 2)
+    opp = np.roll(f, -2, axis=1).reshape(-1)
+    he_face = np.repeat(np.arange(len(f)), 3)
+    key = np.sort(he, axis=1)
+    edges, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    edge_area = np.zeros(len(edges))
+    np.add.at(edge_area, inv, face_area[he_face])
+    edge_rest = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1)
+    edge_k = config.youngs_modulus * config.thickness * edge_area / edge_rest**2
+
+    # Hinges: the two opposite vertices of each edge shared by exactly two triangles.
+    order = np.argsort(inv, kind="stable")
+    counts = np.bincount(inv, minlength=len(edges))
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    two = np.flatnonzero(counts == 2)
+    hinges = np.stack([opp[order[first[two]]], opp[order[first[two] + 1]]], axis=1)
+    keep = hinges[:, 0] != hinges[:, 1]
+    hinges = hinges[keep]
+    hinge_rest = np.linalg.norm(x[hinges[:, 0]] - x[hinges[:, 1]], axis=1)
+    hinge_k = config.bending_ratio * edge_k[two][keep]
+
+    tether_k = np.where(kinematic, 0.0, config.tether_stiffness * area)
+    return WallTopology(
+        rest=x.copy(), mass=mass, area=area, inv_mass=inv_mass,
+        edges=np.ascontiguousarray(edges, dtype=np.int64), edge_rest=edge_rest, edge_k=edge_k,
+        hinges=np.ascontiguousarray(hinges, dtype=np.int64), hinge_rest=hinge_rest,
+        hinge_k=hinge_k, tether_k=tether_k, fixed=fixed, annulus=annulus,
+        max_edge=float(edge_rest.max()),
+    )
+
+
+@njit(cache=True)
+def secant_factor(x, edges, edge_rest, b, out):
+    """Secant stiffening ``g(eps) = (exp(b eps) - 1) / (b eps)`` of every edge (1 if eps <= 0)."""
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d2 = 0.0
+        for a in range(3):
+            d2 += (x[i, a] - x[j, a]) ** 2
+        z = b * (np.sqrt(d2) / edge_rest[e] - 1.0)
+        if z <= 1e-9:
+            out[e] = 1.0
+        else:
+            z = min(z, _Z_MAX)
+            out[e] = np.expm1(z) / z
+
+
+@njit(cache=True)
+def predict(x, v, inv_mass, dt, damping, x_old, v_damped):
+    """Damp velocities and move free particles to their inertial prediction (in place)."""
+    decay = np.exp(-damping * dt)
+    for i in range(x.shape[0]):
+        for a in range(3):
+            x_old[i, a] = x[i, a]
+            if inv_mass[i] > 0.0:
+                v[i, a] *= decay
+                x[i, a] += v[i, a] * dt
+            v_damped[i, a] = v[i, a]
+
+
+@njit(cache=True)
+def _distance_sweep(x, w, pairs, rest_len, k, factor, use_factor, lam, dt2):
+    for e in range(pairs.shape[0]):
+        i = pairs[e, 0]
+        j = pairs[e, 1]
+        wsum = w[i] + w[j]
+        if wsum <= 0.0:
+            continue
+        dx = x[i, 0] - x[j, 0]
+        dy = x[i, 1] - x[j, 1]
+        dz = x[i, 2] - x[j, 2]
+        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if ln < 1e-15:
+            continue
+        kk = k[e] * factor[e] if use_factor else k[e]
+        alpha = 1.0 / (kk * dt2) if kk > 0.0 else 1e30
+        c = ln - rest_len[e]
+        dl = (-c - alpha * lam[e]) / (wsum + alpha)
+        lam[e] += dl
+        s = dl / ln
+        x[i, 0] += w[i] * s * dx
+        x[i, 1] += w[i] * s * dy
+        x[i, 2] += w[i] * s * dz
+        x[j, 0] -= w[j] * s * dx
+        x[j, 1] -= w[j] * s * dy
+        x[j, 2] -= w[j] * s * dz
+
+
+@njit(cache=True)
+def _tether_sweep(x, w, rest, k, lam, dt2):
+    for i in range(x.shape[0]):
+        if w[i] <= 0.0 or k[i] <= 0.0:
+            continue
+        dx = x[i, 0] - rest[i, 0]
+        dy = x[i, 1] - rest[i, 1]
+        dz = x[i, 2] - rest[i, 2]
+        ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if ln < 1e-15:
+            continue
+        alpha = 1.0 / (k[i] * dt2)
+        dl = (-ln - alpha * lam[i]) / (w[i] + alpha)
+        lam[i] += dl
+        s = w[i] * dl / ln
+        x[i, 0] += s * dx
+        x[i, 1] += s * dy
+        x[i, 2] += s * dz
+
+
+@njit(cache=True)
+def solve(x, inv_mass, rest, edges, edge_rest, edge_k, factor, hinges, hinge_rest, hinge_k,
+          tether_k, dt, iterations, faces, pair_face, pair_seg, points, radius, impulse,
+          touched):
+    """XPBD constraint solve of one substep (in place); returns the last contact violation."""
+    dt2 = dt * dt
+    lam_e = np.zeros(edges.shape[0])
+    lam_h = np.zeros(hinges.shape[0])
+    lam_t = np.zeros(x.shape[0])
+    has_contact = pair_face.shape[0] > 0
+    worst = 0.0
+    for _ in range(iterations):
+        _distance_sweep(x, inv_mass, edges, edge_rest, edge_k, factor, True, lam_e, dt2)
+        _distance_sweep(x, inv_mass, hinges, hinge_rest, hinge_k, factor, False, lam_h, dt2)
+        _tether_sweep(x, inv_mass, rest, tether_k, lam_t, dt2)
+        if has_contact:
+            worst = project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius,
+                                     dt, impulse, touched)
+    if has_contact:
+        for _ in range(2):
+            worst = project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius,
+                                     dt, impulse, touched)
+    return worst
+
+
+@njit(cache=True)
+def internal_forces(x, rest, edges, edge_rest, edge_k, b, hinges, hinge_rest, hinge_k,
+                    tether_k):
+    """(N, 3) elastic force of the wall material on every particle at positions x, N.
+
+    Stretch uses the full (not lagged) secant law ``k_e g(eps) (L - L0)``, bending and tethers
+    are linear springs; kinematic particles get their share too (their reaction).
+    """
+    n = x.shape[0]
+    f = np.zeros((n, 3))
+    for e in range(edges.shape[0]):
+        i = edges[e, 0]
+        j = edges[e, 1]
+        d = x[i] - x[j]
+        ln = np.sqrt(np.sum(d * d))
+        if ln < 1e-15:
+            continue
+        eps = ln / edge_rest[e] - 1.0
+        z = b * eps
+        g = 1.0 if z <= 1e-9 else np.expm1(min(z, _Z_MAX)) / min(z, _Z_MAX)
+        mag = edge_k[e] * g * (ln - edge_rest[e])
+        f[i] -= mag * d / ln
+        f[j] += mag * d / ln
+    for e in range(hinges.shape[0]):
+        i = hinges[e, 0]
+        j = hinges[e, 1]
+        d = x[i] - x[j]
+        ln = np.sqrt(np.sum(d * d))
+        if ln < 1e-15:
+            continue
+        mag = hinge_k[e] * (ln - hinge_rest[e])
+        f[i] -= mag * d / ln
+        f[j] += mag * d / ln
+    for i in range(n):
+        f[i] -= tether_k[i] * (x[i] - rest[i])
+    return f

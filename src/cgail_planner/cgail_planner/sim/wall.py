@@ -1,0 +1,298 @@
+"""The vessel wall seen by the environment: one API, a rigid and a deformable implementation.
+
+* :class:`StaticWall` - the rest shape, never moves (the paper's static environment).
+* :class:`DeformableWall` - PBD wall (:mod:`~cgail_planner.sim.pbd`) driven by the heartbeat
+  (:mod:`~cgail_planner.sim.heartbeat`) and pushed by the catheter body
+  (:mod:`~cgail_planner.sim.contact`).
+
+Both answer ray casts and tip-contact queries from the same numba BVH
+(:mod:`~cgail_planner.sim.raycast`) over the wall triangles only (caps are transparent), so with
+the heartbeat off and no catheter contact the two give identical answers. Everything is
+deterministic: the same calls give the same numbers. Units: m, s, N.
+
+Typical use by the environment::
+
+    wall = DeformableWall(anatomy)          # or StaticWall(anatomy)
+    wall.reset()
+    wall.step(t, dt, body_points, body_radius)
+    hits = wall.raycast(origins, directions, ray_length)
+    contact = wall.tip_contact(tip, body_radius, dt)
+    target = wall.vertex_position(anatomy.ostium_vertices["left"])
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from cgail_planner.sim.contact import Contact
+from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
+from cgail_planner.sim.pbd import (
+    build_topology,
+    internal_forces,
+    PBDConfig,
+    predict,
+    secant_factor,
+    solve,
+)
+from cgail_planner.sim.raycast import WallBVH
+
+if TYPE_CHECKING:
+    from cgail_planner.sim.anatomy import Anatomy
+
+__all__ = ["Contact", "DeformableWall", "StaticWall"]
+
+
+def _check_finite_scalar(name: str, value: float, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise ValueError(f"{name} must be a real number, found {value!r}")
+    v = float(value)
+    if not math.isfinite(v) or (positive and v <= 0.0):
+        raise ValueError(f"{name} must be a finite number{' > 0' if positive else ''}, "
+                         f"found {value!r}")
+    return v
+
+
+def _check_points(name: str, points: np.ndarray, allow_empty: bool) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim == 1 and p.shape == (3,):
+        p = p[None, :]
+    if p.ndim != 2 or p.shape[1] != 3 or (p.shape[0] == 0 and not allow_empty):
+        raise ValueError(f"{name} must have shape (B, 3), found {p.shape}")
+    if not np.isfinite(p).all():
+        raise ValueError(f"{name} must be finite, found NaN or inf")
+    return np.ascontiguousarray(p)
+
+
+class StaticWall:
+    """Rigid wall at the anatomy's rest shape.
+
+    Args:
+        anatomy: the vessel (its wall faces are the obstacles; caps are transparent).
+    """
+
+    def __init__(self, anatomy: Anatomy):
+        self.anatomy = anatomy
+        self._rest = np.ascontiguousarray(anatomy.vertices, dtype=np.float64)
+        self.vertices = self._rest.copy()
+        self._bvh = WallBVH(self._rest, anatomy.faces, anatomy.wall_face_mask)
+        self._tolerance = 0.0
+
+    def reset(self) -> None:
+        """Back to the rest shape, t = 0 (nothing to do for a rigid wall)."""
+        self.vertices = self._rest.copy()
+
+    def step(self, t: float, dt: float, body_points: np.ndarray, body_radius: float) -> None:
+        """Nothing moves in a rigid wall (the arguments are still validated)."""
+        _check_finite_scalar("t", t)
+        _check_finite_scalar("dt", dt, positive=True)
+        pts = _check_points("body_points", body_points, allow_empty=True)
+        if pts.shape[0]:
+            _check_finite_scalar("body_radius", body_radius, positive=True)
+
+    def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                ) -> np.ndarray:
+        """(R,) distance along each unit direction to the first wall hit, m.
+
+        Args:
+            origins: (R, 3) ray origins, m.
+            directions: (R, 3) unit directions.
+            max_dist: ray length, m; returned where no wall face is hit within it.
+        """
+        return self._bvh.raycast(origins, directions, max_dist)
+
+    def _geometric_contact(self, tip: np.ndarray, radius: float
+                           ) -> tuple[float, float, np.ndarray]:
+        """(penetration, clearance, outward normal) of the tip sphere vs the current wall."""
+        sd, _, normal, face = self._bvh.closest_point(tip, max_dist=np.inf)
+        if face < 0:
+            return 0.0, float("inf"), np.zeros(3)
+        depth = radius + sd  # sd < 0 on the lumen side
+        penetration = depth if depth > self._tolerance else 0.0
+        clearance = max(-depth, 0.0)
+        return penetration, clearance, normal
+
+    def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """Tip sphere vs the rigid wall.
+
+        A rigid wall has no moving particles, so the Newton's-law force is 0; any crossing of
+        the wall is reported as ``penetration`` (> 0), which the environment treats as a
+        non-minor collision.
+
+        Args:
+            tip: (3,) tip centre, m.
+            radius: tip (catheter) radius, m.
+            dt: step length, s (validated; unused by a rigid wall).
+        """
+        p = _check_points("tip", tip, allow_empty=False)
+        if p.shape[0] != 1:
+            raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
+        r = _check_finite_scalar("radius", radius, positive=True)
+        _check_finite_scalar("dt", dt, positive=True)
+        pen, clearance, normal = self._geometric_contact(p[0], r)
+        return Contact(penetration=pen, force=0.0, normal=normal,
+                       in_contact=bool(pen > 0.0 or clearance == 0.0), clearance=clearance)
+
+    def vertex_position(self, index: int) -> np.ndarray:
+        """(3,) current position of wall particle ``index``, m (a copy)."""
+        n = self.vertices.shape[0]
+        if isinstance(index, bool) or not isinstance(index, (int, np.integer)) \
+                or not 0 <= int(index) < n:
+            raise ValueError(f"index must be an int in [0, {n - 1}], found {index!r}")
+        return self.vertices[int(index)].copy()
+
+
+class DeformableWall(StaticWall):
+    """PBD wall with heartbeat-driven annulus and catheter contact.
+
+    Args:
+        anatomy: the vessel at rest (end-diastole).
+        pbd_config: wall material and solver parameters (defaults: calibrated aorta).
+        heartbeat_config: annulus motion (defaults: 10 mm axial, 5 mm in-plane, 70 bpm).
+    """
+
+    def __init__(self, anatomy: Anatomy, pbd_config: PBDConfig | None = None,
+                 heartbeat_config: HeartbeatConfig | None = None):
+        super().__init__(anatomy)
+        self.pbd_config = pbd_config if pbd_config is not None else PBDConfig()
+        if not isinstance(self.pbd_config, PBDConfig):
+            raise ValueError(
+                f"pbd_config must be a PBDConfig, found {type(self.pbd_config).__name__}")
+        hb = heartbeat_config if heartbeat_config is not None else HeartbeatConfig()
+        if not isinstance(hb, HeartbeatConfig):
+            raise ValueError(f"heartbeat_config must be a HeartbeatConfig, found "
+                             f"{type(hb).__name__}")
+        self.heartbeat = Heartbeat(anatomy.root_axis, hb)
+        self.topology = build_topology(self._rest, anatomy.faces, anatomy.fixed_vertices,
+                                       anatomy.annulus_vertices, self.pbd_config)
+        self._tolerance = self.pbd_config.penetration_tolerance
+        self._wall_faces = self._bvh.faces
+        n = self._rest.shape[0]
+        self._factor = np.ones(len(self.topology.edges))
+        self._x_old = np.zeros((n, 3))
+        self._v_damped = np.zeros((n, 3))
+        self._impulse = np.zeros((n, 3))
+        self._touched = np.zeros(n, dtype=np.int8)
+        self._dp = np.zeros((n, 3))
+        self._last_dt = 0.0
+        self.last_contact_violation = 0.0
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the rest shape with zero velocity, t = 0."""
+        self.vertices = self._rest.copy()
+        self.velocities = np.zeros_like(self._rest)
+        self.t = 0.0
+        self._impulse[:] = 0.0
+        self._touched[:] = 0
+        self._dp[:] = 0.0
+        self._forces: np.ndarray | None = None
+        self._bvh.refit(self.vertices)
+        self._dirty = False
+
+    def step(self, t: float, dt: float, body_points: np.ndarray, body_radius: float) -> None:
+        """Advance the wall from ``t - dt`` to ``t``.
+
+        Args:
+            t: time at the end of the step, s (the heartbeat phase is taken from it).
+            dt: step length, s (> 0).
+            body_points: (B, 3) catheter body, proximal end first, tip last (B may be 0).
+            body_radius: catheter radius, m (> 0 when B > 0).
+        """
+        t = _check_finite_scalar("t", t)
+        dt = _check_finite_scalar("dt", dt, positive=True)
+        pts = _check_points("body_points", body_points, allow_empty=True)
+        radius = _check_finite_scalar("body_radius", body_radius, positive=pts.shape[0] > 0) \
+            if pts.shape[0] else 0.0
+        cfg = self.pbd_config
+        topo = self.topology
+        h = dt / cfg.substeps
+        x = self.vertices
+        v = self.velocities
+        self._impulse[:] = 0.0
+        self._touched[:] = 0
+        self._dp[:] = 0.0
+        ann_rest = topo.rest[topo.annulus]
+        empty = np.zeros(0, dtype=np.int64)
+        worst = 0.0
+        for k in range(cfg.substeps):
+            t_k = t - dt + (k + 1) * h
+            secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, self._factor)
+            predict(x, v, topo.inv_mass, h, cfg.damping, self._x_old, self._v_damped)
+            if topo.annulus.size:
+                x[topo.annulus] = ann_rest + self.heartbeat.displacement(t_k)
+            if topo.fixed.size:
+                x[topo.fixed] = topo.rest[topo.fixed]
+            if pts.shape[0]:
+                self._bvh.refit(x)
+                vmax = float(np.sqrt((v * v).sum(axis=1).max())) if v.size else 0.0
+                pf, ps = self._bvh.faces_near_segments(
+                    pts, radius + cfg.contact_margin + vmax * h)
+            else:
+                pf, ps = empty, empty
+            worst = solve(x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                          self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k,
+                          topo.tether_k, h, cfg.iterations, self._wall_faces, pf, ps,
+                          pts if pts.shape[0] else np.zeros((1, 3)), radius, self._impulse,
+                          self._touched)
+            v_new = (x - self._x_old) / h
+            self._dp += topo.mass[:, None] * (v_new - self._v_damped)
+            v[:] = v_new
+        self.t = t
+        self._last_dt = dt
+        self.last_contact_violation = float(worst)
+        self._forces = None
+        self._dirty = True
+
+    def _sync(self) -> None:
+        if self._dirty:
+            self._bvh.refit(self.vertices)
+            self._dirty = False
+
+    def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                ) -> np.ndarray:
+        """(R,) distance to the first hit on the current (deformed) wall; see StaticWall."""
+        self._sync()
+        return self._bvh.raycast(origins, directions, max_dist)
+
+    def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """Tip sphere vs the deformed wall, with the force from Newton's second law.
+
+        ``force = |sum_{i in S} (dp_i / dt - f_i^elastic)|`` over the particles ``S`` the
+        catheter contact moved during the last :meth:`step` that lie within
+        ``radius + max rest edge`` of the tip (see :mod:`cgail_planner.sim.contact`).
+
+        Args:
+            tip: (3,) tip centre, m (normally the last body point of the last step).
+            radius: tip (catheter) radius, m.
+            dt: length of the last step, s (the impulse is turned into a mean force with it).
+        """
+        p = _check_points("tip", tip, allow_empty=False)
+        if p.shape[0] != 1:
+            raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
+        r = _check_finite_scalar("radius", radius, positive=True)
+        dt = _check_finite_scalar("dt", dt, positive=True)
+        self._sync()
+        pen, clearance, normal = self._geometric_contact(p[0], r)
+        touched = np.flatnonzero(self._touched)
+        force = 0.0
+        if touched.size:
+            near = touched[np.linalg.norm(self.vertices[touched] - p[0], axis=1)
+                           <= r + self.topology.max_edge]
+            if near.size:
+                if self._forces is None:
+                    topo = self.topology
+                    self._forces = internal_forces(
+                        self.vertices, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                        self.pbd_config.stiffening, topo.hinges, topo.hinge_rest,
+                        topo.hinge_k, topo.tether_k)
+                f = (self._dp[near] / dt - self._forces[near]).sum(axis=0)
+                force = float(np.linalg.norm(f))
+                touched = near
+            else:
+                touched = near
+        in_contact = bool(pen > 0.0 or clearance == 0.0 or touched.size > 0)
+        return Contact(penetration=pen, force=force, normal=normal, in_contact=in_contact,
+                       clearance=clearance)
