@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,7 +105,7 @@ def read_trial(
         deserialize = TYPESTORE.deserialize_cdr
         for conn, log_ns, raw in iter_raw(reader, topics=list(roles)):
             role = roles[conn.topic]
-            msg = deserialize(raw, conn.msgtype)
+            msg: Any = deserialize(raw, conn.msgtype)
             if role == 'path':
                 path_t.append(_stamp(msg.header, log_ns))
                 paths.append(np.array([(q.pose.position.x, q.pose.position.y,

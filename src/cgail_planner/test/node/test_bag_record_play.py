@@ -246,3 +246,24 @@ def test_signal_during_recording_leaves_a_complete_bag(ros, tmp_path: Path, sign
         got = [TYPESTORE.deserialize_cdr(raw, c.msgtype).data for c, _, raw in iter_raw(reader)]
     assert got == [f'msg {i}' for i in range(150)]
     node.destroy_node()
+
+
+def test_writer_thread_flushes_messages_to_disk_before_close(ros, tmp_path: Path) -> None:
+    from std_msgs.msg import String
+
+    node = rclpy.create_node('flush_recorder')
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    pub = node.create_publisher(String, 'flush/chatter', 10)
+    recorder = BagRecorder(node, RecorderConfig(output=tmp_path / 'f', topics=('flush/chatter',),
+                                                flush_period=0.1, discovery_period=0.1))
+    assert spin_until(executor, lambda: pub.get_subscription_count() == 1, 10.0)
+    for i in range(5):
+        pub.publish(String(data=f'flushed {i}'))
+    assert spin_until(executor, lambda: recorder.received == 5, 5.0)
+    mcap = tmp_path / 'f' / 'f.mcap'
+    assert spin_until(executor, lambda: b'flushed 4' in mcap.read_bytes(), 3.0)
+    assert not (tmp_path / 'f' / 'metadata.yaml').exists()  # still open: written by close
+    assert recorder.stop() == 5
+    assert (tmp_path / 'f' / 'metadata.yaml').exists()
+    node.destroy_node()
