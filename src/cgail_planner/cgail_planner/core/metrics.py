@@ -42,6 +42,7 @@ from cgail_planner.core.path_fit import (
     discrete_curvature,
     fit_path,
     PathFitConfig,
+    PathFitError,
     polyline_length,
     resample_by_arc_length,
 )
@@ -175,8 +176,15 @@ def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None)
     if len(trial.paths) == 0 or len(trial.paths) != len(trial.path_t):
         raise MetricsError(f'{where}: expected at least one planned path with a time, found '
                            f'{len(trial.paths)} paths and {len(trial.path_t)} times')
+    # NaN poses (tracker dropouts) carry no position: leave them out.
     finite = np.all(np.isfinite(tip_p), axis=1) & np.isfinite(tip_t)
     tip_t, tip_p = tip_t[finite], tip_p[finite]
+    finite = np.all(np.isfinite(goal_p), axis=1) & np.isfinite(goal_t)
+    goal_t, goal_p = goal_t[finite], goal_p[finite]
+    if len(tip_t) == 0:
+        raise MetricsError(f'{where}: expected finite tip poses, found only NaN')
+    if len(goal_t) == 0:
+        raise MetricsError(f'{where}: expected a finite goal, found only NaN')
 
     start = np.searchsorted(tip_t, goal_t[0], side='left')
     if start >= len(tip_t):
@@ -199,7 +207,11 @@ def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None)
     length = math.nan
     for k in np.unique(pi[pi >= 0]):
         sel = pi == k
-        desired = fit_path(trial.paths[int(k)], cfg.path_fit)
+        try:
+            desired = fit_path(trial.paths[int(k)], cfg.path_fit)
+        except PathFitError as exc:
+            raise MetricsError(f'{where}: planned path #{k} (t = {path_t[k]:.3f} s) cannot be '
+                               f'used as the desired path: {exc}') from None
         errors[sel], _ = closest_points(p[sel], desired)
         length = polyline_length(desired)
     tracked = errors[np.isfinite(errors)]

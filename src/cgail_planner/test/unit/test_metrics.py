@@ -86,6 +86,14 @@ def test_moving_target_and_replanning_use_the_message_in_effect() -> None:
     assert m.time_to_target == 3.0
 
 
+def test_nan_tip_poses_are_left_out() -> None:
+    tip = along_x([0.0, 0.01, 0.02], y=0.001)
+    tip[1] = np.nan
+    m = compute_trial_metrics(trial([0.0, 1.0, 2.0], tip))
+    assert m.samples == 2
+    assert m.tracking_max == pytest.approx(0.001, abs=1e-9)
+
+
 def test_samples_before_the_first_path_are_not_tracked() -> None:
     t = np.array([0.0, 1.0, 2.0])
     tip = along_x([0.0, 0.01, 0.02], y=0.0)
@@ -110,6 +118,10 @@ def test_curvature_of_a_circular_trajectory_in_per_metre() -> None:
     (dict(goal_t=(50.0,)), 'expected tip poses after the first goal'),
     (dict(path_t=(50.0,)), 'expected tip poses after the first planned path'),
     (dict(tip_t=[1.0, 0.0]), 'times must be non-decreasing'),
+    (dict(tip_p=np.full((2, 3), np.nan)), 'expected finite tip poses, found only NaN'),
+    (dict(goal_p=np.full((1, 3), np.nan)), 'expected a finite goal, found only NaN'),
+    (dict(paths=(np.zeros((0, 3)),)), r'planned path #0 \(t = 0.000 s\) cannot be used as the '
+                                      'desired path: expected at least 2 distinct waypoints'),
 ])
 def test_unusable_trials_raise(kwargs: dict, match: str) -> None:
     base = dict(tip_t=[0.0, 1.0], tip_p=along_x([0.0, 0.01]))
