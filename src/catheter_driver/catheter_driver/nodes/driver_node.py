@@ -1,0 +1,281 @@
+"""Sleeve driver node (``sleeve_driver``): insertion velocity in, relay over CAN, state out.
+
+Run: ``ros2 run catheter_driver driver_node`` (or ``scripts/ws driver_node`` in the pip-only
+workspace); with the defaults it drives a simulated driver on a python-can virtual bus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool
+
+from catheter_driver.core.relay import RelayConfig, RelayController, SleeveFeedback
+from catheter_driver.core.supervision import Backoff, SupervisionConfig, Watchdog
+from catheter_driver.exceptions import CommandError, DeviceDisconnectedError, ProtocolError
+from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverStatus
+from catheter_driver.hw.driver_link import CanDriverLink
+from catheter_driver.hw.sim_driver import SimulatedDriver
+from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes.params import declare
+
+
+class DriverNode(Node):
+    """Thin wrapper around :class:`RelayController` and :class:`CanDriverLink`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('sleeve_driver', **kwargs)
+        d = RelayConfig()
+        s = SupervisionConfig()
+        self.relay_config = RelayConfig(
+            max_speed=declare(self, 'max_speed', d.max_speed,
+                              'catheter speed cap, insertion and retraction, m/s',
+                              lo=1e-6, hi=0.005),
+            return_speed=declare(self, 'return_speed', d.return_speed,
+                                 'sleeve speed on the return stroke, m/s', lo=1e-6, hi=0.05),
+            stroke_min=declare(self, 'stroke_min', d.stroke_min, 'sleeve back end, m'),
+            stroke_max=declare(self, 'stroke_max', d.stroke_max, 'sleeve front end, m'),
+            position_min=declare(self, 'position_min', d.position_min,
+                                 'smallest catheter insertion, m'),
+            position_max=declare(self, 'position_max', d.position_max,
+                                 'largest catheter insertion, m'),
+            gripper_close_time=declare(self, 'gripper_close_time', d.gripper_close_time,
+                                       'nominal gripper closing time (simulation), s'),
+            gripper_open_time=declare(self, 'gripper_open_time', d.gripper_open_time,
+                                      'nominal gripper opening time (simulation), s'),
+            gripper_timeout=declare(self, 'gripper_timeout', d.gripper_timeout,
+                                    'handover step longer than this is a fault, s'))
+        self.supervision = SupervisionConfig(
+            control_rate_hz=declare(self, 'control_rate_hz', s.control_rate_hz,
+                                    'relay control loop and state rate, Hz', lo=1.0, hi=1000.0),
+            command_timeout=declare(self, 'command_timeout_s', s.command_timeout,
+                                    'watchdog: stop when commands are older, s'),
+            status_timeout=declare(self, 'status_timeout_s', s.status_timeout,
+                                   'device counts as disconnected after this silence, s'),
+            backoff_initial=declare(self, 'reconnect_backoff_initial_s', s.backoff_initial,
+                                    'first reconnect delay, s'),
+            backoff_max=declare(self, 'reconnect_backoff_max_s', s.backoff_max,
+                                'largest reconnect delay, s'),
+            diagnostics_period=declare(self, 'diagnostics_period_s', s.diagnostics_period,
+                                       '/diagnostics period, s'))
+        self._interface = declare(self, 'can_interface', 'virtual',
+                                  "python-can interface ('virtual', 'socketcan', ...)")
+        self._channel = declare(self, 'can_channel', 'sleeve_driver', 'python-can channel')
+        self._bitrate = declare(self, 'can_bitrate', 500000, 'CAN bitrate, bit/s',
+                                lo=10000, hi=1000000)
+        simulate = declare(self, 'simulate_device', True,
+                           'start a simulated driver on the virtual bus in this process')
+        dbc_path = declare(self, 'dbc_path', '', 'DBC file; empty = the bundled driver.dbc')
+        self._hardware_id = declare(self, 'hardware_id', 'sleeve_driver',
+                                    'hardware_id in /diagnostics')
+        if simulate and self._interface != 'virtual':
+            raise ValueError(f"simulate_device requires can_interface 'virtual', found "
+                             f'{self._interface!r}')
+        r = self.relay_config
+        self._codec = DriverCodec(dbc_path or None, position_range=(
+            r.stroke_min - 0.01, r.stroke_max + 0.01))
+        self.sim: SimulatedDriver | None = None
+        if simulate:
+            self.sim = SimulatedDriver(self._channel, config=r, codec=self._codec).start()
+
+        self._link: CanDriverLink | None = None
+        self._controller: RelayController | None = None
+        self._feedback: DriverStatus | None = None
+        self._backoff = Backoff(s.backoff_initial, s.backoff_max)
+        self._next_attempt = 0.0
+        self._last_status = 0.0
+        self._link_error = 'not opened yet'
+        self._position = 0.0
+        self._velocity_cmd = 0.0
+        self._watchdog = Watchdog(self.supervision.command_timeout)
+        self._estop = False
+        self._last_stop_frame = 0.0
+        self.rejected_commands = 0
+        self._last_rejection = ''
+        self.reconnects = 0
+
+        self._state_pub = self.create_publisher(JointState, 'catheter/insertion_state',
+                                                conv.SENSOR_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                               conv.DIAGNOSTICS_QOS)
+        self.create_subscription(JointState, 'catheter/insertion_command',
+                                 self._on_insertion_command, conv.COMMAND_QOS)
+        self.create_service(SetBool, 'sleeve_driver/estop', self._on_estop)
+        self._period = 1.0 / self.supervision.control_rate_hz
+        self.create_timer(self._period, self._on_control)
+        self.create_timer(self.supervision.diagnostics_period, self._on_diagnostics)
+
+    # -- callbacks ---------------------------------------------------------------------------
+
+    def _on_insertion_command(self, msg: JointState) -> None:
+        try:
+            velocity = conv.insertion_velocity(msg, self.relay_config.max_speed)
+        except CommandError as exc:
+            self.rejected_commands += 1
+            self._last_rejection = str(exc)
+            self.get_logger().warning(f'insertion command rejected, nothing sent: {exc}',
+                                      throttle_duration_sec=1.0)
+            return
+        self._velocity_cmd = velocity
+        self._watchdog.feed(time.monotonic())
+
+    def _on_estop(self, request: SetBool.Request, response: SetBool.Response):
+        self._estop = bool(request.data)
+        if self._controller is not None:
+            self._controller.set_estop(self._estop)
+        self._velocity_cmd = 0.0
+        self._watchdog.starve()
+        self._last_stop_frame = 0.0  # (re)send the latch frame on the next control tick
+        self._send_stop()
+        response.success = True
+        response.message = 'e-stop engaged' if self._estop else 'e-stop released'
+        self.get_logger().warning(response.message)
+        return response
+
+    def _on_control(self) -> None:
+        now = time.monotonic()
+        if self._link is None and not self._open(now):
+            return
+        assert self._link is not None
+        try:
+            status = self._link.poll()
+        except DeviceDisconnectedError as exc:
+            self._drop(now, str(exc))
+            return
+        if status is not None:
+            self._feedback, self._last_status = status, now
+            self._backoff.reset()
+        if now - self._last_status > self.supervision.status_timeout:
+            self._drop(now, f'expected DRV_STATUS within {self.supervision.status_timeout} s,'
+                            f' found none for {now - self._last_status:.3f} s')
+            return
+        if self._feedback is None:
+            return
+        fb = SleeveFeedback(self._feedback.sleeve_position, self._feedback.moving,
+                            self._feedback.fixed)
+        if self._controller is None:
+            self._controller = RelayController(self.relay_config, fb, self._position)
+            self._controller.set_estop(self._estop)
+        velocity = self._velocity_cmd if self._watchdog.fresh(now) else 0.0
+        cmd = self._controller.step(velocity, fb, self._period)
+        self._position = self._controller.position
+        try:
+            if self._estop and now - self._last_stop_frame >= 1.0:
+                self._send_stop()
+                self._last_stop_frame = now
+            self._link.send_command(DriverCommand(cmd.sleeve_velocity, cmd.moving_close,
+                                                  cmd.fixed_close))
+        except (DeviceDisconnectedError, ProtocolError) as exc:
+            self._drop(now, str(exc))
+            return
+        self._state_pub.publish(conv.insertion_state(
+            self.get_clock().now(), self._controller.position, self._controller.velocity))
+
+    def _on_diagnostics(self) -> None:
+        self._diag_pub.publish(self.diagnostics_message())
+
+    # -- helpers -----------------------------------------------------------------------------
+
+    def _open(self, now: float) -> bool:
+        if now < self._next_attempt:
+            return False
+        try:
+            self._link = CanDriverLink.open(self._interface, self._channel, self._codec,
+                                            self._bitrate)
+        except DeviceDisconnectedError as exc:
+            delay = self._backoff.next_delay()
+            self._next_attempt = now + delay
+            self._link_error = f'{exc}; retrying in {delay:.2f} s'
+            self.get_logger().error(self._link_error, throttle_duration_sec=5.0)
+            return False
+        self._last_status = now  # grace period for the first status
+        self._send_stop()
+        return True
+
+    def _drop(self, now: float, reason: str) -> None:
+        if self._link is not None:
+            self._link.close()
+        self._link, self._controller, self._feedback = None, None, None
+        delay = self._backoff.next_delay()
+        self._next_attempt = now + delay
+        self.reconnects += 1
+        self._link_error = f'{reason}; reconnecting in {delay:.2f} s'
+        self.get_logger().error(f'sleeve driver disconnected: {self._link_error}',
+                                throttle_duration_sec=2.0)
+
+    def _send_stop(self) -> None:
+        if self._link is None:
+            return
+        try:
+            self._link.send_stop(self._estop)
+        except DeviceDisconnectedError as exc:
+            self._link_error = str(exc)
+
+    def diagnostics_message(self) -> DiagnosticArray:
+        """The current /diagnostics array (one status for the sleeve driver)."""
+        now = time.monotonic()
+        fb, ctrl = self._feedback, self._controller
+        connected = self._link is not None and fb is not None
+        fault = ctrl.fault if ctrl is not None else None
+        level, message = DiagnosticStatus.OK, 'running'
+        if not connected:
+            level, message = DiagnosticStatus.ERROR, f'disconnected: {self._link_error}'
+        elif fault or fb.stall or fb.interlock:
+            level = DiagnosticStatus.WARN
+            message = fault or ('sleeve stalled' if fb.stall else 'interlock refused motion')
+        elif self._estop:
+            level, message = DiagnosticStatus.WARN, 'e-stop engaged'
+        values = [
+            ('connected', connected),
+            ('phase', ctrl.phase.name if ctrl else 'none'),
+            ('catheter_position_m', f'{self._position:.6f}'),
+            ('sleeve_position_m', f'{fb.sleeve_position:.6f}' if fb else 'unknown'),
+            ('moving_gripper', fb.moving.name if fb else 'unknown'),
+            ('fixed_gripper', fb.fixed.name if fb else 'unknown'),
+            ('stall', fb.stall if fb else 'unknown'),
+            ('device_command_timeout', fb.command_timeout if fb else 'unknown'),
+            ('estop', self._estop),
+            ('command_fresh', self._watchdog.fresh(now)),
+            ('rejected_commands', self.rejected_commands),
+            ('last_rejection', self._last_rejection),
+            ('protocol_errors', self._link.protocol_errors if self._link else 0),
+            ('reconnects', self.reconnects),
+        ]
+        return conv.diagnostics(self.get_clock().now(), 'sleeve_driver: relay insertion',
+                                self._hardware_id, level, message, values)
+
+    def destroy_node(self) -> None:
+        """Stop the sleeve, release the bus and the simulated device."""
+        if self._link is not None:
+            with contextlib.suppress(DeviceDisconnectedError):
+                self._link.send_command(DriverCommand(0.0, True, True))
+            self._link.close()
+            self._link = None
+        if self.sim is not None:
+            self.sim.stop()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Console script ``driver_node``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = DriverNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,186 @@
+"""sleeve_driver node in-process: topics, QoS, watchdog, e-stop, bad commands, disconnects."""
+
+import math
+import uuid
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import pytest
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_srvs.srv import SetBool
+
+from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes.driver_node import DriverNode
+
+
+def _node(harness, **params):
+    params.setdefault('can_channel', f'drv_{uuid.uuid4().hex}')
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return harness.add(DriverNode(parameter_overrides=overrides))
+
+
+def _cmd(velocity, name='insertion'):
+    msg = JointState()
+    msg.name = [name]
+    msg.velocity = [velocity]
+    return msg
+
+
+def _publishing(pub, msg, predicate):
+    """A spin_until predicate that publishes ``msg`` on every poll."""
+    def step():
+        pub.publish(msg)
+        return predicate()
+    return step
+
+
+def _values(array):
+    return {kv.key: kv.value for kv in array.status[0].values}
+
+
+def test_topics_services_and_qos(harness):
+    node = _node(harness)
+    pubs = {name: node.get_publishers_info_by_topic(name) for name in
+            ('/catheter/insertion_state', '/diagnostics')}
+    state_qos = pubs['/catheter/insertion_state'][0].qos_profile
+    assert state_qos.reliability == ReliabilityPolicy.BEST_EFFORT
+    diag_qos = pubs['/diagnostics'][0].qos_profile
+    assert diag_qos.reliability == ReliabilityPolicy.RELIABLE
+    assert diag_qos.durability == DurabilityPolicy.VOLATILE
+    subs = node.get_subscriptions_info_by_topic('/catheter/insertion_command')
+    assert subs[0].qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    services = dict(node.get_service_names_and_types_by_node('sleeve_driver', '/'))
+    assert services['/sleeve_driver/estop'] == ['std_srvs/srv/SetBool']
+
+
+def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
+    node = _node(harness)
+    states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    assert harness.spin_until(lambda: states and node._controller.phase.name == 'DRIVE')
+
+    def keep_commanding():
+        pub.publish(_cmd(0.005))
+        return states[-1].position[0] > 0.002
+
+    assert harness.spin_until(keep_commanding, timeout=5.0)
+    last = states[-1]
+    assert last.name == ['insertion']
+    assert 0.0 < last.velocity[0] <= 0.005 + 1e-9
+    assert node.sim.mechanism.catheter_position == pytest.approx(last.position[0], abs=5e-4)
+
+
+def test_watchdog_stops_on_stale_commands(harness):
+    node = _node(harness, command_timeout_s=0.2)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    assert harness.spin_until(_publishing(pub, _cmd(0.005),
+                                          lambda: node.sim.mechanism.sleeve_velocity > 0))
+    harness.spin_for(0.5)  # no more commands
+    assert node.sim.mechanism.sleeve_velocity == 0.0
+    diag = node.diagnostics_message()
+    assert _values(diag)['command_fresh'] == 'False'
+
+
+@pytest.mark.parametrize(('msg', 'reason'), [
+    (_cmd(math.nan), 'expected a finite insertion velocity, found nan'),
+    (_cmd(math.inf), 'expected a finite insertion velocity, found inf'),
+    (_cmd(0.006), r'expected |insertion velocity| <= 0.005 m/s, found 0.006 m/s'),
+    (_cmd(0.001, name='wrong'), "expected joint 'insertion' in name, found ['wrong']"),
+])
+def test_bad_commands_are_rejected_and_nothing_is_sent(harness, msg, reason):
+    node = _node(harness)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    start = node.sim.mechanism.catheter_position
+    assert harness.spin_until(_publishing(pub, msg, lambda: node.rejected_commands >= 3))
+    harness.spin_for(0.2)
+    assert node.sim.mechanism.catheter_position == start
+    assert node._velocity_cmd == 0.0
+    assert _values(node.diagnostics_message())['last_rejection'] == reason
+
+
+def test_estop_service_holds_the_sleeve_and_reports(harness):
+    node = _node(harness)
+    diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    client = harness.probe.create_client(SetBool, 'sleeve_driver/estop')
+    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    result = harness.call(client, SetBool.Request(data=True))
+    assert result.success and result.message == 'e-stop engaged'
+    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.6)
+    assert node.sim.mechanism.catheter_position == 0.0
+    assert harness.spin_until(lambda: diags and diags[-1].status[0].level == DiagnosticStatus.WARN)
+    status = diags[-1].status[0]
+    assert status.message == 'e-stop engaged' and status.hardware_id == 'sleeve_driver'
+    assert harness.spin_until(lambda: node.sim._stopped)  # the latch frame reached the device
+    result = harness.call(client, SetBool.Request(data=False))
+    assert result.message == 'e-stop released'
+    assert harness.spin_until(_publishing(
+        pub, _cmd(0.005), lambda: node.sim.mechanism.catheter_position > 1e-4))
+
+
+def test_disconnect_reported_and_recovered_with_backoff(harness):
+    node = _node(harness, status_timeout_s=0.1, reconnect_backoff_initial_s=0.05,
+                 reconnect_backoff_max_s=0.4)
+    assert harness.spin_until(lambda: node._controller is not None)
+    node.sim.disconnect()
+    assert harness.spin_until(lambda: node.reconnects >= 3, timeout=5.0)
+    diag = node.diagnostics_message().status[0]
+    assert diag.level == DiagnosticStatus.ERROR
+    assert diag.message.startswith('disconnected: expected DRV_STATUS within 0.1 s')
+    assert node._backoff.attempts >= 3
+    node.sim.reconnect()
+    assert harness.spin_until(lambda: node.diagnostics_message().status[0].level
+                              == DiagnosticStatus.OK, timeout=5.0)
+    assert node._backoff.attempts == 0
+
+
+def test_garbage_frames_do_not_crash_the_node(harness):
+    node = _node(harness)
+    assert harness.spin_until(lambda: node._controller is not None)
+    for _ in range(5):
+        node.sim.inject_garbage(20)
+        harness.spin_for(0.05)
+    assert harness.spin_until(lambda: node._link is not None and node._link.protocol_errors >= 90)
+    assert node._controller is not None
+    assert _values(node.diagnostics_message())['connected'] == 'True'
+
+
+def test_stall_is_reported_in_diagnostics(harness):
+    node = _node(harness)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    node.sim.set_stall(True)
+    assert harness.spin_until(_publishing(
+        pub, _cmd(0.005),
+        lambda: node.diagnostics_message().status[0].message == 'sleeve stalled'))
+
+
+def test_missing_can_interface_reports_error_and_retries(harness):
+    node = _node(harness, can_interface='no_such_interface', simulate_device=False,
+                 reconnect_backoff_initial_s=0.05, reconnect_backoff_max_s=0.1)
+    assert harness.spin_until(lambda: node._backoff.attempts >= 3)
+    diag = node.diagnostics_message().status[0]
+    assert diag.level == DiagnosticStatus.ERROR
+    assert 'expected to open CAN no_such_interface' in diag.message
+
+
+@pytest.mark.parametrize(('params', 'error', 'match'), [
+    ({'max_speed': 0.01}, InvalidParameterValueException, 'max_speed'),
+    ({'stroke_max': -1.0}, ValueError, 'stroke_max must exceed stroke_min'),
+    ({'command_timeout_s': 0.0}, ValueError, 'command_timeout must be a finite number > 0'),
+    ({'can_interface': 'socketcan'}, ValueError,
+     "simulate_device requires can_interface 'virtual', found 'socketcan'"),
+    ({'reconnect_backoff_max_s': 0.1}, ValueError, 'backoff_max must be >= backoff_initial'),
+])
+def test_bad_parameters_raise_at_construction(harness, params, error, match):
+    with pytest.raises(error, match=match):
+        DriverNode(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
