@@ -147,6 +147,38 @@ def command_to_action(
     return np.clip(out, -1.0, 1.0)
 
 
+def steer_towards(tip_position: FloatArray, tip_rotation: FloatArray, goal: FloatArray,
+                  config: CatheterConfig, theta_max: float | None = None,
+                  insertion: float = 1.0) -> FloatArray:
+    """Normalised action that turns the heading as far as allowed towards ``goal``.
+
+    One-step inverse kinematics of the bend: with ``d = R^T (goal - p)`` in the tip frame,
+    ``Rx(alpha) Rz(gamma) e_y = (-sin g, cos g cos a, cos g sin a)`` points along ``d`` for
+    ``alpha = atan2(d_z, d_y)`` and ``gamma = atan2(-d_x, hypot(d_y, d_z))``. The returned
+    ``a[0], a[1]`` are those angles over the step's bend limit ``theta_max^t``, saturated at +-1,
+    and ``a[2] = insertion``. Batched over a leading axis.
+
+    Args:
+        tip_position: (..., 3) tip positions.
+        tip_rotation: (..., 3, 3) tip rotations.
+        goal: (..., 3) points to aim at.
+        config: catheter constraints.
+        theta_max: current maximal bend (default ``config.theta_max``).
+        insertion: normalised insertion ``a[2]`` in (0, 1].
+
+    Returns:
+        (..., 3) normalised actions for :func:`action_to_command`.
+    """
+    th = config.theta_max if theta_max is None else theta_max
+    d = np.einsum("...ji,...j->...i", tip_rotation, np.asarray(goal) - tip_position)
+    alpha = np.arctan2(d[..., 2], d[..., 1])
+    gamma = np.arctan2(-d[..., 0], np.hypot(d[..., 1], d[..., 2]))
+    limit = float(bend_limit(insertion * config.max_step_insertion, th, config.segment_length))
+    a0 = np.clip(alpha / limit, -1.0, 1.0)
+    a1 = np.clip(gamma / limit, -1.0, 1.0)
+    return np.stack(np.broadcast_arrays(a0, a1, np.full_like(a0, insertion)), axis=-1)
+
+
 def bend_rotation(alpha: FloatArray, gamma: FloatArray) -> FloatArray:
     """Batched ``Rx(alpha) @ Rz(gamma)``: ``(...,)`` angles -> ``(..., 3, 3)`` rotations."""
     ca, sa = np.cos(alpha), np.sin(alpha)

@@ -1,0 +1,449 @@
+"""Gymnasium environment: steer a follow-the-leader catheter to a coronary ostium.
+
+:class:`NavEngine` holds the batched simulation (N environments, numpy-vectorised catheter,
+observations and reward, one batched raycast per step in static mode);
+:class:`CatheterNavEnv` is the single gymnasium environment (an engine with N = 1) and
+:class:`cgail_planner.sim.vec_env.CatheterNavVecEnv` the batched one (same engine, N > 1).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+from gymnasium import spaces
+import numpy as np
+from numpy.typing import NDArray
+
+from cgail_planner.sim.catheter import action_to_command, bend_limit, CatheterBatch
+from cgail_planner.sim.config import EnvConfig
+from cgail_planner.sim.reward import (
+    bending_event,
+    compute_reward,
+    exited_lumen,
+    non_minor_collision,
+    reached_target,
+    StepEvents,
+    update_waypoints,
+)
+from cgail_planner.sim.scenarios import load_world, World
+from cgail_planner.sim.wall import DeformableWall, StaticWall
+
+FloatArray = NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------- rays
+def _ray_directions() -> NDArray[np.float64]:
+    """The fixed ray set in tip-frame coordinates ``(x_A, y_A, z_A)``: 25 unit vectors.
+
+    Ray 0 points along the heading ``y_A``; rays 1-8, 9-16 and 17-24 form rings at polar angles
+    30, 60 and 90 deg from ``y_A``, at azimuths 0, 45, ..., 315 deg measured from ``x_A``
+    towards ``z_A``.
+    """
+    dirs = [np.array([0.0, 1.0, 0.0])]
+    for polar in (30.0, 60.0, 90.0):
+        th = math.radians(polar)
+        for k in range(8):
+            az = math.radians(45.0 * k)
+            dirs.append(np.array([math.sin(th) * math.cos(az), math.cos(th),
+                                  math.sin(th) * math.sin(az)]))
+    out = np.array(dirs)
+    out[np.abs(out) < 1e-15] = 0.0
+    return out
+
+
+#: (25, 3) ray directions in the tip frame (see :func:`_ray_directions`).
+RAY_DIRECTIONS = _ray_directions()
+N_RAYS = len(RAY_DIRECTIONS)
+
+
+class ObsField(NamedTuple):
+    """One block of the observation vector."""
+
+    name: str
+    start: int
+    stop: int
+    description: str
+
+
+#: Observation layout (stored by the ONNX export); see :class:`CatheterNavEnv`.
+OBS_LAYOUT: tuple[ObsField, ...] = (
+    ObsField("tip_position", 0, 3, "(p_t - origin) / position_scale, phantom frame"),
+    ObsField("tip_x_axis", 3, 6, "x_A: first column of the tip rotation R"),
+    ObsField("tip_heading", 6, 9, "y_A: second column of R (insertion direction)"),
+    ObsField("tip_z_axis", 9, 12, "z_A: third column of R"),
+    ObsField("target_distance", 12, 13, "u = ||p_g - p_t|| / d_max"),
+    ObsField("target_vector", 13, 16, "v = (p_g - p_t) / d_max, phantom frame"),
+    ObsField("rays", 16, 16 + N_RAYS,
+             "hit distance / ray_length in [0, 1] along RAY_DIRECTIONS (1 = no wall)"),
+)
+OBS_DIM = OBS_LAYOUT[-1].stop
+#: Bound of the unbounded-looking entries (positions, u, v) of the observation space.
+OBS_BOUND = 5.0
+
+
+def obs_layout_dict() -> dict[str, Any]:
+    """JSON-able description of the observation (for model metadata)."""
+    return {
+        "dim": OBS_DIM,
+        "fields": [f._asdict() for f in OBS_LAYOUT],
+        "ray_directions_tip_frame": RAY_DIRECTIONS.round(12).tolist(),
+    }
+
+
+def _observation_space() -> spaces.Box:
+    # Bounds hold by construction: the tip never gets further than the anatomy's bounding box
+    # + 10 mm (the episode ends there) and the target stays within a few mm of its rest point.
+    low = np.full(OBS_DIM, -OBS_BOUND, dtype=np.float32)
+    high = np.full(OBS_DIM, OBS_BOUND, dtype=np.float32)
+    low[3:12], high[3:12] = -1.0, 1.0
+    low[12] = 0.0
+    low[16:], high[16:] = 0.0, 1.0
+    return spaces.Box(low, high, dtype=np.float32)
+
+
+def _make_wall(world: World, mode: str) -> StaticWall | DeformableWall:
+    if mode == "static":
+        return StaticWall(world.anatomy)
+    return DeformableWall(world.anatomy)
+
+
+def validate_actions(actions: Any, n_envs: int) -> FloatArray:
+    """Check a batch of normalised actions; returns an (N, 3) float64 array.
+
+    Raises:
+        ValueError: wrong shape, non-numeric, NaN or inf entries.
+    """
+    try:
+        a = np.asarray(actions, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"action must be numeric with shape ({n_envs}, 3), found "
+                         f"{type(actions).__name__}") from exc
+    expected = (3,) if n_envs == 1 and a.ndim == 1 else (n_envs, 3)
+    if a.shape != expected:
+        raise ValueError(f"action must have shape {expected}, found {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"action must be finite (no NaN/inf), found {a.tolist()}")
+    return a.reshape(n_envs, 3)
+
+
+class NavEngine:
+    """N catheter navigation episodes stepped together (see :class:`CatheterNavEnv`)."""
+
+    def __init__(self, config: EnvConfig, n_envs: int) -> None:
+        self.config = config
+        self.n_envs = n_envs
+        self.world = load_world(config.anatomy, config.n_waypoints, config.scenario_seed)
+        sc = self.world.scenarios
+        self.scenarios = sc
+        anatomy = self.world.anatomy
+        if config.mode == "static":
+            wall = _make_wall(self.world, "static")
+            self.walls = [wall] * n_envs
+            self._shared_wall = True
+        else:
+            self.walls = [_make_wall(self.world, "dynamic") for _ in range(n_envs)]
+            self._shared_wall = False
+        cat = config.catheter
+        self.catheter = CatheterBatch(n_envs, cat, capacity=config.max_steps + 8)
+        self.radius = cat.radius
+        self.exit_point = np.asarray(anatomy.exit_point, dtype=np.float64)
+        self.exit_normal = np.asarray(anatomy.exit_normal, dtype=np.float64)
+        verts = np.asarray(anatomy.vertices, dtype=np.float64)
+        margin = 0.01
+        self.bbox_low = verts.min(axis=0) - margin
+        self.bbox_high = verts.max(axis=0) + margin
+        self._target_vertex = np.array([t.vertex for t in sc.targets], dtype=np.int64)
+        self._target_offset = np.array([t.offset for t in sc.targets])
+        self._target_rest = np.array([t.position for t in sc.targets])
+        self._branch_waypoints = {b: w for b, w in sc.waypoints.items()}
+        n_wp = next(iter(sc.waypoints.values())).shape[0]
+        self.start_id = np.zeros(n_envs, dtype=np.int64)
+        self.target_id = np.zeros(n_envs, dtype=np.int64)
+        self.target = np.zeros((n_envs, 3))
+        self.waypoints = np.zeros((n_envs, n_wp, 3))
+        self.reached = np.zeros((n_envs, n_wp), dtype=bool)
+        self.steps = np.zeros(n_envs, dtype=np.int64)
+        self.time = np.zeros(n_envs)
+        self.min_distance = np.zeros(n_envs)
+        self.rays = np.ones((n_envs, N_RAYS))
+        self.contact_force = np.zeros(n_envs)
+        self.penetration = np.zeros(n_envs)
+        self.in_contact = np.zeros(n_envs, dtype=bool)
+        self._clearance_lb = np.full(n_envs, -np.inf)
+
+    # ------------------------------------------------------------------ episodes
+    def reset_env(self, i: int, start_id: int, target_id: int) -> None:
+        """Start episode ``i`` from start ``start_id`` towards target ``target_id``."""
+        sc = self.scenarios
+        if not 0 <= start_id < len(sc.starts):
+            raise ValueError(f"start must be in [0, {len(sc.starts) - 1}], found {start_id}")
+        if not 0 <= target_id < len(sc.targets):
+            raise ValueError(f"target must be in [0, {len(sc.targets) - 1}], found {target_id}")
+        start = sc.starts[start_id]
+        self.catheter.reset_env(i, start.position, start.rotation, start.introducer_tail)
+        if not self._shared_wall:
+            self.walls[i].reset()
+        self.start_id[i] = start_id
+        self.target_id[i] = target_id
+        self.target[i] = self._target_rest[target_id]
+        self.waypoints[i] = self._branch_waypoints[sc.targets[target_id].branch]
+        self.reached[i] = False
+        self.steps[i] = 0
+        self.time[i] = 0.0
+        self.contact_force[i] = 0.0
+        self.penetration[i] = 0.0
+        self.in_contact[i] = False
+        self._clearance_lb[i] = -np.inf
+        tip = self.catheter.tip_position[i]
+        self.min_distance[i] = float(np.linalg.norm(self.target[i] - tip))
+        # waypoints already under the start pose are marked without reward
+        update_waypoints(tip[None], self.waypoints[i:i + 1], self.reached[i:i + 1],
+                         self.config.reward)
+        self._cast_rays(np.array([i]))
+
+    def _cast_rays(self, idx: NDArray[np.int64]) -> None:
+        tips = self.catheter.tip_position[idx]
+        rots = self.catheter.tip_rotation[idx]
+        dirs = np.matmul(RAY_DIRECTIONS, rots.transpose(0, 2, 1))  # (n, R, 3): R @ d_local
+        origins = np.repeat(tips[:, None, :], N_RAYS, axis=1)
+        length = self.config.ray_length
+        if self._shared_wall:
+            hits = self.walls[0].raycast(origins.reshape(-1, 3), dirs.reshape(-1, 3), length)
+            self.rays[idx] = np.asarray(hits).reshape(len(idx), N_RAYS) / length
+        else:
+            for k, i in enumerate(idx):
+                hits = self.walls[i].raycast(origins[k], dirs[k], length)
+                self.rays[i] = np.asarray(hits) / length
+        np.clip(self.rays, 0.0, 1.0, out=self.rays)
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, actions: FloatArray) -> tuple[FloatArray, NDArray[np.bool_],
+                                                 NDArray[np.bool_], dict[str, Any]]:
+        """Advance every environment by one validated (N, 3) normalised action.
+
+        Returns:
+            ``(reward, terminated, truncated, info_arrays)``; observations come from
+            :meth:`observe` (call it after resetting the finished environments).
+        """
+        cfg = self.config
+        cat = self.catheter
+        alpha, gamma, dl = action_to_command(actions, cat.theta_max, cfg.segment_length,
+                                             cfg.catheter.max_step_insertion)
+        al, ga, applied_dl = cat.step(alpha, gamma, dl)
+        limit = bend_limit(np.where(applied_dl > 0.0, applied_dl, 0.0), cat.theta_max,
+                           cfg.segment_length)
+        self.steps += 1
+        self.time += cfg.dt
+        tips = cat.tip_position
+        n = self.n_envs
+        if cfg.mode == "dynamic":
+            for i in range(n):
+                wall = self.walls[i]
+                wall.step(float(self.time[i]), cfg.dt,
+                          cat.body_points(i, cfg.body_spacing), self.radius)
+                tid = self.target_id[i]
+                self.target[i] = (wall.vertex_position(int(self._target_vertex[tid]))
+                                  + self._target_offset[tid])
+        # Static broad phase (exact): the wall clearance is 1-Lipschitz in the tip position, so
+        # after the tip travelled |delta_l| it is >= the last exact clearance - |delta_l|; envs
+        # whose bound stays > 0 cannot touch the rigid wall and skip the closest-point query.
+        if self._shared_wall:
+            self._clearance_lb -= np.abs(applied_dl)
+            query = np.flatnonzero(self._clearance_lb <= 1e-9)
+            self.contact_force[:] = 0.0
+            self.penetration[:] = 0.0
+            self.in_contact[:] = False
+        else:
+            query = np.arange(n)
+        for j in query.tolist():
+            i = int(j)
+            c = self.walls[i].tip_contact(tips[i], self.radius, cfg.dt)
+            self.contact_force[i] = c.force
+            self.penetration[i] = c.penetration
+            self.in_contact[i] = c.in_contact
+            self._clearance_lb[i] = c.clearance
+        self._cast_rays(np.arange(n))
+        rcfg = cfg.reward
+        collision = non_minor_collision(self.contact_force, self.penetration, rcfg)
+        outside_box = np.any((tips < self.bbox_low) | (tips > self.bbox_high), axis=1)
+        exited = exited_lumen(tips, self.exit_point, self.exit_normal) | outside_box
+        success = reached_target(tips, self.target, rcfg)
+        new_wp = update_waypoints(tips, self.waypoints, self.reached, rcfg)
+        bending = bending_event(al, ga, limit, rcfg)
+        events = StepEvents(collision=collision, exited=exited, success=success,
+                            new_waypoints=new_wp, bending=bending)
+        terms, terminated = compute_reward(events, rcfg)
+        dist = np.linalg.norm(self.target - tips, axis=1)
+        np.minimum(self.min_distance, dist, out=self.min_distance)
+        truncated = (self.steps >= cfg.max_steps) & ~terminated
+        info = {
+            "success": events.success & ~events.collision & ~events.exited,
+            "collision": collision,
+            "exited": exited & ~collision,
+            "collision_force": self.contact_force.copy(),
+            "penetration": self.penetration.copy(),
+            "in_contact": self.in_contact.copy(),
+            "targeting_error": self.min_distance.copy(),
+            "distance": dist,
+            "timesteps": self.steps.copy(),
+            "time": self.time.copy(),
+            "new_waypoints": new_wp,
+            "waypoints_reached": self.reached.sum(axis=1),
+            "bend": np.stack([al, ga], axis=1),
+            "insertion": applied_dl,
+            "reward_end": terms.end,
+            "reward_centerline": terms.centerline,
+            "reward_bending": terms.bending,
+        }
+        return terms.total, terminated, truncated, info
+
+    def observe(self) -> NDArray[np.float32]:
+        """(N, OBS_DIM) float32 observations (layout :data:`OBS_LAYOUT`)."""
+        cfg = self.config
+        sc = self.scenarios
+        tips = self.catheter.tip_position
+        rots = self.catheter.tip_rotation
+        obs = np.empty((self.n_envs, OBS_DIM), dtype=np.float32)
+        obs[:, 0:3] = (tips - sc.origin) / cfg.position_scale
+        obs[:, 3:12] = rots.transpose(0, 2, 1).reshape(self.n_envs, 9)
+        vec = (self.target - tips) / sc.d_max
+        obs[:, 12] = np.linalg.norm(vec, axis=1)
+        obs[:, 13:16] = vec
+        obs[:, 16:] = self.rays
+        return obs
+
+
+class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
+    """Follow-the-leader catheter navigation from the descending aorta to a coronary ostium.
+
+    The in-silico task of the paper (section III): the catheter tip starts in the descending aorta
+    (one of 3 start configurations) and must come within ``epsilon`` (10 mm) of a target near the
+    coronary ostia (one of 5, attached to a wall particle) without a non-minor wall collision.
+    ``mode='static'`` uses a rigid wall; ``mode='dynamic'`` a PBD wall driven by the heartbeat
+    and pushed by the catheter body, with the target moving with its wall particle.
+
+    **Action** ``Box(-1, 1, (3,), float32)``; values outside [-1, 1] are clipped, NaN/inf or a
+    wrong shape raise ``ValueError``. With ``theta_max^t = theta_max * |delta_l| / L``:
+
+    ===  =========  ====================================================================
+    idx  name       mapping (see :mod:`cgail_planner.sim.catheter`)
+    ===  =========  ====================================================================
+    0    alpha      bend about the tip x_A axis: ``a[0] * theta_max^t`` rad
+    1    gamma      bend about the tip z_A axis: ``a[1] * theta_max^t`` rad
+    2    delta_l    insertion along y_A: ``a[2] * v_max * dt`` m (0.5 mm at the defaults;
+                    negative = retraction along the body, bends ignored)
+    ===  =========  ====================================================================
+
+    **Observation** ``Box(float32, (41,))`` (:data:`OBS_LAYOUT`):
+
+    =======  ===============  ====================================================================
+    slice    name             content
+    =======  ===============  ====================================================================
+    0:3      tip_position     ``(p_t - origin) / position_scale`` (origin: anatomy bbox centre,
+                              scale 0.15 m)
+    3:6      tip_x_axis       x_A (first column of the tip rotation R), in [-1, 1]
+    6:9      tip_heading      y_A (insertion direction)
+    9:12     tip_z_axis       z_A
+    12       target_distance  ``u = ||p_g - p_t|| / d_max``
+    13:16    target_vector    ``v = (p_g - p_t) / d_max`` (phantom frame)
+    16:41    rays             hit distance / ray_length (40 mm) in [0, 1] along 25 fixed rays
+                              in the tip frame (:data:`RAY_DIRECTIONS`): ray 0 along y_A, then
+                              rings of 8 at 30, 60 and 90 deg from y_A (azimuth 0, 45, ...,
+                              315 deg from x_A towards z_A); 1 = no wall within the ray length
+    =======  ===============  ====================================================================
+
+    **Reward** (paper Table I, :mod:`cgail_planner.sim.reward`): ``r_obst = -1`` on a non-minor
+    collision (force >= 0.8 N or penetration), ``r_exit = -1`` when the tip leaves through the
+    open descending end (or the anatomy's bounding box + 10 mm, i.e. through any other open end),
+    ``r_target = +1`` when ``||p_t - p_g|| < epsilon``; every step ``r_step = -1e-5``, ``+0.05``
+    per newly reached centerline waypoint (within 6 mm, the target's branch, once per episode) and
+    ``r_bending = +1e-5`` when ``max(|alpha|, |gamma|) > 0.9 theta_max^t``.
+
+    **Termination**: success, non-minor collision or exit. **Truncation**: ``max_steps`` steps
+    (2000 = 200 s by default).
+
+    **Info** (every step): ``success`` / ``is_success`` (bool), ``collision`` (non-minor, bool),
+    ``exited`` (bool), ``collision_force`` (N), ``penetration`` (m), ``in_contact`` (bool),
+    ``targeting_error`` (m, minimum tip-target distance so far: the paper's T_a), ``distance``
+    (m, current), ``timesteps`` (steps so far: T_s), ``time`` (s), ``new_waypoints``,
+    ``waypoints_reached``, ``bend`` (applied [alpha, gamma], rad), ``insertion`` (applied m),
+    ``reward_end``/``reward_centerline``/``reward_bending``, ``start``, ``target`` (ids),
+    ``target_position`` (m), ``theta_max`` (rad).
+
+    **Reset options**: ``{'start': int, 'target': int}`` picks the scenario (default: drawn from
+    the env's seeded generator). ``set_theta_max(rad)`` changes theta_max (curriculum).
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+
+    def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
+        if config is not None and not isinstance(config, EnvConfig):
+            raise ValueError(f"config must be an EnvConfig, found {type(config).__name__}")
+        if render_mode is not None:
+            raise ValueError(f"render_mode must be None (no rendering), found {render_mode!r}")
+        self.config = config or EnvConfig()
+        self.engine = NavEngine(self.config, 1)
+        self.observation_space = _observation_space()  # type: ignore[assignment]
+        self.action_space = spaces.Box(  # type: ignore[assignment]
+            -1.0, 1.0, shape=(3,), dtype=np.float32)
+        self.render_mode = render_mode
+        self._needs_reset = True
+
+    @property
+    def scenarios(self) -> Any:
+        """The scenario set (starts, targets, d_max, origin)."""
+        return self.engine.scenarios
+
+    @property
+    def anatomy(self) -> Any:
+        """The anatomy the env runs in."""
+        return self.engine.world.anatomy
+
+    @property
+    def catheter(self) -> CatheterBatch:
+        """The (single-row) catheter state."""
+        return self.engine.catheter
+
+    def set_theta_max(self, theta_max: float) -> None:
+        """Set the maximal bending angle theta_max, rad, in (0, pi] (curriculum)."""
+        self.engine.catheter.set_theta_max(theta_max)
+
+    def reset(self, *, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        """Start an episode; ``options`` may fix ``start`` and ``target`` (ids)."""
+        super().reset(seed=seed)
+        opts = dict(options or {})
+        unknown = set(opts) - {"start", "target"}
+        if unknown:
+            raise ValueError(
+                f"options keys must be in ['start', 'target'], found {sorted(unknown)}")
+        sc = self.engine.scenarios
+        start = int(opts.get("start", self.np_random.integers(len(sc.starts))))
+        target = int(opts.get("target", self.np_random.integers(len(sc.targets))))
+        self.engine.reset_env(0, start, target)
+        self._needs_reset = False
+        return self.engine.observe()[0], self._reset_info()
+
+    def _reset_info(self) -> dict[str, Any]:
+        e = self.engine
+        return {
+            "start": int(e.start_id[0]), "target": int(e.target_id[0]),
+            "target_position": e.target[0].copy(), "distance": float(e.min_distance[0]),
+            "theta_max": e.catheter.theta_max,
+        }
+
+    def step(self, action: Any) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        """One control step (see the class docstring)."""
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step() (and after an episode ended)")
+        a = validate_actions(action, 1)
+        reward, terminated, truncated, arrays = self.engine.step(a)
+        info = {k: (v[0].item() if v.ndim == 1 else v[0].copy()) for k, v in arrays.items()}
+        info["is_success"] = info["success"]
+        info.update(self._reset_info())
+        info["distance"] = float(arrays["distance"][0])
+        te, tr = bool(terminated[0]), bool(truncated[0])
+        self._needs_reset = te or tr
+        return self.engine.observe()[0], float(reward[0]), te, tr, info
