@@ -256,6 +256,11 @@ class SimAurora:
         os.write(self._wake_w, b'x')
 
     @property
+    def tracking_start_time(self) -> float:
+        """Clock time of the last ``TSTART`` (frame ``k`` exists from this + k / rate)."""
+        return self._t_start
+
+    @property
     def connected(self) -> bool:
         """True while the pty is open."""
         return self._master >= 0

@@ -5,8 +5,8 @@ No rclpy here: the node gives a device (:class:`~em_tracker.hw.aurora.AuroraDevi
 :class:`~em_tracker.core.pose.TipPose` with the monotonic time its reply was complete. Every
 blocking serial call happens on this thread, never on the executor.
 
-Polling follows the device clock: after a new frame the next poll is due 0.95 frame periods
-later; a repeated frame number (polled too early) is retried 2 ms later. Frame-number gaps are
+Polling follows the device clock: after a request that returned a new frame the next poll is
+due 0.95 frame periods after that request; a repeated frame number (polled too early) is retried 2 ms later. Frame-number gaps are
 counted as dropped frames. ``ProtocolError``/``DeviceError`` replies (bad CRC, garbage,
 ``ERRORxx``) are counted and tolerated up to ``max_consecutive_errors`` in a row; after that, or
 on any disconnect/timeout, the link is closed and re-opened after ``reconnect_initial_s``,
@@ -103,6 +103,7 @@ class TrackerLoop:
             wait = next_poll - time.monotonic()
             if wait > 0 and self._stop.wait(wait):
                 return
+            requested = time.monotonic()
             try:
                 reply = self.device.read()
             except (ProtocolError, DeviceError) as exc:
@@ -125,7 +126,9 @@ class TrackerLoop:
             if not new:
                 next_poll = time.monotonic() + 0.002
                 continue
-            next_poll = reply.host_time + 0.95 * period
+            # Anchor on the request time, not the reply time, so that a slow reply cannot make
+            # the poll phase drift past the next frame (which would drop it).
+            next_poll = requested + 0.95 * period
             self._accept(tool, reply.host_time)
 
     def _accept(self, tool: ToolReading, host_time: float) -> None:
