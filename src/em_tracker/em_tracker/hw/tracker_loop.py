@@ -6,11 +6,11 @@ No rclpy here: the node gives a device (:class:`~em_tracker.hw.aurora.AuroraDevi
 blocking serial call happens on this thread, never on the executor.
 
 Polling follows the device clock: after a request that returned a new frame the next poll is
-due 0.95 frame periods after that request; a repeated frame number (polled too early) is retried 2 ms later. Frame-number gaps are
-counted as dropped frames. ``ProtocolError``/``DeviceError`` replies (bad CRC, garbage,
-``ERRORxx``) are counted and tolerated up to ``max_consecutive_errors`` in a row; after that, or
-on any disconnect/timeout, the link is closed and re-opened after ``reconnect_initial_s``,
-doubling up to ``reconnect_max_s``.
+due 0.95 frame periods after that request; a repeated frame number (polled too early) is
+retried 2 ms later. Frame-number gaps are counted as dropped frames. ``ProtocolError`` and
+``DeviceError`` replies (bad CRC, garbage, ``ERRORxx``) are counted and tolerated up to
+``max_consecutive_errors`` in a row; after that, or on any disconnect/timeout, the link is
+closed and re-opened after ``reconnect_initial_s``, doubling up to ``reconnect_max_s``.
 """
 
 from __future__ import annotations
