@@ -228,13 +228,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             executor.spin_once(timeout_sec=0.05)
             if args.max_duration and time.monotonic() - start >= args.max_duration:
                 break
-        # Drain what the middleware already delivered before closing the bag.
-        deadline = time.monotonic() + 0.3
-        while time.monotonic() < deadline:
+        # Drain what the middleware already delivered (until 0.2 s without a message, at most
+        # 1 s: a topic that keeps publishing must not hold the shutdown).
+        hard_stop = time.monotonic() + 1.0
+        idle_until = time.monotonic() + 0.2
+        while time.monotonic() < min(idle_until, hard_stop):
             before = recorder.received
-            executor.spin_once(timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.02)
             if recorder.received != before:
-                deadline = time.monotonic() + 0.3
+                idle_until = time.monotonic() + 0.2
         try:
             count = recorder.stop()
             print(f'bag_record: wrote {count} messages on {len(recorder.topics) or "no"} '

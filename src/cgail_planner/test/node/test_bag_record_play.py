@@ -267,3 +267,34 @@ def test_writer_thread_flushes_messages_to_disk_before_close(ros, tmp_path: Path
     assert recorder.stop() == 5
     assert (tmp_path / 'f' / 'metadata.yaml').exists()
     node.destroy_node()
+
+
+def test_record_all_with_max_duration_skips_ros_infrastructure(ros, tmp_path: Path) -> None:
+    from std_msgs.msg import String
+
+    node = rclpy.create_node('all_talker')
+    pub = node.create_publisher(String, 'all/chatter', 10)
+    timer = node.create_timer(0.05, lambda: pub.publish(String(data='x')))
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    out = tmp_path / 'all'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'cgail_planner.bags.record', '--all', '-o', str(out),
+         '--max-duration', '2', '--discovery-period', '0.1'],
+        env=os.environ.copy(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        spin_until(executor, lambda: proc.poll() is not None, 30.0)
+        output, _ = proc.communicate(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    node.destroy_timer(timer)
+    node.destroy_node()
+    assert proc.returncode == 0, output
+    with open_bag(out) as reader:
+        topics = {c.topic: c.msgcount for c in reader.connections}
+    assert '/all/chatter' in topics
+    assert topics['/all/chatter'] > 0
+    assert '/rosout' not in topics
+    assert '/parameter_events' not in topics
