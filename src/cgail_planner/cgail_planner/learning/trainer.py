@@ -1,0 +1,340 @@
+"""The C-GAIL trainer: PPO + per-signal value heads + GAIL + BC + curiosity + curriculum.
+
+Read top to bottom: :meth:`Trainer.collect` fills the rollout buffer from the batched env,
+:meth:`Trainer.compute_rewards` evaluates every reward signal and the GAE, :meth:`Trainer.update`
+runs the PPO epochs (with the discriminator and ICM steps on the same minibatches, as
+ML-Agents does) and then the BC pass. See :mod:`cgail_planner.learning.config` for how the
+paper's loss weights map onto these mechanics.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+import math
+from pathlib import Path
+import random
+from typing import Any
+
+import numpy as np
+import torch
+
+from cgail_planner.learning.bc import BehavioralCloning
+from cgail_planner.learning.buffer import RolloutBuffer
+from cgail_planner.learning.config import TrainConfig, config_to_dict
+from cgail_planner.learning.curiosity import Curiosity
+from cgail_planner.learning.curriculum import Curriculum
+from cgail_planner.learning.envs import VecEnv, is_success
+from cgail_planner.learning.errors import DemoError, PolicyLoadError
+from cgail_planner.learning.gail import Gail
+from cgail_planner.learning.networks import Actor, Critic, RunningNormalizer
+from cgail_planner.learning.ppo import linear_schedule, ppo_loss
+
+
+def seed_everything(seed: int) -> np.random.Generator:
+    """Seed python, numpy and torch in one place; return the trainer's numpy generator."""
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+    return np.random.default_rng(seed)
+
+
+@dataclass
+class EpisodeStats:
+    """Rolling statistics of finished training episodes."""
+
+    rewards: deque[float]
+    lengths: deque[int]
+    successes: deque[float]
+
+
+class Trainer:
+    """One training run on a batched environment.
+
+    Args:
+        cfg: validated training configuration.
+        env: batched environment (see :class:`cgail_planner.learning.envs.VecEnv`).
+        demo_obs: (M, obs_dim) demonstration observations (required when GAIL or BC is on).
+        demo_act: (M, act_dim) demonstration actions in [-1, 1].
+        seed: seeds torch, numpy and the envs; the same seed reproduces the run.
+        metadata: free-form data stored in checkpoints (observation layout, anatomy...).
+    """
+
+    def __init__(self, cfg: TrainConfig, env: VecEnv, *, demo_obs: np.ndarray | None = None,
+                 demo_act: np.ndarray | None = None, seed: int = 0,
+                 metadata: dict[str, Any] | None = None) -> None:
+        self.cfg, self.env, self.seed = cfg, env, seed
+        self.rng = seed_everything(seed)
+        self.obs_dim = int(env.single_observation_space.shape[0])
+        self.act_dim = int(env.single_action_space.shape[0])
+        self.metadata = dict(metadata or {})
+        self.signals = cfg.signals()
+        self.normalizer = RunningNormalizer(self.obs_dim) if cfg.normalize else None
+        self.actor = Actor(self.obs_dim, self.act_dim, cfg.network, self.normalizer)
+        self.critic = Critic(self.obs_dim, list(self.signals), cfg.network, self.normalizer)
+        params = [p for p in self.actor.parameters()] + [
+            p for n, p in self.critic.named_parameters() if not n.startswith('normalizer')]
+        self.opt = torch.optim.Adam(params, lr=cfg.ppo.learning_rate)
+        self.demo_obs = self.demo_act = None
+        if cfg.needs_demos:
+            if demo_obs is None or demo_act is None or len(demo_obs) == 0:
+                raise DemoError(f'preset {cfg.name!r} uses GAIL/BC: expected demonstrations, '
+                                'found none')
+            if demo_obs.shape[1:] != (self.obs_dim,) or demo_act.shape[1:] != (self.act_dim,):
+                raise DemoError(f'demonstrations do not match the env: expected obs '
+                                f'(M, {self.obs_dim}) and act (M, {self.act_dim}), found '
+                                f'{demo_obs.shape} and {demo_act.shape}')
+            self.demo_obs = torch.as_tensor(demo_obs, dtype=torch.float32)
+            self.demo_act = torch.as_tensor(np.clip(demo_act, -1, 1), dtype=torch.float32)
+        self.gail = Gail(self.obs_dim, self.act_dim, cfg.gail) if 'gail' in self.signals \
+            else None
+        self.curiosity = Curiosity(self.obs_dim, self.act_dim, cfg.curiosity) \
+            if 'curiosity' in self.signals else None
+        self.bc = None
+        if cfg.bc.strength > 0:
+            assert demo_obs is not None and demo_act is not None
+            self.bc = BehavioralCloning(self.actor, demo_obs, np.clip(demo_act, -1, 1), cfg.bc,
+                                        cfg.ppo.learning_rate)
+        self.curriculum = Curriculum(cfg.curriculum)
+        self.step = 0
+        self.n_updates = 0
+        self.stats = EpisodeStats(deque(maxlen=100), deque(maxlen=100), deque(maxlen=100))
+        self.steps_per_rollout = math.ceil(cfg.ppo.buffer_size / env.num_envs)
+        self.buffer = RolloutBuffer(self.steps_per_rollout, env.num_envs, self.obs_dim,
+                                    self.act_dim, list(self.signals))
+        self._ep_reward = np.zeros(env.num_envs)
+        self._ep_len = np.zeros(env.num_envs, dtype=np.int64)
+        if self.curriculum.theta_max is not None:
+            env.set_theta_max(self.curriculum.theta_max)
+        self._obs = env.reset(seed=seed)
+        if self.normalizer is not None:
+            self.normalizer.update(self._obs)
+
+    # ---------------------------------------------------------------- rollout
+    @torch.no_grad()
+    def collect(self) -> None:
+        """Fill the buffer with ``steps_per_rollout`` batched steps of the stochastic policy."""
+        self.buffer.pos = 0
+        while not self.buffer.full:
+            obs_t = torch.as_tensor(self._obs)
+            dist = self.actor.distribution(obs_t)
+            act = dist.sample()
+            logp = dist.log_prob(act).sum(-1)
+            values = {s: v.numpy() for s, v in self.critic(obs_t).items()}
+            act_np = act.numpy()
+            next_obs, rew, term, trunc, infos = self.env.step(np.clip(act_np, -1.0, 1.0))
+            ended = term | trunc
+            final_obs = next_obs.copy()
+            for i in np.flatnonzero(ended):
+                final_obs[i] = infos[i].get('final_obs', next_obs[i])
+            self.buffer.add(self._obs, act_np, logp.numpy(), rew, final_obs, term, ended, values)
+            self._ep_reward += rew
+            self._ep_len += 1
+            for i in np.flatnonzero(ended):
+                self._finish_episode(i, is_success(infos[i]))
+            self._obs = next_obs
+            self.step += self.env.num_envs
+
+    def _finish_episode(self, i: int, success: bool) -> None:
+        self.stats.rewards.append(float(self._ep_reward[i]))
+        self.stats.lengths.append(int(self._ep_len[i]))
+        self.stats.successes.append(float(success))
+        if self.curriculum.record(float(self._ep_reward[i]), success):
+            theta = self.curriculum.theta_max
+            assert theta is not None
+            self.env.set_theta_max(theta)
+        self._ep_reward[i] = 0.0
+        self._ep_len[i] = 0
+
+    @torch.no_grad()
+    def compute_rewards(self) -> dict[str, float]:
+        """Per-signal rewards (scaled by strength), bootstrap values and GAE over the buffer."""
+        b = self.buffer
+        n = b.T * b.N
+        obs = torch.as_tensor(b.obs.reshape(n, -1))
+        nobs = torch.as_tensor(b.next_obs.reshape(n, -1))
+        act = torch.as_tensor(np.clip(b.act.reshape(n, -1), -1, 1))
+        nobs_n, obs_n = self.actor.norm(nobs), self.actor.norm(obs)
+        out: dict[str, float] = {}
+        for s, sig in self.signals.items():
+            if s == 'extrinsic':
+                r = b.env_rewards.reshape(n)
+            elif s == 'gail':
+                assert self.gail is not None
+                r = self.gail.reward(obs_n, act)
+            else:
+                assert self.curiosity is not None
+                r = self.curiosity.reward(obs_n, act, nobs_n)
+            b.rewards[s] = (sig.strength * r).reshape(b.T, b.N).astype(np.float32)
+            out[f'rewards/{s}_mean'] = float(b.rewards[s].mean())
+        next_values = self.critic(nobs)
+        for s in self.signals:
+            b.next_values[s] = next_values[s].numpy().reshape(b.T, b.N)
+        b.finish({s: sig.gamma for s, sig in self.signals.items()}, self.cfg.ppo.lambd)
+        return out
+
+    # ---------------------------------------------------------------- update
+    def update(self) -> dict[str, float]:
+        """PPO epochs (+ discriminator and ICM steps per minibatch), then the BC pass."""
+        cfg = self.cfg.ppo
+        lr = linear_schedule(cfg.learning_rate, 1e-10, self.step, self.cfg.max_steps,
+                             cfg.schedule)
+        eps = linear_schedule(cfg.epsilon, 0.1, self.step, self.cfg.max_steps, cfg.schedule)
+        beta = linear_schedule(cfg.beta, 1e-5, self.step, self.cfg.max_steps, cfg.schedule)
+        for g in self.opt.param_groups:
+            g['lr'] = lr
+        acc: dict[str, list[float]] = {}
+
+        def add(d: dict[str, float]) -> None:
+            for k, v in d.items():
+                acc.setdefault(k, []).append(v)
+
+        for _ in range(cfg.num_epoch):
+            for mb in self.buffer.minibatches(cfg.batch_size, self.rng):
+                obs = torch.as_tensor(mb.obs)
+                act = torch.as_tensor(mb.act)
+                loss, st = ppo_loss(
+                    self.actor, self.critic, obs, act, torch.as_tensor(mb.logp),
+                    torch.as_tensor(mb.advantages),
+                    {s: torch.as_tensor(v) for s, v in mb.returns.items()},
+                    {s: torch.as_tensor(v) for s, v in mb.old_values.items()},
+                    eps, beta, cfg.value_coef)
+                self.opt.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+                torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
+                self.opt.step()
+                add({'losses/policy_loss': st.policy_loss, 'losses/value_loss': st.value_loss,
+                     'policy/entropy': st.entropy, 'losses/approx_kl': st.approx_kl,
+                     'losses/clip_fraction': st.clip_fraction})
+                with torch.no_grad():
+                    obs_n = self.actor.norm(obs)
+                    act_c = torch.clamp(act, -1, 1)
+                if self.gail is not None:
+                    assert self.demo_obs is not None and self.demo_act is not None
+                    idx = torch.as_tensor(self.rng.integers(0, len(self.demo_obs), len(obs)))
+                    with torch.no_grad():
+                        ex_obs = self.actor.norm(self.demo_obs[idx])
+                    add(self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c))
+                if self.curiosity is not None:
+                    with torch.no_grad():
+                        nobs_n = self.actor.norm(torch.as_tensor(mb.next_obs))
+                    add(self.curiosity.update(obs_n, act_c, nobs_n))
+        if self.bc is not None:
+            add(self.bc.update(self.step, lr, self.cfg.ppo.buffer_size, self.rng))
+        if self.normalizer is not None:
+            self.normalizer.update(self.buffer.obs.reshape(-1, self.obs_dim))
+        self.n_updates += 1
+        out = {k: float(np.mean(v)) for k, v in acc.items()}
+        out.update({'policy/learning_rate': lr, 'policy/epsilon': eps, 'policy/beta': beta,
+                    'policy/std': float(self.actor.log_std.detach().exp().mean())})
+        return out
+
+    def train_iteration(self) -> dict[str, float]:
+        """Collect one buffer, compute rewards/advantages, update; return the scalars."""
+        self.collect()
+        scalars = self.compute_rewards()
+        scalars.update(self.update())
+        if self.stats.rewards:
+            scalars['environment/episode_reward'] = float(np.mean(self.stats.rewards))
+            scalars['environment/episode_length'] = float(np.mean(self.stats.lengths))
+            scalars['environment/success_rate'] = float(np.mean(self.stats.successes))
+        if self.curriculum.enabled:
+            scalars['curriculum/lesson'] = float(self.curriculum.lesson)
+            scalars['curriculum/theta_max_deg'] = math.degrees(self.curriculum.theta_max or 0.0)
+        return scalars
+
+    # ---------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def act_deterministic(self, obs: np.ndarray) -> np.ndarray:
+        """Deterministic action(s) for raw observation(s)."""
+        o = torch.as_tensor(np.asarray(obs, np.float32))
+        return self.actor.deterministic(o).numpy()
+
+    # ---------------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume, export or fine-tune."""
+        return {
+            'config': config_to_dict(self.cfg), 'step': self.step, 'seed': self.seed,
+            'obs_dim': self.obs_dim, 'act_dim': self.act_dim, 'metadata': self.metadata,
+            'actor': self.actor.state_dict(), 'critic': self.critic.state_dict(),
+            'normalizer': None if self.normalizer is None else self.normalizer.state_dict(),
+            'gail': None if self.gail is None else self.gail.disc.state_dict(),
+            'curiosity': None if self.curiosity is None else self.curiosity.icm.state_dict(),
+            'curriculum_lesson': self.curriculum.lesson,
+        }
+
+    def save(self, path: Path) -> None:
+        """Write a checkpoint (torch.save of :meth:`state_dict`)."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(self.state_dict(), path)
+
+    def load_weights(self, path: Path) -> None:
+        """Initialise from a checkpoint (``--init-from``): networks + normaliser, new step count.
+
+        Value heads and discriminator/ICM are loaded where the signal exists in both runs.
+        """
+        ckpt = load_checkpoint(path)
+        if ckpt['obs_dim'] != self.obs_dim or ckpt['act_dim'] != self.act_dim:
+            raise PolicyLoadError(f'{path}: expected obs/act dims ({self.obs_dim}, '
+                                  f'{self.act_dim}), found ({ckpt["obs_dim"]}, '
+                                  f'{ckpt["act_dim"]})')
+        try:
+            self.actor.load_state_dict(ckpt['actor'])
+            self.critic.load_state_dict(ckpt['critic'], strict=False)
+            if self.gail is not None and ckpt.get('gail') is not None:
+                self.gail.disc.load_state_dict(ckpt['gail'])
+            if self.curiosity is not None and ckpt.get('curiosity') is not None:
+                self.curiosity.icm.load_state_dict(ckpt['curiosity'])
+                self.curiosity.updated = True
+        except RuntimeError as exc:
+            raise PolicyLoadError(f'{path}: network shapes differ from this preset: {exc}') \
+                from None
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """Read a checkpoint written by :meth:`Trainer.save`, with clear errors."""
+    if not Path(path).is_file():
+        raise PolicyLoadError(f'checkpoint not found: expected a file at {path}')
+    try:
+        ckpt: dict[str, Any] = torch.load(path, map_location='cpu', weights_only=False)
+    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+        raise PolicyLoadError(f'{path}: not a readable checkpoint ({exc})') from None
+    for key in ('actor', 'obs_dim', 'act_dim', 'config'):
+        if key not in ckpt:
+            raise PolicyLoadError(f'{path}: expected key {key!r} in the checkpoint, found '
+                                  f'{sorted(ckpt)}')
+    return ckpt
+
+
+def actor_from_checkpoint(ckpt: dict[str, Any]) -> Actor:
+    """Rebuild the actor (with its normaliser) of a checkpoint, in eval mode."""
+    from cgail_planner.learning.config import config_from_dict
+
+    cfg = config_from_dict(ckpt['config'])
+    norm = RunningNormalizer(ckpt['obs_dim']) if ckpt.get('normalizer') is not None else None
+    actor = Actor(ckpt['obs_dim'], ckpt['act_dim'], cfg.network, norm)
+    actor.load_state_dict(ckpt['actor'])
+    actor.eval()
+    return actor
+
+
+def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], env: Any, episodes: int,
+                    seed: int) -> dict[str, float]:
+    """Run ``episodes`` episodes of a deterministic policy on a single gym env."""
+    succ, rews, lens = [], [], []
+    for k in range(episodes):
+        obs, _ = env.reset(seed=seed + k)
+        total, n = 0.0, 0
+        while True:
+            obs, r, te, tr, info = env.step(policy(obs))
+            total += float(r)
+            n += 1
+            if te or tr:
+                break
+        succ.append(float(is_success(info)))
+        rews.append(total)
+        lens.append(n)
+    return {'eval/success_rate': float(np.mean(succ)), 'eval/episode_reward': float(np.mean(rews)),
+            'eval/episode_length': float(np.mean(lens))}
