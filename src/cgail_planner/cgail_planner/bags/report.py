@@ -81,7 +81,7 @@ def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
         for members in groups.values():
             values = np.array([getattr(m, metric) for m in members], dtype=np.float64) * scale
             data.append(values[np.isfinite(values)])
-        ax.boxplot(data, tick_labels=list(groups), showmeans=True)
+        ax.boxplot(data, tick_labels=list(groups), showmeans=True, showfliers=False)
         for i, values in enumerate(data, start=1):
             ax.scatter(np.full(len(values), i), values, s=12, alpha=0.6, zorder=3)
         pvalue = pvalues.get(metric, math.nan)
