@@ -1,0 +1,128 @@
+"""teleop node in-process: deadman, one stop on release, joy timeout, caps, parameters."""
+
+import math
+
+import pytest
+from rclpy.exceptions import InvalidParameterValueException
+from rclpy.parameter import Parameter
+from rclpy.qos import ReliabilityPolicy
+from sensor_msgs.msg import JointState, Joy
+
+from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes.teleop_node import TeleopNode
+
+PARAMS = {'enable_button': 0, 'axis_insertion': 1, 'axis_bend_alpha': 2, 'axis_bend_gamma': 3,
+          'scale_bend': 1.0, 'bend_mode': 'rate', 'joy_timeout_s': 1.0}
+
+
+def _node(harness, **params):
+    merged = {**PARAMS, **params}
+    return harness.add(TeleopNode(
+        parameter_overrides=[Parameter(k, value=v) for k, v in merged.items()]))
+
+
+def _joy(axes, held):
+    msg = Joy()
+    msg.axes = [float(a) for a in axes]
+    msg.buttons = [int(held), 0]
+    return msg
+
+
+@pytest.fixture
+def rig(harness):
+    node = _node(harness)
+    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
+    bend = harness.collect(JointState, 'catheter/bend_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+    assert harness.spin_until(lambda: node.count_publishers('joy') >= 1
+                              and joy.get_subscription_count() >= 1)
+    return node, joy, insertion, bend
+
+
+def test_qos_matches_the_contract(harness, rig):
+    node = rig[0]
+    for topic in ('/catheter/insertion_command', '/catheter/bend_command'):
+        info = node.get_publishers_info_by_topic(topic)[0]
+        assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
+    sub = node.get_subscriptions_info_by_topic('/joy')[0]
+    assert sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+
+
+def test_deadman_held_commands_release_sends_one_stop_then_quiet(harness, rig):
+    _, joy, insertion, bend = rig
+    harness.spin_for(0.1)
+    joy.publish(_joy([0, 1.0, 0, 0], held=False))
+    harness.spin_for(0.2)
+    assert insertion == [] and bend == []
+
+    def held():
+        joy.publish(_joy([0, 0.5, 1.0, -1.0], held=True))
+        return len(insertion) >= 3
+    assert harness.spin_until(held)
+    harness.spin_for(0.15)  # drain the Joy messages still in flight
+    assert insertion[-1].name == ['insertion']
+    assert insertion[-1].velocity[0] == pytest.approx(0.0025)
+    assert bend[-1].name == ['bend_alpha', 'bend_gamma']
+    assert bend[-1].position[0] > 0.0 > bend[-1].position[1]
+    n = len(insertion)
+    for _ in range(10):
+        joy.publish(_joy([0, 1.0, 1.0, 1.0], held=False))
+        harness.spin_for(0.03)
+    harness.spin_for(0.2)
+    assert len(insertion) == n + 1 and insertion[-1].velocity[0] == 0.0
+
+
+def _enable(harness, joy, insertion):
+    def step():
+        joy.publish(_joy([0, 1.0, 0, 0], True))
+        return len(insertion) >= 1
+    assert harness.spin_until(step)
+    harness.spin_for(0.15)  # drain the Joy messages still in flight
+
+
+def test_joy_timeout_sends_one_stop(harness):
+    _node(harness, joy_timeout_s=0.3)
+    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+    _enable(harness, joy, insertion)
+    harness.spin_for(0.8)  # joy goes silent while the deadman was held
+    velocities = [m.velocity[0] for m in insertion]
+    assert velocities[-1] == 0.0 and velocities.count(0.0) == 1
+    assert set(velocities[:-1]) == {0.005}
+
+
+def test_nan_joy_while_enabled_fails_safe(harness, rig):
+    _, joy, insertion, _ = rig
+    _enable(harness, joy, insertion)
+    n = len(insertion)
+    assert insertion[-1].velocity[0] == 0.005
+    joy.publish(_joy([0, math.nan, 0, 0], True))
+    assert harness.spin_until(lambda: len(insertion) > n)
+    assert insertion[-1].velocity[0] == 0.0
+
+
+def test_position_mode_and_caps(harness):
+    _node(harness, bend_mode='position', scale_bend=math.pi / 2)
+    bend = harness.collect(JointState, 'catheter/bend_command', conv.COMMAND_QOS)
+    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+    def step():
+        joy.publish(_joy([0, -1.0, -1.0, 0.5], True))
+        return len(bend) >= 2
+    assert harness.spin_until(step)
+    assert list(bend[-1].position) == pytest.approx([-math.pi / 2, math.pi / 4])
+    assert all(abs(m.velocity[0]) <= 0.005 for m in insertion)
+
+
+@pytest.mark.parametrize(('params', 'error', 'match'), [
+    ({'scale_insertion': 0.01}, InvalidParameterValueException, 'scale_insertion'),
+    ({'scale_insertion': 0.0}, ValueError, 'scale_insertion must satisfy'),
+    ({'max_bend': 3.0}, InvalidParameterValueException, 'max_bend'),
+    ({'bend_mode': 'torque'}, ValueError, "bend_mode must be 'rate' or 'position'"),
+    ({'axis_bend_alpha': 1}, ValueError, 'must differ'),
+    ({'joy_timeout_s': -1.0}, ValueError, 'joy_timeout must be a finite number > 0'),
+])
+def test_bad_parameters_raise(harness, params, error, match):
+    with pytest.raises(error, match=match):
+        TeleopNode(parameter_overrides=[Parameter(k, value=v) for k, v in
+                                        {**PARAMS, **params}.items()])
