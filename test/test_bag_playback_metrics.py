@@ -138,3 +138,23 @@ def test_truncated_fixture_gives_a_clear_metrics_error(tmp_path: Path, capsys) -
     err = capsys.readouterr().err
     assert f'bag_metrics: error: {bag}: truncated or corrupt bag' in err
     assert 'File end magic is invalid' in err
+
+
+def test_fixtures_are_what_the_script_makes(tmp_path: Path) -> None:
+    """The committed bags match make_fixtures.py (catches an edited script not rerun)."""
+    sys.path.insert(0, str(FIXTURES))
+    try:
+        import make_fixtures
+    finally:
+        sys.path.remove(str(FIXTURES))
+    from cgail_planner.bags.bagio import iter_raw, open_bag
+
+    assert make_fixtures.main(['--out', str(tmp_path)]) == 0
+    for name in make_fixtures.TRIALS:
+        made, committed = tmp_path / name, FIXTURES / name
+        assert json.loads((made / 'expected.json').read_text()) == json.loads(
+            (committed / 'expected.json').read_text())
+        assert (made / 'README.md').read_text() == (committed / 'README.md').read_text()
+        with open_bag(made) as a, open_bag(committed) as b:
+            assert [(c.topic, t, bytes(r)) for c, t, r in iter_raw(a)] == [
+                (c.topic, t, bytes(r)) for c, t, r in iter_raw(b)]
