@@ -84,3 +84,13 @@ def test_bad_parameters_raise(harness, params, error, match):
     with pytest.raises(error, match=match):
         JoyNode(gamepad_factory=FakeGamepadFactory(None),
                 parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+
+
+def test_real_sdl_without_a_gamepad_reports_and_retries(harness):
+    # The test machines have no gamepad: the default (pygame/SDL2) factory must say so.
+    node = harness.add(JoyNode(parameter_overrides=[Parameter('reconnect_interval_s',
+                                                              value=0.05)]))
+    assert harness.spin_until(lambda: node.open_attempts >= 2)
+    diag = node.diagnostics_message().status[0]
+    assert diag.level == DiagnosticStatus.ERROR
+    assert diag.message.startswith('no gamepad: expected a gamepad with device_id 0, found 0')
