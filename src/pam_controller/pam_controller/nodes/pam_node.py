@@ -243,11 +243,6 @@ class PamNode(LifecycleNode):
         if not self._active:
             return
         now = time.monotonic()
-        silent = (self.bank.is_open and self.opened_at is not None
-                  and now - (self.last_rx or self.opened_at) > self.link.device_timeout_s)
-        if silent and self.backoff.due(now):
-            self._link_failed(f'no frame from the regulator bank for '
-                              f'{now - (self.last_rx or self.opened_at or now):.2f} s', now)
         if not self.bank.is_open and self.backoff.due(now):
             try:
                 self.bank.open()
@@ -258,6 +253,11 @@ class PamNode(LifecycleNode):
             self._exchange(now)
         except DeviceUnavailableError as err:
             self._link_failed(str(err), now)
+        if self.bank.is_open and self.opened_at is not None:
+            since = max(self.last_rx or self.opened_at, self.opened_at)
+            if now - since > self.link.device_timeout_s and self.backoff.due(now):
+                self._link_failed(f'no frame from the regulator bank for {now - since:.2f} s '
+                                  f'(device_timeout_s {self.link.device_timeout_s})', now)
 
     def _exchange(self, now: float) -> None:
         fb = self.bank.poll()
@@ -272,7 +272,6 @@ class PamNode(LifecycleNode):
             self.bend_estimate = self.supervisor.model.bend_from_pressures(pressures)
         if fb.measured:
             self.last_rx = now
-            self.opened_at = now
             self.link_error = ''
             self.backoff.succeeded()
             stamp = self.get_clock().now().to_msg()

@@ -1,0 +1,341 @@
+"""pam_controller node in-process: parameters, endpoints, QoS, commands, watchdog, e-stop,
+bad input, disconnects and garbage frames (simulated bank on a python-can virtual bus)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import dataclasses
+import itertools
+import math
+from pathlib import Path
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+import numpy as np
+import pytest
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import SetBool
+import yaml
+
+from pam_controller.core.bending_model import BendingModelConfig
+from pam_controller.core.hysteresis import HysteresisConfig
+from pam_controller.core.supervisor import SupervisorConfig
+from pam_controller.hw.regulator_bank import LinkConfig
+from pam_controller.nodes.pam_node import PamNode, PARAMETERS
+
+_channels = itertools.count()
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'pam_controller.yaml'
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()
+
+
+class Harness:
+    """The node under test plus a peer node that commands it and records its outputs."""
+
+    def __init__(self, namespace: str = '/', **params: object) -> None:
+        params.setdefault('can_channel', f'pam_node_test_{next(_channels)}')
+        self.node = PamNode(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+                            namespace=namespace)
+        self.node.trigger_configure()
+        self.node.trigger_activate()
+        self.peer = Node('pam_test_peer', namespace=namespace)
+        self.pressures: list[Float64MultiArray] = []
+        self.bends: list[JointState] = []
+        self.diags: list[DiagnosticStatus] = []
+        self.peer.create_subscription(Float64MultiArray, 'pam/pressures', self.pressures.append,
+                                      qos_profile_sensor_data)
+        self.peer.create_subscription(JointState, 'catheter/bend_state', self.bends.append,
+                                      qos_profile_sensor_data)
+        self.peer.create_subscription(
+            DiagnosticArray, '/diagnostics', lambda m: self.diags.extend(m.status),
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        self.pub = self.peer.create_publisher(
+            JointState, 'catheter/bend_command', QoSProfile(depth=10,
+                                                            reliability=ReliabilityPolicy.RELIABLE))
+        self.estop = self.peer.create_client(SetBool, 'pam_controller/estop')
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.peer)
+
+    def command(self, alpha: float, gamma: float, names=('bend_alpha', 'bend_gamma')) -> None:
+        self.pub.publish(JointState(name=list(names), position=[alpha, gamma]))
+
+    def spin_until(self, predicate: Callable[[], bool], timeout: float,
+                   every: Callable[[], None] | None = None) -> bool:
+        deadline = time.monotonic() + timeout
+        next_every = 0.0
+        while time.monotonic() < deadline:
+            if every is not None and time.monotonic() >= next_every:
+                every()
+                next_every = time.monotonic() + 0.05
+            self.executor.spin_once(timeout_sec=0.01)
+            if predicate():
+                return True
+        return False
+
+    def call_estop(self, engage: bool) -> SetBool.Response:
+        assert self.estop.wait_for_service(timeout_sec=2.0)
+        future = self.estop.call_async(SetBool.Request(data=engage))
+        assert self.spin_until(future.done, 3.0)
+        return future.result()
+
+    def last_pressures(self) -> np.ndarray:
+        return np.array(self.pressures[-1].data) if self.pressures else np.full(4, np.nan)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.peer.destroy_node()
+        self.node.destroy_node()
+
+
+@pytest.fixture
+def harness(ros):
+    made: list[Harness] = []
+
+    def make(namespace: str = '/', **params: object) -> Harness:
+        h = Harness(namespace, **params)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def _values(status: DiagnosticStatus) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+# ---- parameters ---------------------------------------------------------------------------
+def test_yaml_defaults_equal_declared_and_dataclass_defaults():
+    params = yaml.safe_load(CONFIG.read_text())['pam_controller']['ros__parameters']
+    declared = {name: spec[0] for name, spec in PARAMETERS.items()}
+    assert params == declared
+    model, hyst = BendingModelConfig(), HysteresisConfig()
+    sup, link = SupervisorConfig(), LinkConfig()
+    pairs = {
+        'min_pressure_pa': model.min_pressure_pa, 'max_pressure_pa': model.max_pressure_pa,
+        'bias_pressure_pa': model.bias_pressure_pa, 'max_bend_rad': model.max_bend_rad,
+        'hysteresis_gain_rad_per_pa': hyst.gain,
+        'hysteresis_fraction': hyst.hysteresis_fraction,
+        'hysteresis_play_count': hyst.play_count,
+        'hysteresis_max_threshold_pa': hyst.max_threshold,
+        'hysteresis_density_decay': hyst.density_decay,
+        'command_timeout_s': sup.command_timeout_s,
+        'max_pressure_rate_pa_s': sup.max_pressure_rate_pa_s,
+        'vent_pressure_pa': sup.vent_pressure_pa,
+        'can_interface': link.interface, 'can_channel': link.channel,
+        'can_bitrate': link.bitrate, 'heartbeat_period_s': link.heartbeat_period_s,
+        'device_timeout_s': link.device_timeout_s,
+        'reconnect_initial_s': link.reconnect_initial_s,
+        'reconnect_max_s': link.reconnect_max_s,
+    }
+    for name, value in pairs.items():
+        assert declared[name] == value, name
+
+
+def test_every_parameter_declared_with_description(ros):
+    node = PamNode(parameter_overrides=[Parameter('can_channel', value='pam_decl')])
+    try:
+        for name in PARAMETERS:
+            desc = node.describe_parameter(name)
+            assert desc.description, name
+        assert node.describe_parameter('max_pressure_pa').floating_point_range[0].to_value \
+            == 400e3
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize(('name', 'value', 'match'), [
+    ('max_pressure_pa', 500e3, 'max_pressure_pa'),
+    ('max_bend_rad', 2.0, 'max_bend_rad'),
+    ('control_rate_hz', 0.0, 'control_rate_hz'),
+    ('hysteresis_play_count', 100, 'hysteresis_play_count'),
+    ('bias_pressure_pa', 350e3, 'bias_pressure_pa must be in'),
+    ('vent_pressure_pa', 350e3, 'vent_pressure_pa must be in'),
+    ('can_channel', '', 'channel must be'),
+    ('reconnect_max_s', 0.01, 'reconnect_max_s must be in'),
+    ('control_rate_hz', 'fast', 'control_rate_hz'),
+])
+def test_bad_parameters_raise_at_construction(ros, name, value, match):
+    with pytest.raises((ValueError, ParameterException), match=match):
+        PamNode(parameter_overrides=[Parameter(name, value=value)])
+
+
+# ---- endpoints and QoS --------------------------------------------------------------------
+def test_endpoints_and_qos_match_the_contract(harness):
+    # A namespace of its own: a node of the same name from an earlier test may linger in the
+    # graph cache for a moment. Relative topics move with it, /diagnostics does not.
+    ns = f'/contract{next(_channels)}'
+    h = harness(namespace=ns)
+    node = h.node
+
+    def graph() -> tuple[dict, dict, dict]:
+        return (dict(node.get_publisher_names_and_types_by_node('pam_controller', ns)),
+                dict(node.get_subscriber_names_and_types_by_node('pam_controller', ns)),
+                dict(node.get_service_names_and_types_by_node('pam_controller', ns)))
+
+    # The graph cache fills through discovery, even for the node's own endpoints.
+    assert h.spin_until(lambda: f'{ns}/pam/pressures' in graph()[0]
+                        and f'{ns}/pam_controller/estop' in graph()[2], 5.0)
+    pubs, subs, srvs = graph()
+    assert pubs[f'{ns}/pam/pressures'] == ['std_msgs/msg/Float64MultiArray']
+    assert pubs[f'{ns}/catheter/bend_state'] == ['sensor_msgs/msg/JointState']
+    assert pubs['/diagnostics'] == ['diagnostic_msgs/msg/DiagnosticArray']
+    assert subs == {f'{ns}/catheter/bend_command': ['sensor_msgs/msg/JointState']}
+    assert srvs[f'{ns}/pam_controller/estop'] == ['std_srvs/srv/SetBool']
+    lifecycle_only = {f'{ns}/pam_controller/transition_event'}
+    assert set(pubs) - lifecycle_only == {f'{ns}/pam/pressures', f'{ns}/catheter/bend_state',
+                                          '/diagnostics', '/parameter_events', '/rosout'}
+
+    def reliability(topic: str, publisher: bool) -> ReliabilityPolicy:
+        infos = (node.get_publishers_info_by_topic(topic) if publisher
+                 else node.get_subscriptions_info_by_topic(topic))
+        return next(i for i in infos if i.node_name == 'pam_controller').qos_profile.reliability
+
+    assert reliability(f'{ns}/pam/pressures', True) == ReliabilityPolicy.BEST_EFFORT
+    assert reliability(f'{ns}/catheter/bend_state', True) == ReliabilityPolicy.BEST_EFFORT
+    assert reliability('/diagnostics', True) == ReliabilityPolicy.RELIABLE
+    assert reliability(f'{ns}/catheter/bend_command', False) == ReliabilityPolicy.RELIABLE
+
+
+# ---- behaviour ----------------------------------------------------------------------------
+def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
+    h = harness()
+    target = (0.6, -0.3)
+
+    def close_enough() -> bool:
+        return bool(h.bends) and np.allclose(h.bends[-1].position, target, atol=5e-3)
+
+    assert h.spin_until(close_enough, 5.0, every=lambda: h.command(*target))
+    assert list(h.bends[-1].name) == ['bend_alpha', 'bend_gamma']
+    msg = h.pressures[-1]
+    assert msg.layout.dim[0].label == 'alpha_pos,alpha_neg,gamma_pos,gamma_neg'
+    assert msg.layout.dim[0].size == 4
+    p = np.array(msg.data)
+    assert p[0] > p[1] and p[3] > p[2]          # +alpha, -gamma
+    assert np.all(p <= 300e3 + 100.0)
+    assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.OK,
+                        2.0, every=lambda: h.command(*target))
+    status = h.diags[-1]
+    assert status.hardware_id == f'can:virtual:{h.node.link.channel}'
+    assert _values(status)['connected'] == 'True'
+    assert _values(status)['phase'] == 'active'
+
+
+def test_watchdog_vents_when_commands_stop(harness):
+    h = harness(command_timeout_s=0.3)
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+                        every=lambda: h.command(0.5, 0.0))
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 3.0)
+    assert h.spin_until(lambda: bool(h.diags) and 'watchdog' in h.diags[-1].message, 2.0)
+    assert h.diags[-1].level == DiagnosticStatus.WARN
+
+
+def test_estop_vents_refuses_commands_and_releases(harness):
+    h = harness()
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+                        every=lambda: h.command(0.4, 0.4))
+    resp = h.call_estop(True)
+    assert resp.success and 'engaged' in resp.message
+    assert h.node.sim is not None and h.node.sim.mode.name == 'VENT'
+    refused = h.node.supervisor.rejected_count
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 3.0,
+                        every=lambda: h.command(0.4, 0.4))
+    assert h.node.supervisor.rejected_count > refused
+    np.testing.assert_array_equal(h.node.sim.setpoints_pa, np.zeros(4))
+    assert h.spin_until(lambda: bool(h.diags) and 'e-stop' in h.diags[-1].message, 2.0)
+    resp = h.call_estop(False)
+    assert resp.success and 'released' in resp.message
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+                        every=lambda: h.command(0.4, 0.4))
+
+
+@pytest.mark.parametrize(('alpha', 'gamma', 'names', 'reason'), [
+    (math.nan, 0.0, ('bend_alpha', 'bend_gamma'), 'finite'),
+    (0.0, math.inf, ('bend_alpha', 'bend_gamma'), 'finite'),
+    (1.2, 1.2, ('bend_alpha', 'bend_gamma'), 'total bend'),
+    (0.1, 0.1, ('bend_alpha', 'other'), 'missing'),
+])
+def test_bad_commands_rejected_nothing_sent(harness, alpha, gamma, names, reason):
+    h = harness()
+    assert h.spin_until(lambda: h.node.sim is not None and h.node.sim.setpoint_frames_received > 5,
+                        2.0)
+    h.command(alpha, gamma, names)
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count >= 1, 2.0)
+    assert reason in h.node.supervisor.last_rejection
+    h.spin_until(lambda: False, 0.3)
+    # Nothing but the vented state ever reached the bank.
+    np.testing.assert_array_equal(h.node.sim.setpoints_pa, np.zeros(4))
+    np.testing.assert_array_equal(h.node.supervisor.target_pa, np.zeros(4))
+    assert h.spin_until(lambda: any(reason in _values(d).get('last_rejection', '')
+                                    for d in h.diags), 2.0)
+
+
+def test_disconnect_reported_and_recovered_with_backoff(harness):
+    h = harness(device_timeout_s=0.1, reconnect_initial_s=0.05, reconnect_max_s=0.4,
+                diagnostics_period_s=0.1)
+    assert h.spin_until(lambda: bool(h.diags) and _values(h.diags[-1])['connected'] == 'True',
+                        3.0)
+    h.node.sim.set_silent(True)
+    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.ERROR, 3.0)
+    assert 'disconnected' in h.diags[-1].message
+    h.spin_until(lambda: h.node.backoff.attempts >= 4, 3.0)
+    attempts = h.node.backoff.attempts
+    assert attempts >= 4
+    # Backoff: delays grow to the cap, so 1 s of silence makes few attempts, not 50.
+    h.spin_until(lambda: False, 1.0)
+    assert h.node.backoff.attempts - attempts <= 4
+    h.node.sim.set_silent(False)
+    assert h.spin_until(lambda: _values(h.diags[-1])['connected'] == 'True', 3.0)
+    assert h.node.backoff.attempts == 0
+
+
+def test_garbage_frames_never_crash_the_node(harness):
+    h = harness(diagnostics_period_s=0.1)
+    assert h.spin_until(lambda: len(h.pressures) > 3, 3.0)
+    for _ in range(5):
+        h.node.sim.send_garbage(200)
+        h.spin_until(lambda: False, 0.05)
+    n = len(h.pressures)
+    assert h.spin_until(lambda: len(h.pressures) > n + 10, 3.0)
+    assert h.node.bank.bad_frames_total > 100
+    assert any('malformed' in d.message for d in h.diags)
+    assert _values(h.diags[-1])['malformed_frames_total'] != '0'
+
+
+def test_stuck_regulator_is_an_error_in_diagnostics(harness):
+    h = harness(diagnostics_period_s=0.1)
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+                        every=lambda: h.command(0.3, 0.0))
+    h.node.sim.set_stuck(1)
+    assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.ERROR,
+                        4.0, every=lambda: h.command(-0.3, 0.0))
+    assert 'FAULT_STUCK' in h.diags[-1].message
+    assert _values(h.diags[-1])['channel_fault_mask'] == '2'
+
+
+def test_model_config_reaches_the_node(harness):
+    h = harness(max_pressure_pa=200e3, bias_pressure_pa=100e3, max_bend_rad=1.0)
+    assert dataclasses.replace(h.node.model_config) == h.node.model_config
+    assert h.node.model_config.max_pressure_pa == 200e3
+    assert h.spin_until(lambda: h.last_pressures().max() > 150e3, 3.0,
+                        every=lambda: h.command(1.0, 0.0))
+    h.spin_until(lambda: False, 0.5, every=lambda: h.command(1.0, 0.0))
+    assert h.last_pressures().max() <= 200e3 + 100.0
+    h.command(0.8, 0.8)   # hypot 1.13 > cap 1.0
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1, 2.0)
