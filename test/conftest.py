@@ -11,3 +11,15 @@ def pytest_configure(config: pytest.Config) -> None:
             'expected ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, found '
             f'{os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")!r}: run the tests through '
             'scripts/ws or scripts/test.sh (they source scripts/env.sh)')
+
+
+@pytest.fixture
+def rclpy_context():
+    """rclpy initialised for one test, shut down afterwards."""
+    import rclpy
+
+    rclpy.init()
+    try:
+        yield rclpy
+    finally:
+        rclpy.try_shutdown()
