@@ -110,6 +110,9 @@ class DriverNode(Node):
         self._period = 1.0 / self.supervision.control_rate_hz
         self.create_timer(self._period, self._on_control)
         self.create_timer(self.supervision.diagnostics_period, self._on_diagnostics)
+        self.get_logger().info(
+            f'sleeve driver on CAN {self._interface}:{self._channel}'
+            f'{" (simulated device)" if simulate else ""}, cap {r.max_speed} m/s')
 
     # -- callbacks ---------------------------------------------------------------------------
 
