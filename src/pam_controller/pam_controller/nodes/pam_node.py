@@ -162,6 +162,11 @@ class PamNode(LifecycleNode):
                                         time.monotonic())
         self._reset_link_state()
         self._active = True
+        sim = ' (simulated regulator bank in-process)' if self.sim is not None else ''
+        self.get_logger().info(
+            f'active on CAN {self.link.interface}:{self.link.channel}{sim}; pressure cap '
+            f'{self.model_config.max_pressure_pa:.0f} Pa, bend cap '
+            f'{self.model_config.max_bend_rad:.4f} rad')
         return super().on_activate(state)
 
     def on_deactivate(self, state: State) -> TransitionCallbackReturn:

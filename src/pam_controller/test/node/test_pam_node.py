@@ -339,3 +339,44 @@ def test_model_config_reaches_the_node(harness):
     assert h.last_pressures().max() <= 200e3 + 100.0
     h.command(0.8, 0.8)   # hypot 1.13 > cap 1.0
     assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1, 2.0)
+
+
+def test_deactivate_vents_and_cleanup_releases_the_bus(harness):
+    h = harness()
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+                        every=lambda: h.command(0.5, 0.0))
+    sim = h.node.sim
+    h.node.trigger_deactivate()
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline and sim.pressures_pa.max() > 1e3:
+        time.sleep(0.02)
+    assert sim.mode.name == 'IDLE' and sim.pressures_pa.max() <= 1e3
+    h.node.trigger_cleanup()
+    assert h.node.sim is None and not h.node.bank.is_open
+
+
+def test_console_entry_point_starts_and_stops_on_sigint():
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from pam_controller.nodes.pam_node import main; main()',
+         '--ros-args', '-p', 'can_channel:=pam_main_test'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ))
+    try:
+        deadline = time.monotonic() + 20.0
+        line = ''
+        assert proc.stdout is not None
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if 'active on CAN virtual:pam_main_test' in line or not line:
+                break
+        assert 'active on CAN virtual:pam_main_test' in line
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10.0) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
