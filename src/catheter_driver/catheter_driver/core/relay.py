@@ -151,6 +151,13 @@ def clamp_velocity(velocity: float, max_speed: float) -> float:
     return max(-max_speed, min(max_speed, velocity))
 
 
+def catheter_velocity(feedback: SleeveFeedback, sleeve_velocity: float) -> float:
+    """Catheter velocity implied by a measured sleeve velocity (m/s): the sleeve's while the
+    moving gripper holds and the fixed one is open, else 0."""
+    coupled = feedback.moving == GripperState.CLOSED and feedback.fixed == GripperState.OPEN
+    return float(sleeve_velocity) if coupled else 0.0
+
+
 class RelayController:
     """Turns a catheter velocity command and device feedback into actuator commands.
 

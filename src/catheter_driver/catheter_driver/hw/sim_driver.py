@@ -78,7 +78,8 @@ class SimulatedDriver:
     # -- fault injection ---------------------------------------------------------------------
 
     def disconnect(self) -> None:
-        """Go silent: no status frames, incoming frames dropped."""
+        """Pull the cable: no status frames, incoming frames dropped. The board keeps running,
+        so the sleeve stops only when its command watchdog expires."""
         with self._lock:
             self._connected = False
 
@@ -122,12 +123,6 @@ class SimulatedDriver:
         with self._lock:
             self._receive()
             mech = self.mechanism
-            if not self._connected:
-                self._since_command += dt
-                command = ActuatorCommand(0.0, self._command.moving_close,
-                                          self._command.fixed_close)
-                mech.step(command, dt)
-                return None
             self._since_command += dt
             timed_out = self._since_command > self.command_timeout
             velocity = self._command.sleeve_velocity
@@ -135,6 +130,8 @@ class SimulatedDriver:
                 velocity = 0.0
             mech.step(ActuatorCommand(velocity, self._command.moving_close,
                                       self._command.fixed_close), dt)
+            if not self._connected:  # cable pulled: the board runs on, the host hears nothing
+                return None
             status = DriverStatus(
                 sleeve_position=mech.sleeve_position, sleeve_velocity=mech.sleeve_velocity,
                 moving=mech.moving.state, fixed=mech.fixed.state, stopped=self._stopped,

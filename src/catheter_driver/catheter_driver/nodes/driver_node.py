@@ -16,7 +16,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool
 
-from catheter_driver.core.relay import RelayConfig, RelayController, SleeveFeedback
+from catheter_driver.core.relay import (
+    catheter_velocity,
+    RelayConfig,
+    RelayController,
+    SleeveFeedback,
+)
 from catheter_driver.core.supervision import Backoff, SupervisionConfig, Watchdog
 from catheter_driver.exceptions import CommandError, DeviceDisconnectedError, ProtocolError
 from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverStatus
@@ -87,6 +92,7 @@ class DriverNode(Node):
         self._link: CanDriverLink | None = None
         self._controller: RelayController | None = None
         self._feedback: DriverStatus | None = None
+        self._last_known: SleeveFeedback | None = None  # kept across disconnects
         self._backoff = Backoff(s.backoff_initial, s.backoff_max)
         self._next_attempt = 0.0
         self._last_status = 0.0
@@ -163,11 +169,15 @@ class DriverNode(Node):
         fb = SleeveFeedback(self._feedback.sleeve_position, self._feedback.moving,
                             self._feedback.fixed)
         if self._controller is None:
-            self._controller = RelayController(self.relay_config, fb, self._position)
+            # Start from the last state seen before a disconnect, so the sleeve travel made
+            # while the link was down (at most until the driver's own watchdog) is tracked.
+            self._controller = RelayController(self.relay_config, self._last_known or fb,
+                                               self._position)
             self._controller.set_estop(self._estop)
         velocity = self._velocity_cmd if self._watchdog.fresh(now) else 0.0
         cmd = self._controller.step(velocity, fb, self._period)
         self._position = self._controller.position
+        self._last_known = fb
         try:
             if self._estop and now - self._last_stop_frame >= 1.0:
                 self._send_stop()
@@ -178,7 +188,8 @@ class DriverNode(Node):
             self._drop(now, str(exc))
             return
         self._state_pub.publish(conv.insertion_state(
-            self.get_clock().now(), self._controller.position, self._controller.velocity))
+            self.get_clock().now(), self._controller.position,
+            catheter_velocity(fb, self._feedback.sleeve_velocity)))
 
     def _on_diagnostics(self) -> None:
         self._diag_pub.publish(self.diagnostics_message())

@@ -9,6 +9,7 @@ import pytest
 from catheter_driver.core.mechanism import SleeveMechanism
 from catheter_driver.core.relay import (
     ActuatorCommand,
+    catheter_velocity,
     clamp_velocity,
     GripperState,
     Phase,
@@ -145,6 +146,15 @@ def test_estop_freezes_sleeve_and_phase():
     for ctrl, mech, cmd in run[101:]:
         assert cmd.sleeve_velocity == 0.0 and mech.catheter_velocity == 0.0
         assert ctrl.phase == frozen
+
+
+def test_catheter_velocity_follows_the_sleeve_only_when_coupled():
+    drive = SleeveFeedback(0.01, GripperState.CLOSED, GripperState.OPEN)
+    assert catheter_velocity(drive, 0.004) == 0.004
+    for moving, fixed in [(GripperState.OPEN, GripperState.CLOSED),
+                          (GripperState.CLOSED, GripperState.CLOSED),
+                          (GripperState.CLOSED, GripperState.OPENING)]:
+        assert catheter_velocity(SleeveFeedback(0.01, moving, fixed), 0.02) == 0.0
 
 
 def test_clamp_velocity():
