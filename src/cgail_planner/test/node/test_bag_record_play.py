@@ -269,32 +269,37 @@ def test_writer_thread_flushes_messages_to_disk_before_close(ros, tmp_path: Path
     node.destroy_node()
 
 
-def test_record_all_with_max_duration_skips_ros_infrastructure(ros, tmp_path: Path) -> None:
+def test_record_all_skips_ros_infrastructure(ros, tmp_path: Path) -> None:
     from std_msgs.msg import String
 
-    node = rclpy.create_node('all_talker')
+    node = rclpy.create_node('all_recorder')
     pub = node.create_publisher(String, 'all/chatter', 10)
-    timer = node.create_timer(0.05, lambda: pub.publish(String(data='x')))
     executor = SingleThreadedExecutor()
     executor.add_node(node)
-    out = tmp_path / 'all'
-    proc = subprocess.Popen(
-        [sys.executable, '-m', 'cgail_planner.bags.record', '--all', '-o', str(out),
-         '--max-duration', '2', '--discovery-period', '0.1'],
-        env=os.environ.copy(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
-        spin_until(executor, lambda: proc.poll() is not None, 30.0)
-        output, _ = proc.communicate(timeout=10.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    node.destroy_timer(timer)
+    recorder = BagRecorder(node, RecorderConfig(output=tmp_path / 'all', all_topics=True,
+                                                discovery_period=0.1))
+    assert spin_until(executor, lambda: '/all/chatter' in recorder.topics, 10.0)
+    pub.publish(String(data='x'))
+    assert spin_until(executor, lambda: recorder.received >= 1, 5.0)
+    recorder.stop()
     node.destroy_node()
-    assert proc.returncode == 0, output
-    with open_bag(out) as reader:
+    with open_bag(tmp_path / 'all') as reader:
         topics = {c.topic: c.msgcount for c in reader.connections}
-    assert '/all/chatter' in topics
-    assert topics['/all/chatter'] > 0
+    assert topics['/all/chatter'] == 1
+    # The node's own /rosout and /parameter_events publishers exist but are not recorded.
     assert '/rosout' not in topics
     assert '/parameter_events' not in topics
+
+
+def test_max_duration_ends_the_recording_by_itself(tmp_path: Path) -> None:
+    out = tmp_path / 'timed'
+    start = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, '-m', 'cgail_planner.bags.record', '--all', '-o', str(out),
+         '--max-duration', '1'],
+        env=os.environ.copy(), capture_output=True, text=True, timeout=30.0, check=False)
+    assert result.returncode == 0, result.stderr
+    assert time.monotonic() - start < 20.0
+    assert f'wrote 0 messages on no topics to {out}' in result.stdout
+    with open_bag(out) as reader:
+        assert reader.message_count == 0
