@@ -110,7 +110,10 @@ def test_committed_fixtures_give_the_known_metrics_exactly(tmp_path: Path, capsy
     # Two single-trial conditions with distinct values: H = 1, p = erfc(1/sqrt(2)) = 0.3173.
     report = (tmp_path / 'metrics.md').read_text()
     assert '| tracking error T_r | 1.000 | 0.3173 | no |' in report
-    assert '| cgail | 1 | 100% | 2.62 ± 0.00 | 1.50 ± 0.00 | 10.0 ± 0.0 |' in report
+    assert '| cgail | 1 | 100% | 2.62 | 1.50 | 10.0 |' in report
+    # ours: T_r (5.2335 - 2.6169) / 5.2335 = 50 %, T_a (3 - 1.5) / 3 = 50 % better
+    assert '| targeting error T_a | 1.26 ± 0.55 | 41% | 1.50 | 3.00 | 50% |' in report
+    assert (tmp_path / 'metrics.csv').read_text().count('\n') == 3
     assert (tmp_path / 'metrics_boxplot.png').read_bytes()[:4] == b'\x89PNG'
 
 

@@ -8,8 +8,9 @@ A trial is one bag (directory with metadata.yaml or a bare .mcap). A directory a
 not itself a bag holds one bag per trial. The condition of a trial is, first match wins:
 ``--condition``, the bag's ``custom_data`` ``condition`` (``bag_record --condition``), the name of
 the directory argument holding it, else ``unlabelled``. Metric definitions:
-:mod:`cgail_planner.core.metrics`. Writes ``<out>/metrics.md`` and ``<out>/metrics_boxplot.png``
-and prints the table; exit status 2 on an unreadable bag or a trial that cannot be evaluated.
+:mod:`cgail_planner.core.metrics`. Writes ``<out>/metrics.md``,
+``<out>/metrics.csv`` (per trial, SI units) and ``<out>/metrics_boxplot.png`` and prints the
+table; exit status 2 on an unreadable bag or a trial that cannot be evaluated.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import sys
 
 from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.reader import find_trials, read_trial, TrialTopics
-from cgail_planner.bags.report import box_plots, markdown_report
+from cgail_planner.bags.report import box_plots, markdown_report, write_csv
 from cgail_planner.core.metrics import (
     compute_trial_metrics,
     kruskal_by_condition,
@@ -92,8 +93,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     text = markdown_report(trials, tests)
     args.output.mkdir(parents=True, exist_ok=True)
     (args.output / 'metrics.md').write_text('# Offline metrics\n\n' + text)
+    write_csv(trials, args.output / 'metrics.csv')
     print(text)
-    print(f'bag_metrics: wrote {args.output / "metrics.md"}')
+    print(f'bag_metrics: wrote {args.output / "metrics.md"} and {args.output / "metrics.csv"}')
     if not args.no_plot:
         png = box_plots(trials, tests, args.output / 'metrics_boxplot.png')
         print(f'bag_metrics: wrote {png}')

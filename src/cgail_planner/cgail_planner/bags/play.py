@@ -119,8 +119,11 @@ class BagPlayer:
         """
         halt = stop or threading.Event()
         cfg = self.config
-        if cfg.wait_for_subscribers > 0.0:
-            self.wait_for_subscribers(cfg.wait_for_subscribers, halt)
+        if cfg.wait_for_subscribers > 0.0 and not self.wait_for_subscribers(
+                cfg.wait_for_subscribers, halt):
+            lonely = [t for t, p in self.publishers.items() if p.get_subscription_count() == 0]
+            self._node.get_logger().warning(
+                f'no subscriber on {lonely} after {cfg.wait_for_subscribers:g} s; playing anyway')
         first_ns = self.start_ns + round(cfg.start_offset * 1e9)
         published = 0
         while not halt.is_set():

@@ -20,12 +20,46 @@ def _fmt(value: float, digits: int = 2) -> str:
     return 'n/a' if not math.isfinite(value) else f'{value:.{digits}f}'
 
 
+#: The paper's in-vitro results (abstract and section V-B): C-GAIL path mean ± std and the
+#: improvement over the centerline, (centerline - cgail) / centerline.
+PAPER_IN_VITRO = {
+    'targeting_error': (1.26, 0.55, 0.41),
+    'tracking_mean': (5.18, 3.48, 0.40),
+}
+
+
 def _mean_std(values: Sequence[float], scale: float, digits: int) -> str:
+    """Mean ± sample standard deviation (ddof 1) of the finite values; one value: itself."""
     arr = np.array(values, dtype=np.float64) * scale
     arr = arr[np.isfinite(arr)]
     if len(arr) == 0:
         return 'n/a'
-    return f'{arr.mean():.{digits}f} ± {arr.std():.{digits}f}'
+    if len(arr) == 1:
+        return f'{arr[0]:.{digits}f}'
+    return f'{arr.mean():.{digits}f} ± {arr.std(ddof=1):.{digits}f}'
+
+
+def paper_comparison(trials: Sequence[TrialMetrics]) -> list[str]:
+    """Markdown lines comparing ours with the paper's in-vitro T_a and T_r (needs conditions
+    ``cgail`` and ``centerline``; empty otherwise)."""
+    groups = group_by_condition(trials)
+    if 'cgail' not in groups or 'centerline' not in groups:
+        return []
+    lines = ['', '## Side by side with the paper (in vitro, C-GAIL path vs centerline)', '',
+             '| metric | paper C-GAIL (mm) | paper improvement | ours C-GAIL (mm) '
+             '| ours centerline (mm) | ours improvement |',
+             '|---|---:|---:|---:|---:|---:|']
+    for metric, (mean, std, gain) in PAPER_IN_VITRO.items():
+        label = COMPARED_METRICS[metric][0]
+        ours = [np.nanmean([getattr(m, metric) for m in groups[c]]) * 1e3
+                for c in ('cgail', 'centerline')]
+        improvement = (ours[1] - ours[0]) / ours[1] if ours[1] > 0.0 else math.nan
+        lines.append(
+            f'| {label} | {mean:.2f} ± {std:.2f} | {gain:.0%} '
+            f'| {_mean_std([getattr(m, metric) for m in groups["cgail"]], 1e3, 2)} '
+            f'| {_mean_std([getattr(m, metric) for m in groups["centerline"]], 1e3, 2)} '
+            f'| {"n/a" if not math.isfinite(improvement) else f"{improvement:.0%}"} |')
+    return lines
 
 
 def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult]) -> str:
@@ -41,7 +75,7 @@ def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResul
             f'| {_fmt(m.tracking_std * 1e3)} | {_fmt(m.tracking_max * 1e3)} '
             f'| {_fmt(m.targeting_error * 1e3)} | {_fmt(m.duration, 1)} | {success} '
             f'| {_fmt(m.curvature_mean * 1e-3, 4)} ± {_fmt(m.curvature_std * 1e-3, 4)} |')
-    lines += ['', '## Conditions (mean ± std over trials)', '',
+    lines += ['', '## Conditions (mean ± sample std over trials)', '',
               '| condition | trials | success rate | T_r (mm) | T_a (mm) | T (s) '
               '| curvature (mm^-1) |',
               '|---|---:|---:|---:|---:|---:|---:|']
@@ -61,7 +95,26 @@ def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResul
             'yes' if test.significant else 'no')
         lines.append(f'| {label} | {_fmt(test.statistic, 3)} | {_fmt(test.pvalue, 4)} '
                      f'| {verdict} |')
+    lines += paper_comparison(trials)
     return '\n'.join(lines) + '\n'
+
+
+CSV_FIELDS = ('name', 'condition', 'samples', 'tracking_mean', 'tracking_std', 'tracking_max',
+              'targeting_error', 'duration', 'success', 'time_to_target', 'timed_out',
+              'curvature_mean', 'curvature_std', 'path_length')
+
+
+def write_csv(trials: Sequence[TrialMetrics], path: Path) -> Path:
+    """Per-trial metrics in SI units (m, s, 1/m), one row per trial."""
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open('w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(CSV_FIELDS)
+        for m in trials:
+            writer.writerow([getattr(m, f) for f in CSV_FIELDS])
+    return path
 
 
 def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cgail_planner.bags.report import box_plots, markdown_report
+from cgail_planner.bags.report import box_plots, markdown_report, write_csv
 from cgail_planner.core.metrics import (
     compute_trial_metrics,
     kruskal_by_condition,
@@ -176,7 +176,19 @@ def test_markdown_report_and_box_plot(tmp_path: Path) -> None:
     tests = kruskal_by_condition(trials)
     text = markdown_report(trials, tests)
     assert '| cgail0 | cgail | 5 | 1.00 | 0.00 | 1.00 |' in text
-    assert '| cgail | 2 | 100% | 1.50 ± 0.50 |' in text
+    assert '| cgail | 2 | 100% | 1.50 ± 0.71 |' in text  # sample std of 1 and 2 mm
+    assert '| centerline | 1 | 100% | 4.00 |' in text
     assert '| tracking error T_r | 1.500 | 0.2207 | no |'  # H = (9/2 + 9) - 12 in text
+    # ours: (4 - 1.5) / 4 = 62 % better than the centerline, beside the paper's 40 %
+    assert '| tracking error T_r | 5.18 ± 3.48 | 40% | 1.50 ± 0.71 | 4.00 | 62% |' in text
     png = box_plots(trials, tests, tmp_path / 'plots' / 'box.png')
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
+    rows = write_csv(trials, tmp_path / 'm.csv').read_text().splitlines()
+    assert rows[0].startswith('name,condition,samples,tracking_mean,')
+    assert rows[1].startswith('cgail0,cgail,5,0.001')
+    assert len(rows) == 4
+
+
+def test_paper_comparison_needs_both_conditions() -> None:
+    trials = metrics_for('a', [0.001]) + metrics_for('b', [0.004])
+    assert 'Side by side with the paper' not in markdown_report(trials, [])
