@@ -20,7 +20,8 @@ setup(
     zip_safe=True,
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
-    description='''NDI Aurora EM tracker node (Combined API over serial through ndicapi) and a simulated Aurora that speaks the Combined API on a pty.''',
+    description=('NDI Aurora EM tracker node (Combined API over serial through ndicapi) and a '
+                 'simulated Aurora that speaks the Combined API on a pty.'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
