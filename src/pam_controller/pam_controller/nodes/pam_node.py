@@ -297,11 +297,16 @@ class PamNode(LifecycleNode):
             header=Header(stamp=self.get_clock().now().to_msg()), status=[self.diagnostics()]))
 
     def diagnostics(self) -> DiagnosticStatus:
-        """The bank's DiagnosticStatus from the current state (level, message, values)."""
+        """The bank's DiagnosticStatus from the current state (level, message, values).
+
+        Resets the count of malformed frames seen since the previous call.
+        """
         sup, st = self.supervisor, self.bank_status
         faults = sorted(st.faults) if st is not None else []
         connected = self.last_rx is not None and not self.link_error
-        if not connected:
+        if not connected and self.backoff.attempts == 0 and self.last_rx is None:
+            level, msg = DiagnosticStatus.WARN, 'connecting to the regulator bank'
+        elif not connected:
             level, msg = DiagnosticStatus.ERROR, f'regulator bank disconnected: {self.link_error}'
         elif st is not None and (st.state is proto.BankState.FAULT or ERROR_FAULTS & set(faults)):
             level, msg = DiagnosticStatus.ERROR, f'regulator bank fault: {", ".join(faults)}'
