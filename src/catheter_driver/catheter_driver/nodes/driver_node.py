@@ -245,6 +245,8 @@ class DriverNode(Node):
             message = fault or ('sleeve stalled' if fb.stall else 'interlock refused motion')
         elif self._estop:
             level, message = DiagnosticStatus.WARN, 'e-stop engaged'
+        elif fb.stopped:
+            level, message = DiagnosticStatus.WARN, 'driver reports its e-stop latch engaged'
         values = [
             ('connected', connected),
             ('phase', ctrl.phase.name if ctrl else 'none'),
@@ -258,7 +260,9 @@ class DriverNode(Node):
             ('command_fresh', self._watchdog.fresh(now)),
             ('rejected_commands', self.rejected_commands),
             ('last_rejection', self._last_rejection),
+            ('device_stopped', fb.stopped if fb else 'unknown'),
             ('protocol_errors', self._link.protocol_errors if self._link else 0),
+            ('dropped_frames', self._link.dropped_frames if self._link else 0),
             ('reconnects', self.reconnects),
         ]
         return conv.diagnostics(self.get_clock().now(), 'sleeve_driver: relay insertion',
