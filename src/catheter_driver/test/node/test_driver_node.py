@@ -3,6 +3,7 @@
 import math
 import uuid
 
+import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
@@ -11,6 +12,7 @@ from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool
 
+from catheter_driver.hw.can_protocol import DriverCodec
 from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes.driver_node import DriverNode
 
@@ -203,3 +205,17 @@ def test_position_is_tracked_across_a_disconnect(harness):
     assert harness.spin_until(lambda: node._controller is not None and states
                               and states[-1].position[0] >= moved_blind - 1e-6)
     assert states[-1].position[0] == pytest.approx(moved_blind, abs=2e-6)
+
+
+def test_driver_latch_engaged_elsewhere_is_a_warning(harness):
+    channel = f'drv_{uuid.uuid4().hex}'
+    node = _node(harness, can_channel=channel)
+    assert harness.spin_until(lambda: node._controller is not None)
+    other_host = can.Bus(interface='virtual', channel=channel)
+    try:
+        other_host.send(DriverCodec().encode_stop(True))
+        assert harness.spin_until(lambda: node.diagnostics_message().status[0].message
+                                  == 'driver reports its e-stop latch engaged')
+        assert node.diagnostics_message().status[0].level == DiagnosticStatus.WARN
+    finally:
+        other_host.shutdown()
