@@ -109,18 +109,23 @@ def _make_wall(world: World, mode: str) -> StaticWall | DeformableWall:
     return DeformableWall(world.anatomy)
 
 
-def validate_actions(actions: Any, n_envs: int) -> FloatArray:
-    """Check a batch of normalised actions; returns an (N, 3) float64 array.
+def validate_actions(actions: Any, n_envs: int, single: bool = False) -> FloatArray:
+    """Check normalised actions; returns an (N, 3) float64 array.
+
+    Args:
+        actions: (N, 3) actions, or (3,) when ``single``.
+        n_envs: batch size N.
+        single: expect one (3,) action (the single env).
 
     Raises:
         ValueError: wrong shape, non-numeric, NaN or inf entries.
     """
+    expected = (3,) if single else (n_envs, 3)
     try:
         a = np.asarray(actions, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"action must be numeric with shape ({n_envs}, 3), found "
+        raise ValueError(f"action must be numeric with shape {expected}, found "
                          f"{type(actions).__name__}") from exc
-    expected = (3,) if n_envs == 1 and a.ndim == 1 else (n_envs, 3)
     if a.shape != expected:
         raise ValueError(f"action must have shape {expected}, found {a.shape}")
     if not np.all(np.isfinite(a)):
@@ -438,7 +443,7 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
         """One control step (see the class docstring)."""
         if self._needs_reset:
             raise RuntimeError("call reset() before step() (and after an episode ended)")
-        a = validate_actions(action, 1)
+        a = validate_actions(action, 1, single=True)
         reward, terminated, truncated, arrays = self.engine.step(a)
         info = {k: (v[0].item() if v.ndim == 1 else v[0].copy()) for k, v in arrays.items()}
         info["is_success"] = info["success"]

@@ -80,8 +80,6 @@ class CatheterNavVecEnv:
         if not self._started:
             raise RuntimeError("call reset() before step()")
         a = validate_actions(actions, self.num_envs)
-        if self.num_envs == 1:
-            a = a.reshape(1, 3)
         engine = self.engine
         reward, terminated, truncated, arrays = engine.step(a)
         obs = engine.observe()
