@@ -107,10 +107,15 @@ class BagWriter:
 
 def _describe(path: Path, exc: BaseException) -> str:
     detail = str(exc) or type(exc).__name__
-    if isinstance(exc, FileNotFoundError):
+    if not path.exists():
         return f'{path}: no such bag (expected a rosbag2 directory or an .mcap file)'
+    hint = ''
+    if path.is_dir() and not (path / 'metadata.yaml').exists():
+        detail = 'metadata.yaml is missing'
+        hint = ('; a recording that was killed can be recovered with '
+                '`python -m cgail_planner.bags.recover`')
     return (f'{path}: truncated or corrupt bag, cannot read it '
-            f'(expected a complete rosbag2 MCAP bag; {type(exc).__name__}: {detail})')
+            f'(expected a complete rosbag2 MCAP bag; {type(exc).__name__}: {detail}){hint}')
 
 
 @contextmanager

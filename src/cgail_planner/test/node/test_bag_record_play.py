@@ -303,3 +303,61 @@ def test_max_duration_ends_the_recording_by_itself(tmp_path: Path) -> None:
     assert f'wrote 0 messages on no topics to {out}' in result.stdout
     with open_bag(out) as reader:
         assert reader.message_count == 0
+
+
+def test_messages_flushed_before_a_hard_kill_are_recovered(ros, tmp_path: Path) -> None:
+    from std_msgs.msg import String
+
+    from cgail_planner.bags.recover import recover_bag
+
+    out = tmp_path / 'killed'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'cgail_planner.bags.record', '-o', str(out), 'kill/chatter',
+         '--discovery-period', '0.1', '--flush-period', '0.2'],
+        env=os.environ.copy(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        node = rclpy.create_node('kill_talker')
+        pub = node.create_publisher(String, 'kill/chatter', QoSProfile(
+            depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        deadline = time.monotonic() + 20.0
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert pub.get_subscription_count() == 1, 'the recorder never subscribed'
+        for i in range(30):
+            pub.publish(String(data=f'kept {i}'))
+        mcap = out / 'killed.mcap'
+        deadline = time.monotonic() + 10.0
+        while b'kept 29' not in mcap.read_bytes() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        proc.kill()
+        proc.wait(timeout=10.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    node.destroy_node()
+    with pytest.raises(BagError, match='truncated or corrupt bag'), open_bag(out):
+        pass
+    result = recover_bag(out, tmp_path / 'recovered')
+    assert result.messages == 30
+    assert result.topics == ('/kill/chatter',)
+    with open_bag(tmp_path / 'recovered') as reader:
+        qos = reader.connections[0].ext.offered_qos_profiles
+        got = [TYPESTORE.deserialize_cdr(raw, c.msgtype).data for c, _, raw in iter_raw(reader)]
+    assert got == [f'kept {i}' for i in range(30)]
+    assert qos[0].reliability == QosReliability.RELIABLE
+
+
+def test_recover_refuses_a_file_without_a_complete_chunk(tmp_path: Path) -> None:
+    from cgail_planner.bags.recover import recover_bag
+
+    cut = tmp_path / 'cut.mcap'
+    cut.write_bytes((FIXTURE / 'cgail_trial.mcap').read_bytes()[:30000])
+    with pytest.raises(BagError, match='nothing to recover'):
+        recover_bag(cut, tmp_path / 'out')
+    (tmp_path / 'text.mcap').write_text('not a bag')
+    with pytest.raises(BagError, match='not an MCAP file'):
+        recover_bag(tmp_path / 'text.mcap', tmp_path / 'out2')
+    result = recover_bag(FIXTURE, tmp_path / 'copy')
+    assert result.complete
+    assert result.messages == 403
