@@ -1,6 +1,7 @@
 """CatheterNavEnv: gymnasium API, determinism, bad input, reward events, dynamic mode."""
 
 from dataclasses import replace
+import itertools
 import math
 
 import gymnasium as gym
@@ -50,7 +51,7 @@ def test_registered() -> None:
 
 def test_obs_layout(env: CatheterNavEnv) -> None:
     assert OBS_LAYOUT[0].start == 0 and OBS_LAYOUT[-1].stop == OBS_DIM == 41
-    for a, b in zip(OBS_LAYOUT, OBS_LAYOUT[1:], strict=False):
+    for a, b in itertools.pairwise(OBS_LAYOUT):
         assert a.stop == b.start
     np.testing.assert_allclose(np.linalg.norm(RAY_DIRECTIONS, axis=1), 1.0)
     assert RAY_DIRECTIONS.shape == (25, 3)
