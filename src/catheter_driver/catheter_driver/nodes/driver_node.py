@@ -238,7 +238,7 @@ class DriverNode(Node):
         connected = self._link is not None and fb is not None
         fault = ctrl.fault if ctrl is not None else None
         level, message = DiagnosticStatus.OK, 'running'
-        if not connected:
+        if not connected or fb is None:
             level, message = DiagnosticStatus.ERROR, f'disconnected: {self._link_error}'
         elif fault or fb.stall or fb.interlock:
             level = DiagnosticStatus.WARN
