@@ -9,12 +9,18 @@ a one-sided inequality constraint on the wall: for every wall triangle near a se
 
     C = r - d <= 0 is required; when violated the triangle is moved along n = (q_t - q_s) / d.
 
+Which side of the wall the segment is on is decided by the angle-weighted pseudo-normal of the
+closest feature (face, edge or vertex; Baerentzen & Aanaes 2005) of the REST shape (a deeply
+indented, locally folded mesh cannot flip it), so a segment that has ended up
+beyond the wall (e.g. the beating root swept over the catheter) moves the wall past it instead
+of pulling the wall inwards. A single correction is capped at ``r``: larger ones are spread
+over the iterations and steps.
+
 The correction of a triangle point with barycentric weights ``b_k`` is spread over its three
 vertices with inverse masses ``w_k`` (the standard PBD point-triangle projection against a
 kinematic collider): ``dx_k = w_k b_k C / (sum_j w_j b_j^2) n``, which moves the point
-``q_t = sum b_k x_k`` by exactly ``C n``. When the segment has crossed the triangle (it is on the
-outer side of the triangle's interior, or pierces it) the triangle is pushed along its outward
-normal beyond the segment.
+``q_t = sum b_k x_k`` by exactly ``C n``. A segment that pierces the triangle pushes it along its
+outward normal beyond the segment's outer end.
 
 Force (Newton's second law on the wall particles). For each particle ``i``:
 ``m_i a_i = f_i^contact + f_i^elastic + f_i^damping``, so the force the catheter exerts on a set
@@ -46,9 +52,9 @@ from dataclasses import dataclass
 from numba import njit
 import numpy as np
 
-from cgail_planner.sim.raycast import closest_segment_triangle
+from cgail_planner.sim.raycast import cst_scalar
 
-__all__ = ["Contact", "project_contacts"]
+__all__ = ["Contact", "narrow_pairs", "project_contacts"]
 
 
 @dataclass(frozen=True)
@@ -71,14 +77,18 @@ class Contact:
 
 
 @njit(cache=True)
-def project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius, dt, impulse,
-                     touched):
+def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normals,
+                     edge_normals, pair_face, pair_seg, points, radius, dt, impulse, touched):
     """One Gauss-Seidel sweep of the capsule-chain contact constraints (in place).
 
     Args:
         x: (N, 3) particle positions, updated.
         inv_mass: (N,) inverse masses (0 = kinematic).
         faces: (M, 3) wall triangles.
+        face_edges: (M, 3) edge id of local edge k = (f_k, f_{k+1}) of every wall triangle.
+        face_normals, vertex_normals, edge_normals: face and angle-weighted vertex and edge pseudo-normals of the wall
+            at rest (they decide on which side of the surface a segment lies when its closest
+            feature is an edge or a vertex).
         pair_face, pair_seg: candidate (triangle, segment) pairs from the broad phase.
         points: (B, 3) body points.
         radius: capsule radius, m.
@@ -87,7 +97,7 @@ def project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius, dt
         touched: (N,) int8, set to 1 for every particle a contact moved.
 
     Returns:
-        Largest remaining violation ``C`` found in this sweep (before its correction), m.
+        Largest violation ``C`` found in this sweep (before its correction), m.
     """
     worst = 0.0
     nb = points.shape[0]
@@ -97,39 +107,61 @@ def project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius, dt
         i0 = faces[f, 0]
         i1 = faces[f, 1]
         i2 = faces[f, 2]
-        a = x[i0]
-        b = x[i1]
-        c = x[i2]
-        p0 = points[s]
-        p1 = points[min(s + 1, nb - 1)]
-        dist, qs, qt, u, v, w = closest_segment_triangle(p0, p1, a, b, c)
-        if dist >= radius:
-            continue
-        nf = np.cross(b - a, c - a)
-        ln = np.sqrt(np.sum(nf * nf))
-        if ln <= 0.0:
-            continue
-        nf = nf / ln
-        diff = qt - qs
-        interior = u > 1e-9 and v > 1e-9 and w > 1e-9
-        if dist > 1e-12 and (np.dot(diff, nf) >= 0.0 or not interior):
-            # Lumen side (or an edge/vertex feature, whose side the face normal cannot tell):
-            # push the triangle away from the segment.
-            n = diff / dist
-            cval = radius - dist
-        elif dist > 1e-12:  # the segment lies beyond the triangle's interior
-            n = nf
-            cval = radius + dist
+        j = min(s + 1, nb - 1)
+        ax, ay, az = x[i0, 0], x[i0, 1], x[i0, 2]
+        bx, by, bz = x[i1, 0], x[i1, 1], x[i1, 2]
+        cx, cy, cz = x[i2, 0], x[i2, 1], x[i2, 2]
+        p0x, p0y, p0z = points[s, 0], points[s, 1], points[s, 2]
+        p1x, p1y, p1z = points[j, 0], points[j, 1], points[j, 2]
+        dist, sp, u, v, w = cst_scalar(p0x, p0y, p0z, p1x, p1y, p1z,
+                                       ax, ay, az, bx, by, bz, cx, cy, cz)
+        if dist > 1e-12:
+            # Side test with the rest pseudo-normal of the closest feature.
+            if u <= 1e-9 and v <= 1e-9:
+                pn = vertex_normals[i2]
+            elif v <= 1e-9 and w <= 1e-9:
+                pn = vertex_normals[i0]
+            elif u <= 1e-9 and w <= 1e-9:
+                pn = vertex_normals[i1]
+            elif w <= 1e-9:
+                pn = edge_normals[face_edges[f, 0]]
+            elif u <= 1e-9:
+                pn = edge_normals[face_edges[f, 1]]
+            elif v <= 1e-9:
+                pn = edge_normals[face_edges[f, 2]]
+            else:
+                pn = face_normals[f]
+            # diff = q_tri - q_seg
+            dfx = u * ax + v * bx + w * cx - (p0x + sp * (p1x - p0x))
+            dfy = u * ay + v * by + w * cy - (p0y + sp * (p1y - p0y))
+            dfz = u * az + v * bz + w * cz - (p0z + sp * (p1z - p0z))
+            if dfx * pn[0] + dfy * pn[1] + dfz * pn[2] >= 0.0:
+                # segment on the lumen side: push the wall away from it
+                if dist >= radius:
+                    continue
+                nx, ny, nz = dfx / dist, dfy / dist, dfz / dist
+                cval = radius - dist
+            else:  # segment beyond the wall: move the wall past it
+                nx, ny, nz = -dfx / dist, -dfy / dist, -dfz / dist
+                cval = radius + dist
         else:  # the segment pierces the triangle: push beyond its outer end
-            h = max(np.dot(p0 - a, nf), np.dot(p1 - a, nf), 0.0)
-            n = nf
-            cval = radius + h
+            nfx = (by - ay) * (cz - az) - (bz - az) * (cy - ay)
+            nfy = (bz - az) * (cx - ax) - (bx - ax) * (cz - az)
+            nfz = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            ln = np.sqrt(nfx * nfx + nfy * nfy + nfz * nfz)
+            if ln <= 0.0:
+                continue
+            nx, ny, nz = nfx / ln, nfy / ln, nfz / ln
+            h0 = (p0x - ax) * nx + (p0y - ay) * ny + (p0z - az) * nz
+            h1 = (p1x - ax) * nx + (p1y - ay) * ny + (p1z - az) * nz
+            cval = radius + max(h0, h1, 0.0)
         wsum = inv_mass[i0] * u * u + inv_mass[i1] * v * v + inv_mass[i2] * w * w
         if wsum <= 0.0:
             continue
         if cval > worst:
             worst = cval
-        lam = cval / wsum
+        # Large corrections (a wall swept into the catheter) are spread over iterations.
+        lam = min(cval, radius) / wsum
         for k in range(3):
             idx = i0 if k == 0 else (i1 if k == 1 else i2)
             beta = u if k == 0 else (v if k == 1 else w)
@@ -137,9 +169,33 @@ def project_contacts(x, inv_mass, faces, pair_face, pair_seg, points, radius, dt
             if wk <= 0.0 or beta <= 0.0:
                 continue
             step = wk * beta * lam
-            for ax in range(3):
-                x[idx, ax] += step * n[ax]
-                # m_k * dx_k / dt with m_k = 1 / w_k
-                impulse[idx, ax] += beta * lam * n[ax] / dt
+            x[idx, 0] += step * nx
+            x[idx, 1] += step * ny
+            x[idx, 2] += step * nz
+            # m_k * dx_k / dt with m_k = 1 / w_k
+            imp = beta * lam / dt
+            impulse[idx, 0] += imp * nx
+            impulse[idx, 1] += imp * ny
+            impulse[idx, 2] += imp * nz
             touched[idx] = 1
     return worst
+
+
+@njit(cache=True)
+def narrow_pairs(x, faces, pair_face, pair_seg, points, reach):
+    """Keep the broad-phase pairs whose exact segment-triangle distance is below ``reach``."""
+    nb = points.shape[0]
+    keep = np.zeros(pair_face.shape[0], np.bool_)
+    for p in range(pair_face.shape[0]):
+        f = pair_face[p]
+        s = pair_seg[p]
+        j = min(s + 1, nb - 1)
+        i0 = faces[f, 0]
+        i1 = faces[f, 1]
+        i2 = faces[f, 2]
+        dist, _, _, _, _ = cst_scalar(points[s, 0], points[s, 1], points[s, 2],
+                                      points[j, 0], points[j, 1], points[j, 2],
+                                      x[i0, 0], x[i0, 1], x[i0, 2], x[i1, 0], x[i1, 1],
+                                      x[i1, 2], x[i2, 0], x[i2, 1], x[i2, 2])
+        keep[p] = dist < reach
+    return pair_face[keep].copy(), pair_seg[keep].copy()

@@ -23,7 +23,8 @@ from __future__ import annotations
 from numba import njit
 import numpy as np
 
-__all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle"]
+__all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle", "cpt_scalar",
+           "cst_scalar"]
 
 _LEAF_SIZE = 4
 _STACK = 128
@@ -207,70 +208,74 @@ def _raycast(vertices, faces, order, node_min, node_max, left, right, start, cou
 
 
 # --------------------------------------------------------------------------- closest points
-@njit(cache=True)
-def closest_point_triangle(p, a, b, c):
-    """Closest point of triangle (a, b, c) to p (Ericson, Real-Time Collision Detection 5.1.5).
+@njit(cache=True, inline="always")
+def _dot(ax, ay, az, bx, by, bz):
+    return ax * bx + ay * by + az * bz
 
-    Returns:
-        (q, u, v, w): the closest point and its barycentric weights (q = u a + v b + w c).
+
+@njit(cache=True)
+def cpt_scalar(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Closest point of triangle abc to p (Ericson, Real-Time Collision Detection 5.1.5).
+
+    Scalar, allocation-free form for the inner loops. Returns ``(qx, qy, qz, u, v, w)`` with
+    ``q = u a + v b + w c``.
     """
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = np.dot(ab, ap)
-    d2 = np.dot(ac, ap)
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    d1 = _dot(abx, aby, abz, px - ax, py - ay, pz - az)
+    d2 = _dot(acx, acy, acz, px - ax, py - ay, pz - az)
     if d1 <= 0.0 and d2 <= 0.0:
-        return a.copy(), 1.0, 0.0, 0.0
-    bp = p - b
-    d3 = np.dot(ab, bp)
-    d4 = np.dot(ac, bp)
+        return ax, ay, az, 1.0, 0.0, 0.0
+    d3 = _dot(abx, aby, abz, px - bx, py - by, pz - bz)
+    d4 = _dot(acx, acy, acz, px - bx, py - by, pz - bz)
     if d3 >= 0.0 and d4 <= d3:
-        return b.copy(), 0.0, 1.0, 0.0
+        return bx, by, bz, 0.0, 1.0, 0.0
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
         t = d1 / (d1 - d3)
-        return a + t * ab, 1.0 - t, t, 0.0
-    cp = p - c
-    d5 = np.dot(ab, cp)
-    d6 = np.dot(ac, cp)
+        return ax + t * abx, ay + t * aby, az + t * abz, 1.0 - t, t, 0.0
+    d5 = _dot(abx, aby, abz, px - cx, py - cy, pz - cz)
+    d6 = _dot(acx, acy, acz, px - cx, py - cy, pz - cz)
     if d6 >= 0.0 and d5 <= d6:
-        return c.copy(), 0.0, 0.0, 1.0
+        return cx, cy, cz, 0.0, 0.0, 1.0
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
         t = d2 / (d2 - d6)
-        return a + t * ac, 1.0 - t, 0.0, t
+        return ax + t * acx, ay + t * acy, az + t * acz, 1.0 - t, 0.0, t
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return b + t * (c - b), 0.0, 1.0 - t, t
+        return (bx + t * (cx - bx), by + t * (cy - by), bz + t * (cz - bz), 0.0, 1.0 - t, t)
     denom = 1.0 / (va + vb + vc)
     v = vb * denom
     w = vc * denom
-    return a + v * ab + w * ac, 1.0 - v - w, v, w
+    return (ax + v * abx + w * acx, ay + v * aby + w * acy, az + v * abz + w * acz,
+            1.0 - v - w, v, w)
 
 
 @njit(cache=True)
-def _closest_segment_segment(p1, q1, p2, q2):
-    """Closest points of segments p1q1 and p2q2 (Ericson 5.1.9); returns (s, t, c1, c2)."""
-    d1 = q1 - p1
-    d2 = q2 - p2
-    r = p1 - p2
-    a = np.dot(d1, d1)
-    e = np.dot(d2, d2)
-    f = np.dot(d2, r)
+def _css_scalar(p1x, p1y, p1z, q1x, q1y, q1z, p2x, p2y, p2z, q2x, q2y, q2z):
+    """Closest points of segments p1q1 and p2q2 (Ericson 5.1.9); returns (s, t, dist^2)."""
+    d1x, d1y, d1z = q1x - p1x, q1y - p1y, q1z - p1z
+    d2x, d2y, d2z = q2x - p2x, q2y - p2y, q2z - p2z
+    rx, ry, rz = p1x - p2x, p1y - p2y, p1z - p2z
+    a = _dot(d1x, d1y, d1z, d1x, d1y, d1z)
+    e = _dot(d2x, d2y, d2z, d2x, d2y, d2z)
+    f = _dot(d2x, d2y, d2z, rx, ry, rz)
     eps = 1e-30
     if a <= eps and e <= eps:
-        return 0.0, 0.0, p1.copy(), p2.copy()
-    if a <= eps:
+        s = 0.0
+        t = 0.0
+    elif a <= eps:
         s = 0.0
         t = min(max(f / e, 0.0), 1.0)
     else:
-        c = np.dot(d1, r)
+        c = _dot(d1x, d1y, d1z, rx, ry, rz)
         if e <= eps:
             t = 0.0
             s = min(max(-c / a, 0.0), 1.0)
         else:
-            b = np.dot(d1, d2)
+            b = _dot(d1x, d1y, d1z, d2x, d2y, d2z)
             denom = a * e - b * b
             s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > eps else 0.0
             t = (b * s + f) / e
@@ -280,7 +285,72 @@ def _closest_segment_segment(p1, q1, p2, q2):
             elif t > 1.0:
                 t = 1.0
                 s = min(max((b - c) / a, 0.0), 1.0)
-    return s, t, p1 + s * d1, p2 + t * d2
+    dx = p1x + s * d1x - (p2x + t * d2x)
+    dy = p1y + s * d1y - (p2y + t * d2y)
+    dz = p1z + s * d1z - (p2z + t * d2z)
+    return s, t, dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True)
+def cst_scalar(p0x, p0y, p0z, p1x, p1y, p1z, ax, ay, az, bx, by, bz, cx, cy, cz):
+    """Closest points between segment p0p1 and triangle abc (scalar, allocation-free).
+
+    Returns:
+        ``(dist, s, u, v, w)``: the distance, the segment parameter of its closest point
+        (``p0 + s (p1 - p0)``) and the barycentric weights of the triangle's closest point.
+        dist is 0 when the segment pierces the triangle.
+    """
+    dx, dy, dz = p1x - p0x, p1y - p0y, p1z - p0z
+    e1x, e1y, e1z = bx - ax, by - ay, bz - az
+    e2x, e2y, e2z = cx - ax, cy - ay, cz - az
+    # Piercing test (Moeller-Trumbore with the segment parameter in [0, 1]).
+    pvx = dy * e2z - dz * e2y
+    pvy = dz * e2x - dx * e2z
+    pvz = dx * e2y - dy * e2x
+    det = _dot(e1x, e1y, e1z, pvx, pvy, pvz)
+    if abs(det) > 1e-24:
+        inv = 1.0 / det
+        tvx, tvy, tvz = p0x - ax, p0y - ay, p0z - az
+        uu = _dot(tvx, tvy, tvz, pvx, pvy, pvz) * inv
+        if 0.0 <= uu <= 1.0:
+            qvx = tvy * e1z - tvz * e1y
+            qvy = tvz * e1x - tvx * e1z
+            qvz = tvx * e1y - tvy * e1x
+            vv = _dot(dx, dy, dz, qvx, qvy, qvz) * inv
+            if vv >= 0.0 and uu + vv <= 1.0:
+                tt = _dot(e2x, e2y, e2z, qvx, qvy, qvz) * inv
+                if 0.0 <= tt <= 1.0:
+                    return 0.0, tt, 1.0 - uu - vv, uu, vv
+    # Otherwise the minimum is at a segment end vs the triangle or a segment vs an edge.
+    qx, qy, qz, bu, bv, bw = cpt_scalar(p0x, p0y, p0z, ax, ay, az, bx, by, bz, cx, cy, cz)
+    best = (qx - p0x) ** 2 + (qy - p0y) ** 2 + (qz - p0z) ** 2
+    bs = 0.0
+    qx, qy, qz, u, v, w = cpt_scalar(p1x, p1y, p1z, ax, ay, az, bx, by, bz, cx, cy, cz)
+    dd = (qx - p1x) ** 2 + (qy - p1y) ** 2 + (qz - p1z) ** 2
+    if dd < best:
+        best, bs, bu, bv, bw = dd, 1.0, u, v, w
+    s, t, dd = _css_scalar(p0x, p0y, p0z, p1x, p1y, p1z, ax, ay, az, bx, by, bz)
+    if dd < best:
+        best, bs, bu, bv, bw = dd, s, 1.0 - t, t, 0.0
+    s, t, dd = _css_scalar(p0x, p0y, p0z, p1x, p1y, p1z, bx, by, bz, cx, cy, cz)
+    if dd < best:
+        best, bs, bu, bv, bw = dd, s, 0.0, 1.0 - t, t
+    s, t, dd = _css_scalar(p0x, p0y, p0z, p1x, p1y, p1z, cx, cy, cz, ax, ay, az)
+    if dd < best:
+        best, bs, bu, bv, bw = dd, s, t, 0.0, 1.0 - t
+    return np.sqrt(best), bs, bu, bv, bw
+
+
+@njit(cache=True)
+def closest_point_triangle(p, a, b, c):
+    """Closest point of triangle (a, b, c) to p; returns ``(q, u, v, w)``, q = u a + v b + w c."""
+    qx, qy, qz, u, v, w = cpt_scalar(p[0], p[1], p[2], a[0], a[1], a[2], b[0], b[1], b[2],
+                                     c[0], c[1], c[2])
+    q = np.empty(3)
+    q[0] = qx
+    q[1] = qy
+    q[2] = qz
+    return q, u, v, w
 
 
 @njit(cache=True)
@@ -288,61 +358,12 @@ def closest_segment_triangle(p0, p1, a, b, c):
     """Closest points between segment p0p1 and triangle abc.
 
     Returns:
-        (dist, q_seg, q_tri, u, v, w): distance, the closest point on the segment, the closest
-        point on the triangle and its barycentric weights. dist is 0 when the segment pierces the
-        triangle (q_seg == q_tri is then the piercing point).
+        (dist, q_seg, q_tri, u, v, w): distance, closest point on the segment, closest point on
+        the triangle and its barycentric weights; dist is 0 when the segment pierces it.
     """
-    # Piercing test (segment parameter in [0, 1]).
-    d = p1 - p0
-    e1 = b - a
-    e2 = c - a
-    pv = np.cross(d, e2)
-    det = np.dot(e1, pv)
-    if abs(det) > 1e-24:
-        inv = 1.0 / det
-        tv = p0 - a
-        uu = np.dot(tv, pv) * inv
-        if 0.0 <= uu <= 1.0:
-            qv = np.cross(tv, e1)
-            vv = np.dot(d, qv) * inv
-            if vv >= 0.0 and uu + vv <= 1.0:
-                tt = np.dot(e2, qv) * inv
-                if 0.0 <= tt <= 1.0:
-                    q = p0 + tt * d
-                    return 0.0, q, q.copy(), 1.0 - uu - vv, uu, vv
-    best = np.inf
-    qs = p0.copy()
-    qt = a.copy()
-    bu, bv, bw = 1.0, 0.0, 0.0
-    for k in range(2):
-        p = p0 if k == 0 else p1
-        q, u, v, w = closest_point_triangle(p, a, b, c)
-        dd = np.sum((q - p) ** 2)
-        if dd < best:
-            best = dd
-            qs = p.copy()
-            qt = q
-            bu, bv, bw = u, v, w
-    for k in range(3):
-        if k == 0:
-            ea, eb = a, b
-        elif k == 1:
-            ea, eb = b, c
-        else:
-            ea, eb = c, a
-        _, t, c1, c2 = _closest_segment_segment(p0, p1, ea, eb)
-        dd = np.sum((c1 - c2) ** 2)
-        if dd < best:
-            best = dd
-            qs = c1
-            qt = c2
-            if k == 0:
-                bu, bv, bw = 1.0 - t, t, 0.0
-            elif k == 1:
-                bu, bv, bw = 0.0, 1.0 - t, t
-            else:
-                bu, bv, bw = t, 0.0, 1.0 - t
-    return np.sqrt(best), qs, qt, bu, bv, bw
+    dist, s, u, v, w = cst_scalar(p0[0], p0[1], p0[2], p1[0], p1[1], p1[2], a[0], a[1], a[2],
+                                  b[0], b[1], b[2], c[0], c[1], c[2])
+    return dist, p0 + s * (p1 - p0), u * a + v * b + w * c, u, v, w
 
 
 @njit(cache=True)
@@ -374,13 +395,20 @@ def _closest(vertices, faces, order, node_min, node_max, left, right, start, cou
         if left[k] < 0:
             for i in range(start[k], start[k] + count[k]):
                 f = order[i]
-                q, u, v, w = closest_point_triangle(
-                    p, vertices[faces[f, 0]], vertices[faces[f, 1]], vertices[faces[f, 2]])
-                dd = np.sum((q - p) ** 2)
+                i0 = faces[f, 0]
+                i1 = faces[f, 1]
+                i2 = faces[f, 2]
+                qx, qy, qz, u, v, w = cpt_scalar(
+                    p[0], p[1], p[2], vertices[i0, 0], vertices[i0, 1], vertices[i0, 2],
+                    vertices[i1, 0], vertices[i1, 1], vertices[i1, 2],
+                    vertices[i2, 0], vertices[i2, 1], vertices[i2, 2])
+                dd = (qx - p[0]) ** 2 + (qy - p[1]) ** 2 + (qz - p[2]) ** 2
                 if dd < best2:
                     best2 = dd
                     best_f = f
-                    best_q = q
+                    best_q[0] = qx
+                    best_q[1] = qy
+                    best_q[2] = qz
                     bu, bv, bw = u, v, w
         else:
             lc = left[k]
@@ -516,6 +544,19 @@ class WallBVH:
                self._right, self._start, self._count, self._n_nodes)
         self._normals = None
 
+    @property
+    def face_edges(self) -> np.ndarray:
+        """(M, 3) edge id of local edge k = (f_k, f_{k+1}) of every wall triangle."""
+        return self._face_edges
+
+    def pseudo_normals(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(face, vertex, edge) normals of the wall at the last refit (unnormalised sums
+        for vertices and edges; the sign test only needs their direction)."""
+        if self._normals is None:
+            self._normals = _pseudo_normals(self.vertices, self.faces, self._face_edges,
+                                            self._n_edges, self.n_vertices)
+        return self._normals
+
     def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float) -> np.ndarray:
         """(R,) distance to the first wall hit along each ray, ``max_dist`` when none within it.
 
@@ -563,10 +604,7 @@ class WallBVH:
             self._right, self._start, self._count, p, float(max_dist))
         if face < 0:
             return float("inf"), p.copy(), np.zeros(3), -1
-        if self._normals is None:
-            self._normals = _pseudo_normals(self.vertices, self.faces, self._face_edges,
-                                            self._n_edges, self.n_vertices)
-        fn, vn, en = self._normals
+        fn, vn, en = self.pseudo_normals()
         bary = (u, v, w)
         zero = [k for k in range(3) if bary[k] <= 1e-12]
         if len(zero) == 2:  # a vertex region

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from cgail_planner.sim.contact import Contact
+from cgail_planner.sim.contact import Contact, narrow_pairs
 from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
 from cgail_planner.sim.pbd import (
     build_topology,
@@ -177,6 +177,9 @@ class DeformableWall(StaticWall):
         self._touched = np.zeros(n, dtype=np.int8)
         self._dp = np.zeros((n, 3))
         self._last_dt = 0.0
+        # Rest-shape pseudo-normals: the contact side test (lumen side or beyond the wall)
+        # uses them, so a locally folded, deeply indented mesh cannot flip the push direction.
+        self._rest_fn, self._rest_vn, self._rest_en = self._bvh.pseudo_normals()
         self.last_contact_violation = 0.0
         self.reset()
 
@@ -225,16 +228,17 @@ class DeformableWall(StaticWall):
                 x[topo.annulus] = ann_rest + self.heartbeat.displacement(t_k)
             if topo.fixed.size:
                 x[topo.fixed] = topo.rest[topo.fixed]
+            pf, ps = empty, empty
             if pts.shape[0]:
                 self._bvh.refit(x)
-                vmax = float(np.sqrt((v * v).sum(axis=1).max())) if v.size else 0.0
-                pf, ps = self._bvh.faces_near_segments(
-                    pts, radius + cfg.contact_margin + vmax * h)
-            else:
-                pf, ps = empty, empty
+                reach = radius + cfg.contact_margin
+                pf, ps = self._bvh.faces_near_segments(pts, reach)
+                pf, ps = narrow_pairs(x, self._wall_faces, pf, ps, pts, reach)
             worst = solve(x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
                           self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k,
-                          topo.tether_k, h, cfg.iterations, self._wall_faces, pf, ps,
+                          topo.tether_k, h, cfg.iterations, self._wall_faces,
+                          self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en,
+                          pf, ps,
                           pts if pts.shape[0] else np.zeros((1, 3)), radius, self._impulse,
                           self._touched)
             v_new = (x - self._x_old) / h
