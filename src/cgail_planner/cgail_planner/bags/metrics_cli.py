@@ -1,8 +1,8 @@
 """``bag_metrics``: the paper's in-vitro metrics from trial bags, a markdown table and box plots.
 
-    scripts/ws bag_metrics bags/fixtures                      # every bag in the directory
-    scripts/ws bag_metrics runs/cgail runs/centerline -o out  # one directory per condition
-    scripts/ws bag_metrics trial1 trial2 --condition cgail    # label given on the command line
+    scripts/ros2run cgail_planner bag_metrics bags/fixtures            # every bag in the directory
+    scripts/ros2run cgail_planner bag_metrics runs/cgail runs/centerline -o out   # dir = condition
+    scripts/ros2run cgail_planner bag_metrics trial1 trial2 --condition cgail     # label given
 
 A trial is one bag (directory with metadata.yaml or a bare .mcap). A directory argument that is
 not itself a bag holds one bag per trial. The condition of a trial is, first match wins:

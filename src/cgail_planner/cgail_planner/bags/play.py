@@ -1,7 +1,8 @@
 """``bag_play``: play a rosbag2 MCAP bag back into live topics (rosbags + rclpy raw publish).
 
-    scripts/ws bag_play bags/fixtures/cgail_trial
-    scripts/ws bag_play RUN --rate 2 --loop --start-offset 5 --topics em_tracker/tip_pose
+    scripts/ros2run cgail_planner bag_play bags/fixtures/cgail_trial
+    scripts/ros2run cgail_planner bag_play RUN --rate 2 --loop --start-offset 5
+    scripts/ros2run cgail_planner bag_play RUN --topics em_tracker/tip_pose planner/path
 
 * Publishers are recreated with the QoS recorded in the bag's ``offered_qos_profiles``
   (reliable/transient-local only when every recorded publisher was), so a latched topic such as

@@ -1,7 +1,7 @@
 """``bag_record``: record ROS 2 topics to a rosbag2 MCAP bag (rosbags + rclpy raw subscriptions).
 
-    scripts/ws bag_record -o bags/run1 em_tracker/tip_pose planner/path planner/goal
-    scripts/ws bag_record -o bags/run1 --all --condition cgail --max-duration 200
+    scripts/ros2run cgail_planner bag_record -o runs/cgail/t1 --condition cgail planner/goal
+    scripts/ros2run cgail_planner bag_record -o runs/all_topics --all --max-duration 200
 
 * Topics are discovered from the graph (``get_topic_names_and_types``) every
   ``--discovery-period`` s; a topic is subscribed once it has a publisher, with a QoS compatible
