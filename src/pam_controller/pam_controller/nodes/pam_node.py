@@ -116,6 +116,9 @@ class PamNode(LifecycleNode):
         self.backoff = Backoff(self.link.reconnect_initial_s, self.link.reconnect_max_s)
         self._active = False
         self._timers: list = []
+        self._lifecycle_pubs: list = []
+        self._sub_command = None
+        self._srv_estop = None
         self._reset_link_state()
 
     def _declare(self, name: str, default: object, description: str,
@@ -150,9 +153,10 @@ class PamNode(LifecycleNode):
             JointState, 'catheter/bend_state', qos_profile_sensor_data)
         self.pub_diag = self.create_lifecycle_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
-        self.sub_command = self.create_subscription(
+        self._lifecycle_pubs = [self.pub_pressures, self.pub_bend, self.pub_diag]
+        self._sub_command = self.create_subscription(
             JointState, 'catheter/bend_command', self._on_bend_command, COMMAND_QOS)
-        self.srv_estop = self.create_service(SetBool, 'pam_controller/estop', self._on_estop)
+        self._srv_estop = self.create_service(SetBool, 'pam_controller/estop', self._on_estop)
         self._timers = [self.create_timer(self.control_period_s, self._on_control_timer),
                         self.create_timer(self.diagnostics_period_s, self._on_diagnostics_timer)]
         return TransitionCallbackReturn.SUCCESS
@@ -188,12 +192,24 @@ class PamNode(LifecycleNode):
         for timer in self._timers:
             self.destroy_timer(timer)
         self._timers = []
+        for pub in self._lifecycle_pubs:
+            self.destroy_lifecycle_publisher(pub)
+        self._lifecycle_pubs = []
+        if self._sub_command is not None:
+            self.destroy_subscription(self._sub_command)
+            self._sub_command = None
+        if self._srv_estop is not None:
+            self.destroy_service(self._srv_estop)
+            self._srv_estop = None
         self.bank.close()
         if self.sim is not None:
             self.sim.stop()
             self.sim = None
 
     def destroy_node(self) -> None:
+        if self._active:
+            self._active = False
+            self._send_vent(BankMode.IDLE)
         self._release()
         super().destroy_node()
 
@@ -230,10 +246,11 @@ class PamNode(LifecycleNode):
         return response
 
     def _send_vent(self, mode: BankMode) -> None:
+        """Send ``mode`` and the vent pressures now (e-stop, deactivate, shutdown)."""
         try:
             if self.bank.is_open:
                 self.bank.send_heartbeat(mode)
-                self.bank.send_setpoints(self.supervisor.setpoints_pa)
+                self.bank.send_setpoints(np.full(4, self.supervisor_config.vent_pressure_pa))
         except DeviceUnavailableError as err:
             self._link_failed(str(err), time.monotonic())
 

@@ -383,3 +383,17 @@ def test_console_entry_point_starts_and_stops_on_sigint():
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_cleanup_then_configure_again_gives_one_set_of_endpoints(harness):
+    ns = f'/reconf{next(_channels)}'
+    h = harness(namespace=ns)
+    h.node.trigger_deactivate()
+    h.node.trigger_cleanup()
+    h.node.trigger_configure()
+    h.node.trigger_activate()
+    assert h.spin_until(lambda: len(h.pressures) > 3, 3.0)
+    infos = [i for i in h.node.get_publishers_info_by_topic(f'{ns}/pam/pressures')
+             if i.node_name == 'pam_controller']
+    assert len(infos) == 1
+    assert len(h.node.get_subscriptions_info_by_topic(f'{ns}/catheter/bend_command')) == 1
