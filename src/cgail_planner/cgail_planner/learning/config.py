@@ -44,7 +44,7 @@ import yaml
 from cgail_planner.learning.errors import ConfigError
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / 'config' / 'presets'
-"""Directory of the YAML presets (``cgail``, ``gail``, ``mu0``, ``lambda0``, ``nu0``, ``smoke``)."""
+"""Directory of the YAML presets (cgail, gail, mu0, lambda0, nu0, smoke)."""
 
 
 def _check(cond: bool, name: str, expected: str, value: object) -> None:

@@ -26,7 +26,7 @@ import math
 import numpy as np
 import torch
 from torch import nn
-import torch.nn.functional as F
+from torch.nn import functional
 
 from cgail_planner.learning.config import GailConfig
 
@@ -96,8 +96,8 @@ class Gail:
         ex = self.disc.inputs(expert_obs, expert_act)
         px = self.disc.inputs(policy_obs, policy_act)
         le, lp = self.disc.logits(ex), self.disc.logits(px)
-        bce = (F.binary_cross_entropy_with_logits(le, torch.ones_like(le))
-               + F.binary_cross_entropy_with_logits(lp, torch.zeros_like(lp)))
+        bce = (functional.binary_cross_entropy_with_logits(le, torch.ones_like(le))
+               + functional.binary_cross_entropy_with_logits(lp, torch.zeros_like(lp)))
         gp = gradient_penalty(self.disc, ex.detach(), px.detach())
         total = bce + self.cfg.gradient_penalty * gp
         return total, {'losses/gail_loss': bce.item(), 'losses/gail_grad_penalty': gp.item(),

@@ -35,6 +35,10 @@ class RunningNormalizer(nn.Module):
     The statistics are buffers, so they are saved in checkpoints and baked into the ONNX graph.
     """
 
+    mean: torch.Tensor
+    var: torch.Tensor
+    count: torch.Tensor
+
     def __init__(self, dim: int, clip: float = 5.0) -> None:
         super().__init__()
         self.register_buffer('mean', torch.zeros(dim, dtype=torch.float64))
@@ -72,6 +76,7 @@ class Actor(nn.Module):
     def __init__(self, obs_dim: int, act_dim: int, cfg: NetworkConfig,
                  normalizer: RunningNormalizer | None) -> None:
         super().__init__()
+        self.obs_dim, self.act_dim = obs_dim, act_dim
         self.normalizer = normalizer
         self.body = mlp(obs_dim, cfg.hidden_units, cfg.num_layers, cfg.activation)
         self.mu = nn.Linear(cfg.hidden_units, act_dim)

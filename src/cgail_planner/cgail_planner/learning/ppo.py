@@ -20,7 +20,7 @@ def linear_schedule(initial: float, floor: float, step: int, max_steps: int,
 
 def clipped_surrogate(logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor,
                       epsilon: float) -> torch.Tensor:
-    """PPO policy loss ``-mean(min(r A, clip(r, 1-eps, 1+eps) A))`` with ``r = exp(logp - old)``."""
+    """PPO policy loss ``-mean(min(r A, clip(r, 1-eps, 1+eps) A))``, ``r = exp(logp - old)``."""
     ratio = torch.exp(logp - old_logp)
     unclipped = ratio * advantages
     clipped = torch.clamp(ratio, 1.0 - epsilon, 1.0 + epsilon) * advantages

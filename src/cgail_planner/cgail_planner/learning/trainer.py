@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 import math
 from pathlib import Path
+import pickle
 import random
 from typing import Any
 
@@ -22,10 +23,10 @@ import torch
 
 from cgail_planner.learning.bc import BehavioralCloning
 from cgail_planner.learning.buffer import RolloutBuffer
-from cgail_planner.learning.config import TrainConfig, config_to_dict
+from cgail_planner.learning.config import config_to_dict, TrainConfig
 from cgail_planner.learning.curiosity import Curiosity
 from cgail_planner.learning.curriculum import Curriculum
-from cgail_planner.learning.envs import VecEnv, is_success
+from cgail_planner.learning.envs import is_success, VecEnv
 from cgail_planner.learning.errors import DemoError, PolicyLoadError
 from cgail_planner.learning.gail import Gail
 from cgail_planner.learning.networks import Actor, Critic, RunningNormalizer
@@ -132,7 +133,7 @@ class Trainer:
             self._ep_reward += rew
             self._ep_len += 1
             for i in np.flatnonzero(ended):
-                self._finish_episode(i, is_success(infos[i]))
+                self._finish_episode(int(i), is_success(infos[i]))
             self._obs = next_obs
             self.step += self.env.num_envs
 
@@ -299,7 +300,7 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
         raise PolicyLoadError(f'checkpoint not found: expected a file at {path}')
     try:
         ckpt: dict[str, Any] = torch.load(path, map_location='cpu', weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError) as exc:
+    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
         raise PolicyLoadError(f'{path}: not a readable checkpoint ({exc})') from None
     for key in ('actor', 'obs_dim', 'act_dim', 'config'):
         if key not in ckpt:

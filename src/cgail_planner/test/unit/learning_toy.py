@@ -15,7 +15,7 @@ class PointReach(gym.Env):
     -1 when leaving the box, else 0.1 * (distance decrease). Truncated after 40 steps.
     """
 
-    metadata: dict[str, Any] = {'render_modes': []}
+    metadata: dict[str, Any] = {'render_modes': []}  # noqa: RUF012
 
     def __init__(self) -> None:
         self.observation_space = gym.spaces.Box(-4.0, 4.0, (4,), np.float32)

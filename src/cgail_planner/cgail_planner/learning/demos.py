@@ -1,0 +1,42 @@
+"""Demonstration loading: (obs, act) arrays from rosbag2 MCAP demo bags or ``.npz`` files."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from cgail_planner.learning.errors import DemoError
+
+
+def load_demos(paths: Sequence[Path]) -> tuple[np.ndarray, np.ndarray]:
+    """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
+
+    A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays, or a demo bag directory
+    written by ``make_demos`` (see :mod:`cgail_planner.learning.demo_bags`).
+
+    Raises:
+        DemoError: no path given, a path missing, or no samples.
+    """
+    if not paths:
+        raise DemoError('expected at least one demonstration path (--demos), found none')
+    obs_l, act_l = [], []
+    for path in paths:
+        if not path.exists():
+            raise DemoError(f'demonstration path not found: {path}')
+        if path.suffix == '.npz':
+            with np.load(path) as data:
+                if 'obs' not in data or 'act' not in data:
+                    raise DemoError(f'{path}: expected arrays obs and act, found {list(data)}')
+                obs, act = data['obs'], data['act']
+        else:
+            from cgail_planner.learning.demo_bags import load_demo_bag
+
+            obs, act = load_demo_bag(path)
+        obs_l.append(np.asarray(obs, np.float32))
+        act_l.append(np.asarray(act, np.float32))
+    obs_all, act_all = np.concatenate(obs_l), np.concatenate(act_l)
+    if len(obs_all) == 0:
+        raise DemoError(f'no demonstration samples in {[str(p) for p in paths]}')
+    return obs_all, act_all

@@ -1,0 +1,156 @@
+"""``train``: train a policy (C-GAIL, GAIL or an ablation) in the catheter simulator.
+
+Examples::
+
+    scripts/ws train --preset cgail --mode static --demos bags/demos/default \
+        --out runs/cgail_static
+    scripts/ws train --preset cgail --mode dynamic --init-from runs/cgail_static/final.pt \
+        --demos bags/demos/default --out runs/cgail_dynamic
+
+Writes ``<out>/config.yaml``, ``scalars.csv`` + a TensorBoard event file (flat names such as
+``losses/value_loss``, ``eval/success_rate``), ``checkpoints/step_<n>.pt`` and ``final.pt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+import sys
+import time
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+import yaml
+
+from cgail_planner.learning.config import config_from_dict, config_to_dict, load_config
+from cgail_planner.learning.errors import LearningError
+from cgail_planner.learning.logger import ScalarLogger
+from cgail_planner.learning.trainer import evaluate_policy, Trainer
+
+
+def sim_metadata(env_cfg: Any) -> dict[str, Any]:
+    """Observation layout and action scaling of a simulator config (checkpoint/ONNX metadata)."""
+    from cgail_planner.sim.env import obs_layout_dict
+
+    return {
+        'observation_layout': obs_layout_dict(),
+        'action_scaling': {
+            'names': ['alpha', 'gamma', 'delta_l'],
+            'alpha_gamma': 'a[0:2] * theta_max * |delta_l| / L (rad)',
+            'delta_l': 'a[2] * max_insertion_speed * dt (m)',
+            'segment_length_m': env_cfg.segment_length,
+            'max_insertion_speed_m_s': env_cfg.max_insertion_speed, 'dt_s': env_cfg.dt,
+        },
+        'theta_max_rad': env_cfg.theta_max, 'anatomy': env_cfg.anatomy, 'mode': env_cfg.mode,
+    }
+
+
+def make_envs(mode: str, anatomy: str, num_envs: int) -> tuple[Any, Any, dict[str, Any]]:
+    """Batched training env, single evaluation env and metadata for the simulator."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.vec_env import CatheterNavVecEnv
+
+    env_cfg = EnvConfig(mode=mode, anatomy=anatomy)
+    return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
+            sim_metadata(env_cfg))
+
+
+def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = True,
+                 seed: int = 0) -> dict[str, float]:
+    """The training loop: iterations, logging, periodic evaluation and checkpoints."""
+    cfg = trainer.cfg
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'config.yaml').write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    logger = ScalarLogger(out)
+    next_eval = cfg.eval_every or math.inf
+    next_ckpt = cfg.checkpoint_every or math.inf
+    last: dict[str, float] = {}
+    t0 = time.monotonic()
+    with tqdm(total=cfg.max_steps, disable=not progress, unit='step', dynamic_ncols=True) as bar:
+        while trainer.step < cfg.max_steps:
+            before = trainer.step
+            scalars = trainer.train_iteration()
+            scalars['time/steps_per_s'] = trainer.step / max(time.monotonic() - t0, 1e-9)
+            if trainer.step >= next_eval:
+                scalars.update(evaluate_policy(trainer.act_deterministic, eval_env,
+                                               cfg.eval_episodes, seed=10_000 + seed))
+                next_eval += cfg.eval_every
+            if trainer.step >= next_ckpt:
+                trainer.save(out / 'checkpoints' / f'step_{trainer.step}.pt')
+                next_ckpt += cfg.checkpoint_every
+            logger.log(trainer.step, scalars)
+            last.update(scalars)
+            bar.update(trainer.step - before)
+            bar.set_postfix(
+                reward=f"{scalars.get('environment/episode_reward', math.nan):.3f}",
+                success=f"{scalars.get('environment/success_rate', math.nan):.2f}")
+    trainer.save(out / 'final.pt')
+    final = evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
+                            seed=10_000 + seed)
+    logger.log(trainer.step, final)
+    logger.close()
+    last.update(final)
+    last['time/wall_s'] = time.monotonic() - t0
+    return last
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``train``."""
+    p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n')[0])
+    p.add_argument('--preset', default='cgail',
+                   help='preset name (cgail, gail, mu0, lambda0, nu0, smoke) or a YAML path')
+    p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
+    p.add_argument('--anatomy', default='default', help='built-in anatomy name')
+    p.add_argument('--demos', nargs='*', default=[],
+                   help='demonstration bag directories / .mcap files / .npz (GAIL, BC)')
+    p.add_argument('--init-from', type=Path, default=None,
+                   help='checkpoint to start from (pre-train static, re-train dynamic)')
+    p.add_argument('--seed', type=int, default=0, help='seed; the same seed reproduces the run')
+    p.add_argument('--max-steps', type=int, default=None, help='override the preset max_steps')
+    p.add_argument('--num-envs', type=int, default=None, help='override the preset num_envs')
+    p.add_argument('--threads', type=int, default=1, help='torch CPU threads (1-2)')
+    p.add_argument('--out', type=Path, default=None,
+                   help='run directory (default runs/<preset>_<mode>)')
+    p.add_argument('--no-progress', action='store_true', help='hide the progress bar')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``train`` console script."""
+    args = build_parser().parse_args(argv)
+    torch.set_num_threads(max(1, args.threads))
+    try:
+        cfg = load_config(args.preset)
+        if args.max_steps is not None or args.num_envs is not None:
+            d = config_to_dict(cfg)
+            d['max_steps'] = args.max_steps or cfg.max_steps
+            d['num_envs'] = args.num_envs or cfg.num_envs
+            cfg = config_from_dict(d)
+        from cgail_planner.learning.demos import load_demos
+
+        demo_obs = demo_act = None
+        if cfg.needs_demos:
+            demo_obs, demo_act = load_demos([Path(d) for d in args.demos])
+        env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs)
+        meta['preset'] = cfg.name
+        trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,
+                          metadata=meta)
+        if args.init_from is not None:
+            trainer.load_weights(args.init_from)
+        out = args.out or Path('runs') / f'{cfg.name}_{args.mode}'
+        result = run_training(trainer, eval_env, out, progress=not args.no_progress,
+                              seed=args.seed)
+    except (LearningError, ValueError) as exc:
+        print(f'train: error: {exc}', file=sys.stderr)
+        return 2
+    print(yaml.safe_dump({k: round(float(v), 5) for k, v in sorted(result.items())
+                          if isinstance(v, float | int) and np.isfinite(v)}))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
