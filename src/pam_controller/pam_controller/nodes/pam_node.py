@@ -240,7 +240,9 @@ class PamNode(LifecycleNode):
             response.message = 'e-stop engaged: chambers vented, commands refused'
         else:
             self.supervisor.release_estop()
-            response.message = 'e-stop released: vented until the next command'
+            self._send_vent(BankMode.CLEAR_FAULTS)
+            response.message = ('e-stop released, bank faults cleared: vented until the next '
+                                'command')
         self.get_logger().warning(response.message)
         response.success = True
         return response

@@ -330,6 +330,13 @@ def test_stuck_regulator_is_an_error_in_diagnostics(harness):
                         4.0, every=lambda: h.command(-0.3, 0.0))
     assert 'FAULT_STUCK' in h.diags[-1].message
     assert _values(h.diags[-1])['channel_fault_mask'] == '2'
+    # Repaired: an e-stop cycle acknowledges the fault (CLEAR_FAULTS) and control resumes.
+    h.node.sim.set_stuck(1, False)
+    h.call_estop(True)
+    h.call_estop(False)
+    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.OK
+                        and _values(h.diags[-1])['channel_fault_mask'] == '0', 4.0,
+                        every=lambda: h.command(-0.3, 0.0))
 
 
 def test_model_config_reaches_the_node(harness):
