@@ -167,7 +167,7 @@ class AnatomyParams:
     """Right ostium width (3.7 mm; autopsy series). Range 2-8 mm."""
     coronary_stub_length: float = 0.006
     """Length of each coronary stub beyond the sinus wall (model choice). Range 3-20 mm."""
-    edge_length: float = 0.004
+    edge_length: float = 0.0037
     """Target triangle edge length away from the coronary ostia (model choice: ~2,400
     vertices for the default). Range 2-8 mm."""
 
@@ -226,6 +226,15 @@ class AnatomyParams:
             raise AnatomyError(
                 f"ascending_length must be >= stj_height + 20 mm = {self.stj_height + 0.02:.4g}"
                 f" m, found {self.ascending_length:.4g} m")
+        for name, spacing, d1, d2 in (
+                ("brachiocephalic_to_carotid", self.brachiocephalic_to_carotid,
+                 self.brachiocephalic_diameter, self.carotid_diameter),
+                ("carotid_to_subclavian", self.carotid_to_subclavian, self.carotid_diameter,
+                 self.subclavian_diameter)):
+            if spacing < 0.5 * (d1 + d2) + 4 * mm:
+                raise AnatomyError(
+                    f"{name} must leave >= 4 mm of wall between the branch origins, i.e. be >= "
+                    f"{0.5 * (d1 + d2) + 4 * mm:.4g} m for these diameters, found {spacing:.4g} m")
         if self.annulus_to_brachiocephalic < self.ascending_length:
             raise AnatomyError(
                 "annulus_to_brachiocephalic must be >= ascending_length (the BCT arises from "
@@ -247,8 +256,7 @@ _PARAMS: dict[str, AnatomyParams] = {
         arch_width=0.062,                # 72 -> 62 mm (narrower)
         arch_height=0.062,               # 45 -> 62 mm (deeper)
         annulus_to_brachiocephalic=0.112,  # 90 -> 112 mm (longer ascending)
-        brachiocephalic_to_carotid=0.012,  # 15 -> 12 mm (Chiu 2012 mean)
-        carotid_to_subclavian=0.019,       # 17 -> 19 mm
+        carotid_to_subclavian=0.019,       # 17 -> 19 mm (Chiu 2012 mean 18.7)
         brachiocephalic_angle=30.0 * _DEG,  # 45 -> 30 deg (45 - 1 SD)
     ),
 }
@@ -332,6 +340,8 @@ class Anatomy:
 # ------------------------------------------------------------------------------------------
 _EXT = 0.008
 """Extension of every tube beyond its clip plane, so the cut crosses a clean cylinder (m)."""
+_GRID = 0.003
+"""Spacing of the marching-tetrahedra grid before remeshing (m)."""
 _STEP = 0.0005
 """Spacing of the dense spine samples (m)."""
 
@@ -452,8 +462,13 @@ class _Geometry:
         lobe = np.clip(np.cos(1.5 * dphi), 0.0, None).max(axis=1)
         return base + bump * lobe
 
-    def field(self, pts: np.ndarray) -> np.ndarray:
-        """Signed field, negative inside the lumen (approximately a distance near the wall)."""
+    def field(self, pts: np.ndarray, min_tube_radius: float = 0.0) -> np.ndarray:
+        """Signed field, negative inside the lumen (approximately a distance near the wall).
+
+        ``min_tube_radius`` inflates thinner stubs; the coarse extraction grid uses it so that
+        the coronary stubs appear (as bumps of the right topology) before remeshing projects
+        them onto their true radius.
+        """
         pts = np.asarray(pts, dtype=float)
         dist, idx = self.tree.query(pts, k=4)
         f = (dist - self.radius[idx]).min(axis=1)
@@ -468,7 +483,8 @@ class _Geometry:
         for tube in self.tubes:
             rel = pts - tube.start
             t = np.clip(rel @ tube.direction, 0.0, tube.length + _EXT)
-            d = np.linalg.norm(rel - t[:, None] * tube.direction, axis=1) - tube.radius
+            d = np.linalg.norm(rel - t[:, None] * tube.direction, axis=1) - max(
+                tube.radius, min_tube_radius)
             f = _smin(f, d, tube.blend)
         return f
 
@@ -496,7 +512,7 @@ def _resample(points: np.ndarray, step: float) -> np.ndarray:
 
 def _build(p: AnatomyParams, name: str) -> Anatomy:
     g = _Geometry(p)
-    spacing = 0.0025
+    spacing = _GRID
     lo = g.spine.min(axis=0) - 0.025
     hi = g.spine.max(axis=0) + 0.025
     for tube in g.tubes:
@@ -512,7 +528,7 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
         t = np.clip(rel @ tube.direction, 0.0, tube.length + _EXT)
         near |= np.linalg.norm(rel - t[:, None] * tube.direction, axis=1) < tube.radius + 0.01
     values = np.full(len(grid), 1.0)
-    values[near] = g.field(grid[near])
+    values[near] = g.field(grid[near], min_tube_radius=0.9 * spacing)
     verts, faces = mesh_io.marching_tetrahedra(values.reshape(tuple(shape)), lo, spacing)
     verts, faces = mesh_io.largest_component(verts, faces)
     remesher = mesh_io.Remesher(verts, faces, g.field, g.target_edge)
@@ -532,7 +548,7 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
     annulus_ids = np.zeros(0, dtype=np.int64)
     for _cap_name, point, normal, radius, edge, is_wall in caps:
         verts, new_faces, kept, cap_ids = mesh_io.clip_and_cap(
-            verts, faces, point, normal, radius + 0.005, _EXT + 0.008, edge)
+            verts, faces, point, normal, radius + 0.002, _EXT + radius + 0.002, edge)
         n_new = len(new_faces) - len(kept)
         cap_mask = np.concatenate([cap_mask[kept], np.full(n_new, not is_wall)])
         faces = new_faces
@@ -541,6 +557,11 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
         else:
             fixed.append(cap_ids)
     verts, faces, remap = mesh_io.compact_with_map(verts, faces)
+    euler = len(verts) - len(np.unique(np.sort(np.concatenate(
+        [faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)) + len(faces)
+    if euler != 2:
+        raise AnatomyError(f"expected a sphere-like lumen surface (Euler characteristic 2), "
+                           f"found {euler}: branches too close for the meshing grid?")
     fixed_ids = remap[np.concatenate(fixed)]
     annulus_ids = remap[annulus_ids]
     wall_mask = ~cap_mask

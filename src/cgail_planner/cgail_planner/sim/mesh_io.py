@@ -294,7 +294,7 @@ class Remesher:
                 t = self.f[fi]
                 assert t is not None
                 # Rotate so the split edge is t[0] -> t[1].
-                while not ({t[0], t[1]} == {a, b}):
+                while {t[0], t[1]} != {a, b}:
                     t = [t[1], t[2], t[0]]
                 x, y, z = t
                 self.f[fi] = [x, m, z]
@@ -357,7 +357,7 @@ class Remesher:
                 t = self.f[fi]
                 assert t is not None
                 q0, q1, q2 = (pos[x] for x in t)
-                r0, r1, r2 = (newp if x == a or x == b else pos[x] for x in t)
+                r0, r1, r2 = (newp if x in (a, b) else pos[x] for x in t)
                 n_old = _tri_normal(q0, q1, q2)
                 n_new = _tri_normal(r0, r1, r2)
                 no = math.sqrt(n_old[0] ** 2 + n_old[1] ** 2 + n_old[2] ** 2)
@@ -411,7 +411,7 @@ class Remesher:
             c = t1[2]
             t2 = self.f[fs[1]]
             assert t2 is not None
-            d = [x for x in t2 if x not in (a, b)][0]
+            d = next(x for x in t2 if x not in (a, b))
             if c == d or d in self._ring(c):
                 continue
             if a in self.fixed and b in self.fixed:
@@ -553,6 +553,47 @@ def boundary_loops(faces: np.ndarray) -> list[np.ndarray]:
     return loops
 
 
+def _clean_rim(v: np.ndarray, f: np.ndarray, kept: np.ndarray, point: np.ndarray,
+               normal: np.ndarray, min_gap: float) -> tuple[np.ndarray, np.ndarray]:
+    """Make the single boundary loop safe to flatten onto the clip plane.
+
+    Boundary vertices "stacked" along the plane normal would coincide once projected onto the
+    plane; the boundary edge between them is collapsed (or, when the link condition forbids
+    it, its face is removed) until projected neighbours are at least ``min_gap`` apart.
+    """
+    f = f.copy()
+    for _ in range(500):
+        loops = boundary_loops(f)
+        if len(loops) != 1:
+            raise MeshError(f"expected one boundary loop at the cut near {point}, found "
+                            f"{len(loops)}")
+        loop = loops[0]
+        proj = v[loop] - ((v[loop] - point) @ normal)[:, None] * normal
+        gap = np.linalg.norm(proj - np.roll(proj, -1, axis=0), axis=1)
+        i = int(np.argmin(gap))
+        if gap[i] >= min_gap or len(loop) <= 4:
+            return f, kept
+        a, b = int(loop[i]), int(loop[(i + 1) % len(loop)])
+        fi = np.flatnonzero((f == a).any(axis=1) & (f == b).any(axis=1))
+        if len(fi) != 1:
+            raise MeshError(f"expected boundary edge ({a}, {b}) in one face, found {len(fi)}")
+        w = int(next(x for x in f[fi[0]] if x not in (a, b)))
+        nbr_a = set(f[(f == a).any(axis=1)].ravel().tolist()) - {a}
+        nbr_b = set(f[(f == b).any(axis=1)].ravel().tolist()) - {b}
+        keep_mask = np.ones(len(f), dtype=bool)
+        keep_mask[fi[0]] = False
+        if nbr_a & nbr_b == {w}:
+            f = f[keep_mask]
+            kept = kept[keep_mask]
+            f[f == b] = a
+        elif w not in set(loop.tolist()):
+            f = f[keep_mask]
+            kept = kept[keep_mask]
+        else:
+            raise MeshError(f"cannot clean the cut boundary near {point}")
+    raise MeshError(f"cannot clean the cut boundary near {point}: too many stacked vertices")
+
+
 def _zip_rings(outer: list[int], outer_ang: np.ndarray, inner: list[int],
                inner_ang: np.ndarray) -> list[list[int]]:
     """Triangulate the strip between two closed rings ordered by increasing angle."""
@@ -572,14 +613,14 @@ def _zip_rings(outer: list[int], outer_ang: np.ndarray, inner: list[int],
 
 
 def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.ndarray,
-                 radius: float, depth: float, edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                     np.ndarray]:
+                 radius: float, depth: float,
+                 edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Cut a tube end with a plane and close it with a flat ring-meshed cap.
 
     Faces whose centroid lies beyond the plane (along ``normal``), at most ``depth`` beyond
-    it and within ``radius`` of the axis through ``point`` along ``normal``, are removed; the resulting boundary loop is moved onto the plane and closed with
-    concentric rings of about ``edge`` spacing and a centre vertex. Vertices are never
-    renumbered (unused ones stay; call :func:`compact` at the end); surviving faces keep their
+    it and within ``radius`` of the axis through ``point`` along ``normal``, are removed; the
+    resulting boundary loop is moved onto the plane and closed with concentric rings of about
+    ``edge`` spacing and a centre vertex. Vertices are never renumbered (unused ones stay; call :func:`compact` at the end); surviving faces keep their
     order and the cap faces are appended.
 
     Returns:
@@ -596,12 +637,8 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     # Drop islands left beyond the cut (faces connected to the rest only through removed ones).
     kept = kept[_edge_component_mask(f[kept])]
     f = f[kept]
-    loops = boundary_loops(f)
-    if not loops:
-        raise MeshError("expected a boundary loop after clipping, found none")
-    loop = min(loops, key=lambda lp: float(np.linalg.norm(v[lp].mean(axis=0) - point)))
-    if len(loops) > 1:
-        raise MeshError(f"expected one boundary loop near {point}, found {len(loops)}")
+    f, kept = _clean_rim(v, f, kept, point, normal, 0.4 * edge)
+    loop = boundary_loops(f)[0]
     d = (v[loop] - point) @ normal
     v = v.copy()
     v[loop] -= d[:, None] * normal
@@ -619,7 +656,7 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
         ang = np.unwrap(np.arctan2(rel_o @ e2, rel_o @ e1))
     ang = ang - ang[0]
     radius = float(np.linalg.norm(v[loop] - c, axis=1).mean())
-    n_rings = max(0, int(round(radius / edge)) - 1)
+    n_rings = max(0, round(radius / edge) - 1)
     new_v: list[np.ndarray] = []
     tris: list[list[int]] = []
     cur, cur_ang = outer, ang
@@ -627,7 +664,7 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     cap_ids = list(outer)
     for r in range(1, n_rings + 1):
         frac = 1.0 - r / (n_rings + 1)
-        m = max(3, int(round(len(outer) * frac)))
+        m = max(3, round(len(outer) * frac))
         a = np.arange(m) * 2 * np.pi / m + np.pi / m
         ring_ids = list(range(base + len(new_v), base + len(new_v) + m))
         for t in a:
