@@ -620,8 +620,9 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     Faces whose centroid lies beyond the plane (along ``normal``), at most ``depth`` beyond
     it and within ``radius`` of the axis through ``point`` along ``normal``, are removed; the
     resulting boundary loop is moved onto the plane and closed with concentric rings of about
-    ``edge`` spacing and a centre vertex. Vertices are never renumbered (unused ones stay; call :func:`compact` at the end); surviving faces keep their
-    order and the cap faces are appended.
+    ``edge`` spacing and a centre vertex. Vertices are never renumbered (unused ones stay;
+    call :func:`compact` at the end); surviving faces keep their order and the cap faces are
+    appended.
 
     Returns:
         (vertices, faces, indices of the surviving old faces, cap vertex ids).
