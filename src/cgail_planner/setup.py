@@ -34,6 +34,7 @@ setup(
             'bag_record = cgail_planner.bags.record:main',
             'bag_play = cgail_planner.bags.play:main',
             'bag_metrics = cgail_planner.bags.metrics_cli:main',
+            'bag_recover = cgail_planner.bags.recover:main',
             'sim_render = cgail_planner.sim.render:main',
             'make_demos = cgail_planner.learning.demos_cli:main',
             'train = cgail_planner.learning.train:main',
