@@ -3,7 +3,9 @@
 Run: ``ROS_DOMAIN_ID=22 scripts/ws python src/pam_controller/bench/bench_pam.py``
 Prints figures; asserts nothing. The latency is measured from publishing a bend command to the
 first ``PAM_SETPOINTS`` frame on the (virtual) bus that differs from the steady one, so it
-includes DDS delivery and the wait for the next control tick (50 Hz by default: up to 20 ms).
+includes DDS delivery and the wait for the next control tick. The command is published right
+after a setpoint frame is seen, i.e. just after a tick: the worst phase, so the figure is about
+one control period (20 ms at 50 Hz) plus delivery and processing.
 """
 
 from __future__ import annotations
