@@ -16,7 +16,7 @@ from gymnasium import spaces
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.catheter import action_to_command, bend_limit, CatheterBatch
+from cgail_planner.sim.catheter import action_to_command, bend_limit, CatheterBatch, steer_towards
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.reward import (
     bending_event,
@@ -251,9 +251,11 @@ class NavEngine:
                 tid = self.target_id[i]
                 self.target[i] = (wall.vertex_position(int(self._target_vertex[tid]))
                                   + self._target_offset[tid])
-        # Static broad phase (exact): the wall clearance is 1-Lipschitz in the tip position, so
-        # after the tip travelled |delta_l| it is >= the last exact clearance - |delta_l|; envs
-        # whose bound stays > 0 cannot touch the rigid wall and skip the closest-point query.
+        # Static broad phase (exact, not a heuristic): the clearance to a rigid wall is
+        # 1-Lipschitz in the tip position, so after the tip travelled |delta_l| it is >= the last
+        # exact clearance - |delta_l|; while that bound stays > 0 the tip cannot touch the wall and
+        # tip_contact would report no contact, so the closest-point query is skipped. The
+        # deformable wall is queried every step (its force depends on the particles it moved).
         if self._shared_wall:
             self._clearance_lb -= np.abs(applied_dl)
             query = np.flatnonzero(self._clearance_lb <= 1e-9)
@@ -318,6 +320,36 @@ class NavEngine:
         obs[:, 13:16] = vec
         obs[:, 16:] = self.rays
         return obs
+
+
+def pursuit_actions(engine: NavEngine, lookahead: float = 0.015,
+                    final_approach: float = 0.030) -> FloatArray:
+    """Scripted sanity policy: pure pursuit along the target branch's centerline.
+
+    For every environment of ``engine``: find the waypoint nearest the tip, aim at the waypoint
+    ``lookahead`` (15 mm) further along the centerline, or at the target itself once the tip is
+    within ``final_approach`` (30 mm) of it or the centerline is used up, and bend as far as the
+    FTL limit allows towards that point (:func:`~cgail_planner.sim.catheter.steer_towards`) while
+    inserting at full speed. It knows nothing of walls or the heartbeat; it is a baseline and a
+    smoke test, not the demonstration expert.
+
+    Returns:
+        (N, 3) normalised actions.
+    """
+    cat = engine.catheter
+    tips = cat.tip_position
+    wps = engine.waypoints
+    seg = np.linalg.norm(np.diff(wps, axis=1), axis=2)
+    arc = np.concatenate([np.zeros((engine.n_envs, 1)), np.cumsum(seg, axis=1)], axis=1)
+    rows = np.arange(engine.n_envs)
+    j = np.argmin(np.sum((wps - tips[:, None, :]) ** 2, axis=2), axis=1)
+    ahead = arc >= (arc[rows, j] + lookahead)[:, None]
+    last = wps.shape[1] - 1
+    k = np.where(ahead.any(axis=1), np.argmax(ahead, axis=1), last)
+    goal = wps[rows, k]
+    near = (k == last) | (np.linalg.norm(engine.target - tips, axis=1) < final_approach)
+    goal[near] = engine.target[near]
+    return steer_towards(tips, cat.tip_rotation, goal, engine.config.catheter, cat.theta_max)
 
 
 class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):

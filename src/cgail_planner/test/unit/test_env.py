@@ -10,9 +10,14 @@ import numpy as np
 import pytest
 
 import cgail_planner.sim  # noqa: F401  (registers CatheterNav-v0)
-from cgail_planner.sim.catheter import steer_towards
 from cgail_planner.sim.config import EnvConfig
-from cgail_planner.sim.env import CatheterNavEnv, OBS_DIM, OBS_LAYOUT, RAY_DIRECTIONS
+from cgail_planner.sim.env import (
+    CatheterNavEnv,
+    OBS_DIM,
+    OBS_LAYOUT,
+    pursuit_actions,
+    RAY_DIRECTIONS,
+)
 from cgail_planner.sim.reward import RewardConfig
 
 STEP = -1e-5
@@ -23,18 +28,9 @@ def env() -> CatheterNavEnv:
     return CatheterNavEnv()
 
 
-def pursuit_action(env: CatheterNavEnv, lookahead: float = 0.015) -> np.ndarray:
-    """Scripted sanity policy: pure pursuit along the target branch's centerline."""
-    e = env.engine
-    tip, rot = e.catheter.tip_position[0], e.catheter.tip_rotation[0]
-    wps = e.waypoints[0]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(wps, axis=0), axis=1))])
-    j = int(np.argmin(np.linalg.norm(wps - tip, axis=1)))
-    k = min(int(np.searchsorted(arc, arc[j] + lookahead)), len(wps) - 1)
-    goal = wps[k]
-    if k == len(wps) - 1 or np.linalg.norm(e.target[0] - tip) < 0.03:
-        goal = e.target[0]
-    return steer_towards(tip, rot, goal, env.config.catheter, e.catheter.theta_max)
+def pursuit_action(env: CatheterNavEnv) -> np.ndarray:
+    """Scripted sanity policy (pure pursuit of the centerline) for one env."""
+    return pursuit_actions(env.engine)[0]
 
 
 def test_check_env(env: CatheterNavEnv) -> None:
