@@ -43,6 +43,8 @@ NDI_BAD_COMM = 0x102
 NDI_TIMEOUT = 0x103
 NDI_WRITE_ERROR = 0x104
 NDI_READ_ERROR = 0x105
+EOF_WITHIN_S = 1.0
+"""A "timeout" reported sooner than this is an end-of-file on the line (ndicapi waits 5 s)."""
 
 _BAUD_DIGIT = {9600: '0', 14400: '1', 19200: '2', 38400: '3', 57600: '4', 115200: '5',
                921600: '6', 1228739: '7', 230400: 'A'}
@@ -148,11 +150,15 @@ class NdiAurora:
         self._dev: Any = None
         self.handles: list[int] = []
 
-    def _error(self, command: str, exc: BaseException) -> EmTrackerError:
+    def _error(self, command: str, exc: BaseException, elapsed_s: float) -> EmTrackerError:
         code = int(self._ndi.ndiGetError(self._dev)) if self._dev is not None else -1
         text = f'{command}: {exc}'
         if code in (NDI_READ_ERROR, NDI_WRITE_ERROR, NDI_OPEN_ERROR):
             return DeviceDisconnected(text)
+        if code == NDI_TIMEOUT and elapsed_s < EOF_WITHIN_S:
+            # ndicapi reports a 0-byte read as a timeout; one that comes back long before its
+            # 5 s wait is an end-of-file: the line hung up (pty closed, USB adapter unplugged).
+            return DeviceDisconnected(f'{text} after {elapsed_s * 1e3:.0f} ms: the line hung up')
         if code == NDI_TIMEOUT:
             return DeviceTimeout(text)
         if code == NDI_BAD_CRC:
@@ -169,10 +175,11 @@ class NdiAurora:
         """
         if self._dev is None:
             raise DeviceDisconnected(f'{text}: port {self.settings.port} is not open')
+        start = time.monotonic()
         try:
             reply = self._ndi.ndiCommand(self._dev, text)
         except (OSError, UnicodeDecodeError) as exc:
-            raise self._error(text, exc) from exc
+            raise self._error(text, exc, time.monotonic() - start) from exc
         return '' if reply is None else str(reply)
 
     def _phsr(self, option: str) -> list[int]:

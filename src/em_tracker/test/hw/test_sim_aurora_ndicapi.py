@@ -237,7 +237,7 @@ def test_isolated_device_survives_a_crash_inside_ndicapi(sim):
 
 @pytest.mark.slow
 def test_unanswered_command_times_out(sim):
-    """ndicapi waits 5 s for a reply; the isolated device reports DeviceTimeout."""
+    """ndicapi waits 5 s for a reply, then the host reports DeviceTimeout."""
     device = NdiAurora(AuroraSettings(port=sim.port))
     try:
         device.connect()
@@ -246,3 +246,24 @@ def test_unanswered_command_times_out(sim):
             device.read()
     finally:
         device.close()
+
+
+def test_sim_aurora_console_entry_prints_the_port(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    link = tmp_path / 'aurora'
+    proc = subprocess.Popen([sys.executable, '-m', 'em_tracker.hw.sim_aurora', '--link',
+                             str(link)], stdout=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith('simulated Aurora on /dev/pts/') and str(link) in line
+        device = NdiAurora(AuroraSettings(port=str(link)))
+        assert device.connect() == [HANDLE]
+        assert device.read().tools[0].visible
+        device.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=5) == 0
+    assert not link.exists()

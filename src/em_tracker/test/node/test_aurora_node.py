@@ -291,3 +291,45 @@ def test_yaml_defaults_equal_declared_defaults():
     path = Path(__file__).resolve().parents[2] / 'config' / 'aurora.yaml'
     params = yaml.safe_load(path.read_text())['aurora']['ros__parameters']
     assert params == {name: default for name, (default, _, _) in _PARAMS.items()}
+
+
+@pytest.mark.parametrize('fault,level,text', [
+    ({'missing': True}, DiagnosticStatus.WARN, 'tool MISSING'),
+    ({'out_of_volume': True}, DiagnosticStatus.WARN, 'out of volume'),
+    ({'partially_out': True}, DiagnosticStatus.WARN, 'partially out of volume'),
+    ({'broken_coil': True}, DiagnosticStatus.ERROR, 'sensor coil broken'),
+])
+def test_sim_faults_reach_diagnostics(ctx, tmp_path, fault, level, text):
+    sim = SimAurora(link_path=str(tmp_path / 'aurora')).start()
+    h = make(None, port=sim.port)
+    try:
+        assert h.spin_until(lambda: _last_level(h) == DiagnosticStatus.OK, timeout=8.0)
+        sim.inject(**fault)
+        n = len(h.poses)
+        assert h.spin_until(lambda: _last_level(h) == level, timeout=3.0)
+        assert text in h.diags[-1].message
+        h.spin_until(lambda: False, timeout=0.2)
+        published_during_fault = len(h.poses) - n
+        if fault.get('partially_out'):
+            assert published_during_fault > 0
+        else:
+            assert published_during_fault <= 2  # only frames read before the fault
+    finally:
+        h.close()
+        sim.close()
+
+
+def test_dropped_frames_and_bad_replies_through_the_sim(ctx, tmp_path):
+    sim = SimAurora(link_path=str(tmp_path / 'aurora')).start()
+    h = make(None, port=sim.port)
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 3, timeout=8.0)
+        sim.inject(drop_frames=7, bad_crc=2)
+        assert h.spin_until(lambda: h.node.health.frames.dropped >= 7
+                            and h.node.health.bad_replies >= 2, timeout=3.0)
+        n = len(h.poses)
+        assert h.spin_until(lambda: len(h.poses) > n + 3, timeout=3.0)
+        assert h.node.health.reconnects == 0  # 2 bad replies < max_consecutive_errors
+    finally:
+        h.close()
+        sim.close()
