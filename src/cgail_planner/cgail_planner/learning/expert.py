@@ -1,0 +1,151 @@
+"""Scripted expert: a kinematically-constrained sampling MPC over the catheter's action space.
+
+Every ``replan_every`` steps the expert samples short action sequences, rolls each one out with
+the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.catheter`: per-step bend
+limit ``theta_max * delta_l / L``, insertion <= v_max * dt), and scores the predicted tip path:
+
+* **clearance**: at every predicted point, the inscribed-sphere radius of the nearest centerline
+  point minus the distance to it, minus the catheter radius; a path whose clearance drops below
+  ``min_clearance`` is penalised in proportion to the violation (hard walls, soft score);
+* **progress**: distance of the path's end to a *carrot*, the centerline point ``lookahead``
+  waypoints past the furthest one reached, or the target itself in the final approach;
+* **target**: the closest predicted approach to the target (the task's success test).
+
+A sequence is one of 25 constant bends (a0, a1 in {-1, -0.5, 0, 0.5, 1}, full insertion) held
+for ``stage1`` steps, followed by ``stage2`` steps of pure pursuit towards the carrot
+(``steer_towards``); the best sequence's actions are executed. Only actions inside [-1, 1]^3 are
+produced, so the demonstrations respect the catheter's constraints by construction. The expert
+reads the simulator's state (tip pose, target, centerline), which a policy never sees.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cgail_planner.sim.catheter import action_to_command, bend_rotation, steer_towards
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    """Sampling MPC settings."""
+
+    stage1: int = 8
+    """Steps each constant-bend primitive is held."""
+    stage2: int = 24
+    """Pure-pursuit steps after the primitive."""
+    replan_every: int = 4
+    """Steps executed from one plan before re-planning."""
+    lookahead: int = 6
+    """Waypoints between the furthest reached one and the carrot."""
+    min_clearance: float = 0.002
+    """Wanted wall clearance of the tip surface, m."""
+    approach_distance: float = 0.035
+    """Below this tip-target distance the carrot is the target, m."""
+
+    def __post_init__(self) -> None:
+        for name in ('stage1', 'stage2', 'replan_every', 'lookahead'):
+            if getattr(self, name) < 1:
+                raise ValueError(f'{name} must be >= 1, found {getattr(self, name)}')
+        if self.replan_every > self.stage1:
+            raise ValueError(f'replan_every must be <= stage1 ({self.stage1}), found '
+                             f'{self.replan_every}')
+
+
+_GRID = np.array([(a, b) for a in (-1.0, -0.5, 0.0, 0.5, 1.0) for b in (-1.0, -0.5, 0.0, 0.5, 1.0)])
+
+
+class ScriptedExpert:
+    """Plans for one :class:`cgail_planner.sim.env.CatheterNavEnv` episode at a time."""
+
+    def __init__(self, env: Any, cfg: ExpertConfig | None = None) -> None:
+        self.env = env.unwrapped
+        self.cfg = cfg or ExpertConfig()
+        self._plan: list[np.ndarray] = []
+        self._progress = 0
+
+    def reset(self) -> None:
+        """Forget the plan and the progress (call after ``env.reset``)."""
+        self._plan = []
+        self._progress = 0
+
+    # -------------------------------------------------------------- helpers
+    def _centerline(self) -> tuple[np.ndarray, np.ndarray]:
+        eng = self.env.engine
+        branch = eng.scenarios.targets[int(eng.target_id[0])].branch
+        cl = eng.world.centerlines[branch]
+        return np.asarray(cl.points), np.asarray(cl.radii)
+
+    def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, carrot: np.ndarray
+                 ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Predicted tip points (K, T, 3) of K sequences and the actions of each step."""
+        eng = self.env.engine
+        cat_cfg = eng.config.catheter
+        theta = eng.catheter.theta_max
+        K = len(first)
+        p = np.repeat(p[None], K, 0)
+        R = np.repeat(R[None], K, 0)
+        pts, acts = [], []
+        for t in range(self.cfg.stage1 + self.cfg.stage2):
+            a = first if t < self.cfg.stage1 else steer_towards(p, R, carrot, cat_cfg, theta)
+            al, ga, dl = action_to_command(a, theta, cat_cfg.segment_length,
+                                           cat_cfg.max_step_insertion)
+            R = R @ bend_rotation(al, ga)
+            p = p + dl[:, None] * R[:, :, 1]
+            pts.append(p)
+            acts.append(a)
+        return np.stack(pts, 1), acts
+
+    def act(self) -> np.ndarray:
+        """Next normalised action for the env's current state."""
+        if self._plan:
+            return self._plan.pop(0)
+        eng = self.env.engine
+        p = eng.catheter.tip_position[0].copy()
+        R = eng.catheter.tip_rotation[0].copy()
+        target = eng.target[0].copy()
+        pts_cl, radii = self._centerline()
+        k_near = int(np.argmin(np.linalg.norm(pts_cl - p, axis=1)))
+        self._progress = max(self._progress, k_near)
+        k = min(self._progress + self.cfg.lookahead, len(pts_cl) - 1)
+        d_target = float(np.linalg.norm(target - p))
+        final = d_target < self.cfg.approach_distance or k >= len(pts_cl) - 2
+        carrot = target if final else pts_cl[k]
+        cat_cfg = eng.config.catheter
+        pursuit = steer_towards(p, R, carrot, cat_cfg, eng.catheter.theta_max)
+        first = np.concatenate([np.column_stack([_GRID, np.ones(len(_GRID))]), pursuit[None]])
+        traj, acts = self._rollout(p, R, first, carrot)
+        # clearance from the centerline's inscribed spheres
+        flat = traj.reshape(-1, 3)
+        d = np.linalg.norm(flat[:, None, :] - pts_cl[None, :, :], axis=2)
+        j = np.argmin(d, axis=1)
+        clear = (radii[j] - d[np.arange(len(flat)), j] - cat_cfg.outer_diameter / 2).reshape(
+            traj.shape[:2])
+        violation = np.clip(self.cfg.min_clearance - clear, 0.0, None).max(axis=1)
+        end_to_carrot = np.linalg.norm(traj[:, -1] - carrot, axis=1)
+        closest_target = np.linalg.norm(traj - target, axis=2).min(axis=1)
+        score = -end_to_carrot - 20.0 * violation
+        if final:
+            score = -closest_target - 20.0 * violation
+        best = int(np.argmax(score))
+        self._plan = [np.asarray(a[best], np.float32) for a in acts[:self.cfg.replan_every]]
+        return self._plan.pop(0)
+
+
+def run_expert_episode(env: Any, expert: ScriptedExpert, seed: int | None = None,
+                       options: dict[str, Any] | None = None
+                       ) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any], list[Any]]:
+    """One expert episode: (observations, actions, final info, per-step infos)."""
+    obs, info = env.reset(seed=seed, options=options)
+    expert.reset()
+    obs_l, act_l, infos = [], [], []
+    while True:
+        a = expert.act()
+        obs_l.append(obs)
+        act_l.append(a)
+        obs, _, te, tr, info = env.step(a)
+        infos.append(info)
+        if te or tr:
+            return obs_l, act_l, info, infos
