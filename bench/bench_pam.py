@@ -1,6 +1,6 @@
 """Benchmark of pam_controller: model and codec cost, command -> CAN setpoint latency.
 
-Run: ``ROS_DOMAIN_ID=22 scripts/ws python src/pam_controller/bench/bench_pam.py``
+Run: ``ROS_DOMAIN_ID=22 scripts/ws python bench/bench_pam.py``
 Prints figures; asserts nothing. The latency is measured from publishing a bend command to the
 first ``PAM_SETPOINTS`` frame on the (virtual) bus that differs from the steady one, so it
 includes DDS delivery and the wait for the next control tick. The command is published right

@@ -1,6 +1,6 @@
 """Figures for the sleeve driver: relay duty cycle, controller and codec cost, node state rate.
 
-Run: ``ROS_DOMAIN_ID=<id> scripts/ws python src/catheter_driver/bench/bench_relay.py``
+Run: ``ROS_DOMAIN_ID=<id> scripts/ws python bench/bench_relay.py``
 """
 
 from __future__ import annotations
