@@ -83,13 +83,24 @@ OBS_DIM = OBS_LAYOUT[-1].stop
 OBS_BOUND = 5.0
 
 
-def obs_layout_dict() -> dict[str, Any]:
-    """JSON-able description of the observation (for model metadata)."""
-    return {
+def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
+    """JSON-able description of the observation (for model metadata).
+
+    Args:
+        config: when given, the numbers needed to rebuild observations outside the simulator
+            (e.g. on the rig) are added: ``origin`` (m), ``position_scale`` (m), ``d_max`` (m) and
+            ``ray_length`` (m) of that configuration's anatomy and scenario set.
+    """
+    out: dict[str, Any] = {
         "dim": OBS_DIM,
         "fields": [f._asdict() for f in OBS_LAYOUT],
         "ray_directions_tip_frame": RAY_DIRECTIONS.round(12).tolist(),
     }
+    if config is not None:
+        sc = load_world(config.anatomy, config.n_waypoints, config.scenario_seed).scenarios
+        out.update(origin=sc.origin.tolist(), position_scale=config.position_scale,
+                   d_max=sc.d_max, ray_length=config.ray_length, anatomy=config.anatomy)
+    return out
 
 
 def _observation_space() -> spaces.Box:

@@ -2,6 +2,7 @@
 
 from dataclasses import replace
 import itertools
+import json
 import math
 
 import gymnasium as gym
@@ -15,6 +16,7 @@ from cgail_planner.sim.env import (
     CatheterNavEnv,
     OBS_DIM,
     OBS_LAYOUT,
+    obs_layout_dict,
     pursuit_actions,
     RAY_DIRECTIONS,
 )
@@ -233,3 +235,14 @@ def test_dynamic_check_env_and_determinism(dyn_env: CatheterNavEnv) -> None:
         o2, r2, *_ = other.step(a)
         np.testing.assert_array_equal(o1, o2)
         assert r1 == r2
+
+
+def test_obs_layout_dict_with_normalisers(env: CatheterNavEnv) -> None:
+    plain = obs_layout_dict()
+    assert plain["dim"] == OBS_DIM and "d_max" not in plain
+    assert [f["name"] for f in plain["fields"]][-1] == "rays"
+    full = obs_layout_dict(EnvConfig())
+    assert full["d_max"] == env.scenarios.d_max
+    assert full["origin"] == env.scenarios.origin.tolist()
+    assert (full["position_scale"], full["ray_length"]) == (0.15, 0.04)
+    json.dumps(full)
