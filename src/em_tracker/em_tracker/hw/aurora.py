@@ -284,7 +284,10 @@ class IsolatedAurora:
         self._buffer = b''
         self._proc = subprocess.Popen(
             [sys.executable, '-m', 'em_tracker.hw.aurora'], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0)
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, bufsize=0,
+            # Own session: a Ctrl-C on the terminal must not kill the child before the parent
+            # has sent TSTOP; the child ends when its stdin closes.
+            start_new_session=True)
         return self._proc
 
     def _kill(self) -> None:
@@ -387,7 +390,9 @@ def _serve_child() -> None:
         out.write(json.dumps(answer).encode() + b'\n')
         out.flush()
         if request['op'] == 'close':
-            break
+            return
+    if device is not None:  # parent went away without 'close': still stop tracking
+        device.close()
 
 
 if __name__ == '__main__':
