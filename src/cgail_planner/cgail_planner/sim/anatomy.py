@@ -72,6 +72,7 @@ __all__ = [
     "Anatomy",
     "AnatomyError",
     "AnatomyParams",
+    "AortaGeometry",
     "MeshLoadError",
     "anatomy_params",
     "build_anatomy",
@@ -362,8 +363,12 @@ class _Tube:
         return self.start + self.length * self.direction
 
 
-class _Geometry:
-    """Spine, radius profile, root frame and stubs of one parameter set, plus its field."""
+class AortaGeometry:
+    """The generator's geometry for one parameter set: the dense spine (``spine``, ``arc`` with
+    s = 0 at the annulus, ``tangent``, ``radius``), the root frame (``axis``, ``e1`` towards
+    the right coronary sinus, ``e2``), the branch and coronary stubs (``tubes``), the ostia,
+    and the implicit ``field``. :func:`build_anatomy` meshes it; tests use it to measure the
+    mesh against the parameters."""
 
     def __init__(self, p: AnatomyParams) -> None:
         self.p = p
@@ -511,7 +516,7 @@ def _resample(points: np.ndarray, step: float) -> np.ndarray:
 
 
 def _build(p: AnatomyParams, name: str) -> Anatomy:
-    g = _Geometry(p)
+    g = AortaGeometry(p)
     spacing = _GRID
     lo = g.spine.min(axis=0) - 0.025
     hi = g.spine.max(axis=0) + 0.025
@@ -574,7 +579,7 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
 
 
 def _assemble(name: str, verts: np.ndarray, faces: np.ndarray, wall_mask: np.ndarray,
-              g: _Geometry, fixed: np.ndarray, annulus_ids: np.ndarray) -> Anatomy:
+              g: AortaGeometry, fixed: np.ndarray, annulus_ids: np.ndarray) -> Anatomy:
     p = g.p
     wall_vertices = np.unique(faces[wall_mask])
     wall_tree = cKDTree(verts[wall_vertices])

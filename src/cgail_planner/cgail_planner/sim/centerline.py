@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import hashlib
+import itertools
 import os
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from cgail_planner.sim.anatomy import Anatomy, AnatomyError
 
 __all__ = ["Centerline", "CenterlineError", "compute_centerlines", "sample_wall"]
 
-_SAMPLE_SPACING = 0.0016
+_SAMPLE_SPACING = 0.0018
 """Mean spacing of the wall samples fed to the Voronoi diagram (m)."""
 _MAX_SAMPLES = 20000
 _SMOOTH_SIGMA = 0.003
@@ -139,11 +140,14 @@ class _Medial:
         inside[cand] = anatomy.contains(verts[cand])
         radius = np.zeros(len(verts))
         radius[inside] = self.tree.query(verts[inside])[0]
-        edges: list[np.ndarray] = []
-        for ridge in vor.ridge_vertices:
-            r = np.asarray(ridge)
-            edges.append(np.stack([r, np.roll(r, -1)], axis=1))
-        e = np.concatenate(edges)
+        ridges = vor.ridge_vertices
+        lens = np.fromiter((len(r) for r in ridges), dtype=np.int64, count=len(ridges))
+        flat = np.fromiter(itertools.chain.from_iterable(ridges), dtype=np.int64,
+                           count=int(lens.sum()))
+        starts = np.concatenate([[0], np.cumsum(lens)[:-1]])
+        nxt = np.arange(len(flat)) + 1
+        nxt[starts + lens - 1] = starts          # each ridge polygon closes on itself
+        e = np.stack([flat, flat[nxt]], axis=1)
         e = e[(e >= 0).all(axis=1)]
         e = e[inside[e[:, 0]] & inside[e[:, 1]]]
         e = np.unique(np.sort(e, axis=1), axis=0)
