@@ -553,7 +553,7 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
     annulus_ids = np.zeros(0, dtype=np.int64)
     for _cap_name, point, normal, radius, edge, is_wall in caps:
         verts, new_faces, kept, cap_ids = mesh_io.clip_and_cap(
-            verts, faces, point, normal, radius + 0.002, _EXT + radius + 0.002, edge)
+            verts, faces, point, normal, radius + 0.002, _EXT + radius + 0.002, edge, g.field)
         n_new = len(new_faces) - len(kept)
         cap_mask = np.concatenate([cap_mask[kept], np.full(n_new, not is_wall)])
         faces = new_faces

@@ -613,8 +613,9 @@ def _zip_rings(outer: list[int], outer_ang: np.ndarray, inner: list[int],
 
 
 def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.ndarray,
-                 radius: float, depth: float,
-                 edge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 radius: float, depth: float, edge: float,
+                 field: Field | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                      np.ndarray]:
     """Cut a tube end with a plane and close it with a flat ring-meshed cap.
 
     Faces whose centroid lies beyond the plane (along ``normal``), at most ``depth`` beyond
@@ -622,7 +623,8 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     resulting boundary loop is moved onto the plane and closed with concentric rings of about
     ``edge`` spacing and a centre vertex. Vertices are never renumbered (unused ones stay;
     call :func:`compact` at the end); surviving faces keep their order and the cap faces are
-    appended.
+    appended. With ``field``, the flattened rim is then moved within the plane onto the
+    field's zero set (the exact cross-section of the implicit surface).
 
     Returns:
         (vertices, faces, indices of the surviving old faces, cap vertex ids).
@@ -643,6 +645,17 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     d = (v[loop] - point) @ normal
     v = v.copy()
     v[loop] -= d[:, None] * normal
+    if field is not None:
+        p = v[loop]
+        eps = 1e-6
+        for _ in range(4):
+            val = field(p)
+            grad = np.stack([(field(p + eps * np.eye(3)[k]) - val) / eps for k in range(3)],
+                            axis=1)
+            grad -= (grad @ normal)[:, None] * normal
+            g2 = np.maximum((grad**2).sum(axis=1), 1e-12)
+            p = p - (val / g2)[:, None] * grad
+        v[loop] = p
     c = v[loop].mean(axis=0)
     e1 = v[loop[0]] - c
     e1 -= (e1 @ normal) * normal
