@@ -153,7 +153,10 @@ class _Port:
 
 @dataclass
 class SimStats:
-    """Counters of what the simulated device saw (for tests and the benchmark)."""
+    """Counters of what the simulated device saw (for tests and the benchmark).
+
+    ``commands`` keeps the raw command frames received (the oldest are dropped past 10000).
+    """
 
     commands: list[str] = field(default_factory=list)
     bad_command_crc: int = 0
@@ -348,6 +351,8 @@ class SimAurora:
         if not line:
             return None
         self.stats.commands.append(line.decode('ascii', 'replace'))
+        if len(self.stats.commands) > 10000:  # keep memory bounded on long runs
+            del self.stats.commands[:5000]
         if self.faults.no_reply > 0:
             self.faults.no_reply -= 1
             return None
