@@ -246,7 +246,7 @@ class NavEngine:
         cfg = self.config
         cat = self.catheter
         alpha, gamma, dl = action_to_command(actions, cat.theta_max, cfg.segment_length,
-                                             cfg.catheter.max_step_insertion)
+                                             cat.config.max_step_insertion)
         al, ga, applied_dl = cat.step(alpha, gamma, dl)
         limit = bend_limit(np.where(applied_dl > 0.0, applied_dl, 0.0), cat.theta_max,
                            cfg.segment_length)
@@ -360,7 +360,7 @@ def pursuit_actions(engine: NavEngine, lookahead: float = 0.015,
     goal = wps[rows, k]
     near = (k == last) | (np.linalg.norm(engine.target - tips, axis=1) < final_approach)
     goal[near] = engine.target[near]
-    return steer_towards(tips, cat.tip_rotation, goal, engine.config.catheter, cat.theta_max)
+    return steer_towards(tips, cat.tip_rotation, goal, cat.config, cat.theta_max)
 
 
 class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
@@ -420,17 +420,21 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     ``reward_end``/``reward_centerline``/``reward_bending``, ``start``, ``target`` (ids),
     ``target_position`` (m), ``theta_max`` (rad).
 
+    **Rendering**: ``render_mode='rgb_array'`` draws the anatomy, centerlines, scenarios and the
+    catheter body (anterior view) with ``cgail_planner.sim.render`` (matplotlib, ~1 s a frame:
+    for inspection, not for training).
+
     **Reset options**: ``{'start': int, 'target': int}`` picks the scenario (default: drawn from
     the env's seeded generator). ``set_theta_max(rad)`` changes theta_max (curriculum).
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}  # noqa: RUF012
 
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None) -> None:
         if config is not None and not isinstance(config, EnvConfig):
             raise ValueError(f"config must be an EnvConfig, found {type(config).__name__}")
-        if render_mode is not None:
-            raise ValueError(f"render_mode must be None (no rendering), found {render_mode!r}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', found {render_mode!r}")
         self.config = config or EnvConfig()
         self.engine = NavEngine(self.config, 1)
         self.observation_space = _observation_space()  # type: ignore[assignment]
@@ -495,3 +499,25 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
         te, tr = bool(terminated[0]), bool(truncated[0])
         self._needs_reset = te or tr
         return self.engine.observe()[0], float(reward[0]), te, tr, info
+
+    def render(self) -> NDArray[np.uint8] | None:  # type: ignore[override]
+        """An (H, W, 3) uint8 image of the current state (``render_mode='rgb_array'``)."""
+        if self.render_mode != "rgb_array":
+            return None
+        import tempfile
+
+        import matplotlib.image as mpimg
+
+        from cgail_planner.sim.render import render_anatomy
+
+        e = self.engine
+        dist = float(np.linalg.norm(e.target[0] - e.catheter.tip_position[0]))
+        title = f"{self.config.mode}: step {int(e.steps[0])}, distance {dist * 1e3:.1f} mm"
+        with tempfile.TemporaryDirectory() as tmp:
+            path = render_anatomy(e.world.anatomy, f"{tmp}/frame.png",
+                                  centerlines=e.world.centerlines, rollout=e.catheter.body(0),
+                                  views=("anterior",), title=title, dpi=80)
+            img = mpimg.imread(str(path))
+        if img.dtype != np.uint8:
+            img = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        return np.ascontiguousarray(img[..., :3])

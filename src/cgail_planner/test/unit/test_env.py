@@ -246,3 +246,16 @@ def test_obs_layout_dict_with_normalisers(env: CatheterNavEnv) -> None:
     assert full["origin"] == env.scenarios.origin.tolist()
     assert (full["position_scale"], full["ray_length"]) == (0.15, 0.04)
     json.dumps(full)
+
+
+def test_render_rgb_array() -> None:
+    e = CatheterNavEnv(render_mode="rgb_array")
+    e.reset(seed=0)
+    e.step(np.array([0.0, 0.0, 1.0]))
+    img = e.render()
+    assert img is not None and img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
+    assert img.shape[0] > 100 and img.shape[1] > 100
+    assert img.std() > 10  # not a blank frame
+    assert CatheterNavEnv().render() is None
+    with pytest.raises(ValueError, match="render_mode must be"):
+        CatheterNavEnv(render_mode="human")
