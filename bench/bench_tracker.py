@@ -1,12 +1,13 @@
 """Benchmark of the Aurora tracker node: pose latency and sustained publish rate.
 
-Runs the simulated Aurora on a pty and ``aurora_node`` in this process (its reader thread and
+Runs the simulated Aurora on a pty in its own process (as a real device would be: it does not
+compete for this interpreter's GIL) and ``aurora_node`` in this process (its reader thread and
 the ndicapi child process as in production), with a subscriber on ``em_tracker/tip_pose``.
 
-Latency = time a subscriber receives the message - time the device generated the frame
-(the simulated device's frame ``k`` exists from ``TSTART + k / 40 Hz``). The frame time is
-recovered from the pose itself: the scripted trajectory moves x by 10 mm per second, so x
-encodes the frame time to 1 ms even through TX's 0.01 mm resolution.
+Latency = time the subscriber receives the message - time the device generated the frame
+(the simulated device's frame ``k`` exists from ``TSTART + k / 40 Hz``). The generation time
+travels in the pose itself: the simulated device sets x = 10 mm/s * (CLOCK_MONOTONIC of the
+frame mod 30 s) - 150 mm, which TX's 0.01 mm resolution carries to 1 ms (BX: float32, finer).
 
     scripts/ws python bench/bench_tracker.py            # TX then BX, 10 s each
     scripts/ws python bench/bench_tracker.py --mode bx --duration 20
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
+import sys
 import tempfile
 import time
 
@@ -31,20 +34,37 @@ from em_tracker.nodes.aurora_node import AuroraNode
 
 SPEED_MM_PER_S = 10.0
 RATE_HZ = 40.0
+WRAP_S = 30.0
 
 
-def pose_source(t_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """x = 10 mm/s * t (wrapped every 30 s), fixed y, z and orientation."""
-    return (np.array([SPEED_MM_PER_S * (t_s % 30.0) - 150.0, 20.0, -200.0]),
-            np.array([1.0, 0.0, 0.0, 0.0]))
+def serve_sim(link: str) -> None:
+    """Child mode: a simulated Aurora whose x encodes the frame's monotonic time."""
+    holder: list[SimAurora] = []
+
+    def pose_source(t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        t_gen = holder[0].tracking_start_time + t_s
+        return (np.array([SPEED_MM_PER_S * (t_gen % WRAP_S) - 150.0, 20.0, -200.0]),
+                np.array([1.0, 0.0, 0.0, 0.0]))
+
+    sim = SimAurora(pose_source, link_path=link, frame_rate_hz=RATE_HZ)
+    holder.append(sim)
+    sim.start()
+    try:
+        sys.stdin.read()  # until the parent closes our stdin
+    finally:
+        sim.close()
 
 
 def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
     """Run one mode (``'tx'`` or ``'bx'``) and return the figures."""
     link = os.path.join(tempfile.mkdtemp(prefix='bench_tracker_'), 'aurora')
-    sim = SimAurora(pose_source, link_path=link, frame_rate_hz=RATE_HZ).start()
+    sim = subprocess.Popen([sys.executable, __file__, '--serve-sim', link],
+                           stdin=subprocess.PIPE)
+    deadline = time.monotonic() + 10.0
+    while not os.path.exists(link) and time.monotonic() < deadline:
+        time.sleep(0.02)
     node = AuroraNode(parameter_overrides=[
-        Parameter('port', value=sim.port), Parameter('use_bx', value=mode == 'bx'),
+        Parameter('port', value=link), Parameter('use_bx', value=mode == 'bx'),
         Parameter('isolate_device', value=isolate)])
     listener = rclpy.create_node('bench_tracker_listener')
     # (receive monotonic time, x in m, receive time - header.stamp in s)
@@ -68,16 +88,14 @@ def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
         while time.monotonic() - start < duration_s:
             executor.spin_once(timeout_sec=0.05)
         elapsed = time.monotonic() - start
-        t_start = sim.tracking_start_time
         latencies, transport = [], []
         for received, x_m, since_stamp in arrivals:
+            t_mod = (x_m * 1000.0 + 150.0) / SPEED_MM_PER_S
+            t_gen = t_mod + WRAP_S * np.floor((received - t_mod) / WRAP_S)
+            latencies.append(received - t_gen)
             transport.append(since_stamp)
-            t_frame = (x_m * 1000.0 + 150.0) / SPEED_MM_PER_S
-            t_frame = round(t_frame * RATE_HZ) / RATE_HZ  # frames lie on the 25 ms grid
-            periods = np.floor((received - t_start - t_frame) / 30.0)  # undo the 30 s wrap
-            latencies.append(received - (t_start + t_frame + 30.0 * periods))
         lat_ms = np.array(latencies) * 1e3
-        # header.stamp = time the reply was complete, so the latency splits into
+        # header.stamp = time the reply was read, so the latency splits into
         # device frame -> reply read (polling phase + serial) and reply -> subscriber.
         transport_ms = np.array(transport) * 1e3
         health = node.health
@@ -94,7 +112,9 @@ def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
         executor.shutdown()
         node.destroy_node()
         listener.destroy_node()
-        sim.close()
+        if sim.stdin is not None:
+            sim.stdin.close()
+        sim.wait(timeout=5)
 
 
 def main() -> None:
@@ -103,7 +123,11 @@ def main() -> None:
     parser.add_argument('--duration', type=float, default=10.0, help='seconds per mode')
     parser.add_argument('--in-process', action='store_true',
                         help='run ndicapi in the node process (isolate_device:=false)')
+    parser.add_argument('--serve-sim', metavar='LINK', help=argparse.SUPPRESS)
     ns = parser.parse_args()
+    if ns.serve_sim:
+        serve_sim(ns.serve_sim)
+        return
     rclpy.init()
     try:
         modes = ('tx', 'bx') if ns.mode == 'both' else (ns.mode,)
