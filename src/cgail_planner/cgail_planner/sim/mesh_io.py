@@ -569,7 +569,14 @@ def _clean_rim(v: np.ndarray, f: np.ndarray, kept: np.ndarray, point: np.ndarray
                             f"{len(loops)}")
         loop = loops[0]
         proj = v[loop] - ((v[loop] - point) @ normal)[:, None] * normal
-        gap = np.linalg.norm(proj - np.roll(proj, -1, axis=0), axis=1)
+        rel = proj - proj.mean(axis=0)
+        e1 = rel[0] / np.linalg.norm(rel[0])
+        e2 = np.cross(normal, e1)
+        ang = np.arctan2(rel @ e2, rel @ e1)
+        step = np.angle(np.exp(1j * (np.roll(ang, -1) - ang)))
+        step *= np.sign(step.sum())
+        # Signed arc between projected neighbours: small or backwards steps are "stacked".
+        gap = step * np.linalg.norm(rel, axis=1).mean()
         i = int(np.argmin(gap))
         if gap[i] >= min_gap or len(loop) <= 4:
             return f, kept
