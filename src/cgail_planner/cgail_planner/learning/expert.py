@@ -44,6 +44,8 @@ class ExpertConfig:
     """Wanted wall clearance of the tip surface, m."""
     approach_distance: float = 0.035
     """Below this tip-target distance the carrot is the target, m."""
+    score_noise: float = 0.0005
+    """Std of the score jitter of a seeded episode, m (diversity of the demonstrations)."""
 
     def __post_init__(self) -> None:
         for name in ('stage1', 'stage2', 'replan_every', 'lookahead'):
@@ -65,11 +67,22 @@ class ScriptedExpert:
         self.cfg = cfg or ExpertConfig()
         self._plan: list[np.ndarray] = []
         self._progress = 0
+        self._rng: np.random.Generator | None = None
+        self._lookahead = self.cfg.lookahead
 
-    def reset(self) -> None:
-        """Forget the plan and the progress (call after ``env.reset``)."""
+    def reset(self, seed: int | None = None) -> None:
+        """Forget the plan and the progress (call after ``env.reset``).
+
+        With a seed, the episode's lookahead is drawn in ``lookahead +- 2`` waypoints and the
+        scores get N(0, ``score_noise``) jitter, so demonstrations of the same start and target
+        differ the way a human's would while staying reproducible.
+        """
         self._plan = []
         self._progress = 0
+        self._rng = None if seed is None else np.random.default_rng(seed)
+        self._lookahead = self.cfg.lookahead
+        if self._rng is not None:
+            self._lookahead = max(1, self.cfg.lookahead + int(self._rng.integers(-2, 3)))
 
     # -------------------------------------------------------------- helpers
     def _centerline(self) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +122,7 @@ class ScriptedExpert:
         pts_cl, radii = self._centerline()
         k_near = int(np.argmin(np.linalg.norm(pts_cl - p, axis=1)))
         self._progress = max(self._progress, k_near)
-        k = min(self._progress + self.cfg.lookahead, len(pts_cl) - 1)
+        k = min(self._progress + self._lookahead, len(pts_cl) - 1)
         d_target = float(np.linalg.norm(target - p))
         final = d_target < self.cfg.approach_distance or k >= len(pts_cl) - 2
         carrot = target if final else pts_cl[k]
@@ -129,6 +142,8 @@ class ScriptedExpert:
         score = -end_to_carrot - 20.0 * violation
         if final:
             score = -closest_target - 20.0 * violation
+        if self._rng is not None:
+            score = score + self._rng.normal(0.0, self.cfg.score_noise, score.shape)
         best = int(np.argmax(score))
         self._plan = [np.asarray(a[best], np.float32) for a in acts[:self.cfg.replan_every]]
         return self._plan.pop(0)
@@ -139,7 +154,7 @@ def run_expert_episode(env: Any, expert: ScriptedExpert, seed: int | None = None
                        ) -> tuple[list[np.ndarray], list[np.ndarray], dict[str, Any], list[Any]]:
     """One expert episode: (observations, actions, final info, per-step infos)."""
     obs, info = env.reset(seed=seed, options=options)
-    expert.reset()
+    expert.reset(seed)
     obs_l, act_l, infos = [], [], []
     while True:
         a = expert.act()

@@ -1,0 +1,119 @@
+"""ONNX export: torch/onnxruntime parity, metadata, loader errors, identical rollouts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).parent))
+from learning_toy import PointReach
+
+from cgail_planner.learning.config import NetworkConfig
+from cgail_planner.learning.errors import PolicyLoadError
+from cgail_planner.learning.export import export_actor
+from cgail_planner.learning.networks import Actor, RunningNormalizer
+from cgail_planner.learning.onnx_policy import OnnxPolicy
+
+
+def _actor(obs_dim: int, act_dim: int, seed: int = 0) -> Actor:
+    torch.manual_seed(seed)
+    norm = RunningNormalizer(obs_dim)
+    norm.update(np.random.default_rng(seed).normal(2.0, 3.0, (500, obs_dim)))
+    actor = Actor(obs_dim, act_dim, NetworkConfig(hidden_units=32), norm)
+    with torch.no_grad():
+        actor.mu.weight.mul_(1000)   # non-trivial, partly saturated actions
+    return actor.eval()
+
+
+def test_parity_and_metadata(tmp_path: Path):
+    actor = _actor(41, 3)
+    path = export_actor(actor, tmp_path / 'p.onnx', {'preset': 'cgail', 'anatomy': 'default',
+                                                      'theta_max_rad': 1.5707963,
+                                                      'observation_layout': {'dim': 41}})
+    policy = OnnxPolicy(path, expected_obs_dim=41)
+    obs = np.random.default_rng(1).normal(2.0, 4.0, (256, 41)).astype(np.float32)
+    with torch.no_grad():
+        ref = actor.deterministic(torch.as_tensor(obs)).numpy()
+    np.testing.assert_allclose(policy(obs), ref, atol=1e-5)
+    np.testing.assert_allclose(policy(obs[0]), ref[0], atol=1e-5)
+    assert np.any(np.abs(ref) == 1.0) and np.all(np.abs(ref) <= 1.0)
+    assert policy.metadata['preset'] == 'cgail' and policy.metadata['obs_dim'] == 41
+    assert policy.metadata['observation_layout'] == {'dim': 41}
+    assert policy.metadata['theta_max_rad'] == pytest.approx(1.5707963)
+
+
+def test_loader_errors(tmp_path: Path):
+    with pytest.raises(PolicyLoadError, match='not found'):
+        OnnxPolicy(tmp_path / 'missing.onnx')
+    bad = tmp_path / 'bad.onnx'
+    bad.write_bytes(b'\x00garbage')
+    with pytest.raises(PolicyLoadError, match='not a loadable ONNX model'):
+        OnnxPolicy(bad)
+    path = export_actor(_actor(4, 2), tmp_path / 'p.onnx', {})
+    with pytest.raises(PolicyLoadError, match='expected 41, found 4'):
+        OnnxPolicy(path, expected_obs_dim=41)
+    with pytest.raises(PolicyLoadError, match=r'expected \(B, 4\), found \(5,\)'):
+        OnnxPolicy(path)(np.zeros(5))
+
+
+def test_onnx_module_does_not_import_torch():
+    src = Path(__file__).parents[2] / 'cgail_planner' / 'learning' / 'onnx_policy.py'
+    text = src.read_text()
+    assert 'import torch' not in text and 'from torch' not in text
+
+
+def _rollout(policy, env, seed: int) -> list[np.ndarray]:
+    obs, _ = env.reset(seed=seed)
+    traj = [obs]
+    for _ in range(60):
+        obs, _, te, tr, _ = env.step(policy(obs))
+        traj.append(obs)
+        if te or tr:
+            break
+    return traj
+
+
+def test_onnx_rollout_equals_torch_rollout_on_toy_env(tmp_path: Path):
+    actor = _actor(4, 2, seed=3)
+    policy = OnnxPolicy(export_actor(actor, tmp_path / 'p.onnx', {}))
+
+    def torch_policy(o: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return actor.deterministic(torch.as_tensor(o[None])).numpy()[0]
+
+    a, b = _rollout(torch_policy, PointReach(), 7), _rollout(policy, PointReach(), 7)
+    assert len(a) == len(b)
+    np.testing.assert_allclose(np.stack(a), np.stack(b), atol=1e-5)
+
+
+@pytest.mark.slow
+def test_onnx_rollout_equals_torch_rollout_in_simulator(tmp_path: Path):
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    env = CatheterNavEnv(EnvConfig(mode='static'))
+    actor = _actor(env.observation_space.shape[0], 3, seed=5)
+    policy = OnnxPolicy(export_actor(actor, tmp_path / 'p.onnx', {}))
+
+    def torch_policy(o: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return actor.deterministic(torch.as_tensor(o[None])).numpy()[0]
+
+    def run(pol) -> tuple[np.ndarray, dict]:
+        obs, _ = env.reset(seed=0, options={'start': 1, 'target': 2})
+        tips = []
+        for _ in range(150):
+            obs, _, te, tr, info = env.step(pol(obs))
+            tips.append(env.catheter.tip_position[0].copy())
+            if te or tr:
+                break
+        return np.stack(tips), info
+
+    (ta, ia), (tb, ib) = run(torch_policy), run(policy)
+    assert ta.shape == tb.shape
+    np.testing.assert_allclose(ta, tb, atol=1e-6)
+    assert ia['success'] == ib['success'] and ia['collision'] == ib['collision']
