@@ -1,0 +1,168 @@
+"""Messages <-> core types for the cgail_planner nodes, the QoS profiles and a parameter helper.
+
+QoS names follow docs/interfaces.md: ``SENSOR_QOS`` (best effort, keep last 5), ``COMMAND_QOS``
+(reliable, volatile, keep last 10), ``LATCHED_QOS`` (reliable, transient local, keep last 1),
+``DIAGNOSTICS_QOS`` (reliable, keep last 10).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TypeVar
+
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, PointStamped, Pose, PoseStamped, Quaternion
+from nav_msgs.msg import Path
+import numpy as np
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    qos_profile_sensor_data,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header
+
+from cgail_planner.core.planner import (
+    InvalidInputError,
+    quaternion_from_rotation,
+    rotation_from_quaternion,
+    validate_pose,
+)
+
+SENSOR_QOS = qos_profile_sensor_data
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                         history=HistoryPolicy.KEEP_LAST)
+DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.VOLATILE,
+                             history=HistoryPolicy.KEEP_LAST)
+
+#: Joint names of a bend (docs/interfaces.md).
+BEND_JOINTS = ('bend_alpha', 'bend_gamma')
+
+T = TypeVar('T', bool, int, float, str)
+
+
+def declare(node: Node, name: str, default: T, description: str, *,
+            lo: float | None = None, hi: float | None = None) -> T:
+    """Declare ``name`` once with a description (and an inclusive range); return its value.
+
+    Raises:
+        rclpy.exceptions.InvalidParameterValueException: value outside the range.
+        rclpy.exceptions.InvalidParameterTypeException: value of the wrong type.
+    """
+    descriptor = ParameterDescriptor(name=name, description=description)
+    if lo is not None and hi is not None and not isinstance(default, bool):
+        if isinstance(default, int):
+            descriptor.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi),
+                                                     step=1)]
+        elif isinstance(default, float):
+            descriptor.floating_point_range = [FloatingPointRange(
+                from_value=float(lo), to_value=float(hi), step=0.0)]
+    value = node.declare_parameter(name, default, descriptor).value
+    return type(default)(value)
+
+
+def stamp_seconds(stamp: Time) -> float:
+    """A ``builtin_interfaces/Time`` in seconds."""
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def pose_from_msg(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
+    """``(position (3,), rotation (3, 3))`` of a PoseStamped.
+
+    Raises:
+        InvalidInputError: NaN/inf or a quaternion that is not of unit norm.
+    """
+    p = msg.pose.position
+    q = msg.pose.orientation
+    position = np.array([p.x, p.y, p.z], dtype=np.float64)
+    rotation = rotation_from_quaternion(q.x, q.y, q.z, q.w)
+    return validate_pose(position, rotation)
+
+
+def point_from_pose_msg(msg: PoseStamped) -> np.ndarray:
+    """The position of a PoseStamped as a (3,) array (not validated)."""
+    p = msg.pose.position
+    return np.array([p.x, p.y, p.z], dtype=np.float64)
+
+
+def pose_msg(stamp: Time, frame_id: str, position: np.ndarray,
+             rotation: np.ndarray) -> PoseStamped:
+    """A PoseStamped from a position and a rotation matrix."""
+    x, y, z, w = quaternion_from_rotation(rotation)
+    return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=Pose(
+        position=Point(x=float(position[0]), y=float(position[1]), z=float(position[2])),
+        orientation=Quaternion(x=x, y=y, z=z, w=w)))
+
+
+def path_msg(stamp: Time, frame_id: str, points: np.ndarray) -> Path:
+    """A nav_msgs/Path through ``points`` (N, 3); each pose's orientation is the path tangent
+    (y axis along the direction of travel, as the tip frame's heading)."""
+    from cgail_planner.sim.catheter import frame_from_heading
+
+    header = Header(stamp=stamp, frame_id=frame_id)
+    tangents = np.gradient(points, axis=0) if len(points) > 1 else np.array([[0.0, 1.0, 0.0]])
+    poses = []
+    for p, t in zip(points, tangents, strict=True):
+        try:
+            x, y, z, w = quaternion_from_rotation(frame_from_heading(t))
+        except ValueError:
+            x, y, z, w = 0.0, 0.0, 0.0, 1.0
+        poses.append(PoseStamped(header=header, pose=Pose(
+            position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+            orientation=Quaternion(x=x, y=y, z=z, w=w))))
+    return Path(header=header, poses=poses)
+
+
+def path_points(msg: Path) -> np.ndarray:
+    """(N, 3) positions of a nav_msgs/Path."""
+    return np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                     for p in msg.poses], dtype=np.float64).reshape(-1, 3)
+
+
+def point_msg(stamp: Time, frame_id: str, point: np.ndarray) -> PointStamped:
+    """A PointStamped."""
+    return PointStamped(header=Header(stamp=stamp, frame_id=frame_id), point=Point(
+        x=float(point[0]), y=float(point[1]), z=float(point[2])))
+
+
+def bend_msg(stamp: Time, alpha: float, gamma: float) -> JointState:
+    """A bend JointState (``bend_alpha``, ``bend_gamma``; rad)."""
+    return JointState(header=Header(stamp=stamp), name=list(BEND_JOINTS),
+                      position=[float(alpha), float(gamma)])
+
+
+def joint_positions(msg: JointState, names: Sequence[str]) -> list[float]:
+    """Positions of ``names`` in a JointState.
+
+    Raises:
+        InvalidInputError: a joint missing, or a non-finite value.
+    """
+    out = []
+    for name in names:
+        try:
+            k = list(msg.name).index(name)
+            value = float(msg.position[k])
+        except (ValueError, IndexError):
+            raise InvalidInputError(f'JointState must carry a position for {name!r}, found '
+                                    f'names {list(msg.name)}') from None
+        if not np.isfinite(value):
+            raise InvalidInputError(f'{name} must be finite, found {value}')
+        out.append(value)
+    return out
+
+
+def diagnostics(stamp: Time, name: str, hardware_id: str, level: bytes, message: str,
+                values: Sequence[tuple[str, object]]) -> DiagnosticArray:
+    """A DiagnosticArray with one status."""
+    status = DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
+                              values=[KeyValue(key=k, value=str(v)) for k, v in values])
+    return DiagnosticArray(header=Header(stamp=stamp), status=[status])

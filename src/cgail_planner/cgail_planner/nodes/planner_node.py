@@ -1,0 +1,300 @@
+"""Planner node (``planner``): whole-path planning with the ONNX C-GAIL policy, and guidance.
+
+Run: ``ros2 run cgail_planner planner_node --ros-args -p policy_path:=model.onnx`` (pip-only
+workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxruntime only.
+
+* ``planner/goal`` (PoseStamped): plans from the latest tip pose (a goal that arrives before a
+  fresh tip pose waits for one) and publishes ``planner/path`` (latched).
+* ``em_tracker/tip_pose`` (PoseStamped, sensor QoS): on every pose, with a path, publishes
+  ``planner/next_waypoint`` and ``planner/suggested_bend`` (:mod:`cgail_planner.core.guidance`);
+  in dynamic mode re-plans when the goal moved or the tip left the corridor around the path.
+* Bad input (missing/corrupt model, goal outside the lumen or in another frame, NaN/inf or
+  non-unit poses, stale poses) is logged with the reason, counted and shown on ``/diagnostics``;
+  nothing is planned or guided from it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PointStamped, PoseStamped
+from nav_msgs.msg import Path
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from cgail_planner.core.guidance import GuidanceConfig, PathFollower
+from cgail_planner.core.planner import (
+    InvalidInputError,
+    model_world_from_sim,
+    Planner,
+    PlannerConfig,
+    PlannerError,
+    replan_reason,
+    ReplanConfig,
+)
+from cgail_planner.nodes import conversions as conv
+
+
+class PlannerNode(Node):
+    """Thin rclpy wrapper around :class:`Planner` and :class:`PathFollower`."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('planner', **kwargs)
+        d, g, r = PlannerConfig(), GuidanceConfig(), ReplanConfig()
+        policy_path = conv.declare(self, 'policy_path', '', 'ONNX policy written by export_onnx '
+                                   "(required by planner_type 'cgail')")
+        self.config = PlannerConfig(
+            planner_type=conv.declare(self, 'planner_type', d.planner_type,
+                                      "'cgail' (policy rollout) or 'centerline' (baseline)"),
+            goal_tolerance=conv.declare(self, 'goal_tolerance', d.goal_tolerance,
+                                        'rollout reached the goal within this, m',
+                                        lo=1e-4, hi=0.05),
+            max_rollout_steps=conv.declare(self, 'max_rollout_steps', d.max_rollout_steps,
+                                           'policy steps before the rollout gives up',
+                                           lo=1, hi=100000),
+            path_spacing=conv.declare(self, 'path_spacing', d.path_spacing,
+                                      'arc-length spacing of the published path, m',
+                                      lo=1e-4, hi=0.01),
+            theta_max=conv.declare(self, 'theta_max', d.theta_max,
+                                   'maximal bending angle of the rollout, rad',
+                                   lo=1e-3, hi=math.pi),
+            segment_length=d.segment_length)
+        self.guidance_config = GuidanceConfig(
+            lookahead=conv.declare(self, 'lookahead', g.lookahead,
+                                   'arc length from the tip to the next waypoint, m',
+                                   lo=1e-3, hi=0.2),
+            segment_length=conv.declare(self, 'segment_length', g.segment_length,
+                                        'steerable segment length L, m', lo=1e-3, hi=0.5),
+            max_bend=conv.declare(self, 'max_bend', g.max_bend,
+                                  'cap of the suggested bend magnitude, rad',
+                                  lo=1e-3, hi=math.pi / 2))
+        self.replan_config = ReplanConfig(
+            corridor_radius=conv.declare(self, 'corridor_radius', r.corridor_radius,
+                                         'dynamic mode: re-plan when the tip is further from the '
+                                         'path, m', lo=1e-3, hi=0.1),
+            target_move_threshold=conv.declare(self, 'target_move_threshold',
+                                               r.target_move_threshold,
+                                               'dynamic mode: re-plan when the goal moved more, m',
+                                               lo=1e-4, hi=0.1),
+            min_interval_s=conv.declare(self, 'replan_min_interval_s', r.min_interval_s,
+                                        'shortest time between re-plans, s', lo=0.0, hi=60.0))
+        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
+        self.mode = conv.declare(self, 'mode', 'static', "'static' or 'dynamic' (deformable "
+                                 'beating wall, re-planning)')
+        if self.mode not in ('static', 'dynamic'):
+            raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
+        self.stale_after_s = conv.declare(self, 'stale_after_s', 0.5, 'tip poses older than '
+                                          'this (header stamp vs node clock) are stale, s',
+                                          lo=0.01, hi=60.0)
+        self.frame_id = conv.declare(self, 'frame_id', 'phantom', 'frame of goals and outputs')
+        wall_rate = conv.declare(self, 'wall_update_rate_hz', 10.0, 'dynamic mode: rate of the '
+                                 'model wall (heartbeat) update, Hz', lo=0.1, hi=100.0)
+        diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, 'period of /diagnostics, s',
+                                   lo=0.05, hi=60.0)
+
+        from cgail_planner.sim.env import RAY_DIRECTIONS
+        from cgail_planner.sim.scenarios import load_world
+        from cgail_planner.sim.wall import DeformableWall, StaticWall
+
+        world = load_world(anatomy)
+        self.wall = StaticWall(world.anatomy) if self.mode == 'static' \
+            else DeformableWall(world.anatomy)
+        self.policy_error = ''
+        policy = None
+        if self.config.planner_type == 'cgail':
+            policy = self._load_policy(policy_path)
+        self.planner: Planner | None = None
+        if self.config.planner_type == 'centerline' or policy is not None:
+            self.planner = Planner(self.config, model_world_from_sim(world), self.wall, policy,
+                                   RAY_DIRECTIONS)
+        self.follower: PathFollower | None = None
+        self.goal: np.ndarray | None = None
+        self.planned_goal: np.ndarray | None = None
+        self.pending_goal = False
+        self.last_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self.last_pose_time: float | None = None
+        self.last_plan_time = -math.inf
+        self.counts = dict(plans=0, failed_plans=0, replans=0, rejected_goals=0,
+                           rejected_poses=0, stale_poses=0, guidance_updates=0)
+        self.last_error = self.policy_error
+        self.last_plan_ms = float('nan')
+        self.last_guidance_us = float('nan')
+        self.path_points = 0
+
+        self._path_pub = self.create_publisher(Path, 'planner/path', conv.LATCHED_QOS)
+        self._wp_pub = self.create_publisher(PointStamped, 'planner/next_waypoint',
+                                             conv.SENSOR_QOS)
+        self._bend_pub = self.create_publisher(JointState, 'planner/suggested_bend',
+                                               conv.SENSOR_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                               conv.DIAGNOSTICS_QOS)
+        self.create_subscription(PoseStamped, 'em_tracker/tip_pose', self._on_tip_pose,
+                                 conv.SENSOR_QOS)
+        self.create_subscription(PoseStamped, 'planner/goal', self._on_goal, conv.COMMAND_QOS)
+        self.create_timer(diag_period, self._on_diagnostics)
+        if self.mode == 'dynamic':
+            self._wall_dt = 1.0 / wall_rate
+            self.create_timer(self._wall_dt, self._on_wall_timer)
+
+    # ------------------------------------------------------------------ setup
+    def _load_policy(self, path: str):
+        from cgail_planner.learning.errors import PolicyLoadError
+        from cgail_planner.learning.onnx_policy import OnnxPolicy
+
+        if not path:
+            self.policy_error = ("no policy: planner_type 'cgail' needs policy_path (an ONNX "
+                                 'file from export_onnx); goals will be refused')
+        else:
+            try:
+                return OnnxPolicy(path, expected_obs_dim=41)
+            except PolicyLoadError as exc:
+                self.policy_error = f'policy not loaded: {exc}; goals will be refused'
+        self.get_logger().error(self.policy_error)
+        return None
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    # ------------------------------------------------------------------ callbacks
+    def _on_goal(self, msg: PoseStamped) -> None:
+        try:
+            if msg.header.frame_id not in ('', self.frame_id):
+                raise InvalidInputError(f'goal frame must be {self.frame_id!r}, found '
+                                        f'{msg.header.frame_id!r}')
+            if self.planner is None:
+                raise InvalidInputError(self.policy_error)
+            goal = self.planner.validate_goal(conv.point_from_pose_msg(msg))
+        except InvalidInputError as exc:
+            self._reject('rejected_goals', f'goal rejected: {exc}')
+            return
+        self.goal = goal
+        if self.planned_goal is not None and self.mode == 'dynamic' and \
+                float(np.linalg.norm(goal - self.planned_goal)) \
+                <= self.replan_config.target_move_threshold:
+            return  # the same target, slightly moved: guidance continues on the current path
+        self.pending_goal = True
+        if self._pose_fresh():
+            self._plan('new goal')
+
+    def _on_tip_pose(self, msg: PoseStamped) -> None:
+        t0 = time.perf_counter()
+        now = self._now()
+        age = now - conv.stamp_seconds(msg.header.stamp)
+        if age > self.stale_after_s:
+            self.counts['stale_poses'] += 1
+            self.last_error = f'stale tip pose: {age:.3f} s old (limit {self.stale_after_s} s)'
+            self.get_logger().warning(self.last_error, throttle_duration_sec=2.0)
+            return
+        try:
+            position, rotation = conv.pose_from_msg(msg)
+        except InvalidInputError as exc:
+            self._reject('rejected_poses', f'tip pose rejected: {exc}')
+            return
+        self.last_pose = (position, rotation)
+        self.last_pose_time = now
+        if self.pending_goal:
+            self._plan('new goal')
+        if self.follower is None:
+            return
+        guide = self.follower.guide(position, rotation)
+        if self.mode == 'dynamic' and self.goal is not None and self.planned_goal is not None:
+            reason = replan_reason(self.replan_config, cross_track=guide.cross_track,
+                                   planned_goal=self.planned_goal, goal=self.goal,
+                                   since_last_plan_s=now - self.last_plan_time)
+            if reason is not None and self._plan(reason):
+                self.counts['replans'] += 1
+                assert self.follower is not None
+                guide = self.follower.guide(position, rotation)
+        stamp = msg.header.stamp
+        self._wp_pub.publish(conv.point_msg(stamp, self.frame_id, guide.next_waypoint))
+        self._bend_pub.publish(conv.bend_msg(stamp, *guide.bend))
+        self.counts['guidance_updates'] += 1
+        self.last_guidance_us = (time.perf_counter() - t0) * 1e6
+
+    def _on_wall_timer(self) -> None:
+        self.wall.step(self._now(), self._wall_dt, np.zeros((0, 3)), 0.0035)
+
+    # ------------------------------------------------------------------ planning
+    def _pose_fresh(self) -> bool:
+        return self.last_pose_time is not None and \
+            self._now() - self.last_pose_time <= self.stale_after_s
+
+    def _plan(self, reason: str) -> bool:
+        """Plan from the latest pose to the latest goal; True on success."""
+        assert self.planner is not None and self.goal is not None and self.last_pose is not None
+        self.pending_goal = False
+        self.last_plan_time = self._now()
+        try:
+            result = self.planner.plan(self.last_pose[0], self.last_pose[1], self.goal)
+        except PlannerError as exc:
+            self.counts['failed_plans'] += 1
+            self.last_error = f'planning failed ({reason}): {exc}'
+            self.get_logger().error(self.last_error)
+            self.follower = None
+            self.planned_goal = None
+            return False
+        self.counts['plans'] += 1
+        self.last_error = ''
+        self.last_plan_ms = result.elapsed_s * 1e3
+        self.path_points = len(result.path)
+        self.follower = PathFollower(result.path, self.guidance_config)
+        self.planned_goal = self.goal.copy()
+        self._path_pub.publish(conv.path_msg(self.get_clock().now().to_msg(), self.frame_id,
+                                             result.path))
+        self.get_logger().info(
+            f'{result.planner_type} path planned ({reason}): {len(result.path)} points, '
+            f'{self.follower.length * 1e3:.0f} mm, {result.steps} rollout steps, '
+            f'{self.last_plan_ms:.1f} ms')
+        return True
+
+    def _reject(self, counter: str, text: str) -> None:
+        self.counts[counter] += 1
+        self.last_error = text
+        self.get_logger().warning(text, throttle_duration_sec=1.0)
+
+    # ------------------------------------------------------------------ diagnostics
+    def diagnostics(self) -> DiagnosticArray:
+        """The node's current diagnostics."""
+        if self.planner is None:
+            level, message = DiagnosticStatus.ERROR, self.policy_error
+        elif self.last_pose_time is not None and not self._pose_fresh():
+            level, message = DiagnosticStatus.STALE, 'no fresh tip pose'
+        elif self.goal is not None and self.follower is None:
+            level, message = DiagnosticStatus.ERROR, self.last_error or 'no path'
+        elif self.last_error:
+            level, message = DiagnosticStatus.WARN, self.last_error
+        else:
+            level, message = DiagnosticStatus.OK, 'guiding' if self.follower else 'waiting'
+        values = [('planner_type', self.config.planner_type), ('mode', self.mode),
+                  ('path_points', self.path_points), ('last_plan_ms', f'{self.last_plan_ms:.2f}'),
+                  ('last_guidance_us', f'{self.last_guidance_us:.0f}'),
+                  *self.counts.items(), ('last_error', self.last_error)]
+        return conv.diagnostics(self.get_clock().now().to_msg(), 'planner: path planning',
+                                'planner', level, message, values)
+
+    def _on_diagnostics(self) -> None:
+        self._diag_pub.publish(self.diagnostics())
+
+
+def main(args=None) -> None:
+    """Console script ``planner_node``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PlannerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
