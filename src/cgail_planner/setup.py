@@ -14,6 +14,14 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
+        # Guidance page of gui_node; three.js comes from `npm ci` in web/ (scripts/setup.sh).
+        ('share/' + PACKAGE + '/web', glob('web/*.html') + glob('web/*.js') + glob('web/*.css')
+         + glob('web/package*.json')),
+        ('share/' + PACKAGE + '/web/node_modules/three/build',
+         glob('web/node_modules/three/build/three.module.js')
+         + glob('web/node_modules/three/build/three.core.js')),
+        ('share/' + PACKAGE + '/web/node_modules/three/examples/jsm/controls',
+         glob('web/node_modules/three/examples/jsm/controls/OrbitControls.js')),
     ],
     include_package_data=True,
     install_requires=['setuptools'],
