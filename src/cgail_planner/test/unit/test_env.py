@@ -259,3 +259,33 @@ def test_render_rgb_array() -> None:
     assert CatheterNavEnv().render() is None
     with pytest.raises(ValueError, match="render_mode must be"):
         CatheterNavEnv(render_mode="human")
+
+
+def test_dynamic_registration() -> None:
+    made = gym.make("CatheterNavDynamic-v0", config=EnvConfig(max_steps=3))
+    assert made.unwrapped.config.mode == "dynamic"
+    assert made.unwrapped.config.max_steps == 3
+    made.close()
+
+
+def test_static_contact_broad_phase_is_exact() -> None:
+    """Skipping tip queries under the Lipschitz clearance bound changes no contact result."""
+    fast, full = CatheterNavEnv(), CatheterNavEnv()
+    skipped = 0
+    for e in (fast, full):
+        e.reset(seed=0, options={"start": 2, "target": 4})
+    rng = np.random.default_rng(5)
+    for _ in range(400):
+        a = rng.uniform(-1, 1, 3)
+        a[2] = 0.2 + 0.8 * abs(a[2])
+        full.engine._clearance_lb[:] = -np.inf  # force the exact query every step
+        _, r1, te1, tr1, i1 = fast.step(a)
+        _, r2, te2, tr2, i2 = full.step(a)
+        skipped += int(fast.engine._clearance_lb[0] != full.engine._clearance_lb[0])
+        assert (r1, te1, tr1) == (r2, te2, tr2)
+        for key in ("penetration", "in_contact", "collision", "collision_force"):
+            assert i1[key] == i2[key], key
+        if te1 or tr1:
+            break
+    assert te1 and i1["collision"]  # the random walk ends on the wall: contacts were compared
+    assert skipped > 10  # and many steps did skip the query
