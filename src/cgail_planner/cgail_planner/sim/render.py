@@ -33,10 +33,10 @@ __all__ = ["VIEWS", "heartbeat_phases", "main", "render_anatomy"]
 VIEWS: dict[str, tuple[float, float]] = {
     "anterior": (8.0, -90.0),
     "left-lateral": (8.0, 0.0),
-    "root": (20.0, -120.0),
+    "root": (15.0, -60.0),
 }
 """(elevation, azimuth) in degrees of the matplotlib camera for each named view (LPS frame).
-"root" is a close-up of the aortic root (sinuses, coronary ostia) from anterior-right."""
+"root" is a close-up of the aortic root (sinuses, coronary ostia) from anterior-left."""
 
 _BRANCH_COLOURS = {"left": "#1f5fd6", "right": "#1a9e3a"}
 
@@ -142,6 +142,10 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
         cam = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
         light = cam + np.array([0.0, 0.0, 0.8])
         light /= np.linalg.norm(light)
+        c_view, h_view = centre, half
+        if view == "root":
+            c_view = (anatomy.annulus_center + 0.012 * anatomy.root_axis) * mm
+            h_view = 24.0
         alpha = 0.45 if view == "root" else 0.30
         show = np.ones(len(faces), dtype=bool)
         if view == "root":
@@ -165,9 +169,18 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
             colour = plt.get_cmap("viridis")(p_idx / max(1, len(phases) - 1))
             ax.add_collection3d(Line3DCollection(pv[edges], colors=[colour], linewidths=0.3,
                                                  alpha=0.6))
+        def clip(pts: np.ndarray, view: str = view, c_view: np.ndarray = c_view,
+                 h_view: float = h_view) -> np.ndarray:
+            """Hide overlay points outside the close-up box of the root view."""
+            if view != "root":
+                return pts
+            out = np.array(pts, dtype=float, copy=True)
+            out[np.abs(out - c_view).max(axis=1) > h_view] = np.nan
+            return out
+
         if centerlines:
             for branch, cl in centerlines.items():
-                p = cl.points * mm
+                p = clip(cl.points * mm)
                 ax.plot(p[:, 0], p[:, 1], p[:, 2], color=_BRANCH_COLOURS.get(branch, "k"),
                         lw=2.0, label=f"centreline {branch}")
         for branch, o in anatomy.ostia.items():
@@ -177,25 +190,22 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
                        label=f"{branch} ostium", depthshade=False)
         if scen is not None:
             targets, starts = scen
-            ax.scatter(targets[:, 0] * mm, targets[:, 1] * mm, targets[:, 2] * mm, s=70,
-                       marker="*", color="gold", edgecolors="k", label="targets",
-                       depthshade=False)
-            ax.scatter(starts[:, 0] * mm, starts[:, 1] * mm, starts[:, 2] * mm, s=40,
-                       marker="^", color="k", label="starts", depthshade=False)
+            tg = clip(targets * mm)
+            st = clip(starts * mm)
+            ax.scatter(tg[:, 0], tg[:, 1], tg[:, 2], s=70, marker="*", color="gold",
+                       edgecolors="k", label="targets", depthshade=False)
+            ax.scatter(st[:, 0], st[:, 1], st[:, 2], s=40, marker="^", color="k",
+                       label="starts", depthshade=False)
         else:
-            s = anatomy.start_point * mm
+            s = clip(anatomy.start_point[None] * mm)[0]
             ax.scatter([s[0]], [s[1]], [s[2]], s=40, marker="^", color="k", label="start",
                        depthshade=False)
         if rollout is not None and len(rollout):
-            r = np.asarray(rollout, dtype=float).reshape(-1, 3) * mm
+            r = clip(np.asarray(rollout, dtype=float).reshape(-1, 3) * mm)
             ax.plot(r[:, 0], r[:, 1], r[:, 2], color="m", lw=1.6, label="catheter tip")
-        c, h = centre, half
-        if view == "root":
-            c = (anatomy.annulus_center + 0.012 * anatomy.root_axis) * mm
-            h = 24.0
-        ax.set_xlim(c[0] - h, c[0] + h)
-        ax.set_ylim(c[1] - h, c[1] + h)
-        ax.set_zlim(c[2] - h, c[2] + h)
+        ax.set_xlim(c_view[0] - h_view, c_view[0] + h_view)
+        ax.set_ylim(c_view[1] - h_view, c_view[1] + h_view)
+        ax.set_zlim(c_view[2] - h_view, c_view[2] + h_view)
         ax.set_box_aspect((1, 1, 1), zoom=1.25)
         ax.view_init(elev=elev, azim=azim)
         ax.set_xlabel("x left (mm)", fontsize=7)
