@@ -124,7 +124,7 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
             msg = T['std_msgs/msg/String'](data=json.dumps(info))
             writer.write(c_ep, t0, TYPESTORE.serialize_cdr(msg, 'std_msgs/msg/String'))
             for t in range(len(ep.alpha)):
-                ns = t0 + int(round((t + 1) * dt * 1e9))
+                ns = t0 + round((t + 1) * dt * 1e9)
                 hdr = Header(stamp=_stamp(ns), frame_id='phantom')
                 p, q = ep.tip_position[t], ep.tip_quaternion[t]
                 pose = T['geometry_msgs/msg/PoseStamped'](header=hdr, pose=T[
@@ -159,8 +159,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     try:
         heads: list[dict[str, Any]] = []
         rows: dict[str, list[list[Any]]] = {}
-        for conn, ns, raw in reader.messages():
-            msg = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
+        for conn, _, raw in reader.messages():
+            msg: Any = TYPESTORE.deserialize_cdr(raw, conn.msgtype)
             if conn.topic == 'demo/episode':
                 heads.append(json.loads(msg.data))
                 rows = {'pose': [], 'act': [], 'tgt': []}

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         episodes, stats = record_episodes(env, args.episodes, args.seed)
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy=args.anatomy, mode='static',
-                       dt=env.unwrapped.engine.config.dt)
+                       dt=env.config.dt)
     except (LearningError, ValueError) as exc:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2

@@ -56,7 +56,8 @@ class ExpertConfig:
                              f'{self.replan_every}')
 
 
-_GRID = np.array([(a, b) for a in (-1.0, -0.5, 0.0, 0.5, 1.0) for b in (-1.0, -0.5, 0.0, 0.5, 1.0)])
+_LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
+_GRID = np.array([(a, b) for a in _LEVELS for b in _LEVELS])
 
 
 class ScriptedExpert:
