@@ -281,7 +281,8 @@ class NavEngine:
             self.contact_force[i] = c.force
             self.penetration[i] = c.penetration
             self.in_contact[i] = c.in_contact
-            self._clearance_lb[i] = c.clearance
+            # an unknown (infinite: nothing within the search radius) clearance proves nothing
+            self._clearance_lb[i] = c.clearance if math.isfinite(c.clearance) else -np.inf
         self._cast_rays(np.arange(n))
         rcfg = cfg.reward
         collision = non_minor_collision(self.contact_force, self.penetration, rcfg)
