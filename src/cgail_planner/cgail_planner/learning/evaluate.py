@@ -97,7 +97,8 @@ def summarize(trials: list[Trial]) -> dict[str, float]:
     return {
         'n': len(trials), 'success_rate': float(np.mean([t.success for t in trials])),
         'collision_rate': float(np.mean([t.collision for t in trials])),
-        'T_s_all': med([t.timesteps for t in trials]), 'T_s_succ': med([t.timesteps for t in succ]),
+        'T_s_all': med([t.timesteps for t in trials]),
+        'T_s_succ': med([t.timesteps for t in succ]),
         'T_a_all_mm': med([t.targeting_error_mm for t in trials]),
         'T_a_succ_mm': med([t.targeting_error_mm for t in succ]),
     }
