@@ -637,9 +637,11 @@ def _save_cached(anatomy: Anatomy, path: Path | None) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, **{k: getattr(anatomy, k) for k in _ARRAYS},
-                 **{f"ostium_{s}": anatomy.ostia[s] for s in ("left", "right")},
-                 **{f"ostium_vertex_{s}": anatomy.ostium_vertices[s] for s in ("left", "right")})
+        arrays: dict[str, np.ndarray] = {k: np.asarray(getattr(anatomy, k)) for k in _ARRAYS}
+        for side in ("left", "right"):
+            arrays[f"ostium_{side}"] = np.asarray(anatomy.ostia[side])
+            arrays[f"ostium_vertex_{side}"] = np.asarray(anatomy.ostium_vertices[side])
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]  # numpy stubs mistype **kwds
         os.replace(tmp, path)
     except OSError:
         pass

@@ -204,8 +204,11 @@ def _save_disk(key: str, lines: dict[str, Centerline]) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
-        np.savez(tmp, **{f"{b}_points": c.points for b, c in lines.items()},
-                 **{f"{b}_radii": c.radii for b, c in lines.items()})
+        arrays: dict[str, np.ndarray] = {}
+        for b, c in lines.items():
+            arrays[f"{b}_points"] = c.points
+            arrays[f"{b}_radii"] = c.radii
+        np.savez(tmp, **arrays)  # type: ignore[arg-type]  # numpy stubs mistype **kwds
         os.replace(tmp, path)
     except OSError:
         pass
