@@ -32,13 +32,15 @@ with ``dp_i = m_i (v_i^end - v_i^damped)`` the momentum change the constraints (
 contact) gave particle ``i`` during the step (the damping's share is removed), and
 ``f_i^elastic`` the force of the calibrated wall material (stretch, bending and tethering
 springs, see :mod:`cgail_planner.sim.pbd`) on particle ``i`` at the end of the step. ``S`` is the
-set of particles the tip's contact moved during the last step (those within
-``radius + max rest edge length`` of the tip). Wall particles are light (~4e-5 kg each), so
-at the control step of 0.1 s the inertial term is negligible and ``F`` is in effect the elastic
-reaction of the indented wall: it grows with the indentation through the calibrated
-stress-strain curve. (``m dx / dt^2`` of the contact projection alone is not used: with
-unconverged Gauss-Seidel iterations and light particles it is ~1e-4 N whatever the
-indentation.) The paper classifies a collision as minor when ``F < 0.8 N`` and there is no
+set of particles the tip moved during the last step: those moved by a contact whose point on the
+catheter lies within one radius of the tip (the last body point), i.e. by the tip sphere.
+Springs inside ``S`` cancel, so ``F`` is exactly the contact force on ``S`` (the rest of the
+body pressing elsewhere does not count towards the tip's force). Wall particles are light
+(~4e-5 kg each), so at the control step of 0.1 s the inertial term is negligible and ``F`` is
+in effect the elastic reaction of the indented wall: it grows with the indentation through the
+calibrated stress-strain curve. (``m dx / dt^2`` of the contact projection alone is not used:
+with light particles and a few iterations per step it is ~1e-4 N whatever the indentation.)
+The paper classifies a collision as minor when ``F < 0.8 N`` and there is no
 penetration; that decision belongs to the environment.
 
 Penetration is geometric: the depth by which the tip sphere crosses the current wall surface,
@@ -52,7 +54,10 @@ from dataclasses import dataclass
 from numba import njit
 import numpy as np
 
-from cgail_planner.sim.raycast import cst_scalar
+from cgail_planner.sim import raycast
+from cgail_planner.sim.raycast import cst_scalar, drop_stale_numba_cache
+
+drop_stale_numba_cache(__file__, [__file__, raycast.__file__])
 
 __all__ = ["Contact", "narrow_pairs", "project_contacts"]
 
@@ -86,15 +91,16 @@ def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normal
         inv_mass: (N,) inverse masses (0 = kinematic).
         faces: (M, 3) wall triangles.
         face_edges: (M, 3) edge id of local edge k = (f_k, f_{k+1}) of every wall triangle.
-        face_normals, vertex_normals, edge_normals: face and angle-weighted vertex and edge pseudo-normals of the wall
-            at rest (they decide on which side of the surface a segment lies when its closest
-            feature is an edge or a vertex).
+        face_normals, vertex_normals, edge_normals: face normals and angle-weighted vertex and
+            edge pseudo-normals of the wall at rest (they decide on which side of the surface a
+            segment lies when its closest feature is an edge or a vertex).
         pair_face, pair_seg: candidate (triangle, segment) pairs from the broad phase.
         points: (B, 3) body points.
         radius: capsule radius, m.
         dt: (sub)step length, s.
         impulse: (N, 3) accumulates ``m_i dx_i / dt`` of the contact corrections, N s.
-        touched: (N,) int8, set to 1 for every particle a contact moved.
+        touched: (N,) int8, raised to 2 for particles moved by a contact of the tip sphere (the
+            segment point within ``radius`` of the last body point), to 1 for other contacts.
 
     Returns:
         Largest violation ``C`` found in this sweep (before its correction), m.
@@ -158,6 +164,12 @@ def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normal
         wsum = inv_mass[i0] * u * u + inv_mass[i1] * v * v + inv_mass[i2] * w * w
         if wsum <= 0.0:
             continue
+        # Contacts of the tip sphere (segment point within one radius of the last body point)
+        # mark their particles 2, the rest of the body 1.
+        tx = p0x + sp * (p1x - p0x) - points[nb - 1, 0]
+        ty = p0y + sp * (p1y - p0y) - points[nb - 1, 1]
+        tz = p0z + sp * (p1z - p0z) - points[nb - 1, 2]
+        mark = 2 if tx * tx + ty * ty + tz * tz <= radius * radius * (1.0 + 1e-9) else 1
         if cval > worst:
             worst = cval
         # Large corrections (a wall swept into the catheter) are spread over iterations.
@@ -177,7 +189,8 @@ def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normal
             impulse[idx, 0] += imp * nx
             impulse[idx, 1] += imp * ny
             impulse[idx, 2] += imp * nz
-            touched[idx] = 1
+            if touched[idx] < mark:
+                touched[idx] = mark
     return worst
 
 

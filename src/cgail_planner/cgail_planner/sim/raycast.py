@@ -20,11 +20,46 @@ All lengths are in metres.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+import hashlib
+import os
+from pathlib import Path
+
 from numba import njit
 import numpy as np
 
 __all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle", "cpt_scalar",
-           "cst_scalar"]
+           "cst_scalar", "drop_stale_numba_cache"]
+
+
+def drop_stale_numba_cache(module_file: str, dependencies: Sequence[str]) -> None:
+    """Delete a module's numba disk cache when a module its kernels call into has changed.
+
+    numba keys the cache of a function on its own source file only, so a kernel that calls a
+    kernel of another module keeps running the old callee after that module is edited. Call
+    this at import time of every module whose kernels call across modules: it stores a hash of
+    the dependencies' sources next to the cache and removes the module's cache files when the
+    hash differs. Does nothing when ``NUMBA_CACHE_DIR`` is set or the cache is not writable.
+    """
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return
+    here = Path(module_file)
+    digest = hashlib.sha256(b"".join(Path(d).read_bytes() for d in dependencies)).hexdigest()
+    cache_dir = here.parent / "__pycache__"
+    stamp = cache_dir / f"{here.stem}.numba-deps.sha256"
+    try:
+        if stamp.read_text() == digest:
+            return
+    except OSError:
+        pass
+    try:
+        for f in cache_dir.glob(f"{here.stem}.*.nb[ic]"):
+            f.unlink(missing_ok=True)
+        cache_dir.mkdir(exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:
+        pass
+
 
 _LEAF_SIZE = 4
 _STACK = 128

@@ -36,6 +36,7 @@ from cgail_planner.sim.pbd import (
     predict,
     secant_factor,
     solve,
+    solve_vbd,
 )
 from cgail_planner.sim.raycast import WallBVH
 
@@ -234,13 +235,21 @@ class DeformableWall(StaticWall):
                 reach = radius + cfg.contact_margin
                 pf, ps = self._bvh.faces_near_segments(pts, reach)
                 pf, ps = narrow_pairs(x, self._wall_faces, pf, ps, pts, reach)
-            worst = solve(x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
-                          self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k,
-                          topo.tether_k, h, cfg.iterations, self._wall_faces,
-                          self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en,
-                          pf, ps,
-                          pts if pts.shape[0] else np.zeros((1, 3)), radius, self._impulse,
-                          self._touched)
+            points = pts if pts.shape[0] else np.zeros((1, 3))
+            if cfg.solver == "vbd":
+                worst = solve_vbd(
+                    x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
+                    topo.adj_k, topo.adj_rest, topo.adj_edge, self._factor, topo.tether_k,
+                    topo.vertex_order, h, cfg.iterations, self._wall_faces,
+                    self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en, pf, ps,
+                    points, radius, self._impulse, self._touched)
+            else:
+                worst = solve(
+                    x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                    self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k, topo.tether_k, h,
+                    cfg.iterations, self._wall_faces, self._bvh.face_edges, self._rest_fn,
+                    self._rest_vn, self._rest_en, pf, ps, points, radius, self._impulse,
+                    self._touched)
             v_new = (x - self._x_old) / h
             self._dp += topo.mass[:, None] * (v_new - self._v_damped)
             v[:] = v_new
@@ -264,9 +273,9 @@ class DeformableWall(StaticWall):
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
         """Tip sphere vs the deformed wall, with the force from Newton's second law.
 
-        ``force = |sum_{i in S} (dp_i / dt - f_i^elastic)|`` over the particles ``S`` the
-        catheter contact moved during the last :meth:`step` that lie within
-        ``radius + max rest edge`` of the tip (see :mod:`cgail_planner.sim.contact`).
+        ``force = |sum_{i in S} (dp_i / dt - f_i^elastic)|`` over the particles ``S`` the tip
+        sphere (the last body point of the last :meth:`step`) moved, kept when within
+        ``radius + max rest edge`` of ``tip`` (see :mod:`cgail_planner.sim.contact`).
 
         Args:
             tip: (3,) tip centre, m (normally the last body point of the last step).
@@ -280,23 +289,20 @@ class DeformableWall(StaticWall):
         dt = _check_finite_scalar("dt", dt, positive=True)
         self._sync()
         pen, clearance, normal = self._geometric_contact(p[0], r)
-        touched = np.flatnonzero(self._touched)
+        touched = np.flatnonzero(self._touched == 2)
+        if touched.size:  # the tip-sphere contacts of the last step near this tip
+            touched = touched[np.linalg.norm(self.vertices[touched] - p[0], axis=1)
+                              <= r + self.topology.max_edge]
         force = 0.0
         if touched.size:
-            near = touched[np.linalg.norm(self.vertices[touched] - p[0], axis=1)
-                           <= r + self.topology.max_edge]
-            if near.size:
-                if self._forces is None:
-                    topo = self.topology
-                    self._forces = internal_forces(
-                        self.vertices, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
-                        self.pbd_config.stiffening, topo.hinges, topo.hinge_rest,
-                        topo.hinge_k, topo.tether_k)
-                f = (self._dp[near] / dt - self._forces[near]).sum(axis=0)
-                force = float(np.linalg.norm(f))
-                touched = near
-            else:
-                touched = near
+            if self._forces is None:
+                topo = self.topology
+                self._forces = internal_forces(
+                    self.vertices, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                    self.pbd_config.stiffening, topo.hinges, topo.hinge_rest, topo.hinge_k,
+                    topo.tether_k)
+            f = (self._dp[touched] / dt - self._forces[touched]).sum(axis=0)
+            force = float(np.linalg.norm(f))
         in_contact = bool(pen > 0.0 or clearance == 0.0 or touched.size > 0)
         return Contact(penetration=pen, force=force, normal=normal, in_contact=in_contact,
                        clearance=clearance)
