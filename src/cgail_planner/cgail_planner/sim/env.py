@@ -385,7 +385,9 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
                     negative = retraction along the body, bends ignored)
     ===  =========  ====================================================================
 
-    **Observation** ``Box(float32, (41,))`` (:data:`OBS_LAYOUT`):
+    **Observation** ``Box(float32, (41,))`` (:data:`OBS_LAYOUT`; bounds +-1 for the axes, [0, 1]
+    for the rays, [0, 5] for u and +-5 (:data:`OBS_BOUND`) for position and v, which hold by
+    construction since the episode ends 10 mm outside the anatomy's bounding box):
 
     =======  ===============  ====================================================================
     slice    name             content
@@ -409,6 +411,10 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     ``r_target = +1`` when ``||p_t - p_g|| < epsilon``; every step ``r_step = -1e-5``, ``+0.05``
     per newly reached centerline waypoint (within 6 mm, the target's branch, once per episode) and
     ``r_bending = +1e-5`` when ``max(|alpha|, |gamma|) > 0.9 theta_max^t``.
+
+    **Step order**: catheter kinematics -> (dynamic) wall step to ``t + dt`` with the body as
+    capsules, target follows its wall particle -> tip contact -> rays -> reward. Centerline
+    waypoints are those of the rest shape in both modes.
 
     **Termination**: success, non-minor collision or exit. **Truncation**: ``max_steps`` steps
     (2000 = 200 s by default).
