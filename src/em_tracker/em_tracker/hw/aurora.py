@@ -187,6 +187,30 @@ class NdiAurora:
         count = int(self._ndi.ndiGetPHSRNumberOfHandles(self._dev))
         return [int(self._ndi.ndiGetPHSRHandle(self._dev, i)) for i in range(count)]
 
+    def write_srom(self, handle: int, path: str) -> None:
+        """Write a tool definition (SROM image, up to 1 kB) to ``handle`` with PVWR.
+
+        Same commands as ndicapi's ``ndiPVWRFromFile`` (16 x 64 bytes, zero padded), sent
+        through ``ndiCommand``: ``ndiPVWRFromFile`` keeps the GIL while it waits for each
+        reply, which would starve a simulated device running in this interpreter.
+
+        Raises:
+            DeviceError: the file cannot be read or is larger than 1024 bytes, or PVWR fails.
+        """
+        try:
+            with open(path, 'rb') as stream:
+                image = stream.read(1025)
+        except OSError as exc:
+            raise DeviceError(f'PVWR of {path} on handle {handle:02X}: cannot read the SROM '
+                              f'image ({exc})') from exc
+        if len(image) > 1024:
+            raise DeviceError(f'PVWR of {path}: expected an SROM image of at most 1024 bytes, '
+                              f'found a larger file')
+        image = image.ljust(1024, b'\0')
+        for address in range(0, 1024, 64):
+            self.command(f'PVWR:{handle:02X}{address:04X}'
+                         f'{image[address:address + 64].hex().upper()}')
+
     def connect(self) -> list[int]:
         """Run the start-up sequence and return the enabled handles."""
         self.close()
@@ -200,9 +224,7 @@ class NdiAurora:
         if self.settings.baud != 9600:
             self.command(f'COMM:{_BAUD_DIGIT[self.settings.baud]}0000')
         for handle, path in self.settings.srom_files:
-            if self._ndi.ndiPVWRFromFile(self._dev, handle, path) != 0:
-                raise DeviceError(f'PVWR of {path} on handle {handle:02X} failed (error '
-                                  f'{int(self._ndi.ndiGetError(self._dev)):#x})')
+            self.write_srom(handle, path)
         for _ in range(4):  # splitters can reveal more handles once initialised
             pending = self._phsr('02')
             if not pending:

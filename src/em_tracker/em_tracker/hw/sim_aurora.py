@@ -6,10 +6,10 @@ path is published through a stable symlink, like ``/dev/serial/by-id/...`` of a 
 so that :meth:`SimAurora.reconnect` can model an unplug/replug: a new pty appears behind the
 same name and the device is back in its power-on state.
 
-Behaviour (as a real Aurora): power-on -> ``INIT:`` -> setup mode (``PHSR``, ``PINIT``,
-``PENA``, ``PDIS``, ``PHF``, ``COMM``, ``VER``, ``BEEP``) -> ``TSTART:`` -> tracking mode
-(``TX``, ``BX``, ``TSTOP``). Commands in the wrong mode get ``ERROR0C``, unknown commands
-``ERROR01``, a bad command CRC ``ERROR04``. ``COMM`` is acknowledged with ``OKAY`` and the new
+Behaviour (as a real Aurora): power-on -> ``INIT:`` -> setup mode (``PHSR``, ``PVWR``,
+``PINIT``, ``PENA``, ``PDIS``, ``PHF``, ``COMM``, ``VER``, ``BEEP``) -> ``TSTART:`` ->
+tracking mode (``TX``, ``BX``, ``TSTOP``). Commands in the wrong mode get ``ERROR0C``, unknown
+commands ``ERROR01``, a bad command CRC ``ERROR04``. ``COMM`` is acknowledged with ``OKAY`` and the new
 baud rate is recorded but ignored, since a pty has no line speed. The device produces frames at
 ``frame_rate_hz`` from ``TSTART``; ``TX``/``BX`` return the latest one, with the frame number.
 
@@ -149,6 +149,7 @@ class _Port:
     initialized: bool = False
     enabled: bool = False
     priority: str = ''
+    srom: bytearray = field(default_factory=lambda: bytearray(1024))
 
 
 @dataclass
@@ -473,6 +474,23 @@ class SimAurora:
         if isinstance(port, bytes):
             return port
         port.enabled = False
+        return self._ok()
+
+    def _cmd_pvwr(self, params: str) -> bytes:
+        """``PVWR:hhAAAA<128 hex>``: write 64 bytes of a tool definition (SROM image)."""
+        if self.tracking:
+            return api.encode_error(api.ERR_INVALID_MODE)
+        port = self._port(params)
+        if isinstance(port, bytes):
+            return port
+        try:
+            address = int(params[2:6], 16)
+            data = bytes.fromhex(params[6:])
+        except ValueError:
+            return api.encode_error(api.ERR_PARAMETER_RANGE)
+        if len(params) != 6 + 128 or address % 64 or address + 64 > len(port.srom):
+            return api.encode_error(api.ERR_PARAMETER_RANGE)
+        port.srom[address:address + 64] = data
         return self._ok()
 
     def _cmd_phf(self, params: str) -> bytes:

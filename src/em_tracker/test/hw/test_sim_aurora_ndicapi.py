@@ -267,3 +267,25 @@ def test_sim_aurora_console_entry_prints_the_port(tmp_path):
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=5) == 0
     assert not link.exists()
+
+
+def test_srom_image_written_with_pvwr_before_pinit(sim, tmp_path):
+    rom = bytes(range(256)) * 3 + b'\xa5' * 100  # 868 bytes, padded to 1024 by ndicapi
+    path = tmp_path / 'tool.rom'
+    path.write_bytes(rom)
+    device = NdiAurora(AuroraSettings(port=sim.port, srom_files=((HANDLE, str(path)),)))
+    try:
+        assert device.connect() == [HANDLE]
+    finally:
+        device.close()
+    names = [c.split(':')[0] for c in sim.stats.commands]
+    assert names.count('PVWR') == 16 and names.index('PVWR') < names.index('PINIT')
+    assert bytes(sim.ports[HANDLE].srom) == rom + bytes(1024 - len(rom))
+
+
+def test_srom_write_failure_is_reported(sim, tmp_path):
+    device = NdiAurora(AuroraSettings(port=sim.port,
+                                      srom_files=((0x0B, str(tmp_path / 'none.rom')),)))
+    with pytest.raises(DeviceError, match='cannot read the SROM image'):
+        device.connect()
+    device.close()
