@@ -11,7 +11,8 @@ Behaviour (as a real Aurora): power-on -> ``INIT:`` -> setup mode (``PHSR``, ``P
 tracking mode (``TX``, ``BX``, ``TSTOP``). Commands in the wrong mode get ``ERROR0C``, unknown
 commands ``ERROR01``, a bad command CRC ``ERROR04``. ``COMM`` is acknowledged with ``OKAY``
 and the new baud rate is recorded but ignored, since a pty has no line speed. The device
-produces frames at ``frame_rate_hz`` from ``TSTART``; ``TX``/``BX`` return the latest one, with the frame number.
+produces frames at ``frame_rate_hz`` from ``TSTART``; ``TX``/``BX`` return the latest one,
+with its frame number.
 
 Pose source: a callable ``t -> (position_mm, quat_wxyz)`` (``t`` in seconds since
 ``TSTART``), e.g. a :class:`ScriptedTrajectory` or a wrapper around the simulator's tip pose.
