@@ -208,6 +208,7 @@ class GuiServer:
         resync = [True]
         self._wakers.add(wake)
         reader = asyncio.create_task(self._read(ws, wake, resync))
+        reader.add_done_callback(self._reader_done)
         try:
             await self._send_loop(ws, wake, resync)
         except ConnectionClosed:
@@ -240,6 +241,10 @@ class GuiServer:
             await ws.send(encode_state(items, full=full, source=source, epoch=current))
             self.stats.messages_sent += 1
             sent, epoch, last = versions, current, time.monotonic()
+
+    def _reader_done(self, task: asyncio.Task[None]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            self._log('error', f'page reader stopped: {task.exception()!r}')
 
     async def _read(self, ws: ServerConnection, wake: asyncio.Event,
                     resync: list[bool]) -> None:

@@ -225,8 +225,13 @@ class GuiNode(Node):
         return f'http://{f"[{host}]" if ":" in host else host}:{self.port}/'
 
     def _log(self, level: str, text: str) -> None:
-        log = self.get_logger()
-        {'info': log.info, 'warn': log.warning, 'error': log.error}.get(level, log.info)(text)
+        # one call site per severity: rclpy refuses a severity change at the same call site
+        if level == 'error':
+            self.get_logger().error(text)
+        elif level == 'warn':
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
 
     def _warn(self, text: str) -> None:
         key = text[:40]
