@@ -86,6 +86,7 @@ def test_world_is_cached_and_shared() -> None:
     assert load_world("default") is WORLD
 
 
+@pytest.mark.slow  # builds a second mesh and its Voronoi centerlines (~10 s without disk cache)
 def test_second_anatomy_builds_scenarios() -> None:
     from cgail_planner.sim.anatomy import ANATOMY_NAMES
 
