@@ -86,7 +86,7 @@ intCam.layers.enable(INT);
 const controls = extRenderer ? new OrbitControls(extCam, extRenderer.domElement) : null;
 if (controls) { controls.enableDamping = false; controls.addEventListener('change', () => dirty.add('camera')); }
 
-const aortaMat = new THREE.MeshPhongMaterial({ color: 0xd9534f, transparent: true, opacity: 0.22,
+const aortaMat = new THREE.MeshPhongMaterial({ color: 0xe06660, transparent: true, opacity: 0.28,
   side: THREE.DoubleSide, depthWrite: false, shininess: 20 });
 const lumenMat = new THREE.MeshPhongMaterial({ color: 0xb8544c, side: THREE.BackSide, shininess: 8,
   emissive: 0x2a0d0b });
@@ -95,7 +95,8 @@ let aortaGeo = null, aortaMesh = null, lumenMesh = null, aortaEdges = null;
 let homeView = null;
 
 const pathMat = new THREE.MeshBasicMaterial({ color: 0x35d0ff });
-let pathMesh = null;
+let pathMesh = null, pathLine = null;
+const pathLineMat = new THREE.LineBasicMaterial({ color: 0x35d0ff });
 const tipGroup = new THREE.Group();
 const tipBall = new THREE.Mesh(new THREE.SphereGeometry(3.5, 24, 16), new THREE.MeshPhongMaterial({ color: 0xff9f1c, emissive: 0x552200 }));
 const tipArrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(), 25, 0xff9f1c, 7, 4.5);
@@ -109,6 +110,7 @@ targetBall.visible = targetZone.visible = false;
 scene.add(targetBall, targetZone);
 const wpBall = new THREE.Mesh(new THREE.SphereGeometry(2.2, 20, 14), new THREE.MeshBasicMaterial({ color: 0xffd43b }));
 wpBall.visible = false;
+wpBall.layers.set(EXT);   // the internal view marks the waypoint in its overlay
 scene.add(wpBall);
 const TRAIL_MAX = 4000;
 const trail = [];
@@ -128,7 +130,7 @@ function pushTrail(p) {
 }
 
 function resetScene() {
-  if (pathMesh) { scene.remove(pathMesh); pathMesh.geometry.dispose(); pathMesh = null; }
+  if (pathMesh) { scene.remove(pathMesh, pathLine); pathMesh.geometry.dispose(); pathLine.geometry.dispose(); pathMesh = pathLine = null; }
   tipGroup.visible = targetBall.visible = targetZone.visible = wpBall.visible = false;
   G.drawn.pathPoints = 0; G.drawn.target = false; G.drawn.waypoint = false;
 }
@@ -158,7 +160,7 @@ function drawMesh(m) {
   scene.add(aortaMesh, lumenMesh, aortaEdges);
   G.drawn.meshVertices = m.vertex_count; G.drawn.meshFaces = m.face_count;
   const bs = aortaGeo.boundingSphere;
-  homeView = { target: bs.center.clone(), position: bs.center.clone().add(new THREE.Vector3(0, -bs.radius * 2.6, bs.radius * 0.35)) };
+  homeView = { target: bs.center.clone(), position: bs.center.clone().add(new THREE.Vector3(0, -bs.radius * 2.05, bs.radius * 0.3)) };
   resetView();
 }
 function resetView() {
@@ -177,12 +179,16 @@ function applyDeform(d) {
   G.drawn.deformT = d.t;
 }
 function drawPath(p) {
-  if (pathMesh) { scene.remove(pathMesh); pathMesh.geometry.dispose(); pathMesh = null; }
+  if (pathMesh) { scene.remove(pathMesh, pathLine); pathMesh.geometry.dispose(); pathLine.geometry.dispose(); pathMesh = pathLine = null; }
   G.drawn.pathPoints = 0;
   if (!p || p.points.length < 2) return;
   const curve = new THREE.CatmullRomCurve3(p.points.map(v3), false, 'centripetal');
   pathMesh = new THREE.Mesh(new THREE.TubeGeometry(curve, Math.min(1200, p.points.length * 4), 0.9, 8, false), pathMat);
-  scene.add(pathMesh);
+  pathMesh.layers.set(EXT);
+  // the internal view gets a thin line: a tube right in front of the camera would hide the lumen
+  pathLine = new THREE.Line(new THREE.BufferGeometry().setFromPoints(curve.getPoints(Math.min(2000, p.points.length * 8))), pathLineMat);
+  pathLine.layers.set(INT);
+  scene.add(pathMesh, pathLine);
   G.drawn.pathPoints = p.points.length;
 }
 function drawTip(t) {
@@ -234,7 +240,7 @@ function drawOverlay() {
     octx.setLineDash(frac === 1 ? [] : [4, 4]);
     octx.beginPath(); octx.arc(cx, cy, R * frac, 0, 2 * Math.PI); octx.stroke();
     octx.fillStyle = 'rgba(255,255,255,0.6)'; octx.font = '11px system-ui'; octx.textAlign = 'left';
-    octx.fillText(`${Math.round(maxBend * frac * DEG)}\u00b0`, cx + R * frac * 0.707 + 3, cy - R * frac * 0.707 - 3);
+    octx.fillText(`${Math.round(maxBend * frac * DEG)}\u00b0`, cx - R * frac * 0.383 + 3, cy + R * frac * 0.924 - 3);
   }
   octx.setLineDash([]);
   // heading crosshair
@@ -284,7 +290,7 @@ function drawOverlay() {
   }
   // tip axes legend
   octx.fillStyle = 'rgba(230,237,243,0.55)'; octx.font = '11px system-ui'; octx.textAlign = 'left';
-  octx.fillText('right = tip x   up = tip z   centre = heading (tip y)', 8, h - 8);
+  octx.fillText('+ heading (tip y) \u00b7 right = tip x \u00b7 up = tip z \u00b7 dots: distance to the wall along rays, mm \u00b7 rings: bend range', 8, h - 8);
 }
 
 function readouts() {
@@ -303,7 +309,7 @@ function readouts() {
   bend.title = b ? `alpha ${(b.alpha * DEG).toFixed(1)} deg, gamma ${(b.gamma * DEG).toFixed(1)} deg` : '';
   bend.className = 'v ' + (b && b.magnitude > maxBend ? 'bad' : '');
   const wp = $('ro-waypoint');
-  wp.textContent = g.waypoint ? `${(g.waypoint.distance * MM).toFixed(0)} mm, ${(g.waypoint.angle * DEG).toFixed(0)}\u00b0 off axis` : '\u2013';
+  wp.textContent = g.waypoint ? `${(g.waypoint.distance * MM).toFixed(0)} mm at ${(g.waypoint.angle * DEG).toFixed(0)}\u00b0` : '\u2013';
 }
 
 // ------------------------------------------------------------------ status panels
