@@ -62,6 +62,7 @@ drop_stale_numba_cache(__file__, [__file__, contact.__file__, raycast.__file__])
 #: ``g(_Z_MAX) ~ 29.5`` (strain 0.32 for b = 15.7, far past physiological stretch), which keeps
 #: forces finite when a coarse mesh is indented locally.
 _Z_MAX = 5.0
+_G_MAX = math.expm1(_Z_MAX) / _Z_MAX
 
 __all__ = [
     "PBDConfig",
@@ -78,14 +79,15 @@ __all__ = [
 class PBDConfig:
     """Material and solver parameters of the PBD wall (SI units)."""
 
-    youngs_modulus: float = 0.5e6
-    """Small-strain Young's modulus E of the wall material, Pa (0.5 MPa; estimate from the
-    Moens-Korteweg wave speed, see ANATOMY.md); in [1e3, 1e8]. Calibrate with
-    :mod:`cgail_planner.sim.calibration`."""
-    stiffening: float = 15.7
-    """Fung exponent b of the stress-strain curve ``sigma = E / b (exp(b eps) - 1)``
-    (dimensionless; 15.7 puts 80 kPa at a stretch of 1.08 with E = 0.5 MPa, Jadidi 2020,
-    PMC6982607); in [0, 100]. 0 gives a linear material."""
+    youngs_modulus: float = 0.4958e6
+    """Small-strain Young's modulus E of the spring-network material, Pa; in [1e3, 1e8].
+    Default: :func:`cgail_planner.sim.calibration.calibrate` fitted to the default target curve
+    (0.5 MPa small-strain, an estimate from the Moens-Korteweg wave speed, see ANATOMY.md, and
+    80 kPa at stretch 1.08, Jadidi 2020, PMC6982607): 0.4958 MPa, rms error 0.02 %."""
+    stiffening: float = 15.67
+    """Fung exponent b of the material law ``sigma = E / b (exp(b eps) - 1)``
+    (dimensionless); in [0, 100]; 0 gives a linear material. Default: the same calibration
+    (the target curve itself has b = 15.705)."""
     thickness: float = 0.0025
     """Wall thickness h, m (2.5 mm; MESA, Turkbey 2014); in [0.1 mm, 10 mm]."""
     density: float = 1100.0
@@ -456,7 +458,7 @@ def solve(x, inv_mass, rest, edges, edge_rest, edge_k, factor, hinges, hinge_res
 @njit(cache=True)
 def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_edge, factor,
               tether_k, order, dt, iterations, faces, face_edges, face_normals, vertex_normals,
-              edge_normals, pair_face, pair_seg, points, radius, impulse, touched):
+              edge_normals, pair_face, pair_seg, points, radius, impulse, touched, exact_b=0.0):
     """Vertex-block Gauss-Seidel solve of one (sub)step (in place); returns the contact violation.
 
     Each sweep visits the particles (colour order) and moves particle i by one Newton step of
@@ -464,7 +466,9 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
     ``E_i = m_i / (2 dt^2) |x_i - y_i|^2 + k_t / 2 |x_i - r_i|^2 + sum_s k_s / 2 (L_s - L0_s)^2``
     (``y`` the inertial prediction, the sum over the springs at i), with the spring Hessian
     ``k n n^T + k max(0, 1 - L0 / L) (I - n n^T)`` (projected to positive semi-definite).
-    The contact projections follow each sweep, and twice more at the end.
+    The contact projections follow each sweep, and twice more at the end. With
+    ``exact_b > 0`` the stretch springs use the exact stiffening law and its tangent inside
+    the sweep instead of the lagged secant ``factor`` (costlier: used by the calibration).
     """
     n = x.shape[0]
     y = x.copy()
@@ -500,20 +504,37 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
                 if ln < 1e-15:
                     continue
                 e = adj_edge[a]
-                k = adj_k[a] * factor[e] if e >= 0 else adj_k[a]
                 l0 = adj_rest[a]
                 inv = 1.0 / ln
                 nx = dx * inv
                 ny = dy * inv
                 nz = dz * inv
-                fs = k * (ln - l0)
+                if exact_b > 0.0 and e >= 0:
+                    # Exact stiffening law: force k L0 / b expm1(z), tangent k exp(z).
+                    z = exact_b * (ln - l0) / l0
+                    if z <= 0.0:
+                        k = adj_k[a]
+                        fs = k * (ln - l0)
+                        kt = k
+                    elif z <= _Z_MAX:
+                        k = adj_k[a] * np.expm1(z) / z
+                        fs = k * (ln - l0)
+                        kt = adj_k[a] * np.exp(z)
+                    else:
+                        k = adj_k[a] * _G_MAX
+                        fs = k * (ln - l0)
+                        kt = k
+                else:
+                    k = adj_k[a] * factor[e] if e >= 0 else adj_k[a]
+                    fs = k * (ln - l0)
+                    kt = k
                 g0 += fs * nx
                 g1 += fs * ny
                 g2 += fs * nz
-                c = k * (1.0 - l0 * inv)
+                c = fs * inv  # geometric stiffness k (1 - L0 / L), clamped to PSD
                 if c < 0.0:
                     c = 0.0
-                kn = k - c
+                kn = kt - c
                 h00 += kn * nx * nx + c
                 h11 += kn * ny * ny + c
                 h22 += kn * nz * nz + c
