@@ -41,6 +41,12 @@ arch width / height                        72 / 45 mm  ESTIMATE (public syntheti
                                                        ``AnatomyParams.arch_height``)
 =========================================  ==========  ===========================================
 
+The second built-in anatomy, "elongated", is the unfolded aorta of an older / hypertensive
+patient: ascending length 50 -> 68 mm, ascending diameter 31 -> 35 mm, sinus diameter
+31 -> 34 mm, STJ diameter 25 -> 26.5 mm, root tilt 25 -> 15 deg, arch width 72 -> 62 mm
+(narrower), arch height 45 -> 62 mm (deeper), annulus-to-BCT 90 -> 112 mm, LCCA-LSA spacing
+17 -> 19 mm, BCT take-off 45 -> 30 deg; everything else as the default.
+
 Modelling choices that are NOT from a source (estimates): the ascending length (50 mm from the
 annulus to the arch start), the arch plane rotation (60 deg from coronal), the root tilt
 (25 deg towards right-anterior), the sinus bulge shape, the branch-stub length (25 mm beyond the
@@ -276,7 +282,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / float(np.linalg.norm(v))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Anatomy:
     """A watertight lumen surface plus the landmarks the simulator needs (see sim_iface.md).
 
@@ -298,6 +304,8 @@ class Anatomy:
         ostium_vertices: {'left', 'right'} nearest wall vertex to each ostium.
         start_point: (3,) lumen point in the descending aorta near the exit end.
         start_direction: (3,) unit lumen direction there (cranial).
+
+    All arrays are read-only copies. Equality and hashing are by identity (``eq=False``).
     """
 
     name: str
@@ -317,9 +325,23 @@ class Anatomy:
     _mesh: Any = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        for name in ("vertices", "faces", "wall_face_mask", "fixed_vertices",
-                     "annulus_vertices"):
-            getattr(self, name).setflags(write=False)
+        # Own read-only copies, so neither the caller nor the simulator can change the rest
+        # shape under the other's feet.
+        dtypes = {"vertices": np.float64, "faces": np.int64, "wall_face_mask": bool,
+                  "exit_point": np.float64, "exit_normal": np.float64,
+                  "fixed_vertices": np.int64, "annulus_vertices": np.int64,
+                  "annulus_center": np.float64, "root_axis": np.float64,
+                  "start_point": np.float64, "start_direction": np.float64}
+        for name, dtype in dtypes.items():
+            arr = np.array(getattr(self, name), dtype=dtype)
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+        ostia = {}
+        for side, point in self.ostia.items():
+            arr = np.array(point, dtype=np.float64)
+            arr.setflags(write=False)
+            ostia[side] = arr
+        object.__setattr__(self, "ostia", ostia)
         mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         object.__setattr__(self, "_mesh", mesh)
 
