@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import trimesh
@@ -103,17 +101,21 @@ def test_wall_samples_lie_on_wall_faces_only(world: tuple[Anatomy, dict[str, Cen
 
 
 def test_unreachable_ostium_raises() -> None:
-    anatomy = build_anatomy("default")
-    # An ostium landmark moved far outside the vessel: the nearest medial node is then in the
-    # wrong place; an ostium inside a disconnected part cannot be built from the built-ins, so
-    # check the error path on a vessel with a separate closed blob instead.
+    # A closed tube plus a separate closed blob holding the "left ostium": no lumen path.
+    tube = trimesh.creation.cylinder(radius=0.012, height=0.1, sections=24)
+    tube = tube.subdivide().subdivide()
     blob = trimesh.creation.icosphere(subdivisions=2, radius=0.006)
-    blob.apply_translation(anatomy.exit_point + np.array([0.08, 0.0, 0.0]))
-    verts = np.vstack([anatomy.vertices, blob.vertices])
-    faces = np.vstack([anatomy.faces, blob.faces + len(anatomy.vertices)])
-    mask = np.concatenate([anatomy.wall_face_mask, np.ones(len(blob.faces), dtype=bool)])
-    broken = dataclasses.replace(
-        anatomy, name="broken", vertices=verts, faces=faces, wall_face_mask=mask,
-        ostia={"left": blob.vertices[0].copy(), "right": anatomy.ostia["right"]})
+    blob.apply_translation([0.05, 0.0, 0.0])
+    verts = np.vstack([tube.vertices, blob.vertices])
+    faces = np.vstack([tube.faces, blob.faces + len(tube.vertices)])
+    z = np.array([0.0, 0.0, 1.0])
+    anatomy = Anatomy(
+        name="broken", vertices=verts, faces=faces,
+        wall_face_mask=np.ones(len(faces), dtype=bool), exit_point=np.array([0.0, 0.0, -0.05]),
+        exit_normal=-z, fixed_vertices=np.zeros(0, dtype=np.int64),
+        annulus_vertices=np.zeros(0, dtype=np.int64), annulus_center=np.array([0, 0, 0.05]),
+        root_axis=-z, ostia={"left": blob.vertices[0].copy(), "right": np.array([0.012, 0, 0.04])},
+        ostium_vertices={"left": 0, "right": 0}, start_point=np.array([0.0, 0.0, -0.03]),
+        start_direction=z)
     with pytest.raises(CenterlineError, match="left ostium to be reachable"):
-        compute_centerlines(broken)
+        compute_centerlines(anatomy)
