@@ -1,0 +1,188 @@
+"""The simulated phantom's physics: a follow-the-leader catheter driven by the rig's actuators.
+
+Pure numpy (with the simulator's wall); no rclpy. :mod:`cgail_planner.nodes.phantom_node` feeds
+it the driver's measured insertion and the PAMs' measured bend and sends the resulting tip pose
+to the simulated Aurora.
+
+* **Insertion.** The catheter body is a :class:`~cgail_planner.sim.catheter.CatheterBatch`
+  chain. A measured insertion increase ``dl`` advances the tip along its heading in sub-steps of
+  at most ``max_substep``; a decrease retracts it along its own body (follow-the-leader).
+* **Bend.** The steerable segment bent by ``(alpha, gamma)`` (rad) is an arc of constant
+  curvature ``|bend| / L``: per inserted ``dl`` the heading turns by ``alpha dl / L`` about
+  ``x_A`` and ``gamma dl / L`` about ``z_A`` (``R <- R Rx(alpha dl/L) Rz(gamma dl/L)``), so the
+  tip curves only while it advances, as in the paper's FTL model.
+* **Wall.** After each step the tip sphere (catheter radius) is tested against the wall (static,
+  or the deformable wall stepped with the heartbeat and the body): a penetrating tip is pushed
+  back into the lumen along the wall normal and its heading loses its outward component (it slides
+  along the wall). ``contacts`` counts those events.
+* **Target.** Attached to a wall particle: in dynamic mode it moves with the wall.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from cgail_planner.sim.catheter import bend_rotation, CatheterBatch, CatheterConfig
+from cgail_planner.sim.wall import DeformableWall
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PhantomConfig:
+    """Physics settings of the simulated phantom."""
+
+    segment_length: float = 0.050
+    """Steerable segment length L, m (paper 50 mm); [1 mm, 0.5 m]."""
+    outer_diameter: float = 0.007
+    """Catheter outer diameter, m (7 mm); (0, 0.02]."""
+    max_substep: float = 0.0005
+    """Largest insertion per integration sub-step, m; [1e-5, 0.005]."""
+    em_noise_rms: float = 0.0005
+    """RMS (3-D) of the EM position noise, m (Aurora: ~0.5 mm); [0, 0.01]."""
+    em_angle_noise_rms: float = 0.005
+    """RMS of the EM orientation noise, rad; [0, 0.1]."""
+
+    def __post_init__(self) -> None:
+        for name, low, high, low_open in (
+                ("segment_length", 1e-3, 0.5, False), ("outer_diameter", 0.0, 0.02, True),
+                ("max_substep", 1e-5, 0.005, False), ("em_noise_rms", 0.0, 0.01, False),
+                ("em_angle_noise_rms", 0.0, 0.1, False)):
+            value = getattr(self, name)
+            ok = (isinstance(value, (int, float)) and math.isfinite(value)
+                  and (value > low if low_open else value >= low) and value <= high)
+            if not ok:
+                raise ValueError(f"{name} must be in {'(' if low_open else '['}{low}, {high}], "
+                                 f"found {value!r}")
+
+
+class PhantomPhysics:
+    """Catheter-in-aorta physics (module docstring).
+
+    Args:
+        config: physics settings.
+        wall: a :class:`~cgail_planner.sim.wall.StaticWall` or ``DeformableWall`` (or None: no
+            wall, free space).
+    """
+
+    def __init__(self, config: PhantomConfig, wall: Any | None = None) -> None:
+        self.config = config
+        self.wall = wall
+        self.radius = 0.5 * config.outer_diameter
+        cat = CatheterConfig(segment_length=config.segment_length,
+                             outer_diameter=config.outer_diameter,
+                             max_insertion_speed=0.1, dt=config.max_substep / 0.1)
+        self.catheter = CatheterBatch(1, cat, capacity=4096)
+        self.time = 0.0
+        self.contacts = 0
+        self.inserted = 0.0
+        self._last_insertion: float | None = None
+
+    def reset(self, position: FloatArray, rotation: FloatArray,
+              introducer_tail: FloatArray) -> None:
+        """Put the tip at a start pose with a straight introducer behind it; wall at rest."""
+        self.catheter.reset_env(0, np.asarray(position, dtype=np.float64),
+                                np.asarray(rotation, dtype=np.float64),
+                                np.asarray(introducer_tail, dtype=np.float64))
+        if self.wall is not None:
+            self.wall.reset()
+        self.time = 0.0
+        self.contacts = 0
+        self.inserted = 0.0
+        self._last_insertion = None
+
+    @property
+    def tip_position(self) -> FloatArray:
+        """(3,) true tip position, m."""
+        return self.catheter.tip_position[0].copy()
+
+    @property
+    def tip_rotation(self) -> FloatArray:
+        """(3, 3) true tip rotation."""
+        return self.catheter.tip_rotation[0].copy()
+
+    def step(self, dt: float, insertion_position: float | None,
+             bend: tuple[float, float]) -> None:
+        """Advance the physics by ``dt`` s.
+
+        Args:
+            dt: time step, s (> 0).
+            insertion_position: the driver's measured catheter position, m (None: no reading
+                yet; the first reading is the reference, no motion).
+            bend: the PAMs' measured ``(alpha, gamma)``, rad.
+        """
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt must be a positive number of seconds, found {dt!r}")
+        self.time += dt
+        if insertion_position is not None and math.isfinite(insertion_position):
+            if self._last_insertion is None:
+                self._last_insertion = insertion_position
+            delta = insertion_position - self._last_insertion
+            self._last_insertion = insertion_position
+            self.move(delta, bend)
+        if isinstance(self.wall, DeformableWall):
+            body = self.catheter.body_points(0, 0.005)
+            self.wall.step(self.time, dt, body, self.radius)
+        self._constrain()
+
+    def move(self, delta: float, bend: tuple[float, float]) -> None:
+        """Insert (``delta > 0``) or retract the catheter by ``delta`` m with the given bend."""
+        cfg = self.config
+        alpha, gamma = (float(b) for b in bend)
+        remaining = float(delta)
+        while abs(remaining) > 1e-12:
+            dl = math.copysign(min(abs(remaining), cfg.max_substep), remaining)
+            remaining -= dl
+            k = abs(dl) / cfg.segment_length
+            self.catheter.step(np.array([alpha * k]), np.array([gamma * k]), np.array([dl]))
+            if dl > 0.0:
+                self.inserted += dl
+            self._constrain()
+
+    def _constrain(self) -> None:
+        if self.wall is None:
+            return
+        tip = self.catheter.tip_position[0]
+        contact = self.wall.tip_contact(tip, self.radius, 0.01)
+        if contact.penetration <= 0.0:
+            return
+        self.contacts += 1
+        normal = np.asarray(contact.normal, dtype=np.float64)
+        norm = float(np.linalg.norm(normal))
+        if norm < 1e-12:
+            return
+        normal = normal / norm
+        i = int(self.catheter.tip_index[0])
+        self.catheter.positions[0, i] = tip - contact.penetration * normal
+        rot = self.catheter.rotations[0, i]
+        heading = rot[:, 1]
+        outward = float(heading @ normal)
+        if outward > 0.0:
+            new_heading = heading - outward * normal
+            n2 = float(np.linalg.norm(new_heading))
+            if n2 > 1e-9:
+                self.catheter.rotations[0, i] = rotate_onto(heading, new_heading / n2) @ rot
+
+    def measured_pose(self, rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
+        """The tip pose as the EM tracker sees it: position and small-angle orientation noise."""
+        cfg = self.config
+        p = self.tip_position + rng.normal(0.0, cfg.em_noise_rms / math.sqrt(3.0), 3)
+        ang = rng.normal(0.0, cfg.em_angle_noise_rms / math.sqrt(2.0), 2)
+        r = self.tip_rotation @ bend_rotation(np.array(ang[0]), np.array(ang[1]))
+        return p, r
+
+
+def rotate_onto(a: FloatArray, b: FloatArray) -> FloatArray:
+    """The smallest rotation taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    s2 = float(v @ v)
+    if s2 < 1e-24:
+        return np.eye(3)
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx * ((1.0 - c) / s2)

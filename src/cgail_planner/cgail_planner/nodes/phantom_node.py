@@ -1,0 +1,292 @@
+"""Phantom node (``phantom``): the simulated world that closes the rig's loop.
+
+Run: ``ros2 run cgail_planner phantom_node`` (pip-only workspace: ``scripts/ros2run
+cgail_planner phantom_node``); normally started by ``invitro_session`` or ``rig_launch
+config/launch/sim_rig.yaml --in-process``.
+
+It hosts the simulated devices in this process and the catheter-in-aorta physics
+(:mod:`cgail_planner.core.phantom`):
+
+* a simulated NDI Aurora on a pty (``em_tracker.hw.sim_aurora``) whose pose source is the true
+  tip pose plus EM noise; the port (a symlink, ``aurora_link``) is published on
+  ``phantom/aurora_port`` for ``aurora_node``'s ``port`` parameter;
+* the simulated PAM regulator bank and the simulated sleeve driver on python-can VIRTUAL buses
+  (``pam_channel``, ``driver_channel``): a virtual bus only connects objects of one process, so
+  ``pam_node`` and ``driver_node`` must run in this process with ``simulate_regulators`` /
+  ``simulate_device`` false (the launcher's ``--in-process`` mode);
+* the physics: the tip advances with the measured ``catheter/insertion_state`` and curves with
+  the measured ``catheter/bend_state`` (per inserted dl the heading turns by bend * dl / L), the
+  wall (static, or deformable + heartbeat) constrains it.
+
+Time: one steady-clock timer steps devices and physics by ``1 / physics_rate_hz`` simulated
+seconds every ``1 / (physics_rate_hz * time_scale)`` wall seconds. With ``publish_clock`` the
+simulated time goes out on ``/clock`` and the other nodes run with ``use_sim_time``, so the whole
+rig runs ``time_scale`` times faster than real time (it slows down, never takes bigger steps, when
+the CPU cannot keep up).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import tempfile
+import threading
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PointStamped, PoseStamped
+import numpy as np
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
+from cgail_planner.core.planner import InvalidInputError, quaternion_from_rotation
+from cgail_planner.nodes import conversions as conv
+
+
+class PhantomNode(Node):
+    """Simulated phantom + devices (module docstring)."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('phantom', **kwargs)
+        d = PhantomConfig()
+        self.config = PhantomConfig(
+            segment_length=conv.declare(self, 'segment_length', d.segment_length,
+                                        'steerable segment length L, m', lo=1e-3, hi=0.5),
+            em_noise_rms=conv.declare(self, 'em_noise_m', d.em_noise_rms,
+                                      'RMS of the EM position noise, m', lo=0.0, hi=0.01),
+            em_angle_noise_rms=conv.declare(self, 'em_angle_noise_rad', d.em_angle_noise_rms,
+                                            'RMS of the EM orientation noise, rad',
+                                            lo=0.0, hi=0.1))
+        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
+        self.mode = conv.declare(self, 'mode', 'static', "'static' (rigid wall) or 'dynamic' "
+                                 '(deformable wall, heartbeat, moving target)')
+        if self.mode not in ('static', 'dynamic'):
+            raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
+        self.start_id = conv.declare(self, 'start_id', 0, 'start configuration', lo=0, hi=99)
+        self.target_id = conv.declare(self, 'target_id', 0, 'target', lo=0, hi=99)
+        self.physics_dt = 1.0 / conv.declare(self, 'physics_rate_hz', 50.0,
+                                             'physics and device step rate, Hz (sim time)',
+                                             lo=1.0, hi=1000.0)
+        self.time_scale = conv.declare(self, 'time_scale', 1.0, 'simulated seconds per wall '
+                                       'second', lo=0.01, hi=100.0)
+        self.publish_clock = conv.declare(self, 'publish_clock', False,
+                                          'publish the simulated time on /clock')
+        link = conv.declare(self, 'aurora_link', '', 'symlink to the simulated Aurora pty '
+                            "('' = <tmp>/cgail_sim_aurora_<pid>)")
+        sim_aurora = conv.declare(self, 'simulate_aurora', True, 'host the simulated Aurora')
+        sim_bank = conv.declare(self, 'simulate_regulators', True,
+                                'host the simulated PAM regulator bank (virtual CAN)')
+        pam_channel = conv.declare(self, 'pam_channel', 'pam0', 'virtual CAN channel of the bank')
+        sim_driver = conv.declare(self, 'simulate_driver', True,
+                                  'host the simulated sleeve driver (virtual CAN)')
+        driver_channel = conv.declare(self, 'driver_channel', 'sleeve_driver',
+                                      'virtual CAN channel of the sleeve driver')
+        self.frame_id = conv.declare(self, 'frame_id', 'phantom', 'frame of published poses')
+        pose_rate = conv.declare(self, 'pose_rate_hz', 10.0, 'rate of phantom/tip_pose (the '
+                                 'true pose), Hz (sim time)', lo=0.1, hi=1000.0)
+        self._pose_every = max(1, round(1.0 / (pose_rate * self.physics_dt)))
+        seed = conv.declare(self, 'seed', 0, 'seed of the EM noise', lo=0, hi=2**31 - 1)
+        diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
+                                   lo=0.05, hi=60.0)
+
+        from cgail_planner.sim.scenarios import load_world
+        from cgail_planner.sim.wall import DeformableWall, StaticWall
+
+        self.world = load_world(anatomy)
+        sc = self.world.scenarios
+        for name, value, n in (('start_id', self.start_id, len(sc.starts)),
+                               ('target_id', self.target_id, len(sc.targets))):
+            if value >= n:
+                raise ValueError(f'{name} must be in [0, {n - 1}], found {value}')
+        wall = StaticWall(self.world.anatomy) if self.mode == 'static' \
+            else DeformableWall(self.world.anatomy)
+        self.physics = PhantomPhysics(self.config, wall)
+        self.rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()
+        self.insertion: float | None = None
+        self.bend = (0.0, 0.0)
+        self.sim_time = 0.0
+        # simulated time starts at the wall-clock time of construction (stamps look like the
+        # rig's; nodes that subtract a wall-clock age from a stamp never go below zero)
+        self._clock_offset = time.time()
+        self._em_cache: tuple[float, np.ndarray, np.ndarray] | None = None
+        self.reset_trial(self.start_id, self.target_id)
+
+        self.devices: list[object] = []
+        self.bank = self.driver = self.aurora = None
+        if sim_bank:
+            from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
+            self.bank = SimRegulatorBank(SimRegulatorConfig(channel=pam_channel))
+        if sim_driver:
+            from catheter_driver.hw.sim_driver import SimulatedDriver
+            self.driver = SimulatedDriver(driver_channel)
+        self.aurora_port = ''
+        if sim_aurora:
+            from em_tracker.hw.sim_aurora import SimAurora
+            link = link or str(Path(tempfile.gettempdir()) / f'cgail_sim_aurora_{os.getpid()}')
+            self.aurora = SimAurora(self._em_pose, link_path=link,
+                                    clock=lambda: self.sim_time).start()
+            self.aurora_port = self.aurora.port
+
+        self._pose_pub = self.create_publisher(PoseStamped, 'phantom/tip_pose', conv.SENSOR_QOS)
+        self._target_pub = self.create_publisher(PointStamped, 'phantom/target',
+                                                 conv.LATCHED_QOS)
+        self._port_pub = self.create_publisher(String, 'phantom/aurora_port', conv.LATCHED_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                               conv.DIAGNOSTICS_QOS)
+        self._clock_pub = self.create_publisher(ClockMsg, '/clock', 10) \
+            if self.publish_clock else None
+        self.create_subscription(JointState, 'catheter/insertion_state', self._on_insertion,
+                                 conv.SENSOR_QOS)
+        self.create_subscription(JointState, 'catheter/bend_state', self._on_bend,
+                                 conv.SENSOR_QOS)
+        self.create_service(Trigger, 'phantom/reset', self._on_reset)
+        self._port_pub.publish(String(data=self.aurora_port))
+        self._ticks = 0
+        self.publish_target()
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
+        self.create_timer(diag_period, self._on_diagnostics, clock=steady)
+        self.get_logger().info(
+            f'phantom: {anatomy} ({self.mode}), start {self.start_id}, target {self.target_id}, '
+            f'aurora port {self.aurora_port or "-"}, x{self.time_scale:g} time'
+            f'{" on /clock" if self.publish_clock else ""}')
+
+    # ------------------------------------------------------------------ trial control
+    def reset_trial(self, start_id: int, target_id: int) -> None:
+        """Put the catheter back at start ``start_id`` with target ``target_id``."""
+        sc = self.world.scenarios
+        if not (0 <= start_id < len(sc.starts) and 0 <= target_id < len(sc.targets)):
+            raise ValueError(f'start_id must be in [0, {len(sc.starts) - 1}] and target_id in '
+                             f'[0, {len(sc.targets) - 1}], found {start_id}, {target_id}')
+        start = sc.starts[start_id]
+        with self._lock:
+            self.start_id, self.target_id = start_id, target_id
+            self.physics.reset(start.position, start.rotation, start.introducer_tail)
+            self.physics._last_insertion = self.insertion  # motion counts from here
+            self._em_cache = None
+        if hasattr(self, '_target_pub'):
+            self.publish_target()
+
+    def target_position(self) -> np.ndarray:
+        """(3,) current target position (moves with its wall particle in dynamic mode), m."""
+        t = self.world.scenarios.targets[self.target_id]
+        wall = self.physics.wall
+        return wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
+
+    def now_msg(self):
+        """Stamp of the simulated time (or the node clock when not publishing /clock)."""
+        return Time(nanoseconds=int((self.sim_time + self._clock_offset) * 1e9)).to_msg()
+
+    # ------------------------------------------------------------------ callbacks
+    def _on_insertion(self, msg: JointState) -> None:
+        try:
+            self.insertion = conv.joint_positions(msg, ['insertion'])[0]
+        except InvalidInputError as exc:
+            self.get_logger().warning(f'insertion state ignored: {exc}',
+                                      throttle_duration_sec=2.0)
+
+    def _on_bend(self, msg: JointState) -> None:
+        try:
+            alpha, gamma = conv.joint_positions(msg, conv.BEND_JOINTS)
+        except InvalidInputError as exc:
+            self.get_logger().warning(f'bend state ignored: {exc}', throttle_duration_sec=2.0)
+            return
+        self.bend = (alpha, gamma)
+
+    def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
+        self.reset_trial(self.start_id, self.target_id)
+        response.success = True
+        response.message = f'reset to start {self.start_id}, target {self.target_id}'
+        return response
+
+    def _on_tick(self) -> None:
+        dt = self.physics_dt
+        if self.bank is not None:
+            self.bank.step(dt)
+        if self.driver is not None:
+            self.driver.step(dt)
+        with self._lock:
+            self.physics.step(dt, self.insertion, self.bend)
+            self.sim_time += dt
+        stamp = self.now_msg()
+        if self._clock_pub is not None:
+            self._clock_pub.publish(ClockMsg(clock=stamp))
+        self._ticks += 1
+        if self._ticks % self._pose_every == 0:
+            self._pose_pub.publish(conv.pose_msg(stamp, self.frame_id,
+                                                 self.physics.tip_position,
+                                                 self.physics.tip_rotation))
+        if self.mode == 'dynamic' and self._ticks % 5 == 0:
+            self.publish_target()
+
+    def publish_target(self) -> None:
+        """Publish the current target on ``phantom/target`` (latched)."""
+        self._target_pub.publish(conv.point_msg(self.now_msg(), self.frame_id,
+                                                self.target_position()))
+
+    def _em_pose(self, t_frame: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pose source of the simulated Aurora: mm and (w, x, y, z), one noise draw per frame."""
+        with self._lock:
+            cache = self._em_cache
+            if cache is None or cache[0] != t_frame:
+                p, r = self.physics.measured_pose(self.rng)
+                x, y, z, w = quaternion_from_rotation(r)
+                cache = (t_frame, p * 1e3, np.array([w, x, y, z]))
+                self._em_cache = cache
+        return cache[1].copy(), cache[2].copy()
+
+    def diagnostics(self) -> DiagnosticArray:
+        """Current diagnostics of the simulated phantom."""
+        p = self.physics.tip_position
+        dist = float(np.linalg.norm(self.target_position() - p))
+        values = [('sim_time_s', f'{self.sim_time:.2f}'), ('mode', self.mode),
+                  ('start_id', self.start_id), ('target_id', self.target_id),
+                  ('tip_m', np.round(p, 5).tolist()), ('target_distance_mm', f'{dist * 1e3:.1f}'),
+                  ('inserted_mm', f'{self.physics.inserted * 1e3:.1f}'),
+                  ('wall_contacts', self.physics.contacts), ('aurora_port', self.aurora_port),
+                  ('bend_rad', [round(b, 4) for b in self.bend]),
+                  ('insertion_m', self.insertion)]
+        level = DiagnosticStatus.OK if self.insertion is not None else DiagnosticStatus.WARN
+        message = 'simulating' if self.insertion is not None else 'no insertion state yet'
+        return conv.diagnostics(self.now_msg(), 'phantom: simulated rig', 'phantom', level,
+                                message, values)
+
+    def _on_diagnostics(self) -> None:
+        self._diag_pub.publish(self.diagnostics())
+
+    def destroy_node(self) -> None:
+        """Stop the simulated devices, then the node."""
+        if self.aurora is not None:
+            self.aurora.close()
+        for dev in (self.bank, self.driver):
+            if dev is not None:
+                dev.stop()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Console script ``phantom_node``."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PhantomNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

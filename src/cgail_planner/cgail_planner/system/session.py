@@ -1,0 +1,343 @@
+"""``invitro_session``: the simulated in-vitro session of the paper (section IV-B), end to end.
+
+    scripts/ws python -m cgail_planner.system.session --policy model.onnx --out runs/invitro
+    scripts/ros2run cgail_planner invitro_session --trials 2 --time-scale 8
+
+The whole simulated rig runs in THIS process (python-can virtual buses only connect objects of one
+process), built from ``config/launch/sim_rig.yaml`` like the launcher's ``--in-process`` mode:
+``phantom`` (simulated Aurora on a pty, regulator bank and sleeve driver on virtual CAN, the
+catheter-in-aorta physics), the real ``aurora`` (ndicapi over the pty), ``pam_controller``,
+``sleeve_driver``, ``teleop``, ``planner`` and the scripted ``operator``, on one multi-threaded
+executor. Protocol: ``--trials`` trials following the C-GAIL path, then as many following the
+centerline (the planner is rebuilt with ``planner_type: centerline``), cycling the 3 starts and 5
+targets; each trial ends when the operator stops (target reached or closest approach passed) or
+at the 3-minute limit, and is recorded to its own bag (``cgail_planner.bags`` recorder). Then the
+offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro numbers side
+by side and write the box plots.
+
+**Time acceleration.** 20 trials of up to 3 minutes cannot run in real time, so the rig runs on
+simulated time: the phantom steps the physics and the simulated devices by fixed simulated
+increments, ``--time-scale`` (default 4) times faster than the wall clock, and publishes
+``/clock``; every node runs with ``use_sim_time``, so their timers, stamps, the operator's
+reaction delay and the 3-minute limit are in simulated seconds. The real nodes and the real
+protocols stay in the loop (ndicapi over the pty, CAN frames, Joy -> teleop -> commands). What
+does not scale: the tracker polls the simulated Aurora on the wall clock (40 Hz wall = 40/scale Hz
+simulated: the simulated Aurora skips frames, counted as dropped) and the rig nodes' own
+watchdogs use wall-clock time (they are only stricter in simulated time). When the CPU cannot
+keep up, simulated time slows down rather than taking bigger steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+import os
+from pathlib import Path
+import sys
+import tempfile
+import threading
+import time
+from typing import Any
+
+TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
+          'planner/suggested_bend', 'phantom/tip_pose')
+CONDITIONS = ('cgail', 'centerline')
+
+
+def default_launch_file() -> Path:
+    """``config/launch/sim_rig.yaml`` of this package (source tree or install share)."""
+    here = Path(__file__).resolve().parents[2] / 'config' / 'launch' / 'sim_rig.yaml'
+    if here.is_file():
+        return here
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        cand = Path(prefix) / 'share' / 'cgail_planner' / 'config' / 'launch' / 'sim_rig.yaml'
+        if prefix and cand.is_file():
+            return cand
+    return here
+
+
+class SimRig:
+    """The simulated rig's nodes in this process, spinning on a background executor.
+
+    Args:
+        launch_file: the rig's launch YAML (``sim_rig.yaml``).
+        overrides: per node name, parameters applied over the launch file's.
+    """
+
+    def __init__(self, launch_file: Path, overrides: dict[str, dict[str, Any]]) -> None:
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        from cgail_planner.system.launch_spec import load_launch_file
+
+        self.spec = load_launch_file(launch_file)
+        self.overrides = overrides
+        rclpy.init()
+        self.executor = MultiThreadedExecutor(num_threads=4)
+        self.nodes: dict[str, Any] = {}
+        self.errors: list[str] = []
+        try:
+            for spec_node in self.spec.nodes:
+                self.add(spec_node.name)
+        except BaseException:
+            self.close()
+            raise
+        self.session = rclpy.create_node('session', parameter_overrides=[
+            rclpy.parameter.Parameter('use_sim_time', value=True)])
+        self.executor.add_node(self.session)
+        self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        import traceback
+
+        import rclpy
+        from rclpy.executors import ExternalShutdownException
+
+        while rclpy.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except (ExternalShutdownException, rclpy.executors.ShutdownException):
+                return
+            except Exception:
+                self.errors.append(traceback.format_exc())
+                print(f'invitro_session: a callback raised:\n{self.errors[-1]}', file=sys.stderr)
+
+    def add(self, name: str, **extra: Any) -> Any:
+        """Build node ``name`` of the launch file (plus ``extra`` parameters) and spin it."""
+        from rclpy.parameter import Parameter
+
+        from cgail_planner.system.launch_spec import load_params_file
+        from cgail_planner.system.launcher import _import_plugin
+
+        spec_node = next(n for n in self.spec.nodes if n.name == name)
+        params: dict[str, Any] = {}
+        if spec_node.parameters_file:
+            params.update(load_params_file(spec_node.parameters_file, name))
+        params.update(spec_node.parameters)
+        params.update(self.overrides.get(name, {}))
+        params.update(extra)
+        node = _import_plugin(spec_node.plugin)(
+            parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+            cli_args=['--ros-args', '-r', f'__node:={name}'])
+        if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
+            node.trigger_configure()
+            node.trigger_activate()
+        self.nodes[name] = node
+        self.executor.add_node(node)
+        return node
+
+    def replace(self, name: str, **extra: Any) -> Any:
+        """Destroy node ``name`` and build it again with ``extra`` parameters."""
+        old = self.nodes.pop(name)
+        self.executor.remove_node(old)
+        old.destroy_node()
+        return self.add(name, **extra)
+
+    def close(self) -> None:
+        """Stop spinning, destroy every node, shut rclpy down."""
+        import rclpy
+
+        self.executor.shutdown()
+        for node in [*self.nodes.values(), getattr(self, 'session', None)]:
+            if node is not None:
+                node.destroy_node()
+        self.nodes.clear()
+        rclpy.try_shutdown()
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
+    """Poll ``predicate`` on the wall clock until it holds or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(poll_s)
+    return predicate()
+
+
+def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit: float,
+              mode: str, log: Callable[[str], None]) -> str:
+    """One trial: reset, record, send the goal, wait for the operator; returns the outcome."""
+    from cgail_planner.bags.record import BagRecorder, RecorderConfig
+    from cgail_planner.nodes import conversions as conv
+
+    phantom, operator, planner = rig.nodes['phantom'], rig.nodes['operator'], rig.nodes['planner']
+    sc = phantom.world.scenarios
+    start_id, target_id = index % len(sc.starts), index % len(sc.targets)
+    phantom.reset_trial(start_id, target_id)
+    operator.reset()
+    t_reset = phantom.sim_time
+    wait_until(lambda: phantom.sim_time - t_reset > 1.0, 30.0)  # poses from the new start
+    recorder = BagRecorder(rig.session, RecorderConfig(output=bag, topics=TOPICS,
+                                                       condition=condition,
+                                                       discovery_period=0.2))
+    wait_until(lambda: len(recorder.topics) >= len(TOPICS), 5.0)
+    time.sleep(0.3)  # let the new subscriptions match
+    failed_before = planner.counts['failed_plans']
+    goal = phantom.target_position()
+    rig.goal_pub.publish(conv.pose_msg(rig.session.get_clock().now().to_msg(), 'phantom', goal,
+                                       [[1, 0, 0], [0, 1, 0], [0, 0, 1]]))
+    t0 = phantom.sim_time
+    last_goal, last_print = t0, time.monotonic()
+    outcome = ''
+    while not outcome:
+        time.sleep(0.05)
+        now = phantom.sim_time
+        if operator.done:
+            outcome = operator.operator.reason
+        elif planner.counts['failed_plans'] > failed_before and planner.follower is None \
+                and operator.operator.state == 'idle':
+            outcome = f'no path: {planner.last_error}'
+        elif now - t0 > time_limit + 5.0:
+            outcome = 'time limit (operator still running)'
+        if mode == 'dynamic' and now - last_goal >= 1.0:
+            last_goal = now
+            rig.goal_pub.publish(conv.pose_msg(rig.session.get_clock().now().to_msg(),
+                                               'phantom', phantom.target_position(),
+                                               [[1, 0, 0], [0, 1, 0], [0, 0, 1]]))
+        if time.monotonic() - last_print >= 2.0:
+            last_print = time.monotonic()
+            dist = float(((phantom.target_position() - phantom.physics.tip_position) ** 2)
+                         .sum() ** 0.5)
+            log(f'  [{condition} {index + 1}] t = {now - t0:6.1f} s (sim), tip-target '
+                f'{dist * 1e3:6.1f} mm, inserted {phantom.physics.inserted * 1e3:6.1f} mm')
+    time.sleep(0.2)
+    recorder.stop()
+    return outcome
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line options of ``invitro_session``."""
+    p = argparse.ArgumentParser(prog='invitro_session', description=__doc__.split('\n\n')[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('--trials', type=int, default=10, help='trials per condition (paper: 10)')
+    p.add_argument('--anatomy', default='default', help='built-in anatomy name')
+    p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
+                   help='rigid phantom or deformable beating wall')
+    p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
+                   help='output directory (bags/, metrics.md, metrics.csv, box plots)')
+    p.add_argument('--policy', type=Path, default=None,
+                   help='ONNX C-GAIL policy (export_onnx); required for the cgail condition')
+    p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
+                   help='conditions to run, in order')
+    p.add_argument('--time-scale', type=float, default=4.0,
+                   help='simulated seconds per wall second (default 4)')
+    p.add_argument('--time-limit', type=float, default=180.0,
+                   help='trial time limit, simulated s (paper: 180)')
+    p.add_argument('--physics-rate', type=float, default=25.0,
+                   help='phantom physics, device and /clock rate, Hz of simulated time')
+    p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
+    p.add_argument('--seed', type=int, default=0, help='seed of the EM and stick noise')
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``invitro_session``; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    if args.trials < 1:
+        print(f'invitro_session: --trials must be >= 1, found {args.trials}', file=sys.stderr)
+        return 2
+    if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'):
+        print('invitro_session: ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); '
+              'run through scripts/ws', file=sys.stderr)
+        return 2
+    if 'cgail' in args.conditions and (args.policy is None or not args.policy.is_file()):
+        print(f'invitro_session: the cgail condition needs --policy <model.onnx> (export_onnx), '
+              f'found {args.policy}', file=sys.stderr)
+        return 2
+    bags_dir = args.out / 'bags'
+    if bags_dir.exists() and any(bags_dir.iterdir()):
+        print(f'invitro_session: {bags_dir} already holds bags; choose another --out',
+              file=sys.stderr)
+        return 2
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+
+    tmp = tempfile.TemporaryDirectory(prefix='invitro_')
+    link = str(Path(tmp.name) / 'aurora')
+    common = {'use_sim_time': True}
+    overrides = {
+        'phantom': {**common, 'anatomy': args.anatomy, 'mode': args.mode, 'aurora_link': link,
+                    'publish_clock': True, 'time_scale': args.time_scale, 'seed': args.seed,
+                    'physics_rate_hz': args.physics_rate},
+        'aurora': {**common, 'port': link},
+        'pam_controller': dict(common), 'sleeve_driver': dict(common), 'teleop': dict(common),
+        'planner': {**common, 'anatomy': args.anatomy, 'mode': args.mode,
+                    'policy_path': str(args.policy or ''), 'planner_type': args.conditions[0]},
+        'operator': {**common, 'time_limit_s': args.time_limit, 'seed': args.seed},
+    }
+    t_start = time.monotonic()
+    log(f'invitro_session: building the simulated rig ({args.anatomy}, {args.mode}, '
+        f'x{args.time_scale:g} simulated time)...')
+    rig = SimRig(args.launch_file or default_launch_file(), overrides)
+    from geometry_msgs.msg import PoseStamped
+
+    from cgail_planner.nodes import conversions as conv
+
+    rig.goal_pub = rig.session.create_publisher(PoseStamped, 'planner/goal', conv.COMMAND_QOS)
+    outcomes: list[tuple[str, int, str]] = []
+    try:
+        if not wait_until(lambda: rig.nodes['planner'].last_pose is not None, 60.0):
+            log('invitro_session: error: no tip pose from the tracker within 60 s')
+            return 1
+        for condition in args.conditions:
+            if rig.nodes['planner'].config.planner_type != condition:
+                rig.replace('planner', planner_type=condition)
+            for k in range(args.trials):
+                bag = bags_dir / condition / f'{condition}_{k + 1:02d}'
+                log(f'[{condition} trial {k + 1}/{args.trials}] recording to {bag}')
+                outcome = run_trial(rig, condition, k, bag, time_limit=args.time_limit,
+                                    mode=args.mode, log=log)
+                outcomes.append((condition, k + 1, outcome))
+                log(f'[{condition} trial {k + 1}/{args.trials}] {outcome} '
+                    f'({time.monotonic() - t_start:.0f} s wall so far)')
+    except KeyboardInterrupt:
+        log('invitro_session: interrupted; evaluating the trials recorded so far')
+    finally:
+        rig.close()
+        tmp.cleanup()
+    return report(args.out, bags_dir, outcomes, log, wall_s=time.monotonic() - t_start)
+
+
+def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
+           log: Callable[[str], None], wall_s: float) -> int:
+    """Metrics of every evaluable trial bag: markdown table, CSV, box plots."""
+    from cgail_planner.bags.errors import BagError
+    from cgail_planner.bags.metrics_cli import evaluate_bags
+    from cgail_planner.bags.report import box_plots, markdown_report, write_csv
+    from cgail_planner.core.metrics import kruskal_by_condition, MetricsError
+
+    trials = []
+    skipped = []
+    for bag in sorted(p for p in bags_dir.glob('*/*') if p.is_dir()):
+        try:
+            trials += evaluate_bags([bag], condition=bag.parent.name)
+        except (BagError, MetricsError) as exc:
+            skipped.append(f'{bag.name}: {exc}')
+    if not trials:
+        log('invitro_session: no trial could be evaluated')
+        for s in skipped:
+            log(f'  {s}')
+        return 1
+    tests = kruskal_by_condition(trials)
+    text = markdown_report(trials, tests)
+    lines = ['# Simulated in-vitro session', '',
+             f'{len(outcomes)} trials, {wall_s:.0f} s wall time.', '', '## Outcomes', '',
+             '| trial | condition | operator outcome |', '|---|---|---|']
+    lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
+    if skipped:
+        lines += ['', '## Trials without metrics', ''] + [f'- {s}' for s in skipped]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'metrics.md').write_text('\n'.join(lines) + '\n\n' + text)
+    write_csv(trials, out / 'metrics.csv')
+    png = box_plots(trials, tests, out / 'metrics_boxplot.png')
+    log(text)
+    log(f'invitro_session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
+        f'({wall_s:.0f} s wall)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
