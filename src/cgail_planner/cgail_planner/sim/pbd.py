@@ -25,8 +25,9 @@ of the time step. Model:
 * **fixed rings** (``Anatomy.fixed_vertices``) have inverse mass 0 and stay at rest;
 * **annulus ring** (``Anatomy.annulus_vertices``) is kinematic, placed by the heartbeat;
 * **damping**: velocities decay as ``exp(-damping dt)`` before the prediction;
-* **contact**: the catheter's capsule chain, :func:`cgail_planner.sim.contact.project_contacts`,
-  a hard position projection after every sweep and twice more at the end, so the wall ends
+* **contact**: the catheter's capsule chain, a hard position projection after every sweep
+  (linearised per step: :func:`cgail_planner.sim.contact.project_planes`) and twice more
+  exactly at the end (:func:`cgail_planner.sim.contact.project_contacts`), so the wall ends
   each step outside the catheter.
 
 Two solvers for the elastic part (``PBDConfig.solver``), both sequential and deterministic:
@@ -53,7 +54,7 @@ from numba import njit
 import numpy as np
 
 from cgail_planner.sim import contact, raycast
-from cgail_planner.sim.contact import project_contacts
+from cgail_planner.sim.contact import linearize_contacts, project_contacts, project_planes
 from cgail_planner.sim.raycast import drop_stale_numba_cache
 
 drop_stale_numba_cache(__file__, [__file__, contact.__file__, raycast.__file__])
@@ -439,14 +440,16 @@ def solve(x, inv_mass, rest, edges, edge_rest, edge_k, factor, hinges, hinge_res
             d_t[i] = 0.0
     has_contact = pair_face.shape[0] > 0
     worst = 0.0
+    bary, anchor, normal, mark = linearize_contacts(
+        x, faces, face_edges, face_normals, vertex_normals, edge_normals, pair_face, pair_seg,
+        points, radius)
     for _ in range(iterations):
         _distance_sweep(x, inv_mass, edges, edge_rest, a_e, d_e, lam_e)
         _distance_sweep(x, inv_mass, hinges, hinge_rest, a_h, d_h, lam_h)
         _tether_sweep(x, inv_mass, rest, a_t, d_t, lam_t)
         if has_contact:
-            worst = project_contacts(x, inv_mass, faces, face_edges, face_normals,
-                                     vertex_normals, edge_normals, pair_face, pair_seg, points,
-                                     radius, dt, impulse, touched)
+            project_planes(x, inv_mass, faces, pair_face, bary, anchor, normal, mark, radius,
+                           dt, impulse, touched)
     if has_contact:
         for _ in range(2):
             worst = project_contacts(x, inv_mass, faces, face_edges, face_normals,
@@ -473,8 +476,17 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
     n = x.shape[0]
     y = x.copy()
     inv_h2 = 1.0 / (dt * dt)
+    # Effective (secant) stiffness of every incident spring for this substep.
+    keff = np.empty(adj_k.shape[0])
+    for a in range(adj_k.shape[0]):
+        e = adj_edge[a]
+        keff[a] = adj_k[a] * factor[e] if e >= 0 else adj_k[a]
+    exact = exact_b > 0.0
     has_contact = pair_face.shape[0] > 0
     worst = 0.0
+    bary, anchor, normal, mark = linearize_contacts(
+        x, faces, face_edges, face_normals, vertex_normals, edge_normals, pair_face, pair_seg,
+        points, radius)
     for _ in range(iterations):
         for oi in range(n):
             i = order[oi]
@@ -503,13 +515,12 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
                 ln = np.sqrt(dx * dx + dy * dy + dz * dz)
                 if ln < 1e-15:
                     continue
-                e = adj_edge[a]
                 l0 = adj_rest[a]
                 inv = 1.0 / ln
                 nx = dx * inv
                 ny = dy * inv
                 nz = dz * inv
-                if exact_b > 0.0 and e >= 0:
+                if exact and adj_edge[a] >= 0:
                     # Exact stiffening law: force k L0 / b expm1(z), tangent k exp(z).
                     z = exact_b * (ln - l0) / l0
                     if z <= 0.0:
@@ -525,9 +536,8 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
                         fs = k * (ln - l0)
                         kt = k
                 else:
-                    k = adj_k[a] * factor[e] if e >= 0 else adj_k[a]
-                    fs = k * (ln - l0)
-                    kt = k
+                    kt = keff[a]
+                    fs = kt * (ln - l0)
                 g0 += fs * nx
                 g1 += fs * ny
                 g2 += fs * nz
@@ -556,9 +566,8 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
             x[i, 1] = xi1 - (c01 * g0 + c11 * g1 + c12 * g2) * idet
             x[i, 2] = xi2 - (c02 * g0 + c12 * g1 + c22 * g2) * idet
         if has_contact:
-            worst = project_contacts(x, inv_mass, faces, face_edges, face_normals,
-                                     vertex_normals, edge_normals, pair_face, pair_seg, points,
-                                     radius, dt, impulse, touched)
+            project_planes(x, inv_mass, faces, pair_face, bary, anchor, normal, mark, radius,
+                           dt, impulse, touched)
     if has_contact:
         for _ in range(2):
             worst = project_contacts(x, inv_mass, faces, face_edges, face_normals,
