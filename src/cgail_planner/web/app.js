@@ -20,6 +20,7 @@ const G = window.gui = {
   drawn: { tipSeq: 0, tipMm: null, pathPoints: 0, meshVertices: 0, meshFaces: 0,
            target: false, waypoint: false, deformT: null, bendArrow: null, timer: '' },
   latencies: [],  // [tip seq, ms from the pose's header stamp to the frame that drew it]
+  rxLatencies: [],  // [tip seq, ms from the pose's header stamp to its WebSocket message]
   send: (obj) => ws && ws.readyState === 1 && ws.send(typeof obj === 'string' ? obj : JSON.stringify(obj)),
 };
 
@@ -39,6 +40,7 @@ function connect() {
     try { msg = JSON.parse(ev.data); } catch (e) { console.warn('bad message', e); return; }
     if (msg.type !== 'state') return;
     G.messages += 1;
+    ws.send('{"type":"ack"}');   // one state in flight: the node merges what comes meanwhile
     if (msg.full) {
       G.fullStates += 1;
       for (const k of Object.keys(S)) delete S[k];
@@ -50,7 +52,11 @@ function connect() {
     if (msg.source !== G.source || msg.epoch !== G.epoch) { G.source = msg.source; G.epoch = msg.epoch; dirty.add('source'); }
     for (const [k, v] of Object.entries(msg.items)) {
       S[k] = v; dirty.add(k);
-      if (k === 'tip' && v) { G.lastTipReceived = now_s(); pushTrail(v.p); }
+      if (k === 'tip' && v) {
+        G.lastTipReceived = now_s(); pushTrail(v.p);
+        G.rxLatencies.push([v.seq, (G.lastTipReceived - v.stamp) * 1000]);
+        if (G.rxLatencies.length > 5000) G.rxLatencies.splice(0, 1000);
+      }
       if (k === 'trial' && v) v.receivedAt = now_s();
     }
   };
@@ -68,13 +74,25 @@ scene.add(new THREE.HemisphereLight(0xffffff, 0x30343c, 1.6));
 const sun = new THREE.DirectionalLight(0xffffff, 1.4); sun.position.set(200, 300, 400); scene.add(sun);
 const EXT = 1, INT = 2;  // layers seen only by the external / internal camera
 
+// Software WebGL (SwiftShader: headless or no GPU) draws without MSAA at pixel ratio 1.
+function softwareGL() {
+  try {
+    const gl = document.createElement('canvas').getContext('webgl2');
+    const info = gl && gl.getExtension('WEBGL_debug_renderer_info');
+    return !!info && /swiftshader|llvmpipe|software/i.test(gl.getParameter(info.UNMASKED_RENDERER_WEBGL));
+  } catch (e) { return false; }
+}
+const SOFT = softwareGL();
+const PIXEL_RATIO = SOFT ? 1 : (window.devicePixelRatio || 1);
 let extRenderer = null, intRenderer = null;
 try {
-  extRenderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-  intRenderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+  extRenderer = new THREE.WebGLRenderer({ antialias: !SOFT, preserveDrawingBuffer: true });
+  intRenderer = new THREE.WebGLRenderer({ antialias: !SOFT, preserveDrawingBuffer: true });
   $('external-box').appendChild(extRenderer.domElement);
   $('internal-box').insertBefore(intRenderer.domElement, $('overlay'));
   G.webgl = true;
+  const gl = extRenderer.getContext(), info = gl.getExtension('WEBGL_debug_renderer_info');
+  G.glRenderer = info ? gl.getParameter(info.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
 } catch (e) {
   console.error('WebGL unavailable', e); $('nogl').hidden = false;
 }
@@ -367,7 +385,7 @@ function resize(renderer, cam, box) {
   const w = box.clientWidth, h = box.clientHeight;
   const c = renderer.domElement;
   if (c.width !== Math.round(w * renderer.getPixelRatio()) || c.height !== Math.round(h * renderer.getPixelRatio())) {
-    renderer.setPixelRatio(window.devicePixelRatio || 1); renderer.setSize(w, h, false);
+    renderer.setPixelRatio(PIXEL_RATIO); renderer.setSize(w, h, false);
     cam.aspect = w / Math.max(h, 1); cam.updateProjectionMatrix(); return true;
   }
   return false;

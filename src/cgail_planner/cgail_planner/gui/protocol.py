@@ -14,6 +14,9 @@ uint32.
 
 Page -> node (anything else is ignored with a log line)::
 
+    {"type": "ack"}       (after handling each state: the node sends the next one only then,
+                           or after 1 s, so a page that draws slowly gets merged, fresh states
+                           instead of a queue)
     {"type": "resync"}
     {"type": "trial", "action": "start"|"stop"|"reset"}
     {"type": "replay", "action": "start", "bag": "<name from the replay item>",
@@ -39,7 +42,7 @@ class ClientCommand:
     """A validated page command."""
 
     kind: str
-    """``resync``, ``trial`` or ``replay``."""
+    """``ack``, ``resync``, ``trial`` or ``replay``."""
     action: str = ''
     """``start``/``stop``/``reset`` (trial), ``start``/``stop`` (replay); '' for resync."""
     bag: str = ''
@@ -75,8 +78,8 @@ def parse_client_message(data: str | bytes) -> ClientCommand:
     if not isinstance(msg, dict):
         raise ProtocolError(f'expected a JSON object, found {type(msg).__name__}')
     kind = msg.get('type')
-    if kind == 'resync':
-        return ClientCommand('resync')
+    if kind in ('resync', 'ack'):
+        return ClientCommand(kind)
     action = msg.get('action')
     if kind == 'trial':
         if action not in ('start', 'stop', 'reset'):
@@ -98,4 +101,4 @@ def parse_client_message(data: str | bytes) -> ClientCommand:
         if not isinstance(loop, bool):
             raise ProtocolError(f'expected replay loop true or false, found {loop!r}')
         return ClientCommand('replay', 'start', bag=bag, rate=float(rate), loop=loop)
-    raise ProtocolError(f'expected type resync, trial or replay, found {kind!r}')
+    raise ProtocolError(f'expected type ack, resync, trial or replay, found {kind!r}')

@@ -4,8 +4,9 @@ One port serves both: ``GET /ws`` upgrades to the WebSocket, any other ``GET`` i
 from the fixed static table (:mod:`cgail_planner.gui.static`) or 404. Each page connection
 runs a sender that wakes when the active :class:`~cgail_planner.gui.state.GuiState` changes,
 sends the items newer than what that page has (the full state on connect, on ``resync`` and
-when the source switches between live and replay), then sleeps until ``1 / max_rate_hz``
-has passed since its last send, so bursts are merged and a slow page never builds a queue.
+when the source switches between live and replay), waits for the page's ``ack`` (one state
+in flight) and until ``1 / max_rate_hz`` has passed since its last send, so bursts are merged
+and a page that draws slowly never builds a queue.
 Client messages are parsed by :func:`~cgail_planner.gui.protocol.parse_client_message`;
 malformed ones are logged and ignored. A WebSocket handshake from another web origin is
 refused (403), so a foreign page open in the same browser cannot drive the GUI.
@@ -38,6 +39,9 @@ from cgail_planner.gui.protocol import (
 )
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import StaticFile
+
+ACK_TIMEOUT_S = 1.0
+"""Longest wait for a page's ack before the next state is sent anyway, s."""
 
 Log = Callable[[str, str], None]
 """``log(level, text)`` with level ``info``, ``warn`` or ``error``."""
@@ -205,12 +209,13 @@ class GuiServer:
         self._log('info', f'page connected from {peer}')
         wake = asyncio.Event()
         wake.set()
-        resync = [True]
+        acked = asyncio.Event()
+        resync = [True, False]   # [send the full state next, connection closed]
         self._wakers.add(wake)
-        reader = asyncio.create_task(self._read(ws, wake, resync))
+        reader = asyncio.create_task(self._read(ws, wake, resync, acked))
         reader.add_done_callback(self._reader_done)
         try:
-            await self._send_loop(ws, wake, resync)
+            await self._send_loop(ws, wake, resync, acked)
         except ConnectionClosed:
             pass
         finally:
@@ -220,13 +225,15 @@ class GuiServer:
             self._log('info', f'page disconnected ({peer})')
 
     async def _send_loop(self, ws: ServerConnection, wake: asyncio.Event,
-                         resync: list[bool]) -> None:
+                         resync: list[bool], acked: asyncio.Event) -> None:
         sent: dict[str, int] = {}
         epoch = -1
         period = 1.0 / self.config.max_rate_hz
         last = 0.0
         while True:
             await wake.wait()
+            if resync[1]:
+                return
             wait = last + period - time.monotonic()
             if wait > 0.0:
                 await asyncio.sleep(wait)
@@ -238,16 +245,21 @@ class GuiServer:
             items, versions = state.changes_since(sent)
             if not items and not full:
                 continue
+            acked.clear()
             await ws.send(encode_state(items, full=full, source=source, epoch=current))
             self.stats.messages_sent += 1
             sent, epoch, last = versions, current, time.monotonic()
+            # one state in flight: wait for the page's ack (or ACK_TIMEOUT_S for a page that
+            # does not ack), so a page that draws slowly gets merged states, never a queue
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(acked.wait(), ACK_TIMEOUT_S)
 
     def _reader_done(self, task: asyncio.Task[None]) -> None:
         if not task.cancelled() and task.exception() is not None:
             self._log('error', f'page reader stopped: {task.exception()!r}')
 
     async def _read(self, ws: ServerConnection, wake: asyncio.Event,
-                    resync: list[bool]) -> None:
+                    resync: list[bool], acked: asyncio.Event) -> None:
         try:
             async for data in ws:
                 try:
@@ -256,6 +268,9 @@ class GuiServer:
                     self.stats.malformed_messages += 1
                     self.stats.last_malformed = str(exc)[:200]
                     self._log('warn', f'ignored a malformed page message: {exc}')
+                    continue
+                if command.kind == 'ack':
+                    acked.set()
                     continue
                 if command.kind == 'resync':
                     resync[0] = True
@@ -267,6 +282,10 @@ class GuiServer:
                     self._log('error', f'page command {command} failed: {exc}')
         except ConnectionClosed:
             pass
+        finally:  # wake the sender so that it ends with the connection
+            resync[1] = True
+            wake.set()
+            acked.set()
 
 
 def lookup_body(bodies: dict[str, tuple[bytes, str]], path: str) -> tuple[bytes, str] | None:

@@ -113,6 +113,7 @@ def recv_until(ws: ClientConnection, predicate: Any, timeout: float = 10.0,
         except TimeoutError:
             continue
         assert msg['type'] == 'state'
+        ws.send('{"type": "ack"}')          # as the page does after each state
         if msg['full']:
             merged = {'_full': True, '_source': msg['source']}
         merged.update(msg['items'])
