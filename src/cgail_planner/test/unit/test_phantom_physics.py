@@ -1,0 +1,105 @@
+"""Phantom physics: constant-curvature FTL insertion, retraction, wall constraint, EM noise."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics, rotate_onto
+
+L = 0.05
+
+
+def physics(wall=None) -> PhantomPhysics:
+    ph = PhantomPhysics(PhantomConfig(), wall)
+    ph.reset(np.zeros(3), np.eye(3), np.array([0.0, -0.02, 0.0]))
+    return ph
+
+
+@pytest.mark.parametrize(('alpha', 'gamma', 'dl'), [(0.5, 0.0, 0.02), (0.0, -1.0, 0.03),
+                                                     (0.6, 0.8, 0.01)])
+def test_held_bend_turns_the_heading_by_bend_dl_over_l(alpha, gamma, dl) -> None:
+    ph = physics()
+    ph.step(0.02, 0.0, (alpha, gamma))          # first reading: the reference
+    ph.step(0.02, dl, (alpha, gamma))
+    heading = ph.tip_rotation[:, 1]
+    turned = math.acos(float(np.clip(heading @ np.array([0.0, 1.0, 0.0]), -1, 1)))
+    # sub-steps Rx(a k) Rz(g k) compose to a rotation of hypot(a, g) dl / L (to 2nd order in k)
+    assert turned == pytest.approx(math.hypot(alpha, gamma) * dl / L, rel=2e-3)
+    assert ph.inserted == pytest.approx(dl, abs=1e-12)
+
+
+def test_pure_alpha_bend_follows_a_circle_of_radius_l_over_bend() -> None:
+    ph = physics()
+    ph.step(0.02, 0.0, (1.0, 0.0))
+    ph.step(0.02, 0.04, (1.0, 0.0))  # 40 mm on a circle of radius 50 mm about x, towards +z
+    # 80 sub-steps of 0.5 mm, the heading turned by 0.5 mm / 50 mm before each: the exact chain
+    k = np.arange(1, 81) * (0.0005 / L)
+    expected = [0.0, 0.0005 * np.cos(k).sum(), 0.0005 * np.sin(k).sum()]
+    assert ph.tip_position == pytest.approx(expected, abs=1e-12)
+    # ... which lies within 0.2 mm of the circle of radius L / bend = 50 mm
+    phi = 0.04 / L
+    assert ph.tip_position == pytest.approx([0.0, L * math.sin(phi), L * (1 - math.cos(phi))],
+                                            abs=2e-4)
+
+
+def test_no_insertion_no_turn_and_retraction_slides_back() -> None:
+    ph = physics()
+    ph.step(0.02, 0.01, (1.0, 0.0))  # first reading: the reference, no motion
+    ph.step(0.02, 0.01, (0.0, 1.5))  # bend changes without insertion: the tip does not move
+    assert ph.tip_position == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)
+    assert ph.tip_rotation[:, 1] == pytest.approx([0.0, 1.0, 0.0])
+    ph.step(0.02, 0.04, (0.0, 0.0))  # 30 mm straight
+    ph.step(0.02, 0.02, (1.0, 1.0))  # retract 20 mm: straight back along the body, bend ignored
+    assert ph.tip_position == pytest.approx([0.0, 0.01, 0.0], abs=1e-9)
+    assert ph.tip_rotation[:, 1] == pytest.approx([0.0, 1.0, 0.0])
+
+
+class FlatWall:
+    """Wall plane z = 0.002 with the lumen below (outward normal +z)."""
+
+    def reset(self) -> None:
+        pass
+
+    def tip_contact(self, tip, radius, dt):
+        from cgail_planner.sim.contact import Contact
+
+        depth = tip[2] + radius - 0.002
+        pen = max(depth, 0.0)
+        return Contact(penetration=pen, force=0.0, normal=np.array([0.0, 0.0, 1.0]),
+                       in_contact=pen > 0, clearance=max(-depth, 0.0))
+
+
+def test_wall_pushes_the_tip_back_and_the_heading_slides_along_it() -> None:
+    ph = physics(FlatWall())
+    ph.step(0.02, 0.0, (1.5, 0.0))
+    ph.step(0.02, 0.05, (1.5, 0.0))  # bending towards +z into the wall
+    assert ph.tip_position[2] <= 0.002 - ph.radius + 1e-12
+    assert ph.contacts > 0
+    assert ph.tip_rotation[:, 1][2] <= 1e-9  # no outward heading component left
+    assert np.allclose(ph.tip_rotation.T @ ph.tip_rotation, np.eye(3), atol=1e-9)
+
+
+def test_em_noise_has_the_configured_rms() -> None:
+    ph = physics()
+    rng = np.random.default_rng(0)
+    errs = np.array([ph.measured_pose(rng)[0] - ph.tip_position for _ in range(4000)])
+    assert float(np.sqrt(np.mean(np.sum(errs ** 2, axis=1)))) == pytest.approx(0.0005, rel=0.05)
+
+
+def test_rotate_onto() -> None:
+    a = np.array([0.0, 1.0, 0.0])
+    b = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
+    assert rotate_onto(a, b) @ a == pytest.approx(b)
+
+
+@pytest.mark.parametrize(('field', 'value'), [('segment_length', 0.0), ('em_noise_rms', -1.0),
+                                              ('max_substep', 1.0)])
+def test_config_rejects_bad_values(field, value) -> None:
+    with pytest.raises(ValueError, match=field):
+        PhantomConfig(**{field: value})
+
+
+def test_step_rejects_a_bad_dt() -> None:
+    with pytest.raises(ValueError, match='dt must be a positive'):
+        physics().step(0.0, 0.0, (0.0, 0.0))
