@@ -59,6 +59,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import hashlib
+import itertools
 import math
 import os
 from pathlib import Path
@@ -82,6 +83,7 @@ __all__ = [
     "MeshLoadError",
     "anatomy_params",
     "build_anatomy",
+    "build_anatomy_from_params",
     "load_anatomy_mesh",
     "save_anatomy_mesh",
 ]
@@ -476,6 +478,28 @@ class AortaGeometry:
             self.tubes.append(_Tube(f"{side}_coronary", origin, radial, dia / 2,
                                     wall + p.coronary_stub_length, 0.0012))
         self.tree = cKDTree(spine)
+        self._check_stub_clearance()
+
+    def _check_stub_clearance(self) -> None:
+        """Neighbouring supra-aortic stubs must not converge (they would merge when meshed)."""
+        p = self.p
+        t = np.linspace(0.0, 1.0, 60)
+        angles = {"brachiocephalic": "brachiocephalic_angle", "carotid": "carotid_angle",
+                  "subclavian": "subclavian_angle"}
+        stubs = [tb for tb in self.tubes if tb.name in angles]
+        for a, b in itertools.pairwise(stubs):
+            # Compare the parts outside the arch lumen (from half-way out to the cut).
+            pa = a.start + np.outer(0.5 * a.length + t * 0.5 * a.length, a.direction)
+            pb = b.start + np.outer(0.5 * b.length + t * 0.5 * b.length, b.direction)
+            gap = float(np.min(np.linalg.norm(pa[:, None] - pb[None], axis=2))) \
+                - a.radius - b.radius
+            need = 1.2 * p.edge_length
+            if gap < need:
+                raise AnatomyError(
+                    f"{angles[a.name]} and {angles[b.name]} must keep the {a.name} and {b.name} "
+                    f"stubs >= {need * 1e3:.1f} mm apart (1.2 mesh edges), found "
+                    f"{gap * 1e3:.1f} mm: make them diverge (larger {angles[b.name]} leans the "
+                    f"{b.name} further left) or space the origins further apart")
 
     # -- field -----------------------------------------------------------------------------
     def root_radius(self, h: np.ndarray, phi: np.ndarray) -> np.ndarray:
@@ -575,7 +599,7 @@ def _build(p: AnatomyParams, name: str) -> Anatomy:
     annulus_ids = np.zeros(0, dtype=np.int64)
     for _cap_name, point, normal, radius, edge, is_wall in caps:
         verts, new_faces, kept, cap_ids = mesh_io.clip_and_cap(
-            verts, faces, point, normal, radius + 0.002, _EXT + radius + 0.002, edge, g.field)
+            verts, faces, point, normal, radius + 0.001, _EXT + radius + 0.002, edge, g.field)
         n_new = len(new_faces) - len(kept)
         cap_mask = np.concatenate([cap_mask[kept], np.full(n_new, not is_wall)])
         faces = new_faces
@@ -635,6 +659,7 @@ def _cache_path(name: str, params: AnatomyParams) -> Path | None:
     if os.environ.get("CGAIL_PLANNER_NO_DISK_CACHE"):
         return None
     h = hashlib.sha1(f"{name}|{params!r}|{_GEN_VERSION}".encode())
+    name = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)[:40]
     for module in (__file__, mesh_io.__file__):
         h.update(Path(module).read_bytes())
     return Path.home() / ".cache" / "cgail_planner" / f"anatomy_{name}_{h.hexdigest()[:16]}.npz"
@@ -669,6 +694,26 @@ def _save_cached(anatomy: Anatomy, path: Path | None) -> None:
         pass
 
 
+def build_anatomy_from_params(params: AnatomyParams, name: str = "custom") -> Anatomy:
+    """Build an anatomy from custom parameters (cached like :func:`build_anatomy`).
+
+    Raises:
+        AnatomyError: parameters whose geometry cannot be meshed (e.g. converging branch
+            stubs), with the field names to change.
+    """
+    if not isinstance(params, AnatomyParams):
+        raise AnatomyError(f"params must be an AnatomyParams, found {type(params).__name__}")
+    key = f"{name}|{params!r}"
+    if key not in _CACHE:
+        path = _cache_path(name, params)
+        anatomy = _load_cached(name, path)
+        if anatomy is None:
+            anatomy = _build(params, name)
+            _save_cached(anatomy, path)
+        _CACHE[key] = anatomy
+    return _CACHE[key]
+
+
 def build_anatomy(name: str = "default") -> Anatomy:
     """Build (or return the cached) built-in anatomy.
 
@@ -683,15 +728,7 @@ def build_anatomy(name: str = "default") -> Anatomy:
     Raises:
         AnatomyError: unknown name.
     """
-    params = anatomy_params(name)
-    if name not in _CACHE:
-        path = _cache_path(name, params)
-        anatomy = _load_cached(name, path)
-        if anatomy is None:
-            anatomy = _build(params, name)
-            _save_cached(anatomy, path)
-        _CACHE[name] = anatomy
-    return _CACHE[name]
+    return build_anatomy_from_params(anatomy_params(name), name)
 
 
 # ------------------------------------------------------------------------------------------

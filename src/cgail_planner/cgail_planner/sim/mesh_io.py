@@ -191,6 +191,12 @@ def compact_with_map(vertices: np.ndarray,
 
 def _edge_component_mask(faces: np.ndarray) -> np.ndarray:
     """True for the faces in the largest edge-connected component."""
+    label = _edge_components(faces)
+    return label == np.bincount(label).argmax()
+
+
+def _edge_components(faces: np.ndarray) -> np.ndarray:
+    """Label of the edge-connected component of each face."""
     m = len(faces)
     e = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     owner = np.tile(np.arange(m), 3)
@@ -200,7 +206,7 @@ def _edge_component_mask(faces: np.ndarray) -> np.ndarray:
     a, b = owner[:-1][same], owner[1:][same]
     graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(m, m))
     _, label = connected_components(graph, directed=False)
-    return label == np.bincount(label).argmax()
+    return np.asarray(label)
 
 
 def _dist(p: list[float], q: list[float]) -> float:
@@ -643,6 +649,13 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     beyond = (axial > 0.0) & (axial < depth) & (radial < radius)
     if not beyond.any():
         raise MeshError(f"expected the mesh to cross the clip plane at {point}, found no faces")
+    # Only the tube end itself: the candidates edge-connected to the one furthest along the
+    # axis (a neighbouring tube passing through the clip cylinder is left alone).
+    cand = np.flatnonzero(beyond)
+    seed = cand[np.argmax(axial[cand])]
+    label = _edge_components(f[cand])
+    beyond[:] = False
+    beyond[cand[label == label[int(np.flatnonzero(cand == seed)[0])]]] = True
     kept = np.flatnonzero(~beyond)
     # Drop islands left beyond the cut (faces connected to the rest only through removed ones).
     kept = kept[_edge_component_mask(f[kept])]
@@ -675,7 +688,7 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
         outer = outer[::-1]
         rel_o = v[outer] - c
         ang = np.unwrap(np.arctan2(rel_o @ e2, rel_o @ e1))
-    ang = ang - ang[0]
+    a0 = float(ang[0])  # absolute angle (from e1) where the outer ring starts
     radius = float(np.linalg.norm(v[loop] - c, axis=1).mean())
     n_rings = max(0, round(radius / edge) - 1)
     new_v: list[np.ndarray] = []
@@ -686,7 +699,8 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     for r in range(1, n_rings + 1):
         frac = 1.0 - r / (n_rings + 1)
         m = max(3, round(len(outer) * frac))
-        a = np.arange(m) * 2 * np.pi / m + np.pi / m
+        # Inner rings start half a step after the outer ring's first vertex, same sense.
+        a = a0 + (np.arange(m) + 0.5) * 2 * np.pi / m
         ring_ids = list(range(base + len(new_v), base + len(new_v) + m))
         for t in a:
             new_v.append(c + frac * radius * (np.cos(t) * e1 + np.sin(t) * e2))

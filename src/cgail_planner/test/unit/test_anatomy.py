@@ -17,6 +17,7 @@ from cgail_planner.sim.anatomy import (
     AnatomyParams,
     AortaGeometry,
     build_anatomy,
+    build_anatomy_from_params,
 )
 
 MM = 1e-3
@@ -251,3 +252,47 @@ def test_params_cross_checks() -> None:
     with pytest.raises(AnatomyError, match="sinus_diameter must exceed"):
         AnatomyParams(sinus_diameter=0.026)
     assert dataclasses.replace(AnatomyParams(), arch_height=0.05).arch_height == 0.05
+
+
+_VARIANTS = {
+    # About -1 SD diameters (ANATOMY.md), narrow and low arch, low ostia.
+    "small": dict(annulus_diameter=0.021, sinus_diameter=0.027, stj_diameter=0.022,
+                  ascending_diameter=0.027, proximal_arch_diameter=0.025,
+                  arch_proximal_diameter=0.024, arch_distal_diameter=0.022,
+                  isthmus_diameter=0.021, descending_diameter=0.021, arch_width=0.064,
+                  arch_height=0.038, left_ostium_height=0.0115, right_ostium_height=0.014),
+    # About +1 SD diameters, wide arch, steep branches, wider ostia angle.
+    "large": dict(annulus_diameter=0.0255, sinus_diameter=0.035, stj_diameter=0.027,
+                  ascending_diameter=0.035, proximal_arch_diameter=0.033,
+                  arch_proximal_diameter=0.031, arch_distal_diameter=0.030,
+                  isthmus_diameter=0.028, descending_diameter=0.027, arch_width=0.080,
+                  brachiocephalic_diameter=0.0145, subclavian_diameter=0.012,
+                  brachiocephalic_to_carotid=0.018, brachiocephalic_angle=0.55,
+                  subclavian_angle=0.65, ostia_angle=2.37),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", sorted(_VARIANTS))
+def test_parameter_variants_build_valid_meshes(variant: str) -> None:
+    from cgail_planner.sim.centerline import compute_centerlines
+
+    params = AnatomyParams(**_VARIANTS[variant])
+    anatomy = build_anatomy_from_params(params, variant)
+    mesh = anatomy.mesh
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.euler_number == 2
+    assert mesh.volume > 0 and 1800 < len(anatomy.vertices) < 4000
+    g = AortaGeometry(params)
+    assert _diameter_at(anatomy, g, g.s_exit - 0.015) == pytest.approx(
+        params.descending_diameter, abs=1.0 * MM)
+    for side, line in compute_centerlines(anatomy).items():
+        assert anatomy.contains(line.points).all()
+        assert np.linalg.norm(line.points[-1] - anatomy.ostia[side]) < 2 * MM
+
+
+def test_converging_branch_stubs_are_rejected() -> None:
+    params = AnatomyParams(carotid_angle=0.6, subclavian_angle=0.1)
+    with pytest.raises(AnatomyError, match="carotid_angle and subclavian_angle must keep"):
+        AortaGeometry(params)
+    with pytest.raises(AnatomyError, match="params must be an AnatomyParams"):
+        build_anatomy_from_params({"arch_width": 0.07})  # type: ignore[arg-type]
