@@ -43,6 +43,9 @@ from cgail_planner.sim.raycast import WallBVH
 if TYPE_CHECKING:
     from cgail_planner.sim.anatomy import Anatomy
 
+#: Under-relaxation of the lagged secant stiffening update (see ``pbd.secant_factor``).
+_SECANT_RELAX = 0.5
+
 __all__ = ["Contact", "DeformableWall", "StaticWall"]
 
 
@@ -192,6 +195,7 @@ class DeformableWall(StaticWall):
         self._impulse[:] = 0.0
         self._touched[:] = 0
         self._dp[:] = 0.0
+        self._factor[:] = 1.0
         self._forces: np.ndarray | None = None
         self._bvh.refit(self.vertices)
         self._dirty = False
@@ -223,7 +227,8 @@ class DeformableWall(StaticWall):
         worst = 0.0
         for k in range(cfg.substeps):
             t_k = t - dt + (k + 1) * h
-            secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, self._factor)
+            secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, self._factor,
+                          _SECANT_RELAX)
             predict(x, v, topo.inv_mass, h, cfg.damping, self._x_old, self._v_damped)
             if topo.annulus.size:
                 x[topo.annulus] = ann_rest + self.heartbeat.displacement(t_k)

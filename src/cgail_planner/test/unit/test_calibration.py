@@ -91,3 +91,36 @@ def test_bad_strip_test_raises(kwargs, match):
 def test_bad_strains_raise():
     with pytest.raises(ValueError, match="strains must be a non-empty increasing"):
         strip_stress(PBDConfig(), np.array([0.05, 0.02]))
+
+
+@pytest.mark.parametrize("eps", [0.12, 0.16])
+def test_relaxed_lagged_secant_of_the_wall_converges_to_the_exact_law(eps):
+    # The wall updates the stiffening once per step (lagged, under-relaxed by 1/2); on the
+    # strip held at a large strain that iteration must settle on the exact material law.
+    from dataclasses import replace
+
+    from cgail_planner.sim.calibration import _strip_mesh
+    from cgail_planner.sim.pbd import build_topology, internal_forces, secant_factor, solve_vbd
+
+    cfg = replace(PBDConfig(), tether_stiffness=0.0)
+    test = StripTest()
+    v, f, left, right = _strip_mesh(test)
+    topo = build_topology(v, f, left, right, cfg)
+    x = v.copy()
+    x[:, 0] *= 1.0 + eps
+    factor = np.ones(len(topo.edges))
+    e = np.zeros(0, np.int64)
+    z = np.zeros((1, 3))
+    nf = np.zeros((1, 3), np.int64)
+    for _ in range(40):  # 40 "steps" of 10 sweeps
+        secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, factor, 0.5)
+        solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
+                  topo.adj_k, topo.adj_rest, topo.adj_edge, factor, topo.tether_k,
+                  topo.vertex_order, 0.1, 10, nf, nf, z, z, z, e, e, z, 0.0,
+                  np.zeros((len(v), 3)), np.zeros(len(v), np.int8))
+    forces = internal_forces(x, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                             cfg.stiffening, topo.hinges, topo.hinge_rest, topo.hinge_k,
+                             topo.tether_k)
+    lagged = -forces[right, 0].sum() / (test.width * cfg.thickness)
+    exact = strip_stress(cfg, np.array([eps]), test)[0]
+    assert lagged == pytest.approx(exact, rel=0.01)

@@ -51,7 +51,7 @@ def run(topo, x, v, cfg, steps, dt=0.1):
     e = np.zeros(0, np.int64)
     z = np.zeros((1, 3))
     for _ in range(steps):
-        secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, factor)
+        secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, factor, 0.5)
         predict(x, v, topo.inv_mass, dt, cfg.damping, x_old, v_d)
         no_faces = np.zeros((1, 3), np.int64)
         if cfg.solver == "vbd":
@@ -166,6 +166,8 @@ def test_secant_factor_and_internal_forces():
     assert out[0] == pytest.approx(math.expm1(1.0) / 1.0)  # b eps = 10 * 0.1
     secant_factor(x, edges, np.array([1.2]), 10.0, out)  # compressed: linear
     assert out[0] == 1.0
+    secant_factor(x, edges, np.array([1.0]), 10.0, out, 0.5)  # under-relaxed update
+    assert out[0] == pytest.approx(1.0 + 0.5 * (math.expm1(1.0) - 1.0))
     f = internal_forces(x, x.copy(), edges, np.array([1.0]), np.array([100.0]), 10.0,
                         np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0), np.zeros(2))
     # sigma-type law: k g (L - L0) = 100 * (e - 1) * 0.1, pulling the ends together.
