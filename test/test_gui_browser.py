@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 import os
 from pathlib import Path
+import socket
 import threading
 import time
 
@@ -93,11 +94,21 @@ class Scene:
         self.published.append(pose.position)
 
 
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return int(s.getsockname()[1])
+
+
 @pytest.fixture
 def gui() -> Iterator[tuple[GuiNode, Scene]]:
     rclpy.init()
-    node = GuiNode(parameter_overrides=[Parameter('port', value=0),
-                                        Parameter('anatomy', value='default')])
+    node = GuiNode(parameter_overrides=[Parameter('port', value=free_port()),
+                                        Parameter('anatomy', value='default'),
+                                        Parameter('bags_dir', value=str(REPO / 'bags'))])
     pub = rclpy.create_node('gui_browser_scene')
     scene = Scene(pub)
     executor = SingleThreadedExecutor()
@@ -171,6 +182,24 @@ def test_page_receives_and_draws_path_and_moving_tip(gui: tuple[GuiNode, Scene],
         scene.publish_tip(index)
         time.sleep(0.5)
         png = page.screenshot()
+        # the node's server goes away and comes back: the page reconnects, gets everything
+        node._server.stop()
+        page.wait_for('!window.gui.connected', timeout=10)
+        assert page.evaluate('document.getElementById("conn").textContent').startswith('Disc')
+        node._server.start()
+        page.wait_for('window.gui.connected && window.gui.fullStates >= 2', timeout=15)
+        page.wait_for(f'window.gui.drawn.pathPoints === {len(scene.path)}', timeout=10)
+        # replay a bag from the page's own controls, then back to live
+        page.evaluate('(() => { const s = document.getElementById("replay-bag"); '
+                      's.value = "fixtures/cgail_trial"; '
+                      'document.getElementById("replay-rate").value = "4"; '
+                      'document.getElementById("replay-play").click(); return s.value; })()')
+        page.wait_for('document.getElementById("source").textContent.startsWith("REPLAY") '
+                      '&& window.gui.drawn.pathPoints === 40 && window.gui.drawn.tipSeq > 10',
+                      timeout=15)
+        page.evaluate('document.getElementById("replay-live").click()')
+        page.wait_for('document.getElementById("source").textContent === "LIVE" && '
+                      f'window.gui.drawn.pathPoints === {len(scene.path)}', timeout=10)
     assert png[:8] == b'\x89PNG\r\n\x1a\n' and len(png) > 20_000
     out = Path(os.environ.get('CGAIL_GUI_SCREENSHOT') or tmp_path / 'gui.png')
     out.parent.mkdir(parents=True, exist_ok=True)

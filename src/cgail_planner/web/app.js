@@ -193,7 +193,7 @@ function applyDeform(d) {
   if (v.length !== attr.array.length) return;
   for (let i = 0; i < v.length; i++) attr.array[i] = v[i] * MM;
   attr.needsUpdate = true; aortaGeo.computeVertexNormals();
-  if (aortaEdges) { aortaEdges.geometry.dispose(); aortaEdges.geometry = new THREE.WireframeGeometry(aortaGeo); }
+  if (aortaEdges) aortaEdges.visible = false;   // a beating wall reads better without the static mesh lines
   G.drawn.deformT = d.t;
 }
 function drawPath(p) {

@@ -118,7 +118,7 @@ class Chromium:
 
     def __init__(self, proc: subprocess.Popen[bytes], profile: str, port: int) -> None:
         self._proc, self._profile, self.port = proc, profile, port
-        self._pages: list[Page] = []
+        self._connections = contextlib.ExitStack()
 
     @classmethod
     def launch(cls, width: int = 1600, height: int = 980, timeout: float = 30.0) -> Chromium:
@@ -162,18 +162,17 @@ class Chromium:
         targets = [t for t in self._json('/json/list') if t.get('type') == 'page']
         if not targets:
             raise BrowserError('expected a page target, found none')
-        ws = connect(targets[0]['webSocketDebuggerUrl'], max_size=None,
-                     open_timeout=10)
+        ws = self._connections.enter_context(
+            connect(targets[0]['webSocketDebuggerUrl'], max_size=None, open_timeout=10))
         page = Page(ws)
-        self._pages.append(page)
         page.call('Page.enable')
         page.call('Page.navigate', url=url)
         return page
 
     def close(self) -> None:
         """Kill Chromium (its whole process group) and delete the profile."""
-        for page in self._pages:
-            page.close()
+        with contextlib.suppress(Exception):
+            self._connections.close()
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self._proc.pid, 9)
         with contextlib.suppress(subprocess.TimeoutExpired):

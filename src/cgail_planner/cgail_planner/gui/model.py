@@ -116,9 +116,10 @@ class GuiModel:
     Args:
         config: the GUI configuration.
         state: where the items go.
-        clock: ``'wall'`` - the trial clock runs on the ``now`` given by the caller (monotonic
-            time of the live node); ``'stamp'`` - on the tip poses' header stamps (replay, so
-            the timer follows the bag whatever the playback rate).
+        clock: ``'wall'`` - the trial clock runs on the ``now`` given by the caller (the live
+            node's ROS clock: system time, or /clock under use_sim_time); ``'stamp'`` - on the
+            tip poses' header stamps (replay, so the timer follows the bag whatever the
+            playback rate).
     """
 
     def __init__(self, config: GuiConfig, state: GuiState, clock: str = 'wall') -> None:

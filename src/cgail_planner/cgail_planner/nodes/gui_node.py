@@ -89,9 +89,11 @@ def _stamp(msg: Any) -> float:
 class _Feed:
     """Message -> model adapters, shared by the live subscriptions and the replay sink."""
 
-    def __init__(self, model: GuiModel, warn: Callable[[str], None]) -> None:
+    def __init__(self, model: GuiModel, warn: Callable[[str], None],
+                 now: Callable[[], float]) -> None:
         self.model = model
         self._warn = warn
+        self._now = now
 
     def handlers(self) -> dict[str, Callable[[Any], None]]:
         return {'em_tracker/tip_pose': self.tip, 'planner/path': self.path,
@@ -107,7 +109,7 @@ class _Feed:
     def tip(self, msg: PoseStamped) -> None:
         p, o = msg.pose.position, msg.pose.orientation
         self._guard('tip pose', lambda: self.model.on_tip(
-            [p.x, p.y, p.z], [o.x, o.y, o.z, o.w], _stamp(msg), time.monotonic()))
+            [p.x, p.y, p.z], [o.x, o.y, o.z, o.w], _stamp(msg), self._now()))
 
     def path(self, msg: PathMsg) -> None:
         pts = [[s.pose.position.x, s.pose.position.y, s.pose.position.z] for s in msg.poses]
@@ -185,7 +187,7 @@ class GuiNode(Node):
                                     f'npm ci in {self._web_root}; the 3D views will not load')
         self._live = GuiState()
         self._model = GuiModel(self.config, self._live, clock='wall')
-        self._feed = _Feed(self._model, self._warn)
+        self._feed = _Feed(self._model, self._warn, self._now)
         self._server = GuiServer(self.config, files, self._on_command, self._log)
         self._live.on_change = lambda: self._server.notify_from(self._live)
         self._server.set_source('live', self._live)
@@ -223,6 +225,11 @@ class GuiNode(Node):
         """Address of the page."""
         host = self.config.host
         return f'http://{f"[{host}]" if ":" in host else host}:{self.port}/'
+
+    def _now(self) -> float:
+        """The node's clock in s: ROS time, so the trial clock follows /clock under
+        use_sim_time (an accelerated simulated session)."""
+        return self.get_clock().now().nanoseconds * 1e-9
 
     def _log(self, level: str, text: str) -> None:
         # one call site per severity: rclpy refuses a severity change at the same call site
@@ -294,10 +301,9 @@ class GuiNode(Node):
 
     # -- timer ------------------------------------------------------------------------------
     def _on_timer(self) -> None:
-        now = time.monotonic()
-        if self._bind_error and now >= self._next_bind:
+        if self._bind_error and time.monotonic() >= self._next_bind:
             self._try_bind()
-        self._model.tick(now)
+        self._model.tick(self._now())
         self._diag_pub.publish(self._diagnostics())
 
     def _diagnostics(self) -> DiagnosticArray:
@@ -325,7 +331,7 @@ class GuiNode(Node):
         if command.kind == 'trial':
             with self._replay_lock:
                 model = self._replay.get('model') if self._server.source == 'replay' else None
-            (model or self._model).trial_command(command.action, time.monotonic())
+            (model or self._model).trial_command(command.action, self._now())
         elif command.kind == 'replay' and command.action == 'stop':
             self._stop_replay()
         elif command.kind == 'replay':
@@ -354,7 +360,7 @@ class GuiNode(Node):
         anatomy = getattr(self, '_anatomy', None)
         if anatomy is not None:
             model.set_anatomy(*anatomy)
-        feed = _Feed(model, self._warn)
+        feed = _Feed(model, self._warn, self._now)
         try:
             player = BagPlayer(_ReplaySink(self, feed.handlers()),
                                PlayerConfig(bag=Path(path), rate=command.rate, loop=command.loop,

@@ -309,3 +309,25 @@ def test_port_in_use_is_an_error_not_a_crash(ros: None) -> None:
         executor.shutdown()
         node.destroy_node()
         sub.destroy_node()
+
+
+def test_dynamic_mode_streams_the_beating_wall(ros: None) -> None:
+    import base64
+
+    import numpy as np
+
+    r = Running(anatomy='default', dynamic=True, mesh_rate_hz=20.0)
+    try:
+        with r.ws() as ws:
+            s = recv_until(ws, lambda m, msg: 'mesh' in m and m.get('deform', {}).get('t', 0)
+                           > 0.3, timeout=30)
+            rest = np.frombuffer(base64.b64decode(s['mesh']['vertices']), '<f4').reshape(-1, 3)
+            now = np.frombuffer(base64.b64decode(s['deform']['vertices']), '<f4').reshape(-1, 3)
+            assert rest.shape == now.shape == (s['mesh']['vertex_count'], 3)
+            moved = np.linalg.norm(now - rest, axis=1)
+            assert moved.max() > 0.001                      # the root moves by millimetres
+            assert np.median(moved) < 0.001                 # the descending aorta barely
+            t1 = s['deform']['t']
+            s = recv_until(ws, lambda m, msg: m.get('deform', {}).get('t', 0) > t1 + 0.2)
+    finally:
+        r.close()
