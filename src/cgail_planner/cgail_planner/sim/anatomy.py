@@ -14,8 +14,10 @@ How the built-in aorta is made (all in :func:`build_anatomy`):
    profile through the landmark diameters below, a lobed root (three sinuses of Valsalva),
    three supra-aortic branch stubs and two coronary stubs, merged with a smooth minimum
    (fillets at the junctions).
-3. Marching tetrahedra on a 2 mm grid, then isotropic remeshing to about 2,400 vertices
-   (~4.5 mm edges, ~1.2 mm around the coronary ostia) with projection onto the field.
+3. Marching tetrahedra on a 3 mm grid (thin stubs inflated so they appear), then isotropic
+   remeshing with projection onto the true field: ~3.7 mm edges, ~1.2 mm around the coronary
+   ostia; ~2,450 vertices for "default", ~2,800 for "elongated". A cold build takes ~4 s CPU,
+   so results are cached in memory and on disk.
 4. The open ends (descending end, branch-stub ends, coronary-stub ends) are cut flat and
    closed with cap faces (``wall_face_mask`` False, vertices in ``fixed_vertices``); the root is
    closed at the annulus by a flat valve plane that counts as WALL (``annulus_vertices``).
@@ -177,8 +179,8 @@ class AnatomyParams:
     coronary_stub_length: float = 0.006
     """Length of each coronary stub beyond the sinus wall (model choice). Range 3-20 mm."""
     edge_length: float = 0.0037
-    """Target triangle edge length away from the coronary ostia (model choice: ~2,400
-    vertices for the default). Range 2-8 mm."""
+    """Target triangle edge length away from the coronary ostia (model choice: 3.7 mm gives
+    ~2,450 vertices for the default, the size the PBD wall is budgeted for). Range 2-8 mm."""
 
     def __post_init__(self) -> None:
         mm = 1e-3
