@@ -399,6 +399,10 @@ class Remesher:
         del f
         count = 0
         for a, b in e.tolist():
+            # A flip lowers the valence of a and b: it can only reduce the total deviation
+            # from 6 when one of them is above 6.
+            if valence[a] <= 6 and valence[b] <= 6:
+                continue
             if not (self.alive[a] and self.alive[b]):
                 continue
             fs = self._edge_faces(a, b)
