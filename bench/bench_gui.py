@@ -113,6 +113,7 @@ def main() -> None:
             node_ms = _node_latency(node.port, args.seconds)   # a scripted page, meanwhile
             lat = page.evaluate('window.gui.latencies')
             rx = page.evaluate('window.gui.rxLatencies')
+            render = np.array(page.evaluate('window.gui.renderMs.slice(-50)') or [[0.0, 0.0]])
             renderer = page.evaluate('window.gui.glRenderer')
             frames = page.evaluate('window.gui.frames - window.gui.frames0')
             elapsed = time.monotonic() - t0
@@ -137,6 +138,8 @@ def main() -> None:
         print(f'  of which published -> WebSocket message in the page: mean {rx_ms.mean():.1f}  '
               f'p95 {np.percentile(rx_ms, 95):.1f} ms (n = {rx_ms.size}); the rest is drawing '
               f'(WebGL renderer: {renderer})')
+    print(f'  WebGL render calls per frame (last 50): external {render[:, 0].mean():.1f} ms, '
+          f'internal {render[:, 1].mean():.1f} ms')
     print(f'  node alone (published -> state message at a scripted WebSocket client): mean '
           f'{node_ms.mean():.1f}  p95 {np.percentile(node_ms, 95):.1f} ms (n = {node_ms.size})')
     print(f'  poses published {n_sent}, drawn {ms.size} ({100.0 * ms.size / max(n_sent, 1):.0f} '

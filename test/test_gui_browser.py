@@ -178,9 +178,10 @@ def test_page_receives_and_draws_path_and_moving_tip(gui: tuple[GuiNode, Scene],
         assert 'running' in state['timer']        # the clock started when the tip moved
         pixels = page.evaluate(COLOUR_COUNT)
         assert pixels['path'] > 200 and pixels['tip'] > 30, pixels
-        # hold still a moment so the screenshot shows a settled frame
-        scene.publish_tip(index)
-        time.sleep(0.5)
+        # the tracker keeps streaming (a still tip) while the screenshot is taken
+        for _ in range(20):
+            scene.publish_tip(index)
+            time.sleep(0.025)
         png = page.screenshot()
         # the node's server goes away and comes back: the page reconnects, gets everything
         node._server.stop()

@@ -20,6 +20,7 @@ const G = window.gui = {
   drawn: { tipSeq: 0, tipMm: null, pathPoints: 0, meshVertices: 0, meshFaces: 0,
            target: false, waypoint: false, deformT: null, bendArrow: null, timer: '' },
   latencies: [],  // [tip seq, ms from the pose's header stamp to the frame that drew it]
+  renderMs: [],     // [external, internal] WebGL render call durations, ms
   rxLatencies: [],  // [tip seq, ms from the pose's header stamp to its WebSocket message]
   send: (obj) => ws && ws.readyState === 1 && ws.send(typeof obj === 'string' ? obj : JSON.stringify(obj)),
 };
@@ -118,7 +119,9 @@ const pathLineMat = new THREE.LineBasicMaterial({ color: 0x35d0ff });
 const tipGroup = new THREE.Group();
 const tipBall = new THREE.Mesh(new THREE.SphereGeometry(3.5, 24, 16), new THREE.MeshPhongMaterial({ color: 0xff9f1c, emissive: 0x552200 }));
 const tipArrow = new THREE.ArrowHelper(new THREE.Vector3(0, 1, 0), new THREE.Vector3(), 25, 0xff9f1c, 7, 4.5);
-tipGroup.add(tipBall, tipArrow);
+const tipHalo = new THREE.Mesh(new THREE.SphereGeometry(7, 24, 16), new THREE.MeshBasicMaterial({ color: 0xff9f1c, transparent: true, opacity: 0.35, depthTest: false }));
+tipHalo.renderOrder = 5;   // seen through the vessel wall
+tipGroup.add(tipBall, tipArrow, tipHalo);
 tipGroup.traverse((o) => o.layers.set(EXT));
 tipGroup.visible = false;
 scene.add(tipGroup);
@@ -177,14 +180,41 @@ function drawMesh(m) {
   aortaEdges = new THREE.LineSegments(new THREE.WireframeGeometry(aortaGeo), edgeMat); aortaEdges.layers.set(EXT);
   scene.add(aortaMesh, lumenMesh, aortaEdges);
   G.drawn.meshVertices = m.vertex_count; G.drawn.meshFaces = m.face_count;
-  const bs = aortaGeo.boundingSphere;
-  homeView = { target: bs.center.clone(), position: bs.center.clone().add(new THREE.Vector3(0, -bs.radius * 2.05, bs.radius * 0.3)) };
+  aortaGeo.computeBoundingBox();
+  homeView = aortaGeo.boundingBox.clone();
   resetView();
 }
+// Home view: anterior (looking along +y, head up = +z), the whole aorta fitted to the panel.
 function resetView() {
   if (!homeView || !controls) return;
-  extCam.position.copy(homeView.position); controls.target.copy(homeView.target);
+  const box = $('external-box'), aspect = box.clientWidth / Math.max(box.clientHeight, 1);
+  const size = homeView.getSize(new THREE.Vector3()), centre = homeView.getCenter(new THREE.Vector3());
+  const t = Math.tan((extCam.fov / 2) / DEG);
+  const dist = 1.04 * Math.max(size.z / 2 / t, size.x / 2 / (t * aspect)) + size.y / 4;
+  extCam.aspect = aspect; extCam.updateProjectionMatrix();
+  extCam.position.set(centre.x, centre.y - dist, centre.z); controls.target.copy(centre);
   extCam.up.set(0, 0, 1); controls.update(); dirty.add('camera');
+}
+// Labels of the tip and the target in the external view (DOM, placed by projection).
+function labels() {
+  const box = $('external-box'), w = box.clientWidth, h = box.clientHeight;
+  for (const [id, obj, text] of [['label-tip', tipGroup, 'tip'], ['label-target', targetBall, 'target']]) {
+    let el = $(id);
+    if (!el) { el = document.createElement('div'); el.id = id; el.className = 'label3d'; el.textContent = text; box.appendChild(el); }
+    if (!obj.visible) { el.style.display = 'none'; continue; }
+    const p = obj.position.clone().project(extCam);
+    el.style.display = p.z < 1 ? 'block' : 'none';
+    el.style.left = `${Math.round((p.x + 1) / 2 * w) + 12}px`; el.style.top = `${Math.round((1 - p.y) / 2 * h) - 8}px`;
+  }
+}
+// Scale bar of the external view, at the depth of the orbit centre.
+function scaleBar() {
+  const el = $('scalebar'); if (!el || !controls) return;
+  const h = $('external-box').clientHeight;
+  const d = extCam.position.distanceTo(controls.target);
+  const pxPerMm = (h / 2) / (Math.tan((extCam.fov / 2) / DEG) * d);
+  const mm = [5, 10, 20, 50, 100].find((v) => v * pxPerMm >= 60) || 100;
+  el.style.width = `${Math.round(mm * pxPerMm)}px`; el.textContent = `${mm} mm`;
 }
 function applyDeform(d) {
   if (!d || !aortaGeo) return;
@@ -406,9 +436,16 @@ function frame() {
   let render = dirty.size > 0;
   if (G.webgl) {
     render = resize(extRenderer, extCam, $('external-box')) | resize(intRenderer, intCam, $('internal-box')) || render;
-    if (render) { extRenderer.render(scene, extCam); intRenderer.render(scene, intCam); }
+    if (render) {
+      const t0 = performance.now();
+      extRenderer.render(scene, extCam);
+      const t1 = performance.now();
+      intRenderer.render(scene, intCam);
+      G.renderMs.push([t1 - t0, performance.now() - t1]);
+      if (G.renderMs.length > 1000) G.renderMs.splice(0, 500);
+    }
   }
-  if (render) { drawOverlay(); readouts(); }
+  if (render) { drawOverlay(); readouts(); scaleBar(); labels(); }
   if (has('tip') && S.tip) {
     G.latencies.push([S.tip.seq, (now_s() - S.tip.stamp) * 1000]);
     if (G.latencies.length > 5000) G.latencies.splice(0, 1000);
