@@ -180,7 +180,7 @@ def strip_stress(config: PBDConfig, strains: np.ndarray, test: StripTest | None 
         solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
                   topo.adj_k, topo.adj_rest, topo.adj_edge, factor, topo.tether_k,
                   topo.vertex_order, dt, test.sweeps, no_faces, no_faces, z, z, z, e, e, z, 0.0,
-                  np.zeros((n, 3)), np.zeros(n, np.int8), material.stiffening)
+                  np.zeros((n, 3)), np.zeros(n, np.int8), float(material.stiffening))
         forces = internal_forces(x, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
                                  material.stiffening, topo.hinges, topo.hinge_rest,
                                  topo.hinge_k, topo.tether_k)

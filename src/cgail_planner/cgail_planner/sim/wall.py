@@ -247,7 +247,7 @@ class DeformableWall(StaticWall):
                     topo.adj_k, topo.adj_rest, topo.adj_edge, self._factor, topo.tether_k,
                     topo.vertex_order, h, cfg.iterations, self._wall_faces,
                     self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en, pf, ps,
-                    points, radius, self._impulse, self._touched)
+                    points, radius, self._impulse, self._touched, 0.0)
             else:
                 worst = solve(
                     x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,

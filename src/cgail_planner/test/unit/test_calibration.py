@@ -117,7 +117,7 @@ def test_relaxed_lagged_secant_of_the_wall_converges_to_the_exact_law(eps):
         solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
                   topo.adj_k, topo.adj_rest, topo.adj_edge, factor, topo.tether_k,
                   topo.vertex_order, 0.1, 10, nf, nf, z, z, z, e, e, z, 0.0,
-                  np.zeros((len(v), 3)), np.zeros(len(v), np.int8))
+                  np.zeros((len(v), 3)), np.zeros(len(v), np.int8), 0.0)
     forces = internal_forces(x, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
                              cfg.stiffening, topo.hinges, topo.hinge_rest, topo.hinge_k,
                              topo.tether_k)

@@ -58,7 +58,7 @@ def run(topo, x, v, cfg, steps, dt=0.1):
             solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
                       topo.adj_k, topo.adj_rest, topo.adj_edge, factor, topo.tether_k,
                       topo.vertex_order, dt, cfg.iterations, no_faces, no_faces, z, z, z, e, e,
-                      z, 0.0, np.zeros((n, 3)), np.zeros(n, np.int8))
+                      z, 0.0, np.zeros((n, 3)), np.zeros(n, np.int8), 0.0)
         else:
             solve(x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k, factor,
                   topo.hinges, topo.hinge_rest, topo.hinge_k, topo.tether_k, dt, cfg.iterations,
@@ -162,9 +162,9 @@ def test_secant_factor_and_internal_forces():
     x = np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.0]])
     edges = np.array([[0, 1]])
     out = np.zeros(1)
-    secant_factor(x, edges, np.array([1.0]), 10.0, out)
+    secant_factor(x, edges, np.array([1.0]), 10.0, out, 1.0)
     assert out[0] == pytest.approx(math.expm1(1.0) / 1.0)  # b eps = 10 * 0.1
-    secant_factor(x, edges, np.array([1.2]), 10.0, out)  # compressed: linear
+    secant_factor(x, edges, np.array([1.2]), 10.0, out, 1.0)  # compressed: linear
     assert out[0] == 1.0
     secant_factor(x, edges, np.array([1.0]), 10.0, out, 0.5)  # under-relaxed update
     assert out[0] == pytest.approx(1.0 + 0.5 * (math.expm1(1.0) - 1.0))
