@@ -17,12 +17,12 @@ by side and write the box plots.
 
 **Time acceleration.** 20 trials of up to 3 minutes cannot run in real time, so the rig runs on
 simulated time: the phantom steps the physics and the simulated devices by fixed simulated
-increments, ``--time-scale`` (default 4) times faster than the wall clock, and publishes
+increments, ``--time-scale`` (default 6) times faster than the wall clock, and publishes
 ``/clock``; every node runs with ``use_sim_time``, so their timers, stamps, the operator's
 reaction delay and the 3-minute limit are in simulated seconds. The real nodes and the real
 protocols stay in the loop (ndicapi over the pty, CAN frames, Joy -> teleop -> commands). What
-does not scale: the tracker polls the simulated Aurora on the wall clock (40 Hz wall = 40/scale Hz
-simulated: the simulated Aurora skips frames, counted as dropped) and the rig nodes' own
+does not scale by itself is set accordingly: the tracker polls the simulated Aurora on the wall
+clock, so its ``rate_hz`` is ``--tracker-rate`` (40) times the time scale; the rig nodes' own
 watchdogs use wall-clock time (they are only stricter in simulated time). When the CPU cannot
 keep up, simulated time slows down rather than taking bigger steps.
 """
@@ -64,16 +64,18 @@ class SimRig:
         overrides: per node name, parameters applied over the launch file's.
     """
 
-    def __init__(self, launch_file: Path, overrides: dict[str, dict[str, Any]]) -> None:
+    def __init__(self, launch_file: Path, overrides: dict[str, dict[str, Any]],
+                 threads: int = 1) -> None:
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
+        from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
         from cgail_planner.system.launch_spec import load_launch_file
 
         self.spec = load_launch_file(launch_file)
         self.overrides = overrides
         rclpy.init()
-        self.executor = MultiThreadedExecutor(num_threads=4)
+        self.executor = SingleThreadedExecutor() if threads == 1 \
+            else MultiThreadedExecutor(num_threads=threads)
         self.nodes: dict[str, Any] = {}
         self.errors: list[str] = []
         try:
@@ -221,12 +223,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help='ONNX C-GAIL policy (export_onnx); required for the cgail condition')
     p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
                    help='conditions to run, in order')
-    p.add_argument('--time-scale', type=float, default=4.0,
-                   help='simulated seconds per wall second (default 4)')
+    p.add_argument('--time-scale', type=float, default=6.0,
+                   help='simulated seconds per wall second (default 6)')
     p.add_argument('--time-limit', type=float, default=180.0,
                    help='trial time limit, simulated s (paper: 180)')
     p.add_argument('--physics-rate', type=float, default=25.0,
                    help='phantom physics, device and /clock rate, Hz of simulated time')
+    p.add_argument('--tracker-rate', type=float, default=40.0,
+                   help='EM tracker rate in simulated time, Hz (the Aurora: 40); the tracker '
+                        'polls tracker_rate * time_scale times per wall second')
+    p.add_argument('--threads', type=int, default=1,
+                   help='executor threads (1: SingleThreadedExecutor, the fastest in rclpy)')
     p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
     p.add_argument('--seed', type=int, default=0, help='seed of the EM and stick noise')
     return p
@@ -262,7 +269,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         'phantom': {**common, 'anatomy': args.anatomy, 'mode': args.mode, 'aurora_link': link,
                     'publish_clock': True, 'time_scale': args.time_scale, 'seed': args.seed,
                     'physics_rate_hz': args.physics_rate},
-        'aurora': {**common, 'port': link},
+        'aurora': {**common, 'port': link,
+                   'rate_hz': min(1000.0, args.tracker_rate * args.time_scale)},
         'pam_controller': dict(common), 'sleeve_driver': dict(common), 'teleop': dict(common),
         'planner': {**common, 'anatomy': args.anatomy, 'mode': args.mode,
                     'policy_path': str(args.policy or ''), 'planner_type': args.conditions[0]},
@@ -271,7 +279,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t_start = time.monotonic()
     log(f'invitro_session: building the simulated rig ({args.anatomy}, {args.mode}, '
         f'x{args.time_scale:g} simulated time)...')
-    rig = SimRig(args.launch_file or default_launch_file(), overrides)
+    rig = SimRig(args.launch_file or default_launch_file(), overrides, threads=args.threads)
     from geometry_msgs.msg import PoseStamped
 
     from cgail_planner.nodes import conversions as conv

@@ -1,0 +1,132 @@
+"""phantom_node in-process: measured insertion + bend move the tip (bend*dl/L), devices hosted,
+/clock in simulated time, bad states ignored."""
+
+from collections.abc import Callable
+import math
+import time
+
+from geometry_msgs.msg import PoseStamped
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Header, String
+
+from cgail_planner.nodes import conversions as conv
+from cgail_planner.nodes.phantom_node import PhantomNode
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()
+
+
+def spin_until(executor, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.02)
+    return predicate()
+
+
+def joint(names, positions) -> JointState:
+    return JointState(header=Header(), name=list(names), position=list(positions))
+
+
+def make(tmp_path, **params):
+    defaults = dict(simulate_regulators=False, simulate_driver=False,
+                    aurora_link=str(tmp_path / 'aurora'), physics_rate_hz=100.0, em_noise_m=0.0)
+    defaults.update(params)
+    node = PhantomNode(parameter_overrides=[Parameter(k, value=v) for k, v in defaults.items()])
+    probe = rclpy.create_node('probe')
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+    ex.add_node(probe)
+    return node, probe, ex
+
+
+def test_held_bend_curves_the_tip_by_bend_dl_over_l(ros, tmp_path) -> None:
+    node, probe, ex = make(tmp_path)
+    try:
+        ins = probe.create_publisher(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+        bend = probe.create_publisher(JointState, 'catheter/bend_state', conv.SENSOR_QOS)
+        poses: list[PoseStamped] = []
+        probe.create_subscription(PoseStamped, 'phantom/tip_pose', poses.append,
+                                  conv.SENSOR_QOS)
+        heading0 = node.physics.tip_rotation[:, 1].copy()
+        bend.publish(joint(conv.BEND_JOINTS, [0.8, 0.0]))
+        ins.publish(joint(['insertion'], [0.010]))  # reference reading
+        assert spin_until(ex, lambda: node.insertion == pytest.approx(0.010)
+                          and node.bend == (0.8, 0.0))
+        spin_until(ex, lambda: False, 0.1)
+        ins.publish(joint(['insertion'], [0.030]))  # 20 mm inserted with the bend held
+        assert spin_until(ex, lambda: node.physics.inserted >= 0.02 - 1e-12)
+        turned = math.acos(float(np.clip(node.physics.tip_rotation[:, 1] @ heading0, -1, 1)))
+        assert turned == pytest.approx(0.8 * 0.020 / 0.05, rel=1e-3)
+        assert spin_until(ex, lambda: poses)
+        assert poses[-1].header.frame_id == 'phantom'
+        # a malformed state is ignored
+        ins.publish(joint(['insertion'], [math.nan]))
+        spin_until(ex, lambda: False, 0.2)
+        assert node.insertion == pytest.approx(0.030)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+
+
+def test_publishes_the_aurora_port_and_simulated_clock(ros, tmp_path) -> None:
+    node, probe, ex = make(tmp_path, publish_clock=True, time_scale=5.0)
+    try:
+        ports: list[String] = []
+        clocks: list[Clock] = []
+        probe.create_subscription(String, 'phantom/aurora_port', ports.append, conv.LATCHED_QOS)
+        probe.create_subscription(Clock, '/clock', clocks.append, 10)
+        assert spin_until(ex, lambda: ports and len(clocks) > 20)
+        assert ports[-1].data == str(tmp_path / 'aurora')
+        assert (tmp_path / 'aurora').is_symlink()
+        t0 = time.monotonic()
+        sim0 = node.sim_time
+        spin_until(ex, lambda: False, 1.0)
+        ratio = (node.sim_time - sim0) / (time.monotonic() - t0)
+        assert 1.5 < ratio <= 5.5  # faster than real time, never faster than asked
+        c = clocks[-1].clock
+        assert c.sec + 1e-9 * c.nanosec == pytest.approx(node._clock_offset + node.sim_time,
+                                                         abs=0.1)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+
+
+def test_reset_puts_the_tip_back_at_the_start(ros, tmp_path) -> None:
+    node, probe, ex = make(tmp_path, start_id=1, target_id=2)
+    try:
+        start = node.world.scenarios.starts[1]
+        node.physics.move(0.01, (0.0, 0.0))
+        assert not np.allclose(node.physics.tip_position, start.position)
+        node.reset_trial(1, 2)
+        assert node.physics.tip_position == pytest.approx(start.position)
+        assert node.target_position() == pytest.approx(node.world.scenarios.targets[2].position)
+        with pytest.raises(ValueError, match='start_id must be in'):
+            node.reset_trial(7, 0)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()
+
+
+@pytest.mark.parametrize(('name', 'value'), [('mode', 'beating'), ('start_id', 5),
+                                             ('time_scale', 0.0)])
+def test_bad_parameters_raise_at_construction(ros, tmp_path, name, value) -> None:
+    with pytest.raises(Exception, match=name):
+        PhantomNode(parameter_overrides=[Parameter(name, value=value),
+                                         Parameter('simulate_aurora', value=False)])
