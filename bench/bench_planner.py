@@ -1,0 +1,102 @@
+"""Planner speed: whole-path planning (rollout + B-spline fit) and guidance per tracker frame.
+
+Targets (issue 6): a full path in <= 50 ms, a guidance update in <= 2 ms per tracker frame.
+
+For every start x target of the anatomy's scenario set it plans with the ONNX policy (numpy +
+onnxruntime, as the node does) and with the centerline baseline, then replays the planned path as
+a noisy tracker stream (0.5 mm EM noise) through the guidance (projection, next waypoint,
+suggested bend). Prints wall and CPU time per plan (median, max), rollout steps and time per step,
+and guidance time per frame (median, 99th percentile). On a shared, loaded machine the CPU time
+is the cost; the wall time includes waiting for a core.
+
+Run: ``scripts/ws python bench/bench_planner.py [--policy model.onnx] [--anatomy default]``
+(default policy: the BC fixture ``src/cgail_planner/test/fixtures/bc_demo_policy.onnx``).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+import sys
+import time
+
+import numpy as np
+
+from cgail_planner.core.guidance import PathFollower
+from cgail_planner.core.planner import model_world_from_sim, NoPathError, Planner, PlannerConfig
+from cgail_planner.learning.onnx_policy import OnnxPolicy
+from cgail_planner.sim.catheter import frame_from_heading
+from cgail_planner.sim.env import RAY_DIRECTIONS
+from cgail_planner.sim.scenarios import load_world
+from cgail_planner.sim.wall import StaticWall
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_POLICY = ROOT / 'src' / 'cgail_planner' / 'test' / 'fixtures' / 'bc_demo_policy.onnx'
+
+
+def _stats(values: list[float]) -> str:
+    a = np.asarray(values) * 1e3
+    return f'median {np.median(a):7.2f} ms, max {a.max():7.2f} ms'
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--policy', type=Path, default=DEFAULT_POLICY)
+    ap.add_argument('--anatomy', default='default')
+    ap.add_argument('--repeats', type=int, default=2, help='plans per scenario (first is warm-up)')
+    args = ap.parse_args()
+    world = load_world(args.anatomy)
+    model = model_world_from_sim(world)
+    wall = StaticWall(world.anatomy)
+    policy = OnnxPolicy(args.policy, expected_obs_dim=41)
+    sc = world.scenarios
+    print(f'bench_planner: anatomy {args.anatomy}, policy {args.policy.name} '
+          f'({policy.metadata.get("preset", "?")}), {len(sc.starts)} starts x '
+          f'{len(sc.targets)} targets; torch imported: {"torch" in sys.modules}')
+    paths = []
+    for kind in ('cgail', 'centerline'):
+        planner = Planner(PlannerConfig(planner_type=kind), model, wall,
+                          policy if kind == 'cgail' else None, RAY_DIRECTIONS)
+        walls, cpus, steps, failures = [], [], [], 0
+        for start in sc.starts:
+            for target in sc.targets:
+                for rep in range(args.repeats):
+                    w0, c0 = time.perf_counter(), time.process_time()
+                    try:
+                        res = planner.plan(start.position, start.rotation, target.position)
+                    except NoPathError:
+                        failures += 1
+                        break
+                    if rep == args.repeats - 1 or args.repeats == 1:
+                        walls.append(time.perf_counter() - w0)
+                        cpus.append(time.process_time() - c0)
+                        steps.append(res.steps)
+                        paths.append(res.path)
+        n = len(sc.starts) * len(sc.targets)
+        print(f'{kind:10s} full path: wall {_stats(walls)} | CPU {_stats(cpus)} | '
+              f'{n - failures}/{n} planned' + (
+                  f' | rollout {np.mean(steps):.0f} steps, CPU '
+                  f'{np.median(np.array(cpus) / np.array(steps)) * 1e6:.0f} us/step'
+                  if kind == 'cgail' and steps else ''))
+    rng = np.random.default_rng(0)
+    walls, cpus = [], []
+    for path in paths:
+        follower = PathFollower(path)
+        tangents = np.gradient(path, axis=0)
+        for k in range(0, len(path), 2):
+            p = path[k] + rng.normal(0.0, 0.0005 / np.sqrt(3.0), 3)
+            r = frame_from_heading(tangents[k])
+            w0, c0 = time.perf_counter(), time.process_time()
+            follower.guide(p, r)
+            walls.append(time.perf_counter() - w0)
+            cpus.append(time.process_time() - c0)
+    w, c = np.asarray(walls) * 1e3, np.asarray(cpus) * 1e3
+    print(f'guidance per tracker frame ({len(w)} frames): wall median {np.median(w):.3f} ms, '
+          f'p99 {np.percentile(w, 99):.3f} ms | CPU median {np.median(c):.3f} ms, '
+          f'p99 {np.percentile(c, 99):.3f} ms')
+    print('targets: full path <= 50 ms, guidance <= 2 ms per frame')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
