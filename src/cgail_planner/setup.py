@@ -48,7 +48,7 @@ setup(
             'train = cgail_planner.learning.train:main',
             'evaluate = cgail_planner.learning.evaluate:main',
             'export_onnx = cgail_planner.learning.export:main',
-            'insilico_session = cgail_planner.system.session:main',
+            'invitro_session = cgail_planner.system.session:main',
         ],
     },
 )

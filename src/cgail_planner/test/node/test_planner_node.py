@@ -263,3 +263,32 @@ def test_dynamic_mode_replans_when_the_tip_leaves_the_corridor(ros, world) -> No
 def test_bad_parameters_raise_at_construction(ros, name, value) -> None:
     with pytest.raises(Exception, match=name):
         PlannerNode(parameter_overrides=[Parameter(name, value=value)])
+
+
+@pytest.mark.parametrize(('cls_path', 'yaml_name', 'skip'), [
+    ('cgail_planner.nodes.planner_node:PlannerNode', 'planner.yaml', ()),
+    ('cgail_planner.nodes.operator_node:OperatorNode', 'operator.yaml', ()),
+    ('cgail_planner.nodes.phantom_node:PhantomNode', 'phantom.yaml', ('aurora_link',)),
+])
+def test_yaml_defaults_equal_the_declared_defaults(ros, cls_path, yaml_name, skip) -> None:
+    import importlib
+
+    import yaml
+
+    module, name = cls_path.split(':')
+    cfg = Path(__file__).resolve().parents[2] / 'config' / yaml_name
+    params = next(iter(yaml.safe_load(cfg.read_text()).values()))['ros__parameters']
+    node = getattr(importlib.import_module(module), name)(
+        parameter_overrides=[Parameter('simulate_aurora', value=False)]
+        if 'phantom' in yaml_name else [])
+    try:
+        declared = {n: node.get_parameter(n).value for n in node._parameters
+                    if n not in ('use_sim_time', 'simulate_aurora',
+                                 'start_type_description_service')}
+        assert set(declared) == set(params) - {'simulate_aurora'}
+        for key, value in params.items():
+            if key in skip or key == 'simulate_aurora':
+                continue
+            assert declared[key] == pytest.approx(value), key
+    finally:
+        node.destroy_node()
