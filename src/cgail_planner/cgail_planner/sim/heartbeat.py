@@ -64,11 +64,19 @@ class HeartbeatConfig:
     """Cycle phase at t = 0, in cycles; in [0, 1). 0 starts at end-diastole (rest shape)."""
     enabled: bool = True
     """False freezes the annulus at its rest position (no heartbeat)."""
+    heart_borne_radius: float = 0.040
+    """Fixed vertices (``Anatomy.fixed_vertices``) within this distance of the annulus centre,
+    m, are released (free wall particles, tethered like the rest): the coronary-stub ends,
+    since the coronary arteries lie on the heart and follow the root. Holding them 25 mm from a
+    root that moves 11 mm strained the sinus wall by up to 50 %; moving them rigidly with the
+    annulus tore the 6 mm stubs instead. The supra-aortic stubs (~85 mm and more away) stay
+    fixed. 0 holds every fixed vertex; in [0, 0.2]."""
 
     def __post_init__(self) -> None:
         for name, low, high in (
             ("axial_amplitude", 0.0, 0.03), ("inplane_amplitude", 0.0, 0.02),
             ("inplane_angle", -math.pi, math.pi), ("heart_rate", 20.0, 240.0),
+            ("heart_borne_radius", 0.0, 0.2),
         ):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value)

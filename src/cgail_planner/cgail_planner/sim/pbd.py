@@ -94,10 +94,13 @@ class PBDConfig:
     """Wall thickness h, m (2.5 mm; MESA, Turkbey 2014); in [0.1 mm, 10 mm]."""
     density: float = 1100.0
     """Wall density, kg/m^3 (~1,100 for soft tissue); in [100, 10000]."""
-    tether_stiffness: float = 5.0e5
+    tether_stiffness: float = 1.25e5
     """Stiffness per unit wall area of the zero-length tether to the rest shape, N/m^3
-    (estimate: with E h = 1,250 N/m the root motion decays along the aorta over
-    ``sqrt(E h / k) ~ 50 mm``); in [0, 1e9]."""
+    (estimate): with E h ~ 1,250 N/m the root motion decays along the aorta over
+    ``sqrt(E h / k) ~ 100 mm``, the annulus-to-arch distance, so the 10 mm systolic descent is
+    shared by the root and the ascending aorta (median edge strain there 5-10 % at
+    end-systole; the ascending aorta is known to stretch lengthwise by several per cent per
+    beat, e.g. Beller et al. 2004); in [0, 1e9]."""
     bending_ratio: float = 0.0
     """Stiffness of each bending (hinge) spring as a fraction of the stretch stiffness of its
     edge; in [0, 1]. 0 (default) leaves the hinges out: the plate-bending stiffness of the

@@ -169,7 +169,13 @@ class DeformableWall(StaticWall):
             raise ValueError(f"heartbeat_config must be a HeartbeatConfig, found "
                              f"{type(hb).__name__}")
         self.heartbeat = Heartbeat(anatomy.root_axis, hb)
-        self.topology = build_topology(self._rest, anatomy.faces, anatomy.fixed_vertices,
+        fixed = np.asarray(anatomy.fixed_vertices, dtype=np.int64)
+        center = np.asarray(anatomy.annulus_center, dtype=float)
+        near = np.linalg.norm(self._rest[fixed] - center, axis=1) < hb.heart_borne_radius
+        #: Fixed vertices released to move with the wall (coronary-stub ends), see
+        #: ``HeartbeatConfig.heart_borne_radius``.
+        self.heart_borne_vertices = fixed[near]
+        self.topology = build_topology(self._rest, anatomy.faces, fixed[~near],
                                        anatomy.annulus_vertices, self.pbd_config)
         self._tolerance = self.pbd_config.penetration_tolerance
         self._wall_faces = self._bvh.faces

@@ -92,7 +92,7 @@ def test_annulus_moves_with_the_documented_amplitude_and_period(tube):
     probe = N_AROUND * 2  # a free particle on the third ring, 10 mm above the annulus
     rest_ann = tube.vertices[ann].mean(axis=0)
     t, ann_disp, probe_disp = [], [], []
-    for k in range(1, 181):  # three cycles
+    for k in range(1, 241):  # four cycles
         wall.step(k * dt, dt, np.zeros((0, 3)), CATHETER_R)
         t.append(k * dt)
         ann_disp.append(wall.vertices[ann].mean(axis=0) - rest_ann)
@@ -108,7 +108,7 @@ def test_annulus_moves_with_the_documented_amplitude_and_period(tube):
     # The motion propagates through the constraints to a free particle, smaller, same period.
     pmag = np.linalg.norm(probe_disp, axis=1)
     assert 0.002 < pmag.max() < mag.max()
-    np.testing.assert_allclose(probe_disp[120:], probe_disp[60:120], atol=2e-4)
+    np.testing.assert_allclose(probe_disp[180:], probe_disp[120:180], atol=2e-4)
     # Fixed ring never moves.
     np.testing.assert_array_equal(wall.vertices[tube.fixed_vertices],
                                   tube.vertices[tube.fixed_vertices])
@@ -140,17 +140,19 @@ def test_force_grows_with_indentation(tube):
     wall = DeformableWall(tube, heartbeat_config=NO_BEAT)
     forces = []
     k = 0
-    for ind in np.arange(0.0, 0.00301, 0.001):
+    for ind in np.arange(0.0, 0.00501, 0.001):
         body = pressing_body(ind)
+        level = []
         for _ in range(8):
             k += 1
             wall.step(k * DT, DT, body, CATHETER_R)
-        forces.append(wall.tip_contact(body[-1], CATHETER_R, DT).force)
+            level.append(wall.tip_contact(body[-1], CATHETER_R, DT).force)
+        forces.append(np.mean(level[4:]))  # after the transient of the 1 mm jump
     forces = np.array(forces)
     assert np.all(np.diff(forces) > 0), forces
     assert forces[0] < 0.05  # just touching (facets), almost no force
     assert 0.05 < forces[1] < 0.8  # 1 mm: a minor contact by the paper's 0.8 N limit
-    assert forces[-1] > 0.8  # 3 mm: beyond it
+    assert forces[-1] > 0.8  # 5 mm: beyond it
 
 
 def test_free_catheter_has_no_contact(tube):
@@ -256,10 +258,22 @@ def test_real_anatomy_beats_and_keeps_its_fixed_rings():
             d = wall.vertices[anatomy.annulus_vertices] - rest[anatomy.annulus_vertices]
             np.testing.assert_allclose(
                 d, np.broadcast_to(wall.heartbeat.peak_displacement, d.shape), atol=1e-12)
-    np.testing.assert_array_equal(wall.vertices[anatomy.fixed_vertices],
-                                  rest[anatomy.fixed_vertices])
-    # The coronary ostium (the target's particle) follows the root, less than the annulus.
-    assert 0.002 < max(ost_moves) < math.hypot(0.010, 0.005) + 1e-3
+    # Fixed rings stay put, except the coronary-stub ends, released to move with the root.
+    heart = wall.heart_borne_vertices
+    held = np.setdiff1d(anatomy.fixed_vertices, heart)
+    assert 0 < len(heart) < len(anatomy.fixed_vertices)
+    np.testing.assert_array_equal(wall.vertices[held], rest[held])
+    assert np.all(wall.topology.inv_mass[heart] > 0)
+    assert np.linalg.norm(wall.vertices[heart] - rest[heart], axis=1).min() > 1e-4
+    # The coronary ostium (the target's particle) follows the root, at most as much.
+    assert 0.005 < max(ost_moves) < math.hypot(0.010, 0.005) + 1e-3
+    # The root motion is spread over the wall, not absorbed by a few torn elements.
+    t = wall.topology
+    wall.step(28 * dt, dt, np.zeros((0, 3)), CATHETER_R)  # end-systole of the third beat
+    x = wall.vertices
+    strain = np.linalg.norm(x[t.edges[:, 0]] - x[t.edges[:, 1]], axis=1) / t.edge_rest - 1
+    assert np.percentile(np.abs(strain), 99) < 0.2
+    assert np.median(np.abs(strain)) < 0.01
     # Rays still see a closed wall from the start point.
     o = np.repeat(anatomy.start_point[None], 8, axis=0)
     ang = np.linspace(0, 2 * np.pi, 8, endpoint=False)
