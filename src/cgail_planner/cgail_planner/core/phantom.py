@@ -47,12 +47,15 @@ class PhantomConfig:
     """RMS (3-D) of the EM position noise, m (Aurora: ~0.5 mm); [0, 0.01]."""
     em_angle_noise_rms: float = 0.005
     """RMS of the EM orientation noise, rad; [0, 0.1]."""
+    wall_dt: float = 0.05
+    """Step of the deformable wall (PBD + heartbeat), s; the physics steps it once this much
+    time has accumulated; [1 ms, 0.2 s]."""
 
     def __post_init__(self) -> None:
         for name, low, high, low_open in (
                 ("segment_length", 1e-3, 0.5, False), ("outer_diameter", 0.0, 0.02, True),
                 ("max_substep", 1e-5, 0.005, False), ("em_noise_rms", 0.0, 0.01, False),
-                ("em_angle_noise_rms", 0.0, 0.1, False)):
+                ("em_angle_noise_rms", 0.0, 0.1, False), ("wall_dt", 1e-3, 0.2, False)):
             value = getattr(self, name)
             ok = (isinstance(value, (int, float)) and math.isfinite(value)
                   and (value > low if low_open else value >= low) and value <= high)
@@ -82,6 +85,7 @@ class PhantomPhysics:
         self.contacts = 0
         self.inserted = 0.0
         self._last_insertion: float | None = None
+        self._wall_pending = 0.0
 
     def reset(self, position: FloatArray, rotation: FloatArray,
               introducer_tail: FloatArray) -> None:
@@ -95,6 +99,7 @@ class PhantomPhysics:
         self.contacts = 0
         self.inserted = 0.0
         self._last_insertion = None
+        self._wall_pending = 0.0
 
     @property
     def tip_position(self) -> FloatArray:
@@ -126,8 +131,11 @@ class PhantomPhysics:
             self._last_insertion = insertion_position
             self.move(delta, bend)
         if isinstance(self.wall, DeformableWall):
-            body = self.catheter.body_points(0, 0.005)
-            self.wall.step(self.time, dt, body, self.radius)
+            self._wall_pending += dt
+            if self._wall_pending >= self.config.wall_dt - 1e-12:
+                body = self.catheter.body_points(0, 0.005)
+                self.wall.step(self.time, self._wall_pending, body, self.radius)
+                self._wall_pending = 0.0
         self._constrain()
 
     def move(self, delta: float, bend: tuple[float, float]) -> None:

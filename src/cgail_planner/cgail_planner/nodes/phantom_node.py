@@ -64,7 +64,9 @@ class PhantomNode(Node):
                                       'RMS of the EM position noise, m', lo=0.0, hi=0.01),
             em_angle_noise_rms=conv.declare(self, 'em_angle_noise_rad', d.em_angle_noise_rms,
                                             'RMS of the EM orientation noise, rad',
-                                            lo=0.0, hi=0.1))
+                                            lo=0.0, hi=0.1),
+            wall_dt=conv.declare(self, 'wall_dt_s', d.wall_dt, 'dynamic mode: step of the '
+                                 'deformable wall (PBD + heartbeat), s', lo=1e-3, hi=0.2))
         anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
         self.mode = conv.declare(self, 'mode', 'static', "'static' (rigid wall) or 'dynamic' "
                                  '(deformable wall, heartbeat, moving target)')

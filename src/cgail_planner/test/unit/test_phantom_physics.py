@@ -103,3 +103,29 @@ def test_config_rejects_bad_values(field, value) -> None:
 def test_step_rejects_a_bad_dt() -> None:
     with pytest.raises(ValueError, match='dt must be a positive'):
         physics().step(0.0, 0.0, (0.0, 0.0))
+
+
+def test_deformable_wall_is_stepped_every_wall_dt_with_the_body() -> None:
+    from cgail_planner.sim.wall import DeformableWall
+
+    class CountingWall(DeformableWall):
+        def __init__(self) -> None:  # no anatomy: only the stepping is under test
+            self.calls = []
+
+        def reset(self) -> None:
+            self.calls.clear()
+
+        def step(self, t, dt, body_points, body_radius) -> None:
+            self.calls.append((round(t, 9), round(dt, 9), len(body_points), body_radius))
+
+        def tip_contact(self, tip, radius, dt):
+            return FlatWall().tip_contact(tip - np.array([0.0, 0.0, 1.0]), radius, dt)
+
+    wall = CountingWall()
+    ph = PhantomPhysics(PhantomConfig(wall_dt=0.05), wall)
+    ph.reset(np.zeros(3), np.eye(3), np.array([0.0, -0.02, 0.0]))
+    for _ in range(10):
+        ph.step(0.02, 0.0, (0.0, 0.0))
+    # 10 x 20 ms: stepped at 60, 120 and 180 ms, each with the 3 accumulated ticks
+    assert [c[:2] for c in wall.calls] == [(0.06, 0.06), (0.12, 0.06), (0.18, 0.06)]
+    assert all(c[2] >= 2 and c[3] == pytest.approx(0.0035) for c in wall.calls)
