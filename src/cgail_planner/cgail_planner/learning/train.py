@@ -8,7 +8,8 @@ Examples::
         --demos bags/demos/default --out runs/cgail_dynamic
 
 Writes ``<out>/config.yaml``, ``scalars.csv`` + a TensorBoard event file (flat names such as
-``losses/value_loss``, ``eval/success_rate``), ``checkpoints/step_<n>.pt`` and ``final.pt``.
+``losses/value_loss``, ``eval/success_rate``), ``checkpoints/step_<n>.pt``, ``best.pt`` (highest
+periodic evaluation success rate, latest on ties) and ``final.pt``.
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = Tr
     next_eval = cfg.eval_every or math.inf
     next_ckpt = cfg.checkpoint_every or math.inf
     last: dict[str, float] = {}
+    best = -1.0
     t0 = time.monotonic()
     with tqdm(total=cfg.max_steps, disable=not progress, unit='step', dynamic_ncols=True) as bar:
         while trainer.step < cfg.max_steps:
@@ -76,9 +78,15 @@ def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = Tr
             scalars = trainer.train_iteration()
             scalars['time/steps_per_s'] = trainer.step / max(time.monotonic() - t0, 1e-9)
             if trainer.step >= next_eval:
-                scalars.update(evaluate_policy(trainer.act_deterministic, eval_env,
-                                               cfg.eval_episodes, seed=10_000 + seed))
+                ev = evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
+                                     seed=10_000 + seed)
+                scalars.update(ev)
                 next_eval += cfg.eval_every
+                if ev['eval/success_rate'] >= best:
+                    # PPO on this task is not monotone: keep the best evaluated policy too
+                    best = ev['eval/success_rate']
+                    trainer.save(out / 'best.pt')
+                    scalars['eval/best_success_rate'] = best
             if trainer.step >= next_ckpt:
                 trainer.save(out / 'checkpoints' / f'step_{trainer.step}.pt')
                 next_ckpt += cfg.checkpoint_every

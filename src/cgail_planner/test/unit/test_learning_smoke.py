@@ -49,7 +49,7 @@ def test_cgail_learns_on_toy_env(tmp_path: Path):
     assert after['eval/success_rate'] >= 0.6, result
     assert trainer.curriculum.lesson == 1          # success passed 0.3 over 20 episodes
     assert trainer.env.envs[0].theta_max == pytest.approx(np.radians(60))
-    assert (tmp_path / 'final.pt').is_file()
+    assert (tmp_path / 'final.pt').is_file() and (tmp_path / 'best.pt').is_file()
     assert (tmp_path / 'checkpoints' / 'step_6144.pt').is_file()
     tags = {line.split(',')[1] for line in (tmp_path / 'scalars.csv').read_text().splitlines()}
     assert {'losses/value_loss', 'losses/gail_loss', 'losses/bc_loss', 'eval/success_rate',
