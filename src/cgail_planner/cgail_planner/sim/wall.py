@@ -31,6 +31,7 @@ from cgail_planner.sim.contact import Contact, narrow_pairs
 from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
 from cgail_planner.sim.pbd import (
     build_topology,
+    contact_neighbourhood,
     internal_forces,
     PBDConfig,
     predict,
@@ -254,6 +255,17 @@ class DeformableWall(StaticWall):
                     topo.vertex_order, h, cfg.iterations, self._wall_faces,
                     self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en, pf, ps,
                     points, radius, self._impulse, self._touched, 0.0)
+                if pf.size and cfg.local_iterations:
+                    local = contact_neighbourhood(self._touched, topo.adj_ptr, topo.adj_other,
+                                                  topo.vertex_order, cfg.local_rings)
+                    if local.size:
+                        worst = solve_vbd(
+                            x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr,
+                            topo.adj_other, topo.adj_k, topo.adj_rest, topo.adj_edge,
+                            self._factor, topo.tether_k, local, h, cfg.local_iterations,
+                            self._wall_faces, self._bvh.face_edges, self._rest_fn,
+                            self._rest_vn, self._rest_en, pf, ps, points, radius,
+                            self._impulse, self._touched, 0.0)
             else:
                 worst = solve(
                     x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,

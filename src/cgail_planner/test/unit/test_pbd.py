@@ -158,6 +158,25 @@ def test_perturbed_wall_recovers_rest_lengths_and_fixed_rings_stay(mesh, cfg):
     np.testing.assert_array_equal(x[bottom], v[bottom])
 
 
+def test_contact_neighbourhood_grows_by_rings(mesh):
+    from cgail_planner.sim.pbd import contact_neighbourhood
+
+    v, f, _, bottom, top = mesh
+    topo = build_topology(v, f, top, bottom, PBDConfig())
+    touched = np.zeros(len(v), np.int8)
+    seed = 5 * 24 + 3  # a wall vertex mid-tube
+    touched[seed] = 2
+    ring0 = contact_neighbourhood(touched, topo.adj_ptr, topo.adj_other, topo.vertex_order, 0)
+    assert ring0.tolist() == [seed]
+    ring1 = contact_neighbourhood(touched, topo.adj_ptr, topo.adj_other, topo.vertex_order, 1)
+    nbrs = set(topo.adj_other[topo.adj_ptr[seed]:topo.adj_ptr[seed + 1]].tolist())
+    assert set(ring1.tolist()) == nbrs | {seed}
+    ring2 = contact_neighbourhood(touched, topo.adj_ptr, topo.adj_other, topo.vertex_order, 2)
+    assert set(ring1.tolist()) < set(ring2.tolist())
+    order_rank = {int(i): k for k, i in enumerate(topo.vertex_order)}
+    assert [order_rank[int(i)] for i in ring2] == sorted(order_rank[int(i)] for i in ring2)
+
+
 def test_secant_factor_and_internal_forces():
     x = np.array([[0.0, 0.0, 0.0], [1.1, 0.0, 0.0]])
     edges = np.array([[0, 1]])
@@ -193,6 +212,8 @@ def test_internal_forces_vanish_at_rest(mesh):
     ("tether_stiffness", -1.0, "tether_stiffness must be in"),
     ("bending_ratio", 2.0, "bending_ratio must be in"),
     ("solver", "jacobi", "solver must be 'vbd' or 'xpbd'"),
+    ("local_iterations", -1, "local_iterations must be an int"),
+    ("local_rings", 21, "local_rings must be an int"),
     ("iterations", 0, "iterations must be an int"),
     ("iterations", 2.5, "iterations must be an int"),
     ("substeps", True, "substeps must be an int"),
