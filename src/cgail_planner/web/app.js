@@ -114,7 +114,7 @@ let aortaGeo = null, aortaMesh = null, lumenMesh = null, aortaEdges = null;
 let homeView = null;
 
 const pathMat = new THREE.MeshBasicMaterial({ color: 0x35d0ff });
-let pathMesh = null, pathLine = null;
+let pathMesh = null, pathLine = null, pathLinePts = null;
 const pathLineMat = new THREE.LineBasicMaterial({ color: 0x35d0ff });
 const tipGroup = new THREE.Group();
 const tipBall = new THREE.Mesh(new THREE.SphereGeometry(3.5, 24, 16), new THREE.MeshPhongMaterial({ color: 0xff9f1c, emissive: 0x552200 }));
@@ -236,15 +236,31 @@ function drawPath(p) {
   // the internal view gets a thin line: a tube right in front of the camera would hide the lumen
   pathLine = new THREE.Line(new THREE.BufferGeometry().setFromPoints(curve.getPoints(Math.min(2000, p.points.length * 8))), pathLineMat);
   pathLine.layers.set(INT);
+  pathLinePts = pathLine.geometry.getAttribute('position');
   scene.add(pathMesh, pathLine);
   G.drawn.pathPoints = p.points.length;
+  if (tipGroup.visible) trimInternalPath(tipGroup.position);
 }
 function drawTip(t) {
   if (!t) { tipGroup.visible = false; return; }
   const p = v3(t.p), h = new THREE.Vector3(...t.heading), up = new THREE.Vector3(...t.up);
   tipGroup.visible = true; tipGroup.position.copy(p); tipArrow.setDirection(h);
   intCam.position.copy(p); intCam.up.copy(up); intCam.lookAt(p.clone().add(h));
+  trimInternalPath(p);
   G.drawn.tipSeq = t.seq; G.drawn.tipMm = [p.x, p.y, p.z];
+}
+// The internal view shows the path ahead only: from the point nearest the tip, 4 mm on.
+function trimInternalPath(p) {
+  if (!pathLine || !pathLinePts) return;
+  const a = pathLinePts.array, n = pathLinePts.count;
+  let best = 0, bestD = Infinity;
+  for (let i = 0; i < n; i++) {
+    const d = (a[3 * i] - p.x) ** 2 + (a[3 * i + 1] - p.y) ** 2 + (a[3 * i + 2] - p.z) ** 2;
+    if (d < bestD) { bestD = d; best = i; }
+  }
+  let i = best;
+  while (i < n - 1 && (a[3 * i] - p.x) ** 2 + (a[3 * i + 1] - p.y) ** 2 + (a[3 * i + 2] - p.z) ** 2 < 16) i++;
+  pathLine.geometry.setDrawRange(i, n - i);
 }
 function drawTarget(t) {
   targetBall.visible = targetZone.visible = !!t; G.drawn.target = !!t;
@@ -314,8 +330,8 @@ function drawOverlay() {
     if (!inside) { const s = Math.min(w, h) * 0.46; x = cx + s * wpt.screen[0]; y = cy - s * wpt.screen[1]; }
     octx.strokeStyle = '#ffd43b'; octx.fillStyle = 'rgba(255,212,59,0.25)'; octx.lineWidth = 2.5;
     octx.beginPath(); octx.arc(x, y, inside ? 10 : 8, 0, 2 * Math.PI); octx.fill(); octx.stroke();
-    octx.fillStyle = '#ffd43b'; octx.font = '12px system-ui'; octx.textAlign = 'left';
-    octx.fillText(`waypoint ${(wpt.distance * MM).toFixed(0)} mm${inside ? '' : ' (off view)'}`, x + 13, y + 4);
+    octx.fillStyle = '#ffd43b'; octx.font = '12px system-ui'; octx.textAlign = 'center';
+    octx.fillText(`waypoint ${(wpt.distance * MM).toFixed(0)} mm${inside ? '' : ' (off view)'}`, x, y + 26);
   }
   // suggested bend: arrow from the heading, length = magnitude on the 0..max dial
   const b = S.bend;
@@ -332,8 +348,12 @@ function drawOverlay() {
       octx.lineTo(ex - 14 * Math.cos(a - 0.45), ey - 14 * Math.sin(a - 0.45));
       octx.lineTo(ex - 14 * Math.cos(a + 0.45), ey - 14 * Math.sin(a + 0.45)); octx.closePath(); octx.fill();
     }
-    octx.font = '600 13px system-ui'; octx.textAlign = 'left';
-    octx.fillText(`bend ${(b.magnitude * DEG).toFixed(0)}\u00b0`, ex + 10, ey - 10);
+    // label beside the middle of the arrow (a short arrow has its value in the readout only)
+    if (len > 50) {
+      const px = b.screen[1], py = b.screen[0];          // perpendicular on the canvas
+      octx.font = '600 13px system-ui'; octx.textAlign = 'center';
+      octx.fillText(`bend ${(b.magnitude * DEG).toFixed(0)}\u00b0`, (cx + ex) / 2 + 34 * px, (cy + ey) / 2 + 34 * py + 4);
+    }
     G.drawn.bendArrow = [ex - cx, cy - ey];
   }
   // tip axes legend
