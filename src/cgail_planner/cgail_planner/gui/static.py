@@ -1,8 +1,8 @@
 """The static files the GUI server may send: a fixed table built at start-up.
 
 Requests are looked up in the table by their exact URL path; nothing from a request ever
-reaches the file system, so ``..``, encoded slashes, absolute paths and symlinks out of the
-web directory cannot be served. The table holds the regular files directly inside the web
+reaches the file system, so ``..``, encoded slashes and absolute paths cannot name another
+file. The table holds the regular files directly inside the web
 directory (``index.html``, ``app.js``, ``style.css``...) and three.js from its npm package:
 
 * ``/vendor/three.module.js`` and ``/vendor/three.core.js`` <- ``node_modules/three/build/``
@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass
-import os
 from pathlib import Path
 
 CONTENT_TYPES = {
@@ -70,16 +69,17 @@ def build_table(web_root: Path) -> dict[str, StaticFile]:
 
     Missing vendor files (``npm ci`` not run) are left out; :func:`missing_vendor` names them.
     """
-    root = Path(web_root).resolve()
+    root = Path(web_root)
     table: dict[str, StaticFile] = {}
     for entry in sorted(root.iterdir()):
         ctype = CONTENT_TYPES.get(entry.suffix)
-        if ctype and entry.is_file() and not entry.is_symlink():
-            table['/' + entry.name] = StaticFile(entry, ctype)
+        # regular files, or links to them (a colcon --symlink-install share directory)
+        if ctype and not entry.name.startswith('.') and entry.is_file():
+            table['/' + entry.name] = StaticFile(entry.resolve(), ctype)
     for url, rel in VENDOR.items():
-        p = (root / rel).resolve()
-        if p.is_file() and os.path.commonpath([p, root]) == str(root):
-            table[url] = StaticFile(p, CONTENT_TYPES['.js'])
+        p = root / rel
+        if p.is_file():
+            table[url] = StaticFile(p.resolve(), CONTENT_TYPES['.js'])
     if '/index.html' in table:
         table['/'] = table['/index.html']
     return table

@@ -101,11 +101,13 @@ def test_static_table_is_exact(tmp_path: Path) -> None:
     (tmp_path / 'secret.txt').write_text('no')
     (tmp_path / 'sub').mkdir()
     (tmp_path / 'sub' / 'x.js').write_text('no')
-    (tmp_path / 'link.js').symlink_to(tmp_path / 'secret.txt')
+    (tmp_path / '.hidden.js').write_text('no')
+    (tmp_path / 'linked.css').symlink_to(tmp_path / 'sub' / 'x.js')   # symlink install
     table = build_table(tmp_path)
-    assert sorted(table) == ['/', '/app.js', '/index.html']
+    assert sorted(table) == ['/', '/app.js', '/index.html', '/linked.css']
     assert lookup(table, '/app.js?x=1') is not None
-    for bad in ('/../app.js', '/sub/x.js', '/secret.txt', '/link.js', 'app.js'):
+    for bad in ('/../app.js', '/sub/x.js', '/secret.txt', '/.hidden.js', 'app.js',
+                '/sub/../app.js'):
         assert lookup(table, bad) is None
     assert not set(VENDOR) & set(table)
 
