@@ -21,7 +21,6 @@ CONTENT_TYPES = {
     '.css': 'text/css; charset=utf-8',
     '.png': 'image/png',
     '.svg': 'image/svg+xml',
-    '.json': 'application/json',
 }
 """Served extensions and their Content-Type."""
 

@@ -157,6 +157,18 @@ def test_serves_its_own_files_only(running: Running) -> None:
         status, body = http_get(port, bad)
         assert status == 404, (bad, status, body[:80])
     assert running.node._server.stats.http_not_found >= 14
+    # other methods and garbage get an error or a closed socket; the server keeps serving
+    for raw in (b'POST / HTTP/1.1\r\nHost: x\r\nContent-Length: 3\r\n\r\nabc',
+                b'\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03' + bytes(200),
+                b'GET / HTTP/1.1\r\n' + b'X: ' + b'a' * 20000 + b'\r\n\r\n'):
+        with socket.create_connection(('127.0.0.1', port), timeout=1) as s:
+            s.sendall(raw)
+            try:
+                reply = s.recv(100)
+            except (ConnectionResetError, TimeoutError):   # dropped, or left to time out
+                reply = b''
+            assert not reply.startswith(b'HTTP/1.1 200'), raw[:20]
+    assert http_get(port, '/')[0] == 200
 
 
 def test_websocket_full_state_updates_and_reconnect(running: Running) -> None:
