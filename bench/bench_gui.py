@@ -56,6 +56,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--rate', type=float, default=40.0, help='tip pose rate, Hz')
     parser.add_argument('--seconds', type=float, default=10.0, help='measured duration, s')
+    parser.add_argument('--window', default='1600x980', help='browser window, WxH pixels')
     args = parser.parse_args()
     path = compute_centerlines(build_anatomy('default'))['left'].points
     rclpy.init()
@@ -99,7 +100,8 @@ def main() -> None:
             stop.wait(max(0.0, nxt - time.monotonic()))
 
     try:
-        with Chromium.launch() as browser:
+        width, height = (int(v) for v in args.window.lower().split('x'))
+        with Chromium.launch(width=width, height=height) as browser:
             page = browser.open(node.url)
             page.wait_for('window.gui && window.gui.connected && window.gui.drawn.meshVertices',
                           timeout=60)
@@ -115,6 +117,7 @@ def main() -> None:
             rx = page.evaluate('window.gui.rxLatencies')
             render = np.array(page.evaluate('window.gui.renderMs.slice(-50)') or [[0.0, 0.0]])
             renderer = page.evaluate('window.gui.glRenderer')
+            scale = page.evaluate('window.gui.renderScale')
             frames = page.evaluate('window.gui.frames - window.gui.frames0')
             elapsed = time.monotonic() - t0
             n_sent = sent[0] - sent0
@@ -130,7 +133,8 @@ def main() -> None:
     if ms.size == 0:
         raise SystemExit('bench_gui: no tip pose was drawn')
     print(f'bench_gui: tip pose published -> page frame drawn, {args.rate:g} Hz for '
-          f'{elapsed:.1f} s (default anatomy, {node.config.ray_count + 1} rays per pose)')
+          f'{elapsed:.1f} s (default anatomy, {node.config.ray_count + 1} rays per pose, '
+          f'window {args.window})')
     print(f'  latency ms: mean {ms.mean():.1f}  p50 {np.percentile(ms, 50):.1f}  '
           f'p95 {np.percentile(ms, 95):.1f}  max {ms.max():.1f}  (n = {ms.size})')
     rx_ms = np.array([x[1] for x in rx])
@@ -139,7 +143,8 @@ def main() -> None:
               f'p95 {np.percentile(rx_ms, 95):.1f} ms (n = {rx_ms.size}); the rest is drawing '
               f'(WebGL renderer: {renderer})')
     print(f'  WebGL render calls per frame (last 50): external {render[:, 0].mean():.1f} ms, '
-          f'internal {render[:, 1].mean():.1f} ms')
+          f'internal {render[:, 1].mean():.1f} ms; resolution scale at the end {scale} '
+          f'(software WebGL lowers it while frames are slow)')
     print(f'  node alone (published -> state message at a scripted WebSocket client): mean '
           f'{node_ms.mean():.1f}  p95 {np.percentile(node_ms, 95):.1f} ms (n = {node_ms.size})')
     print(f'  poses published {n_sent}, drawn {ms.size} ({100.0 * ms.size / max(n_sent, 1):.0f} '

@@ -108,6 +108,7 @@ def gui() -> Iterator[tuple[GuiNode, Scene]]:
     rclpy.init()
     node = GuiNode(parameter_overrides=[Parameter('port', value=free_port()),
                                         Parameter('anatomy', value='default'),
+                                        Parameter('stale_after_s', value=3.0),
                                         Parameter('bags_dir', value=str(REPO / 'bags'))])
     pub = rclpy.create_node('gui_browser_scene')
     scene = Scene(pub)
@@ -178,10 +179,11 @@ def test_page_receives_and_draws_path_and_moving_tip(gui: tuple[GuiNode, Scene],
         assert 'running' in state['timer']        # the clock started when the tip moved
         pixels = page.evaluate(COLOUR_COUNT)
         assert pixels['path'] > 200 and pixels['tip'] > 30, pixels
-        # the tracker keeps streaming (a still tip) while the screenshot is taken
-        for _ in range(20):
-            scene.publish_tip(index)
-            time.sleep(0.025)
+        # a still scene: software WebGL returns to full resolution, then the screenshot
+        scene.publish_tip(index)
+        page.wait_for('window.gui.renderScale === undefined || window.gui.renderScale === 1',
+                      timeout=10)
+        time.sleep(0.5)
         png = page.screenshot()
         # the node's server goes away and comes back: the page reconnects, gets everything
         node._server.stop()

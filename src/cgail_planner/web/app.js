@@ -431,11 +431,27 @@ function replayPanel() {
 }
 
 // ------------------------------------------------------------------ frame loop
+// Software WebGL is fill-rate bound: while frames come slower than 12 per second the 3D views
+// draw at a lower resolution (down to half), and at full resolution again once the data
+// stops for 0.4 s (so a still scene, and a screenshot of it, is sharp).
+let renderScale = 1, slowFrames = 0, lastFrameAt = 0, lastDataAt = 0;
+function adaptResolution(t, hadData) {
+  if (!SOFT) return;
+  if (hadData) {
+    const dt = t - lastFrameAt;
+    slowFrames = dt > 83 ? slowFrames + 1 : 0;
+    if (slowFrames >= 3 && renderScale > 0.5) { renderScale = Math.max(0.5, renderScale - 0.15); slowFrames = 0; }
+    lastDataAt = t;
+  } else if (renderScale < 1 && t - lastDataAt > 400) {
+    renderScale = 1; dirty.add('camera');
+  }
+  G.renderScale = renderScale;
+}
 function resize(renderer, cam, box) {
   const w = box.clientWidth, h = box.clientHeight;
-  const c = renderer.domElement;
-  if (c.width !== Math.round(w * renderer.getPixelRatio()) || c.height !== Math.round(h * renderer.getPixelRatio())) {
-    renderer.setPixelRatio(PIXEL_RATIO); renderer.setSize(w, h, false);
+  const c = renderer.domElement, ratio = PIXEL_RATIO * renderScale;
+  if (c.width !== Math.round(w * ratio) || c.height !== Math.round(h * ratio)) {
+    renderer.setPixelRatio(ratio); renderer.setSize(w, h, false);
     cam.aspect = w / Math.max(h, 1); cam.updateProjectionMatrix(); return true;
   }
   return false;
@@ -454,6 +470,8 @@ function frame() {
   if (has('replay') || has('source')) replayPanel();
   timer(); tracker();
   let render = dirty.size > 0;
+  const t = performance.now();
+  adaptResolution(t, has('tip') || has('deform') || has('path'));
   if (G.webgl) {
     render = resize(extRenderer, extCam, $('external-box')) | resize(intRenderer, intCam, $('internal-box')) || render;
     if (render) {
@@ -470,7 +488,7 @@ function frame() {
     G.latencies.push([S.tip.seq, (now_s() - S.tip.stamp) * 1000]);
     if (G.latencies.length > 5000) G.latencies.splice(0, 1000);
   }
-  if (render) G.frames += 1;
+  if (render) { G.frames += 1; lastFrameAt = t; }
   dirty.clear();
 }
 
