@@ -136,7 +136,7 @@ class PhantomPhysics:
                 body = self.catheter.body_points(0, 0.005)
                 self.wall.step(self.time, self._wall_pending, body, self.radius)
                 self._wall_pending = 0.0
-        self._constrain()
+                self._constrain()  # the wall moved (a rigid wall is checked after each move)
 
     def move(self, delta: float, bend: tuple[float, float]) -> None:
         """Insert (``delta > 0``) or retract the catheter by ``delta`` m with the given bend."""

@@ -7,13 +7,14 @@ The whole simulated rig runs in THIS process (python-can virtual buses only conn
 process), built from ``config/launch/sim_rig.yaml`` like the launcher's ``--in-process`` mode:
 ``phantom`` (simulated Aurora on a pty, regulator bank and sleeve driver on virtual CAN, the
 catheter-in-aorta physics), the real ``aurora`` (ndicapi over the pty), ``pam_controller``,
-``sleeve_driver``, ``teleop``, ``planner`` and the scripted ``operator``, on one multi-threaded
-executor. Protocol: ``--trials`` trials following the C-GAIL path, then as many following the
-centerline (the planner is rebuilt with ``planner_type: centerline``), cycling the 3 starts and 5
-targets; each trial ends when the operator stops (target reached or closest approach passed) or
-at the 3-minute limit, and is recorded to its own bag (``cgail_planner.bags`` recorder). Then the
-offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro numbers side
-by side and write the box plots.
+``sleeve_driver``, ``teleop``, ``planner`` and the scripted ``operator``, on one executor
+(``SingleThreadedExecutor`` by default, ``--threads``). Protocol: ``--trials`` trials following
+the C-GAIL path, then as many following the centerline (``planner_type: centerline``), cycling
+the 3 starts and 5 targets. Before each trial the catheter is reloaded (phantom reset to the
+start pose, sleeve driver re-homed, a fresh planner); a trial ends when the operator stops
+(target reached, or closest approach passed) or at the 3-minute limit, and is recorded to its
+own bag (``cgail_planner.bags`` recorder). Then the offline metrics (``bag_metrics``) print the
+markdown table with the paper's in-vitro numbers side by side and write the box plots.
 
 **Time acceleration.** 20 trials of up to 3 minutes cannot run in real time, so the rig runs on
 simulated time: the phantom steps the physics and the simulated devices by fixed simulated
@@ -161,10 +162,17 @@ def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 
 def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit: float,
               mode: str, log: Callable[[str], None]) -> str:
     """One trial: reset, record, send the goal, wait for the operator; returns the outcome."""
+    import rclpy
+
     from cgail_planner.bags.record import BagRecorder, RecorderConfig
     from cgail_planner.nodes import conversions as conv
 
-    phantom, operator, planner = rig.nodes['phantom'], rig.nodes['operator'], rig.nodes['planner']
+    phantom, operator = rig.nodes['phantom'], rig.nodes['operator']
+    # a fresh planner per trial: no latched path of the previous trial in this trial's bag
+    planner = rig.replace('planner', planner_type=condition)
+    # the catheter is reloaded between trials: the sleeve driver is re-homed (its catheter
+    # position restarts at 0; it would otherwise reach position_max = 1 m after ~4 trials)
+    rig.replace('sleeve_driver')
     sc = phantom.world.scenarios
     start_id, target_id = index % len(sc.starts), index % len(sc.targets)
     phantom.reset_trial(start_id, target_id)
@@ -185,6 +193,9 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     outcome = ''
     while not outcome:
         time.sleep(0.05)
+        if not rclpy.ok():  # SIGINT: rclpy's handler shut the context down
+            recorder.stop()
+            raise KeyboardInterrupt
         now = phantom.sim_time
         if operator.done:
             outcome = operator.operator.reason
@@ -227,8 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='simulated seconds per wall second (default 6)')
     p.add_argument('--time-limit', type=float, default=180.0,
                    help='trial time limit, simulated s (paper: 180)')
-    p.add_argument('--physics-rate', type=float, default=25.0,
-                   help='phantom physics, device and /clock rate, Hz of simulated time')
+    p.add_argument('--physics-rate', type=float, default=50.0,
+                   help='phantom physics, device and /clock rate, Hz of simulated time (the '
+                        'pam and sleeve-driver control loops run at half of it)')
     p.add_argument('--tracker-rate', type=float, default=40.0,
                    help='EM tracker rate in simulated time, Hz (the Aurora: 40); the tracker '
                         'polls tracker_rate * time_scale times per wall second')
@@ -271,7 +283,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                     'physics_rate_hz': args.physics_rate},
         'aurora': {**common, 'port': link,
                    'rate_hz': min(1000.0, args.tracker_rate * args.time_scale)},
-        'pam_controller': dict(common), 'sleeve_driver': dict(common), 'teleop': dict(common),
+        # The host control loops run at half the /clock rate: a sim-time timer fires on /clock
+        # ticks, so its real period is a whole number of ticks (1-1.5 x the nominal period here).
+        # The relay's return stroke commands error/period: an actual period >= 2x the nominal
+        # one would make the sleeve oscillate around the stroke end instead of converging.
+        'pam_controller': {**common, 'control_rate_hz': args.physics_rate / 2.0},
+        'sleeve_driver': {**common, 'control_rate_hz': args.physics_rate / 2.0},
+        'teleop': dict(common),
         'planner': {**common, 'anatomy': args.anatomy, 'mode': args.mode,
                     'policy_path': str(args.policy or ''), 'planner_type': args.conditions[0]},
         'operator': {**common, 'time_limit_s': args.time_limit, 'seed': args.seed},
@@ -291,8 +309,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             log('invitro_session: error: no tip pose from the tracker within 60 s')
             return 1
         for condition in args.conditions:
-            if rig.nodes['planner'].config.planner_type != condition:
-                rig.replace('planner', planner_type=condition)
             for k in range(args.trials):
                 bag = bags_dir / condition / f'{condition}_{k + 1:02d}'
                 log(f'[{condition} trial {k + 1}/{args.trials}] recording to {bag}')
