@@ -22,6 +22,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
+import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -109,19 +110,22 @@ class _Feed:
     def tip(self, msg: PoseStamped) -> None:
         p, o = msg.pose.position, msg.pose.orientation
         self._guard('tip pose', lambda: self.model.on_tip(
-            [p.x, p.y, p.z], [o.x, o.y, o.z, o.w], _stamp(msg), self._now()))
+            np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]), _stamp(msg),
+            self._now()))
 
     def path(self, msg: PathMsg) -> None:
-        pts = [[s.pose.position.x, s.pose.position.y, s.pose.position.z] for s in msg.poses]
+        pts = np.array([[s.pose.position.x, s.pose.position.y, s.pose.position.z]
+                        for s in msg.poses], dtype=float).reshape(-1, 3)
         self._guard('path', lambda: self.model.on_path(pts, msg.header.frame_id))
 
     def goal(self, msg: PoseStamped) -> None:
         p = msg.pose.position
-        self._guard('goal', lambda: self.model.on_goal([p.x, p.y, p.z], msg.header.frame_id))
+        self._guard('goal', lambda: self.model.on_goal(np.array([p.x, p.y, p.z]),
+                                                       msg.header.frame_id))
 
     def waypoint(self, msg: PointStamped) -> None:
         p = msg.point
-        self._guard('next waypoint', lambda: self.model.on_waypoint([p.x, p.y, p.z]))
+        self._guard('next waypoint', lambda: self.model.on_waypoint(np.array([p.x, p.y, p.z])))
 
     def bend(self, msg: JointState) -> None:
         names = list(msg.name)
@@ -197,9 +201,10 @@ class GuiNode(Node):
         self._stop = threading.Event()
         self._warned: dict[str, float] = {}
         self._set_replay_item(None, 'idle', '')
-        qos = {'em_tracker/tip_pose': qos_profile_sensor_data, 'planner/path': _LATCHED,
-               'planner/goal': _COMMAND, 'planner/next_waypoint': qos_profile_sensor_data,
-               'planner/suggested_bend': qos_profile_sensor_data, '/diagnostics': 10}
+        qos: dict[str, QoSProfile | int] = {
+            'em_tracker/tip_pose': qos_profile_sensor_data, 'planner/path': _LATCHED,
+            'planner/goal': _COMMAND, 'planner/next_waypoint': qos_profile_sensor_data,
+            'planner/suggested_bend': qos_profile_sensor_data, '/diagnostics': 10}
         types = {'em_tracker/tip_pose': PoseStamped, 'planner/path': PathMsg,
                  'planner/goal': PoseStamped, 'planner/next_waypoint': PointStamped,
                  'planner/suggested_bend': JointState, '/diagnostics': DiagnosticArray}
