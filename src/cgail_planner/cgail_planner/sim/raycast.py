@@ -506,6 +506,14 @@ def _faces_near_segments(node_min, node_max, left, right, start, count, order,
     return pf[:n].copy(), ps[:n].copy()
 
 
+def _csr(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR incidence of the entries ``owner`` (entry a belongs to item ``owner[a]``): returns
+    ``(ptr (n+1,), face (A,))`` listing, per item, the faces ``a // 3`` in increasing order."""
+    order = np.argsort(owner, kind="stable")
+    ptr = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=n))]).astype(np.int64)
+    return ptr, np.ascontiguousarray(order // 3, dtype=np.int64)
+
+
 @njit(cache=True)
 def _pseudo_normals(vertices, faces, face_edges, n_edges, n_vertices):
     """Face normals, angle-weighted vertex normals and edge normals of the wall triangles."""
@@ -532,6 +540,88 @@ def _pseudo_normals(vertices, faces, face_edges, n_edges, n_vertices):
                 vn[faces[f, k]] += np.arccos(cosang) * n
             en[face_edges[f, k]] += n
     return fn, vn, en
+
+
+@njit(cache=True)
+def _face_unit_normal(vertices, faces, f):
+    """Unit normal of triangle f (zero for a degenerate one), as in :func:`_pseudo_normals`."""
+    i0 = faces[f, 0]
+    i1 = faces[f, 1]
+    i2 = faces[f, 2]
+    abx = vertices[i1, 0] - vertices[i0, 0]
+    aby = vertices[i1, 1] - vertices[i0, 1]
+    abz = vertices[i1, 2] - vertices[i0, 2]
+    acx = vertices[i2, 0] - vertices[i0, 0]
+    acy = vertices[i2, 1] - vertices[i0, 1]
+    acz = vertices[i2, 2] - vertices[i0, 2]
+    nx = aby * acz - abz * acy
+    ny = abz * acx - abx * acz
+    nz = abx * acy - aby * acx
+    ln = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if ln > 0.0:
+        nx /= ln
+        ny /= ln
+        nz /= ln
+    return nx, ny, nz
+
+
+@njit(cache=True)
+def _feature_normal(vertices, faces, face_edges, vf_ptr, vf_face, ef_ptr, ef_face, face, u, v,
+                    w):
+    """Pseudo-normal (unnormalised) of the closest feature of ``face`` at weights (u, v, w).
+
+    The same quantity as the matching entry of :func:`_pseudo_normals` (face normal, edge sum
+    of the adjacent face normals, or angle-weighted vertex sum), computed from the few faces
+    around the feature only, so a query on a deforming wall does not rebuild all normals.
+    """
+    nz_count = 0
+    zero_k = -1
+    keep_k = -1
+    for k in range(3):
+        b = u if k == 0 else (v if k == 1 else w)
+        if b <= 1e-12:
+            nz_count += 1
+            zero_k = k
+        else:
+            keep_k = k
+    out = np.zeros(3)
+    if nz_count == 2:  # a vertex region
+        vi = faces[face, keep_k]
+        for a in range(vf_ptr[vi], vf_ptr[vi + 1]):
+            g = vf_face[a]
+            nx, ny, nz = _face_unit_normal(vertices, faces, g)
+            k = 0
+            while faces[g, k] != vi:
+                k += 1
+            j1 = faces[g, (k + 1) % 3]
+            j2 = faces[g, (k + 2) % 3]
+            e1x = vertices[j1, 0] - vertices[vi, 0]
+            e1y = vertices[j1, 1] - vertices[vi, 1]
+            e1z = vertices[j1, 2] - vertices[vi, 2]
+            e2x = vertices[j2, 0] - vertices[vi, 0]
+            e2y = vertices[j2, 1] - vertices[vi, 1]
+            e2z = vertices[j2, 2] - vertices[vi, 2]
+            den = np.sqrt((e1x * e1x + e1y * e1y + e1z * e1z)
+                          * (e2x * e2x + e2y * e2y + e2z * e2z))
+            if den > 0.0:
+                cosang = min(max((e1x * e2x + e1y * e2y + e1z * e2z) / den, -1.0), 1.0)
+                ang = np.arccos(cosang)
+                out[0] += ang * nx
+                out[1] += ang * ny
+                out[2] += ang * nz
+    elif nz_count == 1:  # an edge region: edge (k+1, k+2) opposite the zero weight k
+        e = face_edges[face, (zero_k + 1) % 3]
+        for a in range(ef_ptr[e], ef_ptr[e + 1]):
+            nx, ny, nz = _face_unit_normal(vertices, faces, ef_face[a])
+            out[0] += nx
+            out[1] += ny
+            out[2] += nz
+    else:
+        nx, ny, nz = _face_unit_normal(vertices, faces, face)
+        out[0] = nx
+        out[1] = ny
+        out[2] = nz
+    return out
 
 
 class WallBVH:
@@ -568,6 +658,10 @@ class WallBVH:
         uniq, inv = np.unique(e.reshape(-1, 2), axis=0, return_inverse=True)
         self._face_edges = inv.reshape(-1, 3).astype(np.int64)
         self._n_edges = len(uniq)
+        # Incidence (CSR, faces in increasing order) of vertices and edges to wall faces, for
+        # the pseudo-normal of one feature (:func:`_feature_normal`).
+        self._vf_ptr, self._vf_face = _csr(self.faces.ravel(), self.n_vertices)
+        self._ef_ptr, self._ef_face = _csr(self._face_edges.ravel(), self._n_edges)
         self._normals: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.vertices = vertices.copy()
         self.refit(vertices)
@@ -639,17 +733,8 @@ class WallBVH:
             self._right, self._start, self._count, p, float(max_dist))
         if face < 0:
             return float("inf"), p.copy(), np.zeros(3), -1
-        fn, vn, en = self.pseudo_normals()
-        bary = (u, v, w)
-        zero = [k for k in range(3) if bary[k] <= 1e-12]
-        if len(zero) == 2:  # a vertex region
-            k = next(k for k in range(3) if k not in zero)
-            n = vn[self.faces[face, k]]
-        elif len(zero) == 1:  # an edge region: edge (k+1, k+2) opposite the zero weight k
-            k = zero[0]
-            n = en[self._face_edges[face, (k + 1) % 3]]
-        else:
-            n = fn[face]
+        n = _feature_normal(self.vertices, self.faces, self._face_edges, self._vf_ptr,
+                            self._vf_face, self._ef_ptr, self._ef_face, face, u, v, w)
         n = n / max(float(np.linalg.norm(n)), 1e-300)
         sign = 1.0 if float(np.dot(p - q, n)) > 0.0 else -1.0
         return sign * float(dist), q, n, int(face)
