@@ -8,8 +8,9 @@ when the source switches between live and replay), waits for the page's ``ack`` 
 in flight) and until ``1 / max_rate_hz`` has passed since its last send, so bursts are merged
 and a page that draws slowly never builds a queue.
 Client messages are parsed by :func:`~cgail_planner.gui.protocol.parse_client_message`;
-malformed ones are logged and ignored. A WebSocket handshake from another web origin is
-refused (403), so a foreign page open in the same browser cannot drive the GUI.
+malformed ones are logged and ignored. A WebSocket handshake from another web origin, or
+with a Host header that is not an IP literal or ``localhost`` (DNS rebinding), is refused
+(403), so a foreign page open in the same browser cannot drive the GUI.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from collections.abc import Callable
 import contextlib
 from dataclasses import dataclass
 from http import HTTPStatus
+import ipaddress
 import logging
 import threading
 import time
@@ -190,6 +192,10 @@ class GuiServer:
         if path.split('?', 1)[0] == '/ws':
             origin = request.headers.get('Origin')
             host = request.headers.get('Host', '')
+            if not _local_host(host):
+                self._log('warn', f'refused a WebSocket for host {host[:80]!r} (DNS rebinding?)')
+                return _response(HTTPStatus.FORBIDDEN, b'host refused\n',
+                                 'text/plain; charset=utf-8')
             if origin is not None and urlsplit(origin).netloc != host:
                 self._log('warn', f'refused a WebSocket from origin {origin[:80]!r} '
                                   f'(page served as {host[:80]!r})')
@@ -286,6 +292,19 @@ class GuiServer:
             resync[1] = True
             wake.set()
             acked.set()
+
+
+def _local_host(host: str) -> bool:
+    """True when a Host header names an IP literal or localhost (not a DNS name that a
+    foreign page could have rebound to this machine)."""
+    name = urlsplit(f'//{host}').hostname or ''
+    if name == 'localhost':
+        return True
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
 
 
 def lookup_body(bodies: dict[str, tuple[bytes, str]], path: str) -> tuple[bytes, str] | None:

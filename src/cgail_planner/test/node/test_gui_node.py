@@ -255,6 +255,13 @@ def test_cross_origin_websocket_refused(running: Running) -> None:
     port = running.node.port
     with running.ws(origin=f'http://127.0.0.1:{port}') as ws:
         assert recv_until(ws, lambda m, msg: msg['full'])['_full']
+    # DNS rebinding: a foreign name pointing at 127.0.0.1, same-origin by its own measure
+    with socket.create_connection(('127.0.0.1', port), timeout=5) as s:
+        s.sendall(f'GET /ws HTTP/1.1\r\nHost: evil.example:{port}\r\n'
+                  f'Origin: http://evil.example:{port}\r\nUpgrade: websocket\r\n'
+                  'Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n'
+                  'Sec-WebSocket-Version: 13\r\n\r\n'.encode())
+        assert s.recv(100).startswith(b'HTTP/1.1 403')
 
 
 def test_trial_commands_from_the_page(running: Running) -> None:
