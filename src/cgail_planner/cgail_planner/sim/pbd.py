@@ -55,8 +55,13 @@ from numba import njit
 import numpy as np
 
 from cgail_planner.sim import contact, raycast
-from cgail_planner.sim.contact import linearize_contacts, project_contacts, project_planes
-from cgail_planner.sim.raycast import drop_stale_numba_cache
+from cgail_planner.sim.contact import (
+    linearize_contacts,
+    narrow_pairs,
+    project_contacts,
+    project_planes,
+)
+from cgail_planner.sim.raycast import drop_stale_numba_cache, faces_near_segments_kernel
 
 drop_stale_numba_cache(__file__, [__file__, contact.__file__, raycast.__file__])
 
@@ -76,6 +81,7 @@ __all__ = [
     "secant_factor",
     "solve",
     "solve_vbd",
+    "step_vbd",
 ]
 
 
@@ -664,3 +670,75 @@ def internal_forces(x, rest, edges, edge_rest, edge_k, b, hinges, hinge_rest, hi
         for a in range(3):
             f[i, a] -= tether_k[i] * (x[i, a] - rest[i, a])
     return f
+
+
+@njit(cache=True)
+def step_vbd(x, v, x_old, v_damped, dp, factor, impulse, touched, inv_mass, mass, rest, edges,
+             edge_rest, stiffening, relax, adj_ptr, adj_other, adj_k, adj_rest, adj_edge,
+             tether_k, order, annulus, annulus_disp, fixed, h, damping, iterations,
+             local_iterations, local_rings, faces, face_edges, face_normals, vertex_normals,
+             edge_normals, tree_min, tree_max, tree_left, tree_right, tree_start, tree_count,
+             tree_order, tree_fit, points, radius, reach):
+    """One wall step of the VBD solver, all substeps in one call (in place).
+
+    Per substep ``k`` (length ``h``): lagged secant update, inertial prediction, annulus at
+    ``rest + annulus_disp[k]``, fixed particles at rest, contact broad + narrow phase against
+    the capsule chain ``points`` (none when it is empty), global sweeps, local settling sweeps
+    around the contacts, velocities and momentum change ``dp`` (accumulated). ``impulse``,
+    ``touched`` and ``dp`` are accumulated (the caller clears them).
+
+    The broad phase uses the BVH as last refit at positions ``tree_fit`` with every box grown
+    by the largest per-axis particle displacement since then: the candidate pairs are a
+    superset, in the same order, of those of a tree refit at the predicted positions, and the
+    exact narrow phase keeps the same pairs, so no refit is needed inside the step.
+
+    Returns:
+        The last contact violation of the last substep, m.
+    """
+    worst = 0.0
+    n = x.shape[0]
+    has_points = points.shape[0] > 0
+    sweep_points = points if has_points else np.zeros((1, 3))
+    for k in range(annulus_disp.shape[0]):
+        secant_factor(x, edges, edge_rest, stiffening, factor, relax)
+        predict(x, v, inv_mass, h, damping, x_old, v_damped)
+        for a in range(annulus.shape[0]):
+            i = annulus[a]
+            for c in range(3):
+                x[i, c] = rest[i, c] + annulus_disp[k, c]
+        for a in range(fixed.shape[0]):
+            i = fixed[a]
+            for c in range(3):
+                x[i, c] = rest[i, c]
+        if has_points:
+            grow = 0.0
+            for i in range(n):
+                for c in range(3):
+                    d = abs(x[i, c] - tree_fit[i, c])
+                    if d > grow:
+                        grow = d
+            pf, ps = faces_near_segments_kernel(tree_min, tree_max, tree_left, tree_right,
+                                                tree_start, tree_count, tree_order, points,
+                                                reach + grow)
+            pf, ps = narrow_pairs(x, faces, pf, ps, points, reach)
+        else:
+            pf = np.zeros(0, np.int64)
+            ps = np.zeros(0, np.int64)
+        worst = solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest,
+                          adj_edge, factor, tether_k, order, h, iterations, faces, face_edges,
+                          face_normals, vertex_normals, edge_normals, pf, ps, sweep_points,
+                          radius, impulse, touched, 0.0)
+        if pf.shape[0] > 0 and local_iterations > 0:
+            local = contact_neighbourhood(touched, adj_ptr, adj_other, order, local_rings)
+            if local.shape[0] > 0:
+                worst = solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k,
+                                  adj_rest, adj_edge, factor, tether_k, local, h,
+                                  local_iterations, faces, face_edges, face_normals,
+                                  vertex_normals, edge_normals, pf, ps, sweep_points, radius,
+                                  impulse, touched, 0.0)
+        for i in range(n):
+            for c in range(3):
+                vn = (x[i, c] - x_old[i, c]) / h
+                dp[i, c] += mass[i] * (vn - v_damped[i, c])
+                v[i, c] = vn
+    return worst

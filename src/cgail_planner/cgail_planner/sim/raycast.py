@@ -29,7 +29,7 @@ from numba import njit
 import numpy as np
 
 __all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle", "cpt_scalar",
-           "cst_scalar", "drop_stale_numba_cache"]
+           "cst_scalar", "drop_stale_numba_cache", "faces_near_segments_kernel"]
 
 
 def drop_stale_numba_cache(module_file: str, dependencies: Sequence[str]) -> None:
@@ -461,9 +461,12 @@ def _closest(vertices, faces, order, node_min, node_max, left, right, start, cou
 
 
 @njit(cache=True)
-def _faces_near_segments(node_min, node_max, left, right, start, count, order,
+def faces_near_segments_kernel(node_min, node_max, left, right, start, count, order,
                          points, reach):
-    """Broad phase: (face, segment) pairs whose boxes overlap the segment box grown by reach."""
+    """Broad phase: (face, segment) pairs whose boxes overlap the segment box grown by reach.
+
+    The tree arrays are those of :attr:`WallBVH.tree`; see :meth:`WallBVH.faces_near_segments`.
+    """
     n_seg = max(points.shape[0] - 1, 1)
     cap = 256
     pf = np.empty(cap, np.int64)
@@ -664,6 +667,7 @@ class WallBVH:
         self._ef_ptr, self._ef_face = _csr(self._face_edges.ravel(), self._n_edges)
         self._normals: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.vertices = vertices.copy()
+        self._fitted = vertices.copy()
         self.refit(vertices)
 
     def refit(self, vertices: np.ndarray) -> None:
@@ -671,7 +675,19 @@ class WallBVH:
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
         _refit(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
                self._right, self._start, self._count, self._n_nodes)
+        if self._fitted.shape != self.vertices.shape:
+            self._fitted = self.vertices.copy()
+        else:
+            np.copyto(self._fitted, self.vertices)
         self._normals = None
+
+    @property
+    def tree(self) -> tuple[np.ndarray, ...]:
+        """The tree for kernels that query it directly: ``(node_min, node_max, left, right,
+        start, count, order, fitted)``, ``fitted`` (N, 3) the vertex positions of the last
+        :meth:`refit` (the boxes bound the wall faces at those positions)."""
+        return (self._nmin, self._nmax, self._left, self._right, self._start, self._count,
+                self._order, self._fitted)
 
     @property
     def face_edges(self) -> np.ndarray:
@@ -752,5 +768,5 @@ class WallBVH:
             (faces, segments): int arrays of equal length; faces index :attr:`faces`.
         """
         pts = np.ascontiguousarray(points, dtype=np.float64)
-        return _faces_near_segments(self._nmin, self._nmax, self._left, self._right,
+        return faces_near_segments_kernel(self._nmin, self._nmax, self._left, self._right,
                                     self._start, self._count, self._order, pts, float(reach))

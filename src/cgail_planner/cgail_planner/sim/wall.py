@@ -31,13 +31,12 @@ from cgail_planner.sim.contact import Contact, narrow_pairs
 from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
 from cgail_planner.sim.pbd import (
     build_topology,
-    contact_neighbourhood,
     internal_forces,
     PBDConfig,
     predict,
     secant_factor,
     solve,
-    solve_vbd,
+    step_vbd,
 )
 from cgail_planner.sim.raycast import WallBVH
 
@@ -221,14 +220,45 @@ class DeformableWall(StaticWall):
         pts = _check_points("body_points", body_points, allow_empty=True)
         radius = _check_finite_scalar("body_radius", body_radius, positive=pts.shape[0] > 0) \
             if pts.shape[0] else 0.0
+        self._impulse[:] = 0.0
+        self._touched[:] = 0
+        self._dp[:] = 0.0
+        if self.pbd_config.solver == "vbd":
+            self._step_vbd(t, dt, pts, radius)
+        else:
+            self._step_xpbd(t, dt, pts, radius)
+        self.t = t
+        self._last_dt = dt
+        self._forces = None
+        self._dirty = True
+
+    def _step_vbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
+        """All substeps of the VBD solver in one numba call (:func:`~.pbd.step_vbd`)."""
+        cfg = self.pbd_config
+        topo = self.topology
+        h = dt / cfg.substeps
+        disp = np.empty((cfg.substeps, 3))
+        for k in range(cfg.substeps):
+            disp[k] = self.heartbeat.displacement(t - dt + (k + 1) * h)
+        tmin, tmax, left, right, start, count, order, fitted = self._bvh.tree
+        worst = step_vbd(
+            self.vertices, self.velocities, self._x_old, self._v_damped, self._dp, self._factor,
+            self._impulse, self._touched, topo.inv_mass, topo.mass, topo.rest, topo.edges,
+            topo.edge_rest, cfg.stiffening, _SECANT_RELAX, topo.adj_ptr, topo.adj_other,
+            topo.adj_k, topo.adj_rest, topo.adj_edge, topo.tether_k, topo.vertex_order,
+            topo.annulus, disp, topo.fixed, h, cfg.damping, cfg.iterations,
+            cfg.local_iterations, cfg.local_rings, self._wall_faces, self._bvh.face_edges,
+            self._rest_fn, self._rest_vn, self._rest_en, tmin, tmax, left, right, start, count,
+            order, fitted, pts, radius, radius + cfg.contact_margin)
+        self.last_contact_violation = float(worst)
+
+    def _step_xpbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
+        """The per-constraint XPBD solver, substep by substep (comparison and small steps)."""
         cfg = self.pbd_config
         topo = self.topology
         h = dt / cfg.substeps
         x = self.vertices
         v = self.velocities
-        self._impulse[:] = 0.0
-        self._touched[:] = 0
-        self._dp[:] = 0.0
         ann_rest = topo.rest[topo.annulus]
         empty = np.zeros(0, dtype=np.int64)
         worst = 0.0
@@ -248,39 +278,16 @@ class DeformableWall(StaticWall):
                 pf, ps = self._bvh.faces_near_segments(pts, reach)
                 pf, ps = narrow_pairs(x, self._wall_faces, pf, ps, pts, reach)
             points = pts if pts.shape[0] else np.zeros((1, 3))
-            if cfg.solver == "vbd":
-                worst = solve_vbd(
-                    x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
-                    topo.adj_k, topo.adj_rest, topo.adj_edge, self._factor, topo.tether_k,
-                    topo.vertex_order, h, cfg.iterations, self._wall_faces,
-                    self._bvh.face_edges, self._rest_fn, self._rest_vn, self._rest_en, pf, ps,
-                    points, radius, self._impulse, self._touched, 0.0)
-                if pf.size and cfg.local_iterations:
-                    local = contact_neighbourhood(self._touched, topo.adj_ptr, topo.adj_other,
-                                                  topo.vertex_order, cfg.local_rings)
-                    if local.size:
-                        worst = solve_vbd(
-                            x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr,
-                            topo.adj_other, topo.adj_k, topo.adj_rest, topo.adj_edge,
-                            self._factor, topo.tether_k, local, h, cfg.local_iterations,
-                            self._wall_faces, self._bvh.face_edges, self._rest_fn,
-                            self._rest_vn, self._rest_en, pf, ps, points, radius,
-                            self._impulse, self._touched, 0.0)
-            else:
-                worst = solve(
-                    x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
-                    self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k, topo.tether_k, h,
-                    cfg.iterations, self._wall_faces, self._bvh.face_edges, self._rest_fn,
-                    self._rest_vn, self._rest_en, pf, ps, points, radius, self._impulse,
-                    self._touched)
+            worst = solve(
+                x, topo.inv_mass, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
+                self._factor, topo.hinges, topo.hinge_rest, topo.hinge_k, topo.tether_k, h,
+                cfg.iterations, self._wall_faces, self._bvh.face_edges, self._rest_fn,
+                self._rest_vn, self._rest_en, pf, ps, points, radius, self._impulse,
+                self._touched)
             v_new = (x - self._x_old) / h
             self._dp += topo.mass[:, None] * (v_new - self._v_damped)
             v[:] = v_new
-        self.t = t
-        self._last_dt = dt
         self.last_contact_violation = float(worst)
-        self._forces = None
-        self._dirty = True
 
     def _sync(self) -> None:
         if self._dirty:
