@@ -36,6 +36,12 @@ fi
 
 # 4. Front-end assets for the GUI (three.js from the npm registry), if npm is present.
 if [ -f src/cgail_planner/web/package.json ] && [ ! -d src/cgail_planner/web/node_modules ]; then
+    if ! command -v npm >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 \
+            && [ -z "${CGAIL_NO_APT:-}" ]; then
+        log "installing npm from Debian for the GUI assets"
+        (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq npm >/dev/null) \
+            || log "warning: could not install npm"
+    fi
     if command -v npm >/dev/null 2>&1; then
         log "installing GUI assets with npm"
         (cd src/cgail_planner/web && npm ci --no-audit --no-fund --silent)

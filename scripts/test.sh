@@ -10,6 +10,15 @@ cd "$WS"
 start=$(date +%s)
 bash scripts/setup.sh
 
+# The GUI's browser test needs Debian's chromium (never a downloaded browser). Install it when
+# we can (root + apt); otherwise that one test is skipped with the install command.
+if ! command -v chromium >/dev/null 2>&1 && [ -z "${CGAIL_NO_APT:-}" ] \
+        && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "[test] installing chromium from Debian for the GUI browser test"
+    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium \
+        >/dev/null) || echo "[test] warning: could not install chromium; the browser test will skip"
+fi
+
 # A per-run DDS domain, so parallel runs on one machine never see each other.
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 90) + 10 ))}"
 # shellcheck disable=SC1091
