@@ -26,7 +26,6 @@ import math
 
 import numpy as np
 
-
 #: Largest combined bend stick deflection hypot(alpha, gamma) the operator uses.
 MAX_BEND_DEFLECTION = 0.99
 

@@ -7,6 +7,8 @@ to the simulated Aurora.
 * **Insertion.** The catheter body is a :class:`~cgail_planner.sim.catheter.CatheterBatch`
   chain. A measured insertion increase ``dl`` advances the tip along its heading in sub-steps of
   at most ``max_substep``; a decrease retracts it along its own body (follow-the-leader).
+  A measured change faster than the driver's cap (``max_insertion_speed * dt + max_jump``) is a
+  re-homed driver (its position restarted), counted in ``insertion_jumps``, not motion.
 * **Bend.** The steerable segment bent by ``(alpha, gamma)`` (rad) is an arc of constant
   curvature ``|bend| / L``: per inserted ``dl`` the heading turns by ``alpha dl / L`` about
   ``x_A`` and ``gamma dl / L`` about ``z_A`` (``R <- R Rx(alpha dl/L) Rz(gamma dl/L)``), so the
@@ -47,6 +49,11 @@ class PhantomConfig:
     """RMS (3-D) of the EM position noise, m (Aurora: ~0.5 mm); [0, 0.01]."""
     em_angle_noise_rms: float = 0.005
     """RMS of the EM orientation noise, rad; [0, 0.1]."""
+    max_insertion_speed: float = 0.005
+    """The driver's speed cap, m/s: a measured insertion change beyond
+    ``max_insertion_speed * dt + max_jump`` is a re-referenced driver, not motion; (0, 0.1]."""
+    max_jump: float = 0.002
+    """Slack of that test for delayed readings, m; [0, 0.1]."""
     wall_dt: float = 0.05
     """Step of the deformable wall (PBD + heartbeat), s; the physics steps it once this much
     time has accumulated; [1 ms, 0.2 s]."""
@@ -55,7 +62,8 @@ class PhantomConfig:
         for name, low, high, low_open in (
                 ("segment_length", 1e-3, 0.5, False), ("outer_diameter", 0.0, 0.02, True),
                 ("max_substep", 1e-5, 0.005, False), ("em_noise_rms", 0.0, 0.01, False),
-                ("em_angle_noise_rms", 0.0, 0.1, False), ("wall_dt", 1e-3, 0.2, False)):
+                ("em_angle_noise_rms", 0.0, 0.1, False), ("wall_dt", 1e-3, 0.2, False),
+                ("max_insertion_speed", 0.0, 0.1, True), ("max_jump", 0.0, 0.1, False)):
             value = getattr(self, name)
             ok = (isinstance(value, (int, float)) and math.isfinite(value)
                   and (value > low if low_open else value >= low) and value <= high)
@@ -83,6 +91,7 @@ class PhantomPhysics:
         self.catheter = CatheterBatch(1, cat, capacity=4096)
         self.time = 0.0
         self.contacts = 0
+        self.insertion_jumps = 0
         self.inserted = 0.0
         self._last_insertion: float | None = None
         self._wall_pending = 0.0
@@ -129,7 +138,11 @@ class PhantomPhysics:
                 self._last_insertion = insertion_position
             delta = insertion_position - self._last_insertion
             self._last_insertion = insertion_position
-            self.move(delta, bend)
+            if abs(delta) > self.config.max_insertion_speed * dt + self.config.max_jump:
+                # a re-homed or replaced driver: its position restarted, the catheter did not
+                self.insertion_jumps += 1
+            else:
+                self.move(delta, bend)
         if isinstance(self.wall, DeformableWall):
             self._wall_pending += dt
             if self._wall_pending >= self.config.wall_dt - 1e-12:

@@ -173,7 +173,7 @@ class PhantomNode(Node):
         with self._lock:
             self.start_id, self.target_id = start_id, target_id
             self.physics.reset(start.position, start.rotation, start.introducer_tail)
-            self.physics._last_insertion = self.insertion  # motion counts from here
+
             self._em_cache = None
         if hasattr(self, '_target_pub'):
             self.publish_target()

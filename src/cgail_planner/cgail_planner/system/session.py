@@ -171,8 +171,11 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     # a fresh planner per trial: no latched path of the previous trial in this trial's bag
     planner = rig.replace('planner', planner_type=condition)
     # the catheter is reloaded between trials: the sleeve driver is re-homed (its catheter
-    # position restarts at 0; it would otherwise reach position_max = 1 m after ~4 trials)
+    # position restarts at 0; it would otherwise reach position_max = 1 m after ~4 trials),
+    # then the phantom puts the tip back at the start (the next reading is its reference)
     rig.replace('sleeve_driver')
+    t_home = phantom.sim_time
+    wait_until(lambda: phantom.sim_time - t_home > 0.5, 30.0)
     sc = phantom.world.scenarios
     start_id, target_id = index % len(sc.starts), index % len(sc.targets)
     phantom.reset_trial(start_id, target_id)

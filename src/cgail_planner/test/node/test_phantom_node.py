@@ -67,7 +67,10 @@ def test_held_bend_curves_the_tip_by_bend_dl_over_l(ros, tmp_path) -> None:
         assert spin_until(ex, lambda: node.insertion == pytest.approx(0.010)
                           and node.bend == (0.8, 0.0))
         spin_until(ex, lambda: False, 0.1)
-        ins.publish(joint(['insertion'], [0.030]))  # 20 mm inserted with the bend held
+        for k in range(1, 41):  # 20 mm inserted with the bend held, 0.5 mm per reading
+            ins.publish(joint(['insertion'], [0.010 + 0.0005 * k]))
+            assert spin_until(ex, lambda k=k: node.insertion == pytest.approx(0.010 + 0.0005 * k))
+            spin_until(ex, lambda: False, 0.02)
         assert spin_until(ex, lambda: node.physics.inserted >= 0.02 - 1e-12)
         turned = math.acos(float(np.clip(node.physics.tip_rotation[:, 1] @ heading0, -1, 1)))
         assert turned == pytest.approx(0.8 * 0.020 / 0.05, rel=1e-3)

@@ -21,7 +21,8 @@ def physics(wall=None) -> PhantomPhysics:
 def test_held_bend_turns_the_heading_by_bend_dl_over_l(alpha, gamma, dl) -> None:
     ph = physics()
     ph.step(0.02, 0.0, (alpha, gamma))          # first reading: the reference
-    ph.step(0.02, dl, (alpha, gamma))
+    for k in range(1, 101):                     # the driver inserts dl at <= 5 mm/s
+        ph.step(dl / 0.005 / 100, dl * k / 100, (alpha, gamma))
     heading = ph.tip_rotation[:, 1]
     turned = math.acos(float(np.clip(heading @ np.array([0.0, 1.0, 0.0]), -1, 1)))
     # sub-steps Rx(a k) Rz(g k) compose to a rotation of hypot(a, g) dl / L (to 2nd order in k)
@@ -31,8 +32,7 @@ def test_held_bend_turns_the_heading_by_bend_dl_over_l(alpha, gamma, dl) -> None
 
 def test_pure_alpha_bend_follows_a_circle_of_radius_l_over_bend() -> None:
     ph = physics()
-    ph.step(0.02, 0.0, (1.0, 0.0))
-    ph.step(0.02, 0.04, (1.0, 0.0))  # 40 mm on a circle of radius 50 mm about x, towards +z
+    ph.move(0.04, (1.0, 0.0))  # 40 mm on a circle of radius 50 mm about x, towards +z
     # 80 sub-steps of 0.5 mm, the heading turned by 0.5 mm / 50 mm before each: the exact chain
     k = np.arange(1, 81) * (0.0005 / L)
     expected = [0.0, 0.0005 * np.cos(k).sum(), 0.0005 * np.sin(k).sum()]
@@ -49,8 +49,8 @@ def test_no_insertion_no_turn_and_retraction_slides_back() -> None:
     ph.step(0.02, 0.01, (0.0, 1.5))  # bend changes without insertion: the tip does not move
     assert ph.tip_position == pytest.approx([0.0, 0.0, 0.0], abs=1e-12)
     assert ph.tip_rotation[:, 1] == pytest.approx([0.0, 1.0, 0.0])
-    ph.step(0.02, 0.04, (0.0, 0.0))  # 30 mm straight
-    ph.step(0.02, 0.02, (1.0, 1.0))  # retract 20 mm: straight back along the body, bend ignored
+    ph.move(0.03, (0.0, 0.0))        # 30 mm straight
+    ph.move(-0.02, (1.0, 1.0))       # retract 20 mm: straight back along the body, bend ignored
     assert ph.tip_position == pytest.approx([0.0, 0.01, 0.0], abs=1e-9)
     assert ph.tip_rotation[:, 1] == pytest.approx([0.0, 1.0, 0.0])
 
@@ -72,12 +72,23 @@ class FlatWall:
 
 def test_wall_pushes_the_tip_back_and_the_heading_slides_along_it() -> None:
     ph = physics(FlatWall())
-    ph.step(0.02, 0.0, (1.5, 0.0))
-    ph.step(0.02, 0.05, (1.5, 0.0))  # bending towards +z into the wall
+    ph.move(0.05, (1.5, 0.0))  # bending towards +z into the wall
     assert ph.tip_position[2] <= 0.002 - ph.radius + 1e-12
     assert ph.contacts > 0
     assert ph.tip_rotation[:, 1][2] <= 1e-9  # no outward heading component left
     assert np.allclose(ph.tip_rotation.T @ ph.tip_rotation, np.eye(3), atol=1e-9)
+
+
+def test_a_re_homed_driver_is_not_motion() -> None:
+    ph = physics()
+    ph.step(0.02, 0.22, (0.0, 0.0))   # reference
+    ph.step(0.02, 0.2201, (0.0, 0.0))  # 0.1 mm in 20 ms (5 mm/s): motion
+    assert ph.inserted == pytest.approx(0.0001)
+    ph.step(0.02, 0.0, (0.0, 0.0))    # the driver restarted at 0: no 220 mm retraction
+    assert ph.insertion_jumps == 1
+    assert ph.tip_position == pytest.approx([0.0, 0.0001, 0.0], abs=1e-12)
+    ph.step(0.02, 0.0001, (0.0, 0.0))  # and motion counts from the new reference
+    assert ph.tip_position == pytest.approx([0.0, 0.0002, 0.0], abs=1e-12)
 
 
 def test_em_noise_has_the_configured_rms() -> None:
