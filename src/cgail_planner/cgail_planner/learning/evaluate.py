@@ -68,13 +68,25 @@ class CenterlineFollower:
                              eng.catheter.theta_max).astype(np.float32)
 
 
-def run_trials(env: Any, method: Any, trials: int, seed: int) -> list[Trial]:
-    """``trials`` episodes of a policy (obs -> action) or a state-based baseline (``act()``)."""
+def run_trials(env: Any, method: Any, trials: int, seed: int,
+               reuse_pairs: bool = False) -> list[Trial]:
+    """``trials`` episodes of a policy (obs -> action) or a state-based baseline (``act()``).
+
+    With ``reuse_pairs`` (static mode, deterministic method: the rigid-wall simulator and the
+    method are then deterministic functions of the start/target pair, which the demo
+    re-simulation check verifies to 1 micrometre) each start x target pair is simulated once
+    and its outcome counted for every trial that uses it.
+    """
     sc = env.unwrapped.engine.scenarios
     n_s, n_t = len(sc.starts), len(sc.targets)
-    out = []
+    out: list[Trial] = []
+    done: dict[tuple[int, int], Trial] = {}
     for k in range(trials):
-        obs, _ = env.reset(seed=seed + k, options={'start': k % n_s, 'target': (k // n_s) % n_t})
+        pair = (k % n_s, (k // n_s) % n_t)
+        if reuse_pairs and pair in done:
+            out.append(done[pair])
+            continue
+        obs, _ = env.reset(seed=seed + k, options={'start': pair[0], 'target': pair[1]})
         if hasattr(method, 'reset'):
             method.reset(seed + k)
         while True:
@@ -84,6 +96,7 @@ def run_trials(env: Any, method: Any, trials: int, seed: int) -> list[Trial]:
                 break
         out.append(Trial(bool(info['success']), bool(info['collision']), int(info['timesteps']),
                          1e3 * float(info['targeting_error'])))
+        done[pair] = out[-1]
     return out
 
 
@@ -202,13 +215,16 @@ def main(argv: list[str] | None = None) -> int:
             results = {}
             for name, method in methods.items():
                 t0 = time.monotonic()
-                results[name] = run_trials(env, method, args.trials, args.seed)
+                reuse = mode == 'static' and name != 'expert'   # the expert is seeded
+                results[name] = run_trials(env, method, args.trials, args.seed, reuse)
                 s = summarize(results[name])
                 print(f"{mode} {name}: success {100 * s['success_rate']:.0f}% "
                       f"({time.monotonic() - t0:.0f} s)", flush=True)
             all_results[mode] = results
         notes = (f'Anatomy `{args.anatomy}`, {args.trials} trials per method, epsilon 10 mm, '
-                 f'seed {args.seed}.')
+                 f'seed {args.seed}. Trial k: start k % 3, target (k // 3) % 5. In static mode a '
+                 'deterministic method gives the same outcome for a repeated start x target '
+                 'pair, so each pair is simulated once; the seeded expert runs every trial.')
         path = write_report(all_results, args.out, notes)
     except (LearningError, ValueError) as exc:
         print(f'evaluate: error: {exc}', file=sys.stderr)
