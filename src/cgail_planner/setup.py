@@ -28,7 +28,9 @@ setup(
     zip_safe=True,
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
-    description='''C-GAIL catheter path planner: deformable beating-aorta simulator, demonstrations, C-GAIL/GAIL trainer, ONNX planner node, bag recording/metrics, guidance GUI, rig launcher.''',
+    description=('C-GAIL catheter path planner: deformable beating-aorta simulator, '
+                 'demonstrations, C-GAIL/GAIL trainer, ONNX planner node, bag recording/metrics, '
+                 'guidance GUI, rig launcher.'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
