@@ -29,7 +29,7 @@ from numba import njit
 import numpy as np
 
 __all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle", "cpt_scalar",
-           "cst_scalar", "drop_stale_numba_cache", "faces_near_segments_kernel"]
+           "cst_scalar", "drop_stale_numba_cache", "faces_near_segments_kernel", "refit_tree"]
 
 
 def drop_stale_numba_cache(module_file: str, dependencies: Sequence[str]) -> None:
@@ -137,7 +137,7 @@ def _build(tri_min, tri_max, centroids, leaf_size):
 
 
 @njit(cache=True)
-def _refit(vertices, faces, order, node_min, node_max, left, right, start, count, n_nodes):
+def refit_tree(vertices, faces, order, node_min, node_max, left, right, start, count, n_nodes):
     # Children always have larger indices than their parent: a reverse sweep is bottom-up.
     for k in range(n_nodes - 1, -1, -1):
         if left[k] < 0:
@@ -673,7 +673,7 @@ class WallBVH:
     def refit(self, vertices: np.ndarray) -> None:
         """Recompute the boxes for new vertex positions (same topology), O(M)."""
         self.vertices = np.ascontiguousarray(vertices, dtype=np.float64)
-        _refit(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
+        refit_tree(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
                self._right, self._start, self._count, self._n_nodes)
         if self._fitted.shape != self.vertices.shape:
             self._fitted = self.vertices.copy()
@@ -683,11 +683,18 @@ class WallBVH:
 
     @property
     def tree(self) -> tuple[np.ndarray, ...]:
-        """The tree for kernels that query it directly: ``(node_min, node_max, left, right,
-        start, count, order, fitted)``, ``fitted`` (N, 3) the vertex positions of the last
-        :meth:`refit` (the boxes bound the wall faces at those positions)."""
+        """The tree for kernels that query or refit it directly: ``(node_min, node_max, left,
+        right, start, count, order, fitted, n_nodes)``, ``fitted`` (N, 3) the vertex positions
+        of the last refit (the boxes bound the wall faces at those positions). A kernel that
+        refits the tree in place (:func:`refit_tree`) must copy the positions into ``fitted``
+        and then call :meth:`refitted`."""
         return (self._nmin, self._nmax, self._left, self._right, self._start, self._count,
-                self._order, self._fitted)
+                self._order, self._fitted, self._n_nodes)
+
+    def refitted(self, vertices: np.ndarray) -> None:
+        """Record that a kernel refit the tree in place to ``vertices`` (see :attr:`tree`)."""
+        self.vertices = vertices
+        self._normals = None
 
     @property
     def face_edges(self) -> np.ndarray:

@@ -224,13 +224,14 @@ class DeformableWall(StaticWall):
         self._touched[:] = 0
         self._dp[:] = 0.0
         if self.pbd_config.solver == "vbd":
-            self._step_vbd(t, dt, pts, radius)
+            self._step_vbd(t, dt, pts, radius)  # refits the tree to the new shape
+            self._dirty = False
         else:
             self._step_xpbd(t, dt, pts, radius)
+            self._dirty = True
         self.t = t
         self._last_dt = dt
         self._forces = None
-        self._dirty = True
 
     def _step_vbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
         """All substeps of the VBD solver in one numba call (:func:`~.pbd.step_vbd`)."""
@@ -240,7 +241,7 @@ class DeformableWall(StaticWall):
         disp = np.empty((cfg.substeps, 3))
         for k in range(cfg.substeps):
             disp[k] = self.heartbeat.displacement(t - dt + (k + 1) * h)
-        tmin, tmax, left, right, start, count, order, fitted = self._bvh.tree
+        tmin, tmax, left, right, start, count, order, fitted, n_nodes = self._bvh.tree
         worst = step_vbd(
             self.vertices, self.velocities, self._x_old, self._v_damped, self._dp, self._factor,
             self._impulse, self._touched, topo.inv_mass, topo.mass, topo.rest, topo.edges,
@@ -249,7 +250,8 @@ class DeformableWall(StaticWall):
             topo.annulus, disp, topo.fixed, h, cfg.damping, cfg.iterations,
             cfg.local_iterations, cfg.local_rings, self._wall_faces, self._bvh.face_edges,
             self._rest_fn, self._rest_vn, self._rest_en, tmin, tmax, left, right, start, count,
-            order, fitted, pts, radius, radius + cfg.contact_margin)
+            order, fitted, n_nodes, pts, radius, radius + cfg.contact_margin)
+        self._bvh.refitted(self.vertices)
         self.last_contact_violation = float(worst)
 
     def _step_xpbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
