@@ -14,6 +14,8 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
+        ('share/' + PACKAGE + '/config/launch', glob('config/launch/*.yaml')),
+        ('share/' + PACKAGE + '/config/presets', glob('config/presets/*.yaml')),
         # Guidance page of gui_node; three.js comes from `npm ci` in web/ (scripts/setup.sh).
         ('share/' + PACKAGE + '/web', glob('web/*.html') + glob('web/*.js') + glob('web/*.css')
          + glob('web/package*.json')),
@@ -23,6 +25,8 @@ setup(
         ('share/' + PACKAGE + '/web/node_modules/three/examples/jsm/controls',
          glob('web/node_modules/three/examples/jsm/controls/OrbitControls.js')),
     ],
+    # The committed C-GAIL policy ships inside the package so the planner finds it installed.
+    package_data={PACKAGE: ['learning/models/*.onnx']},
     include_package_data=True,
     install_requires=['setuptools'],
     zip_safe=True,
