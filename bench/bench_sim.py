@@ -5,7 +5,10 @@ Run: ``scripts/ws python bench/bench_sim.py [--seconds 2] [--num-envs 64] [--pur
 Every figure is measured on one process (numba and numpy pinned to one thread with
 ``NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1`` set below before the imports) after a warm-up, with
 random forward-biased actions and auto-reset, so episodes end by collisions/truncations as in
-training. ``--pursuit`` also runs the scripted sanity policy (pure pursuit of the centerline,
+training. Each rate is given three ways: from the median CPU time of one step (the cost on an
+idle core; robust on a shared machine), from the total CPU time, and from the wall clock (on a
+loaded machine this also counts the time spent waiting for a core). ``--pursuit`` also runs
+the scripted sanity policy (pure pursuit of the centerline,
 :func:`cgail_planner.sim.env.pursuit_actions`) on every start x target pair and prints how far
 it gets.
 """
@@ -19,7 +22,9 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from collections.abc import Callable
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -41,21 +46,38 @@ def _actions(rng: np.random.Generator, n: int) -> np.ndarray:
     return a.astype(np.float32)
 
 
-def _timed(fn, seconds: float, warmup: int = 3) -> tuple[float, int]:
-    """Call ``fn`` repeatedly for ``seconds``; return (seconds per call, calls)."""
+class Timing(NamedTuple):
+    """Cost of a repeated call: medians per call and totals-based rates."""
+
+    calls: int
+    cpu_median: float
+    """Median CPU time of the calling thread per call, s (the cost; waiting for a core on a
+    loaded machine does not count)."""
+    cpu_total: float
+    """Total CPU time / calls, s."""
+    wall_total: float
+    """Total wall-clock time / calls, s (includes waiting for a core)."""
+
+
+def _timed(fn: Callable[[], object], seconds: float, warmup: int = 3) -> Timing:
+    """Call ``fn`` repeatedly for ``seconds`` (at least 3 calls) after ``warmup`` calls."""
     for _ in range(warmup):
         fn()
-    n = 0
-    t0 = time.perf_counter()
+    cpu: list[float] = []
+    w_start = time.perf_counter()
+    c_start = time.thread_time()
     while True:
+        c0 = time.thread_time()
         fn()
-        n += 1
-        elapsed = time.perf_counter() - t0
-        if elapsed >= seconds:
-            return elapsed / n, n
+        cpu.append(time.thread_time() - c0)
+        elapsed = time.perf_counter() - w_start
+        if elapsed >= seconds and len(cpu) >= 3:
+            n = len(cpu)
+            return Timing(n, float(np.median(cpu)), (time.thread_time() - c_start) / n,
+                          elapsed / n)
 
 
-def bench_single(mode: str, seconds: float) -> float:
+def bench_single(mode: str, seconds: float) -> Timing:
     env = CatheterNavEnv(EnvConfig(mode=mode))
     env.reset(seed=0)
     rng = np.random.default_rng(0)
@@ -65,19 +87,19 @@ def bench_single(mode: str, seconds: float) -> float:
         if te or tr:
             env.reset()
 
-    per, _ = _timed(step, seconds)
-    return 1.0 / per
+    return _timed(step, seconds, warmup=100)  # long enough to load the contact kernels
 
 
-def bench_vec(mode: str, n: int, seconds: float) -> float:
+def bench_vec(mode: str, n: int, seconds: float) -> Timing:
     vec = CatheterNavVecEnv(EnvConfig(mode=mode), num_envs=n)
     vec.reset(seed=0)
     rng = np.random.default_rng(0)
-    per, _ = _timed(lambda: vec.step(_actions(rng, n)), seconds)
-    return n / per
+    t = _timed(lambda: vec.step(_actions(rng, n)), seconds, warmup=max(3, 100 // n))
+    # per env step
+    return Timing(t.calls * n, t.cpu_median / n, t.cpu_total / n, t.wall_total / n)
 
 
-def bench_components(seconds: float, n: int) -> dict[str, float]:
+def bench_components(seconds: float, n: int) -> dict[str, Timing]:
     world = load_world("default")
     anatomy = world.anatomy
     start = world.scenarios.starts[1]
@@ -86,41 +108,30 @@ def bench_components(seconds: float, n: int) -> dict[str, float]:
     origins = np.repeat(start.position[None], N_RAYS, axis=0)
     static = StaticWall(anatomy)
     dyn = DeformableWall(anatomy)
-    out: dict[str, float] = {}
-    out["raycast static, 25 rays"], _ = _timed(
+    out: dict[str, Timing] = {}
+    out["raycast static, 25 rays"] = _timed(
         lambda: static.raycast(origins, dirs, 0.04), seconds / 4)
     big_o = np.tile(origins, (n, 1))
     big_d = np.tile(dirs, (n, 1))
-    out[f"raycast static, {n} x 25 rays (one call)"], _ = _timed(
+    out[f"raycast static, {n} x 25 rays (one call)"] = _timed(
         lambda: static.raycast(big_o, big_d, 0.04), seconds / 4)
-    out["tip_contact static"], _ = _timed(
+    out["tip_contact static"] = _timed(
         lambda: static.tip_contact(start.position, 0.0035, 0.1), seconds / 4)
     body = np.array([start.introducer_tail, start.position])
-    # Dynamic wall, as the env calls it every step: PBD step, then rays (after the step the BVH
-    # is refit lazily), then the tip contact (closest point + Newton force on the new shape).
+    # Dynamic wall, as the env calls it every step: PBD step (which also refits the BVH to the
+    # new shape), then the rays, then the tip contact (closest point + Newton force).
     dyn.reset()
-    for k in range(3):
-        dyn.step(0.1 * (k + 1), 0.1, body, 0.0035)
-    cost = np.zeros(3)
-    t = 0.3
-    calls = 0
-    t_end = time.perf_counter() + seconds
-    while time.perf_counter() < t_end or calls < 3:
-        t += 0.1
-        t0 = time.perf_counter()
-        dyn.step(t, 0.1, body, 0.0035)
-        t1 = time.perf_counter()
-        dyn.raycast(origins, dirs, 0.04)
-        t2 = time.perf_counter()
-        dyn.tip_contact(start.position, 0.0035, 0.1)
-        t3 = time.perf_counter()
-        cost += (t1 - t0, t2 - t1, t3 - t2)
-        calls += 1
-    cost /= calls
-    out["PBD step (DeformableWall.step, dt 0.1 s)"] = cost[0]
-    out["raycast deformable after a step (incl. BVH refit), 25 rays"] = cost[1]
-    out["tip_contact deformable after a step"] = cost[2]
-    out["_n_vertices"] = float(len(anatomy.vertices))
+    clock = [0.0]
+
+    def pbd_step() -> None:
+        clock[0] += 0.1
+        dyn.step(clock[0], 0.1, body, 0.0035)
+
+    out["PBD step (DeformableWall.step, dt 0.1 s, incl. BVH refit)"] = _timed(pbd_step, seconds)
+    out["raycast deformable, 25 rays"] = _timed(
+        lambda: dyn.raycast(origins, dirs, 0.04), seconds / 4)
+    out["tip_contact deformable"] = _timed(
+        lambda: dyn.tip_contact(start.position, 0.0035, 0.1), seconds / 4)
     return out
 
 
@@ -155,11 +166,15 @@ def main() -> None:
     args = parser.parse_args()
     load = os.getloadavg()
     print(f"nproc {os.cpu_count()}  load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
-    load_world("default")  # build/cached outside the timings
+    world = load_world("default")  # built/cached outside the timings
+    print(f"wall mesh: {len(world.anatomy.vertices)} vertices, "
+          f"{int(np.sum(world.anatomy.wall_face_mask))} wall triangles")
     comp = bench_components(args.seconds, args.num_envs)
-    print(f"wall mesh: {int(comp.pop('_n_vertices'))} vertices")
-    for name, per in comp.items():
-        print(f"  {name:60s} {per * 1e3:8.3f} ms")
+    print(f"  {'component, ms per call':60s} {'median CPU':>10s} {'mean CPU':>10s} "
+          f"{'wall-clock':>10s}")
+    for name, t in comp.items():
+        print(f"  {name:60s} {t.cpu_median * 1e3:10.3f} {t.cpu_total * 1e3:10.3f} "
+              f"{t.wall_total * 1e3:10.3f}")
     rows = [
         ("static  single env", bench_single("static", args.seconds)),
         (f"static  batched (N={args.num_envs})",
@@ -168,9 +183,15 @@ def main() -> None:
         (f"dynamic batched (N={args.dyn_envs})",
          bench_vec("dynamic", args.dyn_envs, args.seconds)),
     ]
-    print("env steps per second (one process):")
-    for name, rate in rows:
-        print(f"  {name:30s} {rate:10.0f}")
+    print("env steps per second (one process): from the median CPU time per step (the cost on "
+          "an idle core), the total CPU time, and the wall clock (includes waiting for a core "
+          "on a loaded machine)")
+    print(f"  {'':30s} {'median CPU':>10s} {'total CPU':>10s} {'wall-clock':>10s}")
+    for name, t in rows:
+        print(f"  {name:30s} {1.0 / t.cpu_median:10.0f} {1.0 / t.cpu_total:10.0f} "
+              f"{1.0 / t.wall_total:10.0f}")
+    load = os.getloadavg()
+    print(f"load average at the end {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
     if args.pursuit:
         for mode in ("static", "dynamic"):
             print(f"scripted pursuit sanity policy, {mode}:")
