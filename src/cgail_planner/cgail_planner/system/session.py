@@ -79,8 +79,17 @@ class SimRig:
             else MultiThreadedExecutor(num_threads=threads)
         self.nodes: dict[str, Any] = {}
         self.errors: list[str] = []
+        self._spin_lock = threading.Lock()
+        self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
         try:
-            for spec_node in self.spec.nodes:
+            first, *others = self.spec.nodes
+            phantom = self.add(first.name)
+            # the phantom's /clock runs before the other nodes exist, so none of them stamps
+            # anything with a simulated time of 0
+            self._thread.start()
+            if hasattr(phantom, 'sim_time'):
+                wait_until(lambda: phantom.sim_time > 0.2, 30.0)
+            for spec_node in others:
                 self.add(spec_node.name)
         except BaseException:
             self.close()
@@ -88,8 +97,6 @@ class SimRig:
         self.session = rclpy.create_node('session', parameter_overrides=[
             rclpy.parameter.Parameter('use_sim_time', value=True)])
         self.executor.add_node(self.session)
-        self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
-        self._thread.start()
 
     def _spin(self) -> None:
         import traceback
@@ -99,7 +106,8 @@ class SimRig:
 
         while rclpy.ok():
             try:
-                self.executor.spin_once(timeout_sec=0.1)
+                with self._spin_lock:  # nodes are replaced only between callbacks
+                    self.executor.spin_once(timeout_sec=0.05)
             except (ExternalShutdownException, rclpy.executors.ShutdownException):
                 return
             except Exception:
@@ -132,16 +140,19 @@ class SimRig:
 
     def replace(self, name: str, **extra: Any) -> Any:
         """Destroy node ``name`` and build it again with ``extra`` parameters."""
-        old = self.nodes.pop(name)
-        self.executor.remove_node(old)
-        old.destroy_node()
-        return self.add(name, **extra)
+        with self._spin_lock:
+            old = self.nodes.pop(name)
+            self.executor.remove_node(old)
+            old.destroy_node()
+            return self.add(name, **extra)
 
     def close(self) -> None:
         """Stop spinning, destroy every node, shut rclpy down."""
         import rclpy
 
         self.executor.shutdown()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
         for node in [*self.nodes.values(), getattr(self, 'session', None)]:
             if node is not None:
                 node.destroy_node()
