@@ -1,0 +1,200 @@
+"""The fast paths of the dynamic wall give the same answers as the straightforward ones.
+
+* the one-call VBD wall step (:func:`cgail_planner.sim.pbd.step_vbd`: broad phase on the tree of
+  the last refit, grown by the displacement since) against the substep loop that refits the tree
+  at the predicted positions and calls the kernels one by one: bit-identical;
+* the pseudo-normal of one closest feature against the full per-mesh normals;
+* the tree refit inside the step against a tree built from scratch on the new shape.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cgail_planner.sim.contact import narrow_pairs
+from cgail_planner.sim.heartbeat import HeartbeatConfig
+from cgail_planner.sim.pbd import (
+    contact_neighbourhood,
+    PBDConfig,
+    predict,
+    secant_factor,
+    solve_vbd,
+)
+from cgail_planner.sim.raycast import _closest, WallBVH
+from cgail_planner.sim.wall import _SECANT_RELAX, DeformableWall
+
+R = 0.012
+LENGTH = 0.12
+N_AROUND = 24
+N_RINGS = 25
+CATHETER_R = 0.0035
+DT = 0.1
+
+
+def tube_anatomy() -> SimpleNamespace:
+    """Closed tube along +z: the annulus is the z=0 ring, the z=LENGTH ring is fixed."""
+    z = np.linspace(0.0, LENGTH, N_RINGS)
+    phi = 2 * np.pi * np.arange(N_AROUND) / N_AROUND
+    ring = np.stack([R * np.cos(phi), R * np.sin(phi)], axis=1)
+    verts = np.concatenate([np.column_stack([ring, np.full(N_AROUND, zi)]) for zi in z])
+    faces = []
+    for i in range(N_RINGS - 1):
+        for j in range(N_AROUND):
+            a0, a1 = i * N_AROUND + j, i * N_AROUND + (j + 1) % N_AROUND
+            faces += [[a0, a1, a1 + N_AROUND], [a0, a1 + N_AROUND, a0 + N_AROUND]]
+    n_wall = len(faces)
+    c0, c1 = len(verts), len(verts) + 1
+    verts = np.vstack([verts, [0.0, 0.0, 0.0], [0.0, 0.0, LENGTH]])
+    last = (N_RINGS - 1) * N_AROUND
+    for j in range(N_AROUND):
+        faces.append([c0, (j + 1) % N_AROUND, j])
+        faces.append([c1, last + j, last + (j + 1) % N_AROUND])
+    return SimpleNamespace(
+        name="tube", vertices=verts, faces=np.array(faces),
+        wall_face_mask=np.arange(len(faces)) < n_wall,
+        fixed_vertices=np.r_[np.arange(last, last + N_AROUND), c1],
+        annulus_vertices=np.r_[np.arange(N_AROUND), c0],
+        annulus_center=np.zeros(3), root_axis=np.array([0.0, 0.0, 1.0]),
+    )
+
+
+@pytest.fixture(scope="module")
+def tube():
+    return tube_anatomy()
+
+
+def body_at(k: int) -> np.ndarray:
+    """A catheter sliding along the wall at phi = 0, pressing up to 2 mm into it."""
+    ind = 0.002 * np.sin(0.4 * k) ** 2
+    x = R - CATHETER_R + ind
+    z_tip = 0.04 + 0.002 * k
+    zs = np.arange(z_tip - 0.03, z_tip + 1e-9, 0.005)
+    return np.column_stack([np.full(len(zs), x), 0.001 * np.sin(zs * 200.0), zs])
+
+
+def reference_step(wall: DeformableWall, t: float, dt: float, pts: np.ndarray,
+                   radius: float) -> None:
+    """The substep loop spelled out: refit at the predicted positions, one kernel at a time."""
+    cfg = wall.pbd_config
+    topo = wall.topology
+    bvh = wall._bvh
+    h = dt / cfg.substeps
+    x = wall.vertices
+    v = wall.velocities
+    wall._impulse[:] = 0.0
+    wall._touched[:] = 0
+    wall._dp[:] = 0.0
+    for k in range(cfg.substeps):
+        secant_factor(x, topo.edges, topo.edge_rest, cfg.stiffening, wall._factor,
+                      _SECANT_RELAX)
+        predict(x, v, topo.inv_mass, h, cfg.damping, wall._x_old, wall._v_damped)
+        x[topo.annulus] = topo.rest[topo.annulus] + wall.heartbeat.displacement(
+            t - dt + (k + 1) * h)
+        x[topo.fixed] = topo.rest[topo.fixed]
+        bvh.refit(x)
+        reach = radius + cfg.contact_margin
+        pf, ps = bvh.faces_near_segments(pts, reach)
+        pf, ps = narrow_pairs(x, bvh.faces, pf, ps, pts, reach)
+        args = (bvh.faces, bvh.face_edges, wall._rest_fn, wall._rest_vn, wall._rest_en, pf, ps,
+                pts, radius, wall._impulse, wall._touched, 0.0)
+        solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr, topo.adj_other,
+                  topo.adj_k, topo.adj_rest, topo.adj_edge, wall._factor, topo.tether_k,
+                  topo.vertex_order, h, cfg.iterations, *args)
+        if pf.size and cfg.local_iterations:
+            local = contact_neighbourhood(wall._touched, topo.adj_ptr, topo.adj_other,
+                                          topo.vertex_order, cfg.local_rings)
+            if local.size:
+                solve_vbd(x, topo.inv_mass, topo.mass, topo.rest, topo.adj_ptr,
+                          topo.adj_other, topo.adj_k, topo.adj_rest, topo.adj_edge,
+                          wall._factor, topo.tether_k, local, h, cfg.local_iterations, *args)
+        v_new = (x - wall._x_old) / h
+        wall._dp += topo.mass[:, None] * (v_new - wall._v_damped)
+        v[:] = v_new
+    bvh.refit(x)
+    wall._forces = None
+
+
+@pytest.mark.parametrize("substeps", [1, 2])
+def test_one_call_step_is_bit_identical_to_the_substep_loop(tube, substeps):
+    cfg = PBDConfig(substeps=substeps)
+    hb = HeartbeatConfig()
+    fast = DeformableWall(tube, cfg, hb)
+    ref = DeformableWall(tube, cfg, hb)
+    forces = []
+    for k in range(25):
+        t = (k + 1) * DT
+        pts = body_at(k)
+        if k % 4 == 3:
+            # A fast wall (3.4 mm predicted motion after damping) towards the catheter: pairs
+            # that only come within reach at the predicted positions must still be found.
+            for w in (fast, ref):
+                w.velocities[:] = (-0.25, 0.0, 0.0)
+        fast.step(t, DT, pts, CATHETER_R)
+        reference_step(ref, t, DT, pts, CATHETER_R)
+        np.testing.assert_array_equal(fast.vertices, ref.vertices)
+        np.testing.assert_array_equal(fast.velocities, ref.velocities)
+        np.testing.assert_array_equal(fast._touched, ref._touched)
+        np.testing.assert_array_equal(fast._dp, ref._dp)
+        a = fast.tip_contact(pts[-1], CATHETER_R, DT)
+        b = ref.tip_contact(pts[-1], CATHETER_R, DT)
+        assert a.force == b.force and a.penetration == b.penetration
+        forces.append(a.force)
+    assert max(forces) > 0.0  # the comparison covered steps with contact forces
+
+
+def test_tree_is_refit_to_the_new_shape_inside_the_step(tube):
+    wall = DeformableWall(tube)
+    rng = np.random.default_rng(0)
+    origins = np.column_stack([rng.uniform(-0.004, 0.004, (60, 2)), rng.uniform(0.0, 0.1, 60)])
+    dirs = rng.normal(size=(60, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    for k in range(6):
+        wall.step((k + 1) * DT, DT, body_at(k), CATHETER_R)
+        fresh = WallBVH(wall.vertices, tube.faces, tube.wall_face_mask)
+        np.testing.assert_array_equal(wall.raycast(origins, dirs, 0.05),
+                                      fresh.raycast(origins, dirs, 0.05))
+        for p in origins[:10]:  # (ties between faces may break differently in a new tree)
+            sd_a, q_a, n_a, _ = wall._bvh.closest_point(p)
+            sd_b, q_b, n_b, _ = fresh.closest_point(p)
+            assert sd_a == pytest.approx(sd_b, abs=1e-15)
+            np.testing.assert_allclose(q_a, q_b, atol=1e-15)
+            np.testing.assert_allclose(n_a, n_b, atol=1e-12)
+    assert np.abs(wall.vertices - tube.vertices).max() > 1e-3  # the wall did move
+
+
+def test_feature_normal_matches_the_full_pseudo_normals(tube):
+    rng = np.random.default_rng(2)
+    verts = tube.vertices + rng.normal(scale=4e-4, size=tube.vertices.shape)
+    bvh = WallBVH(verts, tube.faces, tube.wall_face_mask)
+    fn, vn, en = bvh.pseudo_normals()
+    kinds = set()
+    queries = np.column_stack([rng.uniform(-0.02, 0.02, (400, 2)), rng.uniform(0.0, 0.12, 400)])
+    for p in queries:
+        _, face, _, u, v, w = _closest(bvh.vertices, bvh.faces, bvh._order, bvh._nmin,
+                                       bvh._nmax, bvh._left, bvh._right, bvh._start,
+                                       bvh._count, p, np.inf)
+        zero = [k for k, b in enumerate((u, v, w)) if b <= 1e-12]
+        if len(zero) == 2:
+            ref = vn[bvh.faces[face, ({0, 1, 2} - set(zero)).pop()]]
+        elif len(zero) == 1:
+            ref = en[bvh.face_edges[face, (zero[0] + 1) % 3]]
+        else:
+            ref = fn[face]
+        kinds.add(len(zero))
+        _, _, n, _ = bvh.closest_point(p)
+        np.testing.assert_allclose(n, ref / np.linalg.norm(ref), atol=1e-12)
+    assert kinds == {0, 1, 2}  # face, edge and vertex regions all checked
+
+
+def test_dynamic_wall_is_deterministic(tube):
+    a = DeformableWall(tube)
+    b = DeformableWall(tube)
+    for k in range(10):
+        a.step((k + 1) * DT, DT, body_at(k), CATHETER_R)
+        b.step((k + 1) * DT, DT, body_at(k), CATHETER_R)
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    a.reset()
+    for k in range(10):
+        a.step((k + 1) * DT, DT, body_at(k), CATHETER_R)
+    np.testing.assert_array_equal(a.vertices, b.vertices)
