@@ -10,7 +10,7 @@ and guidance time per frame (median, 99th percentile). On a shared, loaded machi
 is the cost; the wall time includes waiting for a core.
 
 Run: ``scripts/ws python bench/bench_planner.py [--policy model.onnx] [--anatomy default]``
-(default policy: the BC fixture ``src/cgail_planner/test/fixtures/bc_demo_policy.onnx``).
+(default policy: the committed C-GAIL model ``learning/models/cgail_default_static.onnx``).
 """
 
 from __future__ import annotations
@@ -31,7 +31,8 @@ from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.wall import StaticWall
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_POLICY = ROOT / 'src' / 'cgail_planner' / 'test' / 'fixtures' / 'bc_demo_policy.onnx'
+DEFAULT_POLICY = (ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'learning' / 'models'
+                  / 'cgail_default_static.onnx')
 
 
 def _stats(values: list[float]) -> str:

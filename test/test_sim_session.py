@@ -14,12 +14,20 @@ from cgail_planner.system.session import main, report
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = ROOT / 'bags' / 'fixtures'
-POLICY = ROOT / 'src' / 'cgail_planner' / 'test' / 'fixtures' / 'bc_demo_policy.onnx'
 
 
 def test_cgail_condition_needs_a_policy(tmp_path, capsys) -> None:
-    assert main(['--out', str(tmp_path), '--trials', '1']) == 2
-    assert 'needs --policy' in capsys.readouterr().err
+    missing = tmp_path / 'missing.onnx'
+    assert main(['--out', str(tmp_path), '--trials', '1', '--policy', str(missing)]) == 2
+    assert f'needs --policy <model.onnx> (export_onnx), found no file at {missing}' \
+        in capsys.readouterr().err
+
+
+def test_default_policy_is_the_committed_cgail_model() -> None:
+    from cgail_planner.system.session import build_parser
+
+    policy = build_parser().parse_args([]).policy
+    assert policy.name == 'cgail_default_static.onnx' and policy.is_file()
 
 
 def test_refuses_to_mix_with_existing_bags(tmp_path, capsys) -> None:
@@ -46,8 +54,7 @@ def test_report_on_recorded_trials(tmp_path) -> None:
 @pytest.mark.slow
 def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
     out = tmp_path / 'session'
-    code = main(['--trials', '1', '--out', str(out), '--policy', str(POLICY),
-                 '--time-limit', '150'])
+    code = main(['--trials', '1', '--out', str(out), '--time-limit', '150'])
     assert code == 0
     text = (out / 'metrics.md').read_text()
     rows = [line for line in text.splitlines()

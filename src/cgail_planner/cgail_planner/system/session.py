@@ -1,7 +1,7 @@
 """``invitro_session``: the simulated in-vitro session of the paper (section IV-B), end to end.
 
-    scripts/ws python -m cgail_planner.system.session --policy model.onnx --out runs/invitro
-    scripts/ros2run cgail_planner invitro_session --trials 2 --time-scale 8
+    scripts/ros2run cgail_planner invitro_session --out runs/invitro     # the paper's protocol
+    scripts/ws python -m cgail_planner.system.session --trials 2 --policy model.onnx --mode dynamic
 
 The whole simulated rig runs in THIS process (python-can virtual buses only connect objects of one
 process), built from ``config/launch/sim_rig.yaml`` like the launcher's ``--in-process`` mode:
@@ -55,6 +55,14 @@ def default_launch_file() -> Path:
         if prefix and cand.is_file():
             return cand
     return here
+
+
+def default_policy() -> Path:
+    """The committed C-GAIL policy of the default anatomy (installed with the package)."""
+    import cgail_planner.learning
+
+    return Path(cgail_planner.learning.__file__).resolve().parent / 'models' / \
+        'cgail_default_static.onnx'
 
 
 class SimRig:
@@ -244,8 +252,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='rigid phantom or deformable beating wall')
     p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
                    help='output directory (bags/, metrics.md, metrics.csv, box plots)')
-    p.add_argument('--policy', type=Path, default=None,
-                   help='ONNX C-GAIL policy (export_onnx); required for the cgail condition')
+    p.add_argument('--policy', type=Path, default=default_policy(),
+                   help='ONNX C-GAIL policy (export_onnx); default: the committed '
+                        'learning/models/cgail_default_static.onnx')
     p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
                    help='conditions to run, in order')
     p.add_argument('--time-scale', type=float, default=6.0,
@@ -277,7 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if 'cgail' in args.conditions and (args.policy is None or not args.policy.is_file()):
         print(f'invitro_session: the cgail condition needs --policy <model.onnx> (export_onnx), '
-              f'found {args.policy}', file=sys.stderr)
+              f'found no file at {args.policy}', file=sys.stderr)
         return 2
     bags_dir = args.out / 'bags'
     if bags_dir.exists() and any(bags_dir.iterdir()):
@@ -310,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     t_start = time.monotonic()
     log(f'invitro_session: building the simulated rig ({args.anatomy}, {args.mode}, '
-        f'x{args.time_scale:g} simulated time)...')
+        f'x{args.time_scale:g} simulated time); policy {args.policy}...')
     rig = SimRig(args.launch_file or default_launch_file(), overrides, threads=args.threads)
     from geometry_msgs.msg import PoseStamped
 
