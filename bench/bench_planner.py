@@ -79,6 +79,19 @@ def main() -> int:
                   f' | rollout {np.mean(steps):.0f} steps, CPU '
                   f'{np.median(np.array(cpus) / np.array(steps)) * 1e6:.0f} us/step'
                   if kind == 'cgail' and steps else ''))
+    # per-step components of the rollout: policy inference and the 25-ray cast
+    obs = np.zeros(41, dtype=np.float32)
+    start = sc.starts[0]
+    origins = np.repeat(start.position[None], len(RAY_DIRECTIONS), axis=0)
+    dirs = RAY_DIRECTIONS @ start.rotation.T
+    for label, fn in (('policy (onnxruntime)', lambda: policy(obs)),
+                      ('25-ray cast', lambda: wall.raycast(origins, dirs, 0.04))):
+        fn()
+        c0 = time.process_time()
+        for _ in range(2000):
+            fn()
+        print(f'  rollout component {label:20s}: CPU {(time.process_time() - c0) * 500:.1f} us '
+              'per call')
     rng = np.random.default_rng(0)
     walls, cpus = [], []
     for path in paths:
