@@ -352,6 +352,13 @@ class Planner:
         origins = np.empty((n, 3))
         low = self.world.bbox_low.tolist()
         high = self.world.bbox_high.tolist()
+        # the observation is filled in place (same layout as :meth:`observation`)
+        obs = np.empty(self.obs_dim, dtype=np.float32)
+        inv_scale = 1.0 / cfg.position_scale
+        inv_dmax = 1.0 / self.world.d_max
+        inv_ray = 1.0 / cfg.ray_length
+        origin = self.world.origin
+        gx, gy, gz = (float(v) for v in goal)
         for step in range(1, cfg.max_rollout_steps + 1):
             origins[:] = p
             hits = np.asarray(self.wall.raycast(origins, self.rays @ r.T, cfg.ray_length),
@@ -361,16 +368,22 @@ class Planner:
                     f"cgail rollout touched the wall after {step - 1} steps at "
                     f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
                     f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal")
-            action = np.asarray(self.policy(self.observation(p, r, goal, hits)),
-                                dtype=np.float64).reshape(-1)
-            if action.shape != (3,) or not math.isfinite(float(action.sum())):
-                raise NoPathError(f"policy must return 3 finite actions, found "
-                                     f"{action.tolist()}")
-            a = np.clip(action, -1.0, 1.0)
-            dl = float(a[2]) * step_len
+            x, y, z = p.tolist()
+            obs[0:3] = (p - origin) * inv_scale
+            obs[3:12] = r.T.reshape(9)
+            vx, vy, vz = (gx - x) * inv_dmax, (gy - y) * inv_dmax, (gz - z) * inv_dmax
+            obs[12] = math.sqrt(vx * vx + vy * vy + vz * vz)
+            obs[13], obs[14], obs[15] = vx, vy, vz
+            np.clip(hits * inv_ray, 0.0, 1.0, out=hits)
+            obs[16:] = hits
+            out = np.asarray(self.policy(obs)).reshape(-1).tolist()
+            if len(out) != 3 or not all(math.isfinite(v) for v in out):
+                raise NoPathError(f"policy must return 3 finite actions, found {out}")
+            a0, a1, a2 = (min(max(v, -1.0), 1.0) for v in out)
+            dl = a2 * step_len
             if dl > 0.0:
                 limit = per_len * dl
-                r = r @ _bend_rotation(float(a[0]) * limit, float(a[1]) * limit)
+                r = r @ _bend_rotation(a0 * limit, a1 * limit)
                 p = p + dl * r[:, 1]
                 positions.append(p)
                 rotations.append(r)
@@ -387,10 +400,9 @@ class Planner:
                         positions[-1] = positions[-1] + frac * (positions[-2] - positions[-1])
                         back = 0.0
                 p, r = positions[-1].copy(), rotations[-1].copy()
-            d = goal - p
-            if float(d @ d) < tol2:
-                return np.vstack([*positions, goal]), step
             x, y, z = p.tolist()
+            if (gx - x) ** 2 + (gy - y) ** 2 + (gz - z) ** 2 < tol2:
+                return np.vstack([*positions, goal]), step
             if not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
                     and low[2] <= z <= high[2]):
                 raise NoPathError(f"cgail rollout left the anatomy after {step} steps")
