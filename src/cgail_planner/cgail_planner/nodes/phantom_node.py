@@ -254,7 +254,9 @@ class PhantomNode(Node):
                   ('start_id', self.start_id), ('target_id', self.target_id),
                   ('tip_m', np.round(p, 5).tolist()), ('target_distance_mm', f'{dist * 1e3:.1f}'),
                   ('inserted_mm', f'{self.physics.inserted * 1e3:.1f}'),
-                  ('wall_contacts', self.physics.contacts), ('aurora_port', self.aurora_port),
+                  ('wall_contacts', self.physics.contacts),
+                  ('insertion_jumps', self.physics.insertion_jumps),
+                  ('aurora_port', self.aurora_port),
                   ('bend_rad', [round(b, 4) for b in self.bend]),
                   ('insertion_m', self.insertion)]
         level = DiagnosticStatus.OK if self.insertion is not None else DiagnosticStatus.WARN
