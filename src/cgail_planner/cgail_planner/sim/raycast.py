@@ -24,6 +24,7 @@ from collections.abc import Sequence
 import hashlib
 import os
 from pathlib import Path
+from typing import Any
 
 from numba import njit
 import numpy as np
@@ -682,7 +683,7 @@ class WallBVH:
         self._normals = None
 
     @property
-    def tree(self) -> tuple[np.ndarray, ...]:
+    def tree(self) -> tuple[Any, ...]:
         """The tree for kernels that query or refit it directly: ``(node_min, node_max, left,
         right, start, count, order, fitted, n_nodes)``, ``fitted`` (N, 3) the vertex positions
         of the last refit (the boxes bound the wall faces at those positions). A kernel that

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import _observation_space, NavEngine, validate_actions
+from cgail_planner.sim.pbd import PBDConfig
 
 
 class CatheterNavVecEnv:
@@ -33,16 +34,20 @@ class CatheterNavVecEnv:
     Args:
         config: environment configuration shared by every environment.
         num_envs: batch size N >= 1.
+        pbd_config: wall solver of the dynamic mode (default
+            :data:`~cgail_planner.sim.env.DYNAMIC_PBD_CONFIG`), see
+            :class:`~cgail_planner.sim.env.NavEngine`.
     """
 
-    def __init__(self, config: EnvConfig | None = None, num_envs: int = 8) -> None:
+    def __init__(self, config: EnvConfig | None = None, num_envs: int = 8,
+                 pbd_config: PBDConfig | None = None) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, found {num_envs!r}")
         if config is not None and not isinstance(config, EnvConfig):
             raise ValueError(f"config must be an EnvConfig, found {type(config).__name__}")
         self.config = config or EnvConfig()
         self.num_envs = num_envs
-        self.engine = NavEngine(self.config, num_envs)
+        self.engine = NavEngine(self.config, num_envs, pbd_config)
         self.single_observation_space = _observation_space()
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self._rngs = [np.random.default_rng() for _ in range(num_envs)]
