@@ -31,10 +31,12 @@ import numpy as np
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import (
     CatheterNavEnv,
+    DYNAMIC_PBD_CONFIG,
     N_RAYS,
     pursuit_actions,
     RAY_DIRECTIONS,
 )
+from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.vec_env import CatheterNavVecEnv
 from cgail_planner.sim.wall import DeformableWall, StaticWall
@@ -77,8 +79,8 @@ def _timed(fn: Callable[[], object], seconds: float, warmup: int = 3) -> Timing:
                           elapsed / n)
 
 
-def bench_single(mode: str, seconds: float) -> Timing:
-    env = CatheterNavEnv(EnvConfig(mode=mode))
+def bench_single(mode: str, seconds: float, pbd: PBDConfig | None = None) -> Timing:
+    env = CatheterNavEnv(EnvConfig(mode=mode), pbd_config=pbd)
     env.reset(seed=0)
     rng = np.random.default_rng(0)
 
@@ -90,8 +92,8 @@ def bench_single(mode: str, seconds: float) -> Timing:
     return _timed(step, seconds, warmup=100)  # long enough to load the contact kernels
 
 
-def bench_vec(mode: str, n: int, seconds: float) -> Timing:
-    vec = CatheterNavVecEnv(EnvConfig(mode=mode), num_envs=n)
+def bench_vec(mode: str, n: int, seconds: float, pbd: PBDConfig | None = None) -> Timing:
+    vec = CatheterNavVecEnv(EnvConfig(mode=mode), num_envs=n, pbd_config=pbd)
     vec.reset(seed=0)
     rng = np.random.default_rng(0)
     t = _timed(lambda: vec.step(_actions(rng, n)), seconds, warmup=max(3, 100 // n))
@@ -107,7 +109,7 @@ def bench_components(seconds: float, n: int) -> dict[str, Timing]:
     dirs = RAY_DIRECTIONS @ rot.T
     origins = np.repeat(start.position[None], N_RAYS, axis=0)
     static = StaticWall(anatomy)
-    dyn = DeformableWall(anatomy)
+    dyn = DeformableWall(anatomy, DYNAMIC_PBD_CONFIG)
     out: dict[str, Timing] = {}
     out["raycast static, 25 rays"] = _timed(
         lambda: static.raycast(origins, dirs, 0.04), seconds / 4)
@@ -120,14 +122,33 @@ def bench_components(seconds: float, n: int) -> dict[str, Timing]:
     body = np.array([start.introducer_tail, start.position])
     # Dynamic wall, as the env calls it every step: PBD step (which also refits the BVH to the
     # new shape), then the rays, then the tip contact (closest point + Newton force).
-    dyn.reset()
     clock = [0.0]
+    for name, cfg in ((f"{PBDConfig().iterations} sweeps, PBDConfig()", PBDConfig()),
+                      (f"{DYNAMIC_PBD_CONFIG.iterations} sweeps, env default",
+                       DYNAMIC_PBD_CONFIG)):
+        wall = DeformableWall(anatomy, cfg)
 
-    def pbd_step() -> None:
-        clock[0] += 0.1
-        dyn.step(clock[0], 0.1, body, 0.0035)
+        def pbd_step(wall: DeformableWall = wall) -> None:
+            clock[0] += 0.1
+            wall.step(clock[0], 0.1, body, 0.0035)
 
-    out["PBD step (DeformableWall.step, dt 0.1 s, incl. BVH refit)"] = _timed(pbd_step, seconds)
+        out[f"PBD step incl. BVH refit ({name})"] = _timed(pbd_step, seconds)
+    # The catheter pressing the wall 1 mm deep at its tip (contact pairs, local settling sweeps,
+    # Newton force): also loads every contact kernel before the env timings.
+    sd, _, normal, _ = static._bvh.closest_point(start.position)
+    press = body + (0.001 - 0.0035 - sd) * normal  # tip sphere 1 mm beyond the surface
+    out[f"PBD step, catheter pressing the wall 1 mm ({DYNAMIC_PBD_CONFIG.iterations} sweeps)"] = \
+        _timed(lambda: dyn.step(clock[0], 0.1, press, 0.0035), seconds / 2)
+
+    def press_contact() -> None:
+        dyn._forces = None  # as after a step: the elastic forces are evaluated again
+        dyn.tip_contact(press[-1], 0.0035, 0.1)
+
+    out["tip_contact deformable, pressing (incl. Newton force)"] = _timed(
+        press_contact, seconds / 4)
+    dyn.reset()
+    for k in range(3):
+        dyn.step(0.1 * (k + 1), 0.1, body, 0.0035)
     out["raycast deformable, 25 rays"] = _timed(
         lambda: dyn.raycast(origins, dirs, 0.04), seconds / 4)
     out["tip_contact deformable"] = _timed(
@@ -179,16 +200,19 @@ def main() -> None:
         ("static  single env", bench_single("static", args.seconds)),
         (f"static  batched (N={args.num_envs})",
          bench_vec("static", args.num_envs, args.seconds)),
-        ("dynamic single env", bench_single("dynamic", args.seconds)),
+        (f"dynamic single env ({DYNAMIC_PBD_CONFIG.iterations} sweeps)",
+         bench_single("dynamic", args.seconds)),
         (f"dynamic batched (N={args.dyn_envs})",
          bench_vec("dynamic", args.dyn_envs, args.seconds)),
+        (f"dynamic single env ({PBDConfig().iterations} sweeps)",
+         bench_single("dynamic", args.seconds, PBDConfig())),
     ]
     print("env steps per second (one process): from the median CPU time per step (the cost on "
           "an idle core), the total CPU time, and the wall clock (includes waiting for a core "
           "on a loaded machine)")
-    print(f"  {'':30s} {'median CPU':>10s} {'total CPU':>10s} {'wall-clock':>10s}")
+    print(f"  {'':34s} {'median CPU':>10s} {'total CPU':>10s} {'wall-clock':>10s}")
     for name, t in rows:
-        print(f"  {name:30s} {1.0 / t.cpu_median:10.0f} {1.0 / t.cpu_total:10.0f} "
+        print(f"  {name:34s} {1.0 / t.cpu_median:10.0f} {1.0 / t.cpu_total:10.0f} "
               f"{1.0 / t.wall_total:10.0f}")
     load = os.getloadavg()
     print(f"load average at the end {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
