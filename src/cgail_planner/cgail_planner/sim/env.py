@@ -117,9 +117,10 @@ def _observation_space() -> spaces.Box:
 
 #: Wall solver of the dynamic env unless one is given: the calibrated wall with 8 Gauss-Seidel
 #: sweeps per step instead of 10 (``PBDConfig()``): the wall step is ~20 % cheaper, the heartbeat
-#: amplitude at the five ostium targets 1.3-3.5 % smaller (10 against 20 sweeps differ by 2-5 %,
-#: so this is within the solver's own convergence error), and random-action rollouts end with
-#: the same collisions at the same steps (contact force percentiles within ~0.03 N).
+#: amplitude at the five ostium targets 1.3-3.5 % smaller from the third beat on (up to 6.4 % in
+#: the first two; 10 against 20 sweeps differ by 2-5 %, so this is within the solver's own
+#: convergence error), and random-action rollouts end with the same collisions at the same steps
+#: (contact force percentiles within ~0.03 N).
 DYNAMIC_PBD_CONFIG = PBDConfig(iterations=8)
 
 
@@ -464,8 +465,9 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
 
     **Wall solver** (dynamic mode): ``pbd_config``, default :data:`DYNAMIC_PBD_CONFIG` (the
     calibrated wall with 8 Gauss-Seidel sweeps per step, ~20 % cheaper than the 10 of
-    ``PBDConfig()`` for ostium amplitudes 1.3-3.5 % smaller). Pass ``PBDConfig()`` to match a
-    :class:`~cgail_planner.sim.wall.DeformableWall` built with its defaults.
+    ``PBDConfig()`` for ostium amplitudes 1.3-3.5 % smaller once the beat has settled). Pass
+    ``PBDConfig()`` to match a :class:`~cgail_planner.sim.wall.DeformableWall` built with its
+    defaults.
     """
 
     metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}  # noqa: RUF012
