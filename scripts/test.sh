@@ -20,7 +20,7 @@ if ! command -v chromium >/dev/null 2>&1 && [ -z "${CGAIL_NO_APT:-}" ] \
 fi
 
 # A per-run DDS domain, so parallel runs on one machine never see each other.
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 90) + 10 ))}"
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 50) + 10 ))}"
 # shellcheck disable=SC1091
 source scripts/env.sh
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"

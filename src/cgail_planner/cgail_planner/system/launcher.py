@@ -7,12 +7,13 @@ SIGINT to every child, then SIGTERM after ``--shutdown-timeout`` seconds, then S
 
 Usage (pip-only workspace; ``ros2 run cgail_planner rig_launch ...`` on a full ROS install)::
 
-    scripts/ws rig_launch src/cgail_planner/config/launch/sim_rig.yaml
-    scripts/ws rig_launch sim_rig.yaml --only aurora sim_aurora --in-process
+    scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml \
+        --in-process
+    scripts/ros2run cgail_planner rig_launch my_rig.yaml --only aurora planner
 
 The launcher refuses to start when ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset (DDS would
-multicast onto the network): run it through ``scripts/ws`` (which sources ``scripts/env.sh``)
-or pass ``--allow-unset-discovery-range`` on purpose.
+multicast onto the network): run it through ``scripts/ros2run`` / ``scripts/ws`` (which source
+``scripts/env.sh``) or pass ``--allow-unset-discovery-range`` on purpose.
 """
 
 from __future__ import annotations
