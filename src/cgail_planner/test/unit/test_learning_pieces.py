@@ -29,6 +29,8 @@ from cgail_planner.learning.logger import read_event_scalars, ScalarLogger
 from cgail_planner.learning.networks import Actor, RunningNormalizer
 from cgail_planner.learning.ppo import clipped_surrogate, clipped_value_loss, linear_schedule
 
+torch.set_num_threads(1)   # tiny networks: threads only add overhead on the shared CPU
+
 
 def test_gae_by_hand_with_termination_and_truncation():
     # one env, 3 steps; step 1 truncated (bootstrap from final obs value 5), step 2 terminated
