@@ -88,6 +88,7 @@ class SimRig:
         self.nodes: dict[str, Any] = {}
         self.errors: list[str] = []
         self._spin_lock = threading.Lock()
+        self._retired: dict[str, list[Any]] = {}
         self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
         try:
             first, *others = self.spec.nodes
@@ -151,7 +152,11 @@ class SimRig:
         with self._spin_lock:
             old = self.nodes.pop(name)
             self.executor.remove_node(old)
-            old.destroy_node()
+            # rclpy's executor may still hold the removed node's entities in its current wait
+            # iteration: destroy it one replacement later, when that iteration is long gone
+            for retired in self._retired.pop(name, []):
+                retired.destroy_node()
+            self._retired[name] = [old]
             return self.add(name, **extra)
 
     def close(self) -> None:
@@ -161,7 +166,8 @@ class SimRig:
         self.executor.shutdown()
         if self._thread.is_alive():
             self._thread.join(timeout=2.0)
-        for node in [*self.nodes.values(), getattr(self, 'session', None)]:
+        retired = [n for nodes in self._retired.values() for n in nodes]
+        for node in [*self.nodes.values(), *retired, getattr(self, 'session', None)]:
             if node is not None:
                 node.destroy_node()
         self.nodes.clear()
