@@ -57,6 +57,7 @@ def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
     code = main(['--trials', '1', '--out', str(out), '--time-limit', '150'])
     assert code == 0
     text = (out / 'metrics.md').read_text()
+    assert 'callback errors: 0.' in text
     rows = [line for line in text.splitlines()
             if line.startswith(('| cgail_01', '| centerline_01'))]
     assert len(rows) == 2, text

@@ -88,6 +88,7 @@ class SimRig:
         self.nodes: dict[str, Any] = {}
         self.errors: list[str] = []
         self._spin_lock = threading.Lock()
+        self._stopping = threading.Event()
         self._retired: dict[str, list[Any]] = {}
         self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
         try:
@@ -113,7 +114,7 @@ class SimRig:
         import rclpy
         from rclpy.executors import ExternalShutdownException
 
-        while rclpy.ok():
+        while rclpy.ok() and not self._stopping.is_set():
             try:
                 with self._spin_lock:  # nodes are replaced only between callbacks
                     self.executor.spin_once(timeout_sec=0.05)
@@ -147,6 +148,11 @@ class SimRig:
         self.executor.add_node(node)
         return node
 
+    def locked(self) -> threading.Lock:
+        """Hold it to create or destroy entities from another thread: no callback runs and the
+        executor is not between collecting its wait set and using it."""
+        return self._spin_lock
+
     def replace(self, name: str, **extra: Any) -> Any:
         """Destroy node ``name`` and build it again with ``extra`` parameters."""
         with self._spin_lock:
@@ -163,9 +169,10 @@ class SimRig:
         """Stop spinning, destroy every node, shut rclpy down."""
         import rclpy
 
-        self.executor.shutdown()
+        self._stopping.set()
         if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=10.0)
+        self.executor.shutdown()
         retired = [n for nodes in self._retired.values() for n in nodes]
         for node in [*self.nodes.values(), *retired, getattr(self, 'session', None)]:
             if node is not None:
@@ -207,9 +214,10 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     operator.reset()
     t_reset = phantom.sim_time
     wait_until(lambda: phantom.sim_time - t_reset > 1.0, 30.0)  # poses from the new start
-    recorder = BagRecorder(rig.session, RecorderConfig(output=bag, topics=TOPICS,
-                                                       condition=condition,
-                                                       discovery_period=0.2))
+    with rig.locked():
+        recorder = BagRecorder(rig.session, RecorderConfig(output=bag, topics=TOPICS,
+                                                           condition=condition,
+                                                           discovery_period=0.2))
     wait_until(lambda: len(recorder.topics) >= len(TOPICS), 5.0)
     time.sleep(0.3)  # let the new subscriptions match
     failed_before = planner.counts['failed_plans']
@@ -222,7 +230,8 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     while not outcome:
         time.sleep(0.05)
         if not rclpy.ok():  # SIGINT: rclpy's handler shut the context down
-            recorder.stop()
+            with rig.locked():
+                recorder.stop()
             raise KeyboardInterrupt
         now = phantom.sim_time
         if operator.done:
@@ -244,7 +253,8 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
             log(f'  [{condition} {index + 1}] t = {now - t0:6.1f} s (sim), tip-target '
                 f'{dist * 1e3:6.1f} mm, inserted {phantom.physics.inserted * 1e3:6.1f} mm')
     time.sleep(0.2)
-    recorder.stop()
+    with rig.locked():
+        recorder.stop()
     return outcome
 
 
@@ -351,11 +361,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         rig.close()
         tmp.cleanup()
-    return report(args.out, bags_dir, outcomes, log, wall_s=time.monotonic() - t_start)
+    if rig.errors:
+        log(f'invitro_session: {len(rig.errors)} node callback(s) raised (tracebacks above)')
+    return report(args.out, bags_dir, outcomes, log, wall_s=time.monotonic() - t_start,
+                  callback_errors=len(rig.errors))
 
 
 def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
-           log: Callable[[str], None], wall_s: float) -> int:
+           log: Callable[[str], None], wall_s: float, callback_errors: int = 0) -> int:
     """Metrics of every evaluable trial bag: markdown table, CSV, box plots."""
     from cgail_planner.bags.errors import BagError
     from cgail_planner.bags.metrics_cli import evaluate_bags
@@ -377,7 +390,8 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     tests = kruskal_by_condition(trials)
     text = markdown_report(trials, tests)
     lines = ['# Simulated in-vitro session', '',
-             f'{len(outcomes)} trials, {wall_s:.0f} s wall time.', '', '## Outcomes', '',
+             f'{len(outcomes)} trials, {wall_s:.0f} s wall time, callback errors: '
+             f'{callback_errors}.', '', '## Outcomes', '',
              '| trial | condition | operator outcome |', '|---|---|---|']
     lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
     if skipped:
