@@ -8,7 +8,7 @@ WS="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$WS"
 PY="${PYTHON:-python3}"
 
-log() { printf '[setup] %s\n' "$*" >&2; }
+log() { printf '[setup %3ds] %s\n' "$SECONDS" "$*" >&2; }
 
 # 1. Python >= 3.10 with venv (Debian: apt-get install python3 python3-venv).
 if ! "$PY" -c 'import sys, venv; assert sys.version_info >= (3, 10)' 2>/dev/null; then
@@ -28,7 +28,9 @@ stamp=.venv/.requirements.sha256
 want=$(sha256sum requirements.txt | cut -d' ' -f1)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     log "installing requirements.txt into .venv (first run: about 2 minutes)"
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt
+    # (the machine's pip config may name local indexes that do not exist: drop those warnings)
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements.txt \
+        2> >(grep -v 'is ignored: it is neither a file nor a directory' >&2)
     echo "$want" > "$stamp"
 else
     log "requirements up to date"
