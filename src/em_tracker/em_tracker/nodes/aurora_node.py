@@ -1,9 +1,17 @@
 """``aurora_node``: NDI Aurora tip pose -> ``em_tracker/tip_pose`` (node name ``aurora``).
 
-A plain ``rclpy`` Node with configure/activate semantics: the constructor is *configure*
-(parameters declared, validated into a :class:`TrackerConfig`; bad values raise ``ValueError``;
-publishers created) and *activates* at once by starting the reader thread. ``destroy_node`` is
-*deactivate + cleanup* (TSTOP, port closed, thread joined).
+A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it):
+
+* constructor: parameters declared and validated into a :class:`TrackerConfig` (bad values
+  raise ``ValueError`` here);
+* ``on_configure``: the device object (ndicapi, or its isolating child process) is built, the
+  lifecycle publishers, the pose guard condition and the diagnostics timer are created;
+* ``on_activate``: a fresh reader thread starts (INIT ... TSTART, then polling); poses and
+  ``/diagnostics`` are published only while active;
+* ``on_deactivate``: the reader thread is stopped and joined (TSTOP, port closed on it);
+* ``on_cleanup``: publishers, timer, guard condition and the device are released;
+* ``on_shutdown`` / ``on_error`` / ``destroy_node``: stop the reader (TSTOP) and release, in
+  any state.
 
 The reader thread (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) owns every blocking
 serial call: start-up sequence, polling at the device frame rate, validation and conversion,
@@ -15,6 +23,7 @@ from __future__ import annotations
 
 import collections
 from collections.abc import Callable
+import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -22,12 +31,15 @@ from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
+from rclpy.guard_condition import GuardCondition
+from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
 from rclpy.qos import qos_profile_sensor_data, QoSProfile
+from rclpy.timer import Timer
 from std_msgs.msg import Float64
 
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.pose import Registration, TipPose
+from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
 from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
@@ -89,12 +101,12 @@ def default_device(config: TrackerConfig) -> AuroraDevice:
     return NdiAurora(settings)
 
 
-class AuroraNode(Node):
+class AuroraNode(LifecycleNode):
     """Publishes the Aurora tip pose, its RMS error and diagnostics.
 
     Args:
         device_factory: builds the device from the config (tests pass a fake).
-        **kwargs: forwarded to ``Node`` (e.g. ``parameter_overrides``).
+        **kwargs: forwarded to ``LifecycleNode`` (e.g. ``parameter_overrides``).
 
     Raises:
         ValueError: a parameter is out of range or malformed (raised while constructing).
@@ -105,25 +117,93 @@ class AuroraNode(Node):
         for name, (default, description, bounds) in _PARAMS.items():
             self.declare_parameter(name, default, _descriptor(description, bounds, default))
         self.config = self._build_config()
-        self._pose_pub = self.create_publisher(PoseStamped, 'em_tracker/tip_pose',
-                                               qos_profile_sensor_data)
-        self._rms_pub = self.create_publisher(Float64, 'em_tracker/rms_error',
-                                              qos_profile_sensor_data)
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
-                                               QoSProfile(depth=10))
+        self._device_factory: DeviceFactory = device_factory or default_device
+        self._device: AuroraDevice | None = None
+        self._loop: TrackerLoop | None = None
+        self.health = TrackerHealth()
+        self._health_lock = threading.Lock()
         self._queue: collections.deque[tuple[TipPose, float]] = collections.deque(maxlen=64)
+        self._pose_pub: LifecyclePublisher | None = None
+        self._rms_pub: LifecyclePublisher | None = None
+        self._diag_pub: LifecyclePublisher | None = None
+        self._guard: GuardCondition | None = None
+        self._diag_timer: Timer | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        self._device = self._device_factory(self.config)
+        self._pose_pub = self.create_lifecycle_publisher(PoseStamped, 'em_tracker/tip_pose',
+                                                         qos_profile_sensor_data)
+        self._rms_pub = self.create_lifecycle_publisher(Float64, 'em_tracker/rms_error',
+                                                        qos_profile_sensor_data)
+        self._diag_pub = self.create_lifecycle_publisher(DiagnosticArray, '/diagnostics',
+                                                         QoSProfile(depth=10))
         self._guard = self.create_guard_condition(self._on_new_pose)
         self._diag_timer = self.create_timer(self.config.diagnostics_period_s,
                                              self._on_diagnostics_timer)
-        self._loop = TrackerLoop((device_factory or default_device)(self.config), self.config,
-                                 self._on_pose_from_reader, self._on_link_warning)
+        self.get_logger().info(f'configured for the Aurora on {self.config.port}')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        assert self._device is not None
+        self._queue.clear()
+        self._loop = TrackerLoop(self._device, self.config, self._on_pose_from_reader,
+                                 self._on_link_warning)
         self.health = self._loop.health
+        self._health_lock = self._loop.lock
         self._loop.start()
+        self.get_logger().info('active: tracking started')
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._stop_reader()
+        self.get_logger().info('inactive: tracking stopped (TSTOP, port closed)')
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._stop_reader()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        self.get_logger().error(f'transition error in state {state.label}: stopping tracking')
+        self._stop_reader()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop_reader(self) -> None:
+        """Stop and join the reader thread (TSTOP and close happen on it); idempotent."""
+        loop, self._loop = self._loop, None
+        if loop is not None:
+            loop.stop(timeout_s=self.config.reply_timeout_s + 2.0)
+        self._queue.clear()
+
+    def _release(self) -> None:
+        """Destroy the configured entities and close the device; idempotent."""
+        if self._diag_timer is not None:
+            self.destroy_timer(self._diag_timer)
+            self._diag_timer = None
+        if self._guard is not None:
+            self.destroy_guard_condition(self._guard)
+            self._guard = None
+        for pub in (self._pose_pub, self._rms_pub, self._diag_pub):
+            if pub is not None:
+                self.destroy_lifecycle_publisher(pub)
+        self._pose_pub = self._rms_pub = self._diag_pub = None
+        device, self._device = self._device, None
+        if device is not None:
+            device.close()
 
     def _on_pose_from_reader(self, pose: TipPose, host_time: float) -> None:
         # Reader thread: hand over to the executor (deque append and trigger are thread-safe).
         self._queue.append((pose, host_time))
-        self._guard.trigger()
+        guard = self._guard
+        if guard is not None:
+            guard.trigger()
 
     def _on_link_warning(self, message: str) -> None:
         self.get_logger().warning(message, throttle_duration_sec=5.0)
@@ -147,6 +227,9 @@ class AuroraNode(Node):
 
     # ------------------------------------------------------------------ executor callbacks
     def _on_new_pose(self) -> None:
+        if self._loop is None or self._pose_pub is None or self._rms_pub is None:
+            self._queue.clear()
+            return
         now_ros = self.get_clock().now()
         now_mono = time.monotonic()
         while self._queue:
@@ -156,11 +239,13 @@ class AuroraNode(Node):
                                     clock_type=now_ros.clock_type).to_msg()
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
-            with self._loop.lock:
+            with self._health_lock:
                 self.health.published += 1
 
     def _on_diagnostics_timer(self) -> None:
-        with self._loop.lock:
+        if self._loop is None or self._diag_pub is None:
+            return  # inactive: nothing is published
+        with self._health_lock:
             level, message = self.health.level(time.monotonic(), self.config.stale_after_s)
             values = self.health.values()
         values['port'] = self.config.port
@@ -172,17 +257,26 @@ class AuroraNode(Node):
         self._diag_pub.publish(msg)
 
     def destroy_node(self) -> None:
-        """Stop the reader thread (TSTOP, port closed) and destroy the node."""
-        self._loop.stop(timeout_s=self.config.reply_timeout_s + 2.0)
+        """Stop the reader thread (TSTOP, port closed), release the device, destroy the node.
+
+        Safe in every lifecycle state.
+        """
+        self._stop_reader()
+        self._release()
         super().destroy_node()
 
 
 def main(args=None) -> None:
-    """Run the node: ``scripts/ws ros2run em_tracker aurora_node --ros-args -p port:=...``."""
+    """Build, configure, activate and spin the node.
+
+    ``scripts/ws ros2run em_tracker aurora_node --ros-args -p port:=...``
+    """
     rclpy.init(args=args)
     node = None
     try:
         node = AuroraNode()
+        node.trigger_configure()
+        node.trigger_activate()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -12,6 +12,7 @@ import pytest
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64
@@ -105,7 +106,10 @@ def make(fake, **params):
     overrides = [Parameter('diagnostics_period_s', value=0.1)]
     overrides += [Parameter(k, value=v) for k, v in params.items()]
     factory = None if fake is None else (lambda cfg: fake)
-    return Harness(AuroraNode(device_factory=factory, parameter_overrides=overrides))
+    node = AuroraNode(device_factory=factory, parameter_overrides=overrides)
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    return Harness(node)
 
 
 @pytest.mark.parametrize('name,value', [
@@ -124,8 +128,8 @@ def test_publishers_qos_and_defaults(ctx):
     h = make(FakeDevice([VALID]))
     try:
         node = h.node
-        topics = {name: types for name, types in node.get_publisher_names_and_types_by_node(
-            'aurora', '/')}
+        assert h.spin_until(lambda: len(_published(node)) >= 3)
+        topics = _published(node)
         assert topics['/em_tracker/tip_pose'] == ['geometry_msgs/msg/PoseStamped']
         assert topics['/em_tracker/rms_error'] == ['std_msgs/msg/Float64']
         assert topics['/diagnostics'] == ['diagnostic_msgs/msg/DiagnosticArray']
@@ -333,3 +337,66 @@ def test_dropped_frames_and_bad_replies_through_the_sim(ctx, tmp_path):
     finally:
         h.close()
         sim.close()
+
+
+def _published(node):
+    """The node's own topics it publishes, by graph (rosout, parameter and lifecycle events
+    aside)."""
+    return {name: types for name, types in node.get_publisher_names_and_types_by_node(
+        'aurora', '/') if name in DEVICE_TOPICS}
+
+
+DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/rms_error', '/diagnostics')
+
+
+def _state(node):
+    return node._state_machine.current_state[1]
+
+
+def test_lifecycle_transitions_start_and_stop_the_device(ctx):
+    """configure -> activate -> deactivate -> cleanup -> configure -> activate; poses only
+    while active; deactivate stops the reader (device closed = TSTOP) and publishes nothing."""
+    fake = FakeDevice([VALID])
+    node = AuroraNode(device_factory=lambda cfg: fake,
+                      parameter_overrides=[Parameter('diagnostics_period_s', value=0.1)])
+    h = Harness(node)
+    try:
+        assert _state(node) == 'unconfigured' and fake.connects == 0
+        assert _published(node) == {}
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert _state(node) == 'inactive'
+        assert h.spin_until(lambda: len(_published(node)) == 3)
+        h.spin_until(lambda: False, timeout=0.3)
+        assert fake.connects == 0 and h.poses == [] and h.diags == []  # nothing while inactive
+        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert h.spin_until(lambda: len(h.poses) >= 3 and h.diags)
+        assert fake.connects == 1 and fake.closed == 0
+        assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        assert _state(node) == 'inactive' and fake.closed == 1  # reader stopped: TSTOP, closed
+        h.spin_until(lambda: False, timeout=0.05)  # drain what was in flight
+        n, d = len(h.poses), len(h.diags)
+        h.spin_until(lambda: False, timeout=0.4)
+        assert len(h.poses) == n and len(h.diags) == d and fake.connects == 1
+        assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+        assert _state(node) == 'unconfigured'
+        assert h.spin_until(lambda: _published(node) == {})
+        assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert h.spin_until(lambda: len(h.poses) >= n + 3)
+        assert fake.connects == 2 and node.health.published >= 3
+    finally:
+        h.close()
+    assert fake.closed >= 2
+
+
+@pytest.mark.parametrize('steps', [(), ('configure',), ('configure', 'activate'),
+                                   ('configure', 'activate', 'deactivate')])
+def test_destroy_and_shutdown_are_safe_in_every_state(ctx, steps):
+    fake = FakeDevice([VALID])
+    node = AuroraNode(device_factory=lambda cfg: fake)
+    for step in steps:
+        assert getattr(node, f'trigger_{step}')() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS
+    assert _state(node) == 'finalized'
+    node.destroy_node()
+    assert fake.closed >= (1 if steps else 0)
