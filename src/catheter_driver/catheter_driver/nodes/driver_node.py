@@ -2,17 +2,31 @@
 
 Run: ``ros2 run catheter_driver driver_node`` (or ``scripts/ws driver_node`` in the pip-only
 workspace); with the defaults it drives a simulated driver on a python-can virtual bus.
+
+A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it):
+
+* constructor: parameters declared and validated (bad values raise ``ValueError`` here);
+* ``on_configure``: the simulated driver (if any) starts, the CAN link is opened (a failure is
+  retried with backoff by the control timer), lifecycle publishers, the command subscription,
+  the e-stop service and the timers are created;
+* ``on_activate``: insertion commands are accepted and relayed, state and diagnostics published;
+* inactive (and ``on_deactivate``): commands are ignored, the sleeve is held still with both
+  grippers closed (the catheter clamped) on every control tick; nothing is published;
+* ``on_cleanup``: hold command, link closed, simulated driver stopped, entities destroyed;
+* ``on_shutdown`` / ``on_error`` / ``destroy_node``: the same safe stop and release, in any state.
 """
 
 from __future__ import annotations
 
-import contextlib
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import rclpy
 from rclpy.executors import ExternalShutdownException
-from rclpy.node import Node
+from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
+from rclpy.service import Service
+from rclpy.subscription import Subscription
+from rclpy.timer import Timer
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool
 
@@ -31,8 +45,12 @@ from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes.params import declare
 
 
-class DriverNode(Node):
-    """Thin wrapper around :class:`RelayController` and :class:`CanDriverLink`."""
+class DriverNode(LifecycleNode):
+    """Thin lifecycle wrapper around :class:`RelayController` and :class:`CanDriverLink`.
+
+    Raises:
+        ValueError: a parameter out of range or inconsistent (at construction).
+    """
 
     def __init__(self, **kwargs) -> None:
         super().__init__('sleeve_driver', **kwargs)
@@ -74,20 +92,18 @@ class DriverNode(Node):
         self._channel = declare(self, 'can_channel', 'sleeve_driver', 'python-can channel')
         self._bitrate = declare(self, 'can_bitrate', 500000, 'CAN bitrate, bit/s',
                                 lo=10000, hi=1000000)
-        simulate = declare(self, 'simulate_device', True,
-                           'start a simulated driver on the virtual bus in this process')
+        self._simulate = declare(self, 'simulate_device', True,
+                                 'start a simulated driver on the virtual bus in this process')
         dbc_path = declare(self, 'dbc_path', '', 'DBC file; empty = the bundled driver.dbc')
         self._hardware_id = declare(self, 'hardware_id', 'sleeve_driver',
                                     'hardware_id in /diagnostics')
-        if simulate and self._interface != 'virtual':
+        if self._simulate and self._interface != 'virtual':
             raise ValueError(f"simulate_device requires can_interface 'virtual', found "
                              f'{self._interface!r}')
         r = self.relay_config
         self._codec = DriverCodec(dbc_path or None, position_range=(
             r.stroke_min - 0.01, r.stroke_max + 0.01))
         self.sim: SimulatedDriver | None = None
-        if simulate:
-            self.sim = SimulatedDriver(self._channel, config=r, codec=self._codec).start()
 
         self._link: CanDriverLink | None = None
         self._controller: RelayController | None = None
@@ -105,24 +121,118 @@ class DriverNode(Node):
         self.rejected_commands = 0
         self._last_rejection = ''
         self.reconnects = 0
-
-        self._state_pub = self.create_publisher(JointState, 'catheter/insertion_state',
-                                                conv.SENSOR_QOS)
-        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
-                                               conv.DIAGNOSTICS_QOS)
-        self.create_subscription(JointState, 'catheter/insertion_command',
-                                 self._on_insertion_command, conv.COMMAND_QOS)
-        self.create_service(SetBool, 'sleeve_driver/estop', self._on_estop)
         self._period = 1.0 / self.supervision.control_rate_hz
-        self.create_timer(self._period, self._on_control)
-        self.create_timer(self.supervision.diagnostics_period, self._on_diagnostics)
+        self._active = False
+        self._state_pub: LifecyclePublisher | None = None
+        self._diag_pub: LifecyclePublisher | None = None
+        self._sub_command: Subscription | None = None
+        self._srv_estop: Service | None = None
+        self._timers: list[Timer] = []
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def on_configure(self, state: State) -> TransitionCallbackReturn:
+        if self._simulate:
+            self.sim = SimulatedDriver(self._channel, config=self.relay_config,
+                                       codec=self._codec).start()
+        self._backoff.reset()
+        self._next_attempt = 0.0
+        self._open(time.monotonic())
+        self._state_pub = self.create_lifecycle_publisher(
+            JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+        self._diag_pub = self.create_lifecycle_publisher(
+            DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
+        self._sub_command = self.create_subscription(
+            JointState, 'catheter/insertion_command', self._on_insertion_command,
+            conv.COMMAND_QOS)
+        self._srv_estop = self.create_service(SetBool, 'sleeve_driver/estop', self._on_estop)
+        self._timers = [self.create_timer(self._period, self._on_control),
+                        self.create_timer(self.supervision.diagnostics_period,
+                                          self._on_diagnostics)]
         self.get_logger().info(
             f'sleeve driver on CAN {self._interface}:{self._channel}'
-            f'{" (simulated device)" if simulate else ""}, cap {r.max_speed} m/s')
+            f'{" (simulated device)" if self.sim is not None else ""}, '
+            f'cap {self.relay_config.max_speed} m/s')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: State) -> TransitionCallbackReturn:
+        self._velocity_cmd = 0.0
+        self._watchdog.starve()
+        self._active = True
+        self.get_logger().info('active: accepting insertion commands')
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: State) -> TransitionCallbackReturn:
+        self._safe_stop()
+        self.get_logger().info('inactive: sleeve stopped, both grippers closed')
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: State) -> TransitionCallbackReturn:
+        self._safe_stop()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: State) -> TransitionCallbackReturn:
+        self._safe_stop()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state: State) -> TransitionCallbackReturn:
+        self.get_logger().error(f'transition error in state {state.label}: stopping the sleeve')
+        self._safe_stop()
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _safe_stop(self) -> None:
+        """Stop accepting commands; sleeve velocity 0 with both grippers closed; idempotent."""
+        self._active = False
+        self._velocity_cmd = 0.0
+        self._watchdog.starve()
+        # The relay restarts from fresh feedback on the next activation.
+        self._controller = None
+        self._last_known = None
+        self._send_hold()
+
+    def _send_hold(self) -> None:
+        """Send the hold command (sleeve stopped, both grippers closed) if the link is open."""
+        if self._link is None:
+            return
+        try:
+            self._link.send_command(DriverCommand(0.0, True, True))
+        except (DeviceDisconnectedError, ProtocolError) as exc:
+            self._drop(time.monotonic(), str(exc))
+
+    def _release(self) -> None:
+        """Destroy the configured entities, close the bus, stop the simulated device."""
+        for timer in self._timers:
+            self.destroy_timer(timer)
+        self._timers = []
+        for pub in (self._state_pub, self._diag_pub):
+            if pub is not None:
+                self.destroy_lifecycle_publisher(pub)
+        self._state_pub = self._diag_pub = None
+        if self._sub_command is not None:
+            self.destroy_subscription(self._sub_command)
+            self._sub_command = None
+        if self._srv_estop is not None:
+            self.destroy_service(self._srv_estop)
+            self._srv_estop = None
+        if self._link is not None:
+            self._link.close()
+            self._link = None
+        self._feedback = None
+        self._link_error = 'not opened yet'
+        if self.sim is not None:
+            self.sim.stop()
+            self.sim = None
 
     # -- callbacks ---------------------------------------------------------------------------
 
     def _on_insertion_command(self, msg: JointState) -> None:
+        if not self._active:
+            self.get_logger().warning('inactive: insertion command ignored',
+                                      throttle_duration_sec=2.0)
+            return
         try:
             velocity = conv.insertion_velocity(msg, self.relay_config.max_speed)
         except CommandError as exc:
@@ -166,6 +276,9 @@ class DriverNode(Node):
             return
         if self._feedback is None:
             return
+        if not self._active:
+            self._send_hold()
+            return
         fb = SleeveFeedback(self._feedback.sleeve_position, self._feedback.moving,
                             self._feedback.fixed)
         if self._controller is None:
@@ -187,11 +300,14 @@ class DriverNode(Node):
         except (DeviceDisconnectedError, ProtocolError) as exc:
             self._drop(now, str(exc))
             return
+        assert self._state_pub is not None
         self._state_pub.publish(conv.insertion_state(
             self.get_clock().now(), self._controller.position,
             catheter_velocity(fb, self._feedback.sleeve_velocity)))
 
     def _on_diagnostics(self) -> None:
+        if not self._active or self._diag_pub is None:
+            return  # inactive: nothing is published
         self._diag_pub.publish(self.diagnostics_message())
 
     # -- helpers -----------------------------------------------------------------------------
@@ -269,23 +385,23 @@ class DriverNode(Node):
                                 self._hardware_id, level, message, values)
 
     def destroy_node(self) -> None:
-        """Stop the sleeve, release the bus and the simulated device."""
-        if self._link is not None:
-            with contextlib.suppress(DeviceDisconnectedError):
-                self._link.send_command(DriverCommand(0.0, True, True))
-            self._link.close()
-            self._link = None
-        if self.sim is not None:
-            self.sim.stop()
+        """Stop the sleeve (grippers closed), release the bus and the simulated device.
+
+        Safe in every lifecycle state.
+        """
+        self._safe_stop()
+        self._release()
         super().destroy_node()
 
 
 def main(args=None) -> None:
-    """Console script ``driver_node``."""
+    """Console script ``driver_node``: build, configure and activate the node, spin."""
     rclpy.init(args=args)
     node = None
     try:
         node = DriverNode()
+        node.trigger_configure()
+        node.trigger_activate()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

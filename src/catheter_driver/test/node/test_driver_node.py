@@ -7,11 +7,13 @@ import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool
 
+from catheter_driver.core.relay import GripperState
 from catheter_driver.hw.can_protocol import DriverCodec
 from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes.driver_node import DriverNode
@@ -20,7 +22,10 @@ from catheter_driver.nodes.driver_node import DriverNode
 def _node(harness, **params):
     params.setdefault('can_channel', f'drv_{uuid.uuid4().hex}')
     overrides = [Parameter(k, value=v) for k, v in params.items()]
-    return harness.add(DriverNode(parameter_overrides=overrides))
+    node = harness.add(DriverNode(parameter_overrides=overrides))
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    return node
 
 
 def _cmd(velocity, name='insertion'):
@@ -219,3 +224,71 @@ def test_driver_latch_engaged_elsewhere_is_a_warning(harness):
         assert node.diagnostics_message().status[0].level == DiagnosticStatus.WARN
     finally:
         other_host.shutdown()
+
+
+def _state(node):
+    return node._state_machine.current_state[1]
+
+
+def _own_topics(node):
+    """The node's device publishers (rosout, parameter and lifecycle events aside)."""
+    names = {pub.topic_name for pub in node.publishers}
+    return names & {'/catheter/insertion_state', '/diagnostics'}
+
+
+def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
+    """Commands move the sleeve only while active; deactivate holds it with the grippers
+    closed and publishes nothing; cleanup releases the bus and the simulated device; a second
+    configure + activate drives again."""
+    channel = f'drv_{uuid.uuid4().hex}'
+    node = harness.add(DriverNode(parameter_overrides=[Parameter('can_channel', value=channel)]))
+    states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+    diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
+    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+                                         conv.COMMAND_QOS)
+    assert _state(node) == 'unconfigured' and node.sim is None and node._link is None
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert _state(node) == 'inactive' and node.sim is not None and node._link is not None
+    assert _own_topics(node) == {'/catheter/insertion_state', '/diagnostics'}
+    mech = node.sim.mechanism
+    # inactive: commands ignored, nothing published, both grippers held closed
+    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.5)
+    assert mech.catheter_position == 0.0 and states == [] and diags == []
+    assert mech.moving.state == GripperState.CLOSED and mech.fixed.state == GripperState.CLOSED
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    assert harness.spin_until(_publishing(
+        pub, _cmd(0.005), lambda: mech.catheter_position > 0.002 and states and diags))
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    assert _state(node) == 'inactive'
+    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0, timeout=1.0)
+    harness.spin_for(0.1)  # drain messages in flight
+    n_states, n_diags, stopped_at = len(states), len(diags), mech.catheter_position
+    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.6)
+    assert mech.catheter_position == stopped_at and mech.sleeve_velocity == 0.0
+    assert mech.moving.state == GripperState.CLOSED and mech.fixed.state == GripperState.CLOSED
+    assert len(states) == n_states and len(diags) == n_diags
+    sim = node.sim
+    assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+    assert _state(node) == 'unconfigured' and node.sim is None and node._link is None
+    assert sim._thread is None  # simulated device stopped, its bus closed
+    assert _own_topics(node) == set()
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    mech2 = node.sim.mechanism
+    assert harness.spin_until(_publishing(
+        pub, _cmd(0.005), lambda: mech2.catheter_position > 0.001 and len(states) > n_states))
+
+
+@pytest.mark.parametrize('steps', [(), ('configure',), ('configure', 'activate'),
+                                   ('configure', 'activate', 'deactivate')])
+def test_shutdown_and_destroy_are_safe_in_every_state(harness, steps):
+    node = DriverNode(parameter_overrides=[Parameter('can_channel',
+                                                     value=f'drv_{uuid.uuid4().hex}')])
+    for step in steps:
+        assert getattr(node, f'trigger_{step}')() == TransitionCallbackReturn.SUCCESS
+    sim = node.sim
+    assert node.trigger_shutdown() == TransitionCallbackReturn.SUCCESS
+    assert _state(node) == 'finalized' and node.sim is None and node._link is None
+    if sim is not None:
+        assert sim.mechanism.sleeve_velocity == 0.0
+    node.destroy_node()

@@ -16,6 +16,8 @@ def test_deadman_drives_the_simulated_sleeve_and_release_stops_it(harness):
     harness.add(TeleopNode())  # defaults: deadman button 4, insertion axis 1
     driver = harness.add(DriverNode(parameter_overrides=[
         Parameter('can_channel', value=f'chain_{uuid.uuid4().hex}')]))
+    driver.trigger_configure()
+    driver.trigger_activate()
     mech = driver.sim.mechanism
     assert harness.spin_until(lambda: driver._controller is not None
                               and driver._controller.phase.name == 'DRIVE')
