@@ -71,16 +71,19 @@ class SimRig:
     Args:
         launch_file: the rig's launch YAML (``sim_rig.yaml``).
         overrides: per node name, parameters applied over the launch file's.
+        threads: executor threads (1: SingleThreadedExecutor).
+        skip: nodes of the launch file not to start (e.g. ``gui`` unless asked for).
     """
 
     def __init__(self, launch_file: Path, overrides: dict[str, dict[str, Any]],
-                 threads: int = 1) -> None:
+                 threads: int = 1, skip: frozenset[str] = frozenset()) -> None:
         import rclpy
         from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
 
         from cgail_planner.system.launch_spec import load_launch_file
 
-        self.spec = load_launch_file(launch_file)
+        spec = load_launch_file(launch_file)
+        self.spec = spec.select([n.name for n in spec.nodes if n.name not in skip])
         self.overrides = overrides
         rclpy.init()
         self.executor = SingleThreadedExecutor() if threads == 1 \
@@ -287,6 +290,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='executor threads (1: SingleThreadedExecutor, the fastest in rclpy)')
     p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
     p.add_argument('--seed', type=int, default=0, help='seed of the EM and stick noise')
+    p.add_argument('--gui', action='store_true',
+                   help='also start the guidance GUI (gui_node) and print its URL')
+    p.add_argument('--gui-port', type=int, default=8780, help='port of the guidance GUI')
     return p
 
 
@@ -332,11 +338,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         'planner': {**common, 'anatomy': args.anatomy, 'mode': args.mode,
                     'policy_path': str(args.policy or ''), 'planner_type': args.conditions[0]},
         'operator': {**common, 'time_limit_s': args.time_limit, 'seed': args.seed},
+        'gui': {**common, 'anatomy': args.anatomy, 'dynamic': args.mode == 'dynamic',
+                'port': args.gui_port},
     }
     t_start = time.monotonic()
     log(f'invitro_session: building the simulated rig ({args.anatomy}, {args.mode}, '
         f'x{args.time_scale:g} simulated time); policy {args.policy}...')
-    rig = SimRig(args.launch_file or default_launch_file(), overrides, threads=args.threads)
+    rig = SimRig(args.launch_file or default_launch_file(), overrides, threads=args.threads,
+                 skip=frozenset() if args.gui else frozenset({'gui'}))
+    if 'gui' in rig.nodes:
+        log(f'invitro_session: guidance GUI on {rig.nodes["gui"].url} (open it in a browser)')
     from geometry_msgs.msg import PoseStamped
 
     from cgail_planner.nodes import conversions as conv
