@@ -13,8 +13,9 @@ Bend modes:
 * ``position``: the bend axes command the bend angle directly, ``scale_bend`` rad at full
   deflection (the stick springs back, so releasing the stick straightens the catheter).
 
-Both bend angles are capped to +-``max_bend`` (pi/2) and the insertion speed to
-``max_insertion_speed`` (5 mm/s), whatever the axes and scales.
+The total bend ``hypot(alpha, gamma)`` is capped to ``max_bend`` (pi/2) by scaling both angles
+(the bend direction is kept), which is the cap the PAM controller enforces, and the insertion
+speed to ``max_insertion_speed`` (5 mm/s), whatever the axes and scales.
 """
 
 from __future__ import annotations
@@ -164,7 +165,7 @@ class Teleop:
         else:
             step = cfg.scale_bend * dt
             bend = (self._bend[0] + a * step, self._bend[1] + g * step)
-        self._bend = (_clamp(bend[0], cfg.max_bend), _clamp(bend[1], cfg.max_bend))
+        self._bend = _cap_total_bend(bend, cfg.max_bend)
         return TeleopOutput(velocity, self._bend)
 
     def on_invalid(self) -> TeleopOutput:
@@ -183,3 +184,16 @@ class Teleop:
             return TeleopOutput()
         self._enabled = False
         return TeleopOutput(insertion_velocity=0.0)
+
+
+def _cap_total_bend(bend: tuple[float, float], max_bend: float) -> tuple[float, float]:
+    """Scale ``(alpha, gamma)`` so that ``hypot(alpha, gamma) <= max_bend`` (direction kept).
+
+    Clamping each angle alone would let the diagonal reach ``sqrt(2) * max_bend``, which the
+    PAM controller rejects (it caps the total bend).
+    """
+    total = math.hypot(bend[0], bend[1])
+    if total <= max_bend:
+        return bend
+    k = max_bend / total
+    return (bend[0] * k, bend[1] * k)

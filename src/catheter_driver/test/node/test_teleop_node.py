@@ -110,7 +110,11 @@ def test_position_mode_and_caps(harness):
         joy.publish(_joy([0, -1.0, -1.0, 0.5], True))
         return len(bend) >= 2
     assert harness.spin_until(step)
-    assert list(bend[-1].position) == pytest.approx([-math.pi / 2, math.pi / 4])
+    # full alpha and half gamma deflection: the total bend is capped at pi/2 (the cap the PAM
+    # controller enforces) with the direction kept (alpha = -2 gamma)
+    alpha, gamma = bend[-1].position
+    assert math.hypot(alpha, gamma) == pytest.approx(math.pi / 2)
+    assert alpha / gamma == pytest.approx(-2.0)
     assert all(abs(m.velocity[0]) <= 0.005 for m in insertion)
 
 

@@ -47,15 +47,21 @@ def test_bend_and_speed_caps_hold_whatever_the_input():
         now += 0.1
         out = t.on_joy([0, 1.0, 1.0, -1.0], HELD, now)
         assert abs(out.insertion_velocity) <= 0.005
-        assert all(abs(b) <= math.pi / 2 for b in out.bend)
-    assert out.bend == pytest.approx((math.pi / 2, -math.pi / 2))
+        assert math.hypot(*out.bend) <= math.pi / 2 + 1e-12
+    # the total bend saturates at pi/2 along the commanded diagonal
+    assert out.bend == pytest.approx((math.pi / 2 / math.sqrt(2), -math.pi / 2 / math.sqrt(2)))
 
 
 def test_position_mode_maps_axes_to_angles():
     t = Teleop(TeleopConfig(enable_button=0, axis_insertion=1, axis_bend_alpha=2,
                             axis_bend_gamma=3, bend_mode='position', scale_bend=math.pi / 2))
-    assert t.on_joy([0, 0, 0.5, -1.0], HELD, 0.0).bend == pytest.approx(
-        (math.pi / 4, -math.pi / 2))
+    # within the cap: the axes map linearly
+    assert t.on_joy([0, 0, 0.5, -0.5], HELD, 0.0).bend == pytest.approx(
+        (math.pi / 4, -math.pi / 4))
+    # beyond it: scaled onto hypot = pi/2, direction kept
+    alpha, gamma = t.on_joy([0, 0, 0.5, -1.0], HELD, 0.1).bend
+    assert math.hypot(alpha, gamma) == pytest.approx(math.pi / 2)
+    assert gamma / alpha == pytest.approx(-2.0)
 
 
 def test_joy_timeout_sends_one_stop():
