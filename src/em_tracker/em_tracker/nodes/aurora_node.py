@@ -235,7 +235,8 @@ class AuroraNode(LifecycleNode):
         while self._queue:
             pose, host_time = self._queue.popleft()
             age_ns = int(max(0.0, now_mono - host_time) * 1e9)
-            stamp = rclpy.time.Time(nanoseconds=now_ros.nanoseconds - age_ns,
+            # clamped: under use_sim_time the clock can be younger than the frame's wall age
+            stamp = rclpy.time.Time(nanoseconds=max(0, now_ros.nanoseconds - age_ns),
                                     clock_type=now_ros.clock_type).to_msg()
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
