@@ -194,21 +194,25 @@ def test_bad_parameters_raise_at_construction(harness, params, error, match):
 
 
 def test_position_is_tracked_across_a_disconnect(harness):
-    node = _node(harness, status_timeout_s=0.1, reconnect_backoff_initial_s=0.05,
+    # status_timeout 0.25 s: short enough to see the disconnect quickly, long enough that a
+    # loaded CI machine does not declare the link lost before the first millimetre
+    node = _node(harness, status_timeout_s=0.25, reconnect_backoff_initial_s=0.05,
                  reconnect_backoff_max_s=0.1)
     states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE',
+                              timeout=15.0)
     assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: node.sim.mechanism.catheter_position > 0.001))
+        pub, _cmd(0.005), lambda: node.sim.mechanism.catheter_position > 0.001), timeout=15.0)
     node.sim.disconnect()  # the board drives on until its own 200 ms watchdog
-    assert harness.spin_until(_publishing(pub, _cmd(0.005), lambda: node.reconnects >= 1))
+    assert harness.spin_until(_publishing(pub, _cmd(0.005), lambda: node.reconnects >= 1),
+                              timeout=15.0)
     harness.spin_for(0.4)
     moved_blind = node.sim.mechanism.catheter_position
     node.sim.reconnect()
     assert harness.spin_until(lambda: node._controller is not None and states
-                              and states[-1].position[0] >= moved_blind - 1e-6)
+                              and states[-1].position[0] >= moved_blind - 1e-6, timeout=15.0)
     assert states[-1].position[0] == pytest.approx(moved_blind, abs=2e-6)
 
 
