@@ -23,7 +23,7 @@ class Harness:
         self.nodes.append(node)
         return node
 
-    def spin_until(self, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if predicate():

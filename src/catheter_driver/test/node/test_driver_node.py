@@ -261,7 +261,8 @@ def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
     assert mech.moving.state == GripperState.CLOSED and mech.fixed.state == GripperState.CLOSED
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: mech.catheter_position > 0.002 and states and diags))
+        pub, _cmd(0.005), lambda: mech.catheter_position > 0.002 and states and diags),
+        timeout=15.0)
     assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
     assert _state(node) == 'inactive'
     assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0, timeout=1.0)
@@ -279,8 +280,10 @@ def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     mech2 = node.sim.mechanism
+    # generous deadline: a fresh-clone CI run once needed more than 5 s here
     assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: mech2.catheter_position > 0.001 and len(states) > n_states))
+        pub, _cmd(0.005), lambda: mech2.catheter_position > 0.001 and len(states) > n_states),
+        timeout=15.0)
 
 
 @pytest.mark.parametrize('steps', [(), ('configure',), ('configure', 'activate'),
