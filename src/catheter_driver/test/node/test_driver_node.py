@@ -73,10 +73,14 @@ def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
         pub.publish(_cmd(0.005))
         return states[-1].position[0] > 0.002
 
-    assert harness.spin_until(keep_commanding, timeout=5.0)
+    assert harness.spin_until(keep_commanding, timeout=15.0)
     last = states[-1]
     assert last.name == ['insertion']
-    assert 0.0 < last.velocity[0] <= 0.005 + 1e-9
+    # the catheter waits (velocity 0) while the sleeve returns between relays, so look at
+    # every state: it moved, and never faster than the cap
+    velocities = [m.velocity[0] for m in states]
+    assert 0.0 < max(velocities) <= 0.005 + 1e-9
+    assert min(velocities) >= 0.0
     assert node.sim.mechanism.catheter_position == pytest.approx(last.position[0], abs=5e-4)
 
 
