@@ -49,6 +49,10 @@ def _values(array):
 
 def test_topics_services_and_qos(harness):
     node = _node(harness)
+    # the graph cache learns of the node's own endpoints asynchronously: wait for them
+    assert harness.spin_until(lambda: all(node.get_publishers_info_by_topic(t) for t in (
+        '/catheter/insertion_state', '/diagnostics')) and node.get_subscriptions_info_by_topic(
+        '/catheter/insertion_command'))
     pubs = {name: node.get_publishers_info_by_topic(name) for name in
             ('/catheter/insertion_state', '/diagnostics')}
     state_qos = pubs['/catheter/insertion_state'][0].qos_profile
@@ -58,8 +62,11 @@ def test_topics_services_and_qos(harness):
     assert diag_qos.durability == DurabilityPolicy.VOLATILE
     subs = node.get_subscriptions_info_by_topic('/catheter/insertion_command')
     assert subs[0].qos_profile.reliability == ReliabilityPolicy.RELIABLE
-    services = dict(node.get_service_names_and_types_by_node('sleeve_driver', '/'))
-    assert services['/sleeve_driver/estop'] == ['std_srvs/srv/SetBool']
+    # the graph cache learns of the node's own service asynchronously: wait for it
+    def services():
+        return dict(node.get_service_names_and_types_by_node('sleeve_driver', '/'))
+    assert harness.spin_until(lambda: '/sleeve_driver/estop' in services())
+    assert services()['/sleeve_driver/estop'] == ['std_srvs/srv/SetBool']
 
 
 def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
