@@ -250,6 +250,29 @@ def _import_plugin(plugin: str) -> Callable[..., Any]:
             from exc
 
 
+def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None) -> Any:
+    """Build one ROS node of a spec in this process, configured and activated if lifecycle.
+
+    Parameters: the ``parameters_file`` first, then the inline ``parameters``, then ``extra``.
+    The node class is built as ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r',
+    '__node:=<name>'])``, so it must forward ``**kwargs`` to ``rclpy.node.Node.__init__``.
+    """
+    from rclpy.parameter import Parameter
+
+    params: dict[str, Any] = {}
+    if spec_node.parameters_file:
+        params.update(load_params_file(spec_node.parameters_file, spec_node.name))
+    params.update(spec_node.parameters)
+    params.update(extra or {})
+    cls = _import_plugin(spec_node.plugin)
+    node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
+               cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'])
+    if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
+        node.trigger_configure()
+        node.trigger_activate()
+    return node
+
+
 def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
                    out: IO[str] | None = None) -> int:
     """Run every ROS node of ``spec`` in this process on one MultiThreadedExecutor.
@@ -261,7 +284,6 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-    from rclpy.parameter import Parameter
 
     plain = LaunchSpec(spec.name, tuple(n for n in spec.nodes if not n.ros)) \
         if any(not n.ros for n in spec.nodes) else None
@@ -278,16 +300,7 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     code = 0
     try:
         for spec_node in ros_nodes:
-            params = {}
-            if spec_node.parameters_file:
-                params.update(load_params_file(spec_node.parameters_file, spec_node.name))
-            params.update(spec_node.parameters)
-            cls = _import_plugin(spec_node.plugin)
-            node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-                       cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'])
-            if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
-                node.trigger_configure()
-                node.trigger_activate()
+            node = build_node(spec_node)
             nodes.append(node)
             executor.add_node(node)
         deadline = None if max_duration is None else time.monotonic() + max_duration

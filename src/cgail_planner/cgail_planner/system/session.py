@@ -129,24 +129,10 @@ class SimRig:
 
     def add(self, name: str, **extra: Any) -> Any:
         """Build node ``name`` of the launch file (plus ``extra`` parameters) and spin it."""
-        from rclpy.parameter import Parameter
-
-        from cgail_planner.system.launch_spec import load_params_file
-        from cgail_planner.system.launcher import _import_plugin
+        from cgail_planner.system.launcher import build_node
 
         spec_node = next(n for n in self.spec.nodes if n.name == name)
-        params: dict[str, Any] = {}
-        if spec_node.parameters_file:
-            params.update(load_params_file(spec_node.parameters_file, name))
-        params.update(spec_node.parameters)
-        params.update(self.overrides.get(name, {}))
-        params.update(extra)
-        node = _import_plugin(spec_node.plugin)(
-            parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-            cli_args=['--ros-args', '-r', f'__node:={name}'])
-        if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
-            node.trigger_configure()
-            node.trigger_activate()
+        node = build_node(spec_node, {**self.overrides.get(name, {}), **extra})
         self.nodes[name] = node
         self.executor.add_node(node)
         return node
