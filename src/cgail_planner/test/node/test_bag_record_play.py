@@ -127,7 +127,7 @@ def test_play_then_record_round_trip_keeps_every_decoded_field(ros, tmp_path: Pa
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
     from nav_msgs.msg import Path as PathMsg
     recorder_node.create_subscription(PathMsg, '/rt/path', late.append, latched, raw=True)
-    assert spin_until(executor, lambda: len(late) == 1, 5.0)
+    assert spin_until(executor, lambda: len(late) == 1, 15.0)
     assert recorder.stop() == 41
     player_node.destroy_node()
     recorder_node.destroy_node()
@@ -260,9 +260,9 @@ def test_writer_thread_flushes_messages_to_disk_before_close(ros, tmp_path: Path
     assert spin_until(executor, lambda: pub.get_subscription_count() == 1, 10.0)
     for i in range(5):
         pub.publish(String(data=f'flushed {i}'))
-    assert spin_until(executor, lambda: recorder.received == 5, 5.0)
+    assert spin_until(executor, lambda: recorder.received == 5, 15.0)
     mcap = tmp_path / 'f' / 'f.mcap'
-    assert spin_until(executor, lambda: b'flushed 4' in mcap.read_bytes(), 3.0)
+    assert spin_until(executor, lambda: b'flushed 4' in mcap.read_bytes(), 15.0)
     assert not (tmp_path / 'f' / 'metadata.yaml').exists()  # still open: written by close
     assert recorder.stop() == 5
     assert (tmp_path / 'f' / 'metadata.yaml').exists()
@@ -280,7 +280,7 @@ def test_record_all_skips_ros_infrastructure(ros, tmp_path: Path) -> None:
                                                 discovery_period=0.1))
     assert spin_until(executor, lambda: '/all/chatter' in recorder.topics, 10.0)
     pub.publish(String(data='x'))
-    assert spin_until(executor, lambda: recorder.received >= 1, 5.0)
+    assert spin_until(executor, lambda: recorder.received >= 1, 15.0)
     recorder.stop()
     node.destroy_node()
     with open_bag(tmp_path / 'all') as reader:

@@ -27,7 +27,7 @@ def ros():
         rclpy.try_shutdown()
 
 
-def spin_until(executor, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+def spin_until(executor, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if predicate():

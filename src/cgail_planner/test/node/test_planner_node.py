@@ -64,7 +64,7 @@ class Rig:
         self.probe.create_subscription(DiagnosticArray, '/diagnostics', self.diags.append,
                                        conv.DIAGNOSTICS_QOS)
 
-    def spin_until(self, predicate: Callable[[], bool], timeout: float = 5.0) -> bool:
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if predicate():

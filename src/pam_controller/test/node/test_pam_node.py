@@ -90,7 +90,7 @@ class Harness:
     def call_estop(self, engage: bool) -> SetBool.Response:
         assert self.estop.wait_for_service(timeout_sec=2.0)
         future = self.estop.call_async(SetBool.Request(data=engage))
-        assert self.spin_until(future.done, 3.0)
+        assert self.spin_until(future.done, 10.0)
         return future.result()
 
     def last_pressures(self) -> np.ndarray:
@@ -191,7 +191,7 @@ def test_endpoints_and_qos_match_the_contract(harness):
 
     # The graph cache fills through discovery, even for the node's own endpoints.
     assert h.spin_until(lambda: f'{ns}/pam/pressures' in graph()[0]
-                        and f'{ns}/pam_controller/estop' in graph()[2], 5.0)
+                        and f'{ns}/pam_controller/estop' in graph()[2], 15.0)
     pubs, subs, srvs = graph()
     assert pubs[f'{ns}/pam/pressures'] == ['std_msgs/msg/Float64MultiArray']
     assert pubs[f'{ns}/catheter/bend_state'] == ['sensor_msgs/msg/JointState']
@@ -221,7 +221,7 @@ def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
     def close_enough() -> bool:
         return bool(h.bends) and np.allclose(h.bends[-1].position, target, atol=5e-3)
 
-    assert h.spin_until(close_enough, 5.0, every=lambda: h.command(*target))
+    assert h.spin_until(close_enough, 10.0, every=lambda: h.command(*target))
     assert list(h.bends[-1].name) == ['bend_alpha', 'bend_gamma']
     msg = h.pressures[-1]
     assert msg.layout.dim[0].label == 'alpha_pos,alpha_neg,gamma_pos,gamma_neg'
@@ -239,32 +239,32 @@ def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
 
 def test_watchdog_vents_when_commands_stop(harness):
     h = harness(command_timeout_s=0.3)
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
                         every=lambda: h.command(0.5, 0.0))
-    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 3.0)
-    assert h.spin_until(lambda: bool(h.diags) and 'watchdog' in h.diags[-1].message, 2.0)
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 10.0)
+    assert h.spin_until(lambda: bool(h.diags) and 'watchdog' in h.diags[-1].message, 10.0)
     assert h.diags[-1].level == DiagnosticStatus.WARN
 
 
 def test_estop_vents_refuses_commands_and_releases(harness):
     h = harness()
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
                         every=lambda: h.command(0.4, 0.4))
     resp = h.call_estop(True)
     assert resp.success and 'engaged' in resp.message
     sim = h.node.sim
     assert sim is not None
     # The VENT heartbeat goes out inside the service call; the bank thread reads it next step.
-    assert h.spin_until(lambda: sim.mode.name == 'VENT', 1.0)
+    assert h.spin_until(lambda: sim.mode.name == 'VENT', 3.0)
     refused = h.node.supervisor.rejected_count
-    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 10.0,
                         every=lambda: h.command(0.4, 0.4))
     assert h.node.supervisor.rejected_count > refused
     np.testing.assert_array_equal(h.node.sim.setpoints_pa, np.zeros(4))
-    assert h.spin_until(lambda: bool(h.diags) and 'e-stop' in h.diags[-1].message, 2.0)
+    assert h.spin_until(lambda: bool(h.diags) and 'e-stop' in h.diags[-1].message, 10.0)
     resp = h.call_estop(False)
     assert resp.success and 'released' in resp.message
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
                         every=lambda: h.command(0.4, 0.4))
 
 
@@ -279,7 +279,7 @@ def test_bad_commands_rejected_nothing_sent(harness, alpha, gamma, names, reason
     assert h.spin_until(lambda: h.node.sim is not None and h.node.sim.setpoint_frames_received > 5,
                         2.0)
     h.command(alpha, gamma, names)
-    assert h.spin_until(lambda: h.node.supervisor.rejected_count >= 1, 2.0)
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count >= 1, 10.0)
     assert reason in h.node.supervisor.last_rejection
     h.spin_until(lambda: False, 0.3)
     # Nothing but the vented state ever reached the bank.
@@ -295,27 +295,27 @@ def test_disconnect_reported_and_recovered_with_backoff(harness):
     assert h.spin_until(lambda: bool(h.diags) and _values(h.diags[-1])['connected'] == 'True',
                         3.0)
     h.node.sim.set_silent(True)
-    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.ERROR, 3.0)
+    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.ERROR, 10.0)
     assert 'disconnected' in h.diags[-1].message
-    h.spin_until(lambda: h.node.backoff.attempts >= 4, 3.0)
+    h.spin_until(lambda: h.node.backoff.attempts >= 4, 10.0)
     attempts = h.node.backoff.attempts
     assert attempts >= 4
     # Backoff: delays grow to the cap, so 1 s of silence makes few attempts, not 50.
     h.spin_until(lambda: False, 1.0)
     assert h.node.backoff.attempts - attempts <= 4
     h.node.sim.set_silent(False)
-    assert h.spin_until(lambda: _values(h.diags[-1])['connected'] == 'True', 3.0)
+    assert h.spin_until(lambda: _values(h.diags[-1])['connected'] == 'True', 10.0)
     assert h.node.backoff.attempts == 0
 
 
 def test_garbage_frames_never_crash_the_node(harness):
     h = harness(diagnostics_period_s=0.1)
-    assert h.spin_until(lambda: len(h.pressures) > 3, 3.0)
+    assert h.spin_until(lambda: len(h.pressures) > 3, 10.0)
     for _ in range(5):
         h.node.sim.send_garbage(200)
         h.spin_until(lambda: False, 0.05)
     n = len(h.pressures)
-    assert h.spin_until(lambda: len(h.pressures) > n + 10, 3.0)
+    assert h.spin_until(lambda: len(h.pressures) > n + 10, 10.0)
     assert h.node.bank.bad_frames_total > 100
     assert any('malformed' in d.message for d in h.diags)
     assert _values(h.diags[-1])['malformed_frames_total'] != '0'
@@ -323,7 +323,7 @@ def test_garbage_frames_never_crash_the_node(harness):
 
 def test_stuck_regulator_is_an_error_in_diagnostics(harness):
     h = harness(diagnostics_period_s=0.1)
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
                         every=lambda: h.command(0.3, 0.0))
     h.node.sim.set_stuck(1)
     assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.ERROR,
@@ -343,17 +343,17 @@ def test_model_config_reaches_the_node(harness):
     h = harness(max_pressure_pa=200e3, bias_pressure_pa=100e3, max_bend_rad=1.0)
     assert dataclasses.replace(h.node.model_config) == h.node.model_config
     assert h.node.model_config.max_pressure_pa == 200e3
-    assert h.spin_until(lambda: h.last_pressures().max() > 150e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 150e3, 10.0,
                         every=lambda: h.command(1.0, 0.0))
     h.spin_until(lambda: False, 0.5, every=lambda: h.command(1.0, 0.0))
     assert h.last_pressures().max() <= 200e3 + 100.0
     h.command(0.8, 0.8)   # hypot 1.13 > cap 1.0
-    assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1, 2.0)
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1, 10.0)
 
 
 def test_deactivate_vents_and_cleanup_releases_the_bus(harness):
     h = harness()
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 3.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
                         every=lambda: h.command(0.5, 0.0))
     sim = h.node.sim
     h.node.trigger_deactivate()
@@ -399,7 +399,7 @@ def test_cleanup_then_configure_again_gives_one_set_of_endpoints(harness):
     h.node.trigger_cleanup()
     h.node.trigger_configure()
     h.node.trigger_activate()
-    assert h.spin_until(lambda: len(h.pressures) > 3, 3.0)
+    assert h.spin_until(lambda: len(h.pressures) > 3, 10.0)
     infos = [i for i in h.node.get_publishers_info_by_topic(f'{ns}/pam/pressures')
              if i.node_name == 'pam_controller']
     assert len(infos) == 1
