@@ -6,10 +6,23 @@ Example::
         --baselines centerline expert --modes static dynamic --trials 100 --out reports/insilico
 
 Each method runs ``--trials`` episodes; trial k uses start ``k % 3``, target ``(k // 3) % 5`` and
-env seed ``seed + k``, so every method sees the same start x target sequence. Metrics (paper
+seed ``seed + k``, so every method sees the same start x target sequence. Metrics (paper
 Sec. IV-C): success rate delta (tip within epsilon = 10 mm of the target), timesteps T_s (all
 trials and successful ones), targeting error T_a (minimum tip-target distance, mm; all trials and
 successful ones). Kruskal-Wallis tests (p < 0.05) compare the methods on T_s and T_a.
+
+**Why every trial differs (tracking noise).** With 3 starts x 5 targets there are only 15
+distinct scenarios, and in the rigid-wall simulator a deterministic planner is a deterministic
+function of the scenario: 100 noise-free trials would be 15 outcomes each counted ~7 times, which
+inflates every Kruskal-Wallis p-value (the test assumes independent samples). So, as on the rig,
+the learned policies and the centerline follower perceive the tip through a simulated EM tracker
+(:class:`TrackingNoise`, default the NDI Aurora 6DOF sensor's RMS accuracy, 0.48 mm and 0.30 deg,
+drawn per step from trial k's seed): the observation (position, axes, u, v and the 25 rays, which
+are cast from the perceived pose) is that of the perceived pose while the simulator moves the true
+catheter. Each trial is then an independent sample of the planner's behaviour; the report gives
+the number of distinct outcomes. ``--position-noise-mm 0 --orientation-noise-deg 0`` gives the
+noise-free simulator (and then each repeated start x target pair is simulated once in static
+mode). The scripted expert is the demonstrator with the simulator's state (no tracker), seeded.
 """
 
 from __future__ import annotations
@@ -28,6 +41,72 @@ from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 
 Policy = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class TrackingNoise:
+    """RMS errors of the simulated EM tracker through which the evaluated methods see the tip.
+
+    Defaults: NDI Aurora 6DOF sensor in the cube measurement volume, 0.48 mm / 0.30 deg RMS
+    (NDI Aurora specification). Zero-mean Gaussian, isotropic, independent per step.
+    """
+
+    position_mm: float = 0.48
+    """3-D RMS position error, mm; in [0, 10]."""
+    orientation_deg: float = 0.30
+    """RMS orientation error (rotation angle), deg; in [0, 10]."""
+
+    def __post_init__(self) -> None:
+        for name in ('position_mm', 'orientation_deg'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value)
+                    and 0.0 <= value <= 10.0):
+                raise ValueError(f'{name} must be in [0, 10], found {value!r}')
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any noise is applied."""
+        return self.position_mm > 0.0 or self.orientation_deg > 0.0
+
+    def perceive(self, p: np.ndarray, r: np.ndarray, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """A tracker reading of the true tip pose ``(p, R)`` (m, rotation matrix)."""
+        if not self.enabled:
+            return p.copy(), r.copy()
+        # per-axis sigma = RMS / sqrt(3) gives the stated 3-D RMS
+        dp = rng.normal(0.0, 1e-3 * self.position_mm / np.sqrt(3.0), 3)
+        w = rng.normal(0.0, np.radians(self.orientation_deg) / np.sqrt(3.0), 3)
+        return p + dp, _rotvec_to_matrix(w) @ r
+
+
+def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation matrix of the rotation vector ``w`` (rad)."""
+    theta = float(np.linalg.norm(w))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = w / theta
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * (kx @ kx)
+
+
+def observation_at(env: Any, p: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of env 0 as if
+    its tip were at ``(p, R)``: the rays are cast against the wall's current shape from that
+    pose. With the true pose it equals the env's own observation (tested)."""
+    from cgail_planner.sim.env import N_RAYS, OBS_DIM, RAY_DIRECTIONS
+
+    eng = env.unwrapped.engine
+    cfg, sc = eng.config, eng.scenarios
+    obs = np.empty(OBS_DIM, dtype=np.float32)
+    obs[0:3] = (p - sc.origin) / cfg.position_scale
+    obs[3:12] = r.T.reshape(9)
+    vec = (eng.target[0] - p) / sc.d_max
+    obs[12] = np.linalg.norm(vec)
+    obs[13:16] = vec
+    dirs = RAY_DIRECTIONS @ r.T
+    hits = eng.walls[0].raycast(np.repeat(p[None], N_RAYS, axis=0), dirs, cfg.ray_length)
+    obs[16:] = np.clip(np.asarray(hits) / cfg.ray_length, 0.0, 1.0)
+    return obs
 
 
 @dataclass
@@ -52,12 +131,19 @@ class CenterlineFollower:
         """New episode."""
         self.progress = 0
 
-    def act(self) -> np.ndarray:
-        """Steer at the carrot (lookahead waypoints past the furthest reached one)."""
+    def act(self, pose: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """Steer at the carrot (lookahead waypoints past the furthest reached one).
+
+        Args:
+            pose: the perceived tip pose ``(p, R)`` (a tracker reading); default the true one.
+        """
         from cgail_planner.sim.catheter import steer_towards
 
         eng = self.env.engine
-        p, R = eng.catheter.tip_position[0], eng.catheter.tip_rotation[0]
+        if pose is None:
+            p, R = eng.catheter.tip_position[0], eng.catheter.tip_rotation[0]
+        else:
+            p, R = pose
         wps = eng.waypoints[0]
         self.progress = max(self.progress, int(np.argmin(np.linalg.norm(wps - p, axis=1))))
         k = min(self.progress + self.lookahead, len(wps) - 1)
@@ -69,15 +155,32 @@ class CenterlineFollower:
 
 
 def run_trials(env: Any, method: Any, trials: int, seed: int,
-               reuse_pairs: bool = False) -> list[Trial]:
+               reuse_pairs: bool = False, noise: TrackingNoise | None = None,
+               tracked: bool = True) -> list[Trial]:
     """``trials`` episodes of a policy (obs -> action) or a state-based baseline (``act()``).
 
-    With ``reuse_pairs`` (static mode, deterministic method: the rigid-wall simulator and the
-    method are then deterministic functions of the start/target pair, which the demo
-    re-simulation check verifies to 1 micrometre) each start x target pair is simulated once
-    and its outcome counted for every trial that uses it.
+    Args:
+        env: a :class:`~cgail_planner.sim.env.CatheterNavEnv`.
+        method: a policy callable or an object with ``act()`` (and optionally ``reset(seed)``).
+        trials: number of episodes; trial k uses start ``k % n_starts``, target
+            ``(k // n_starts) % n_targets`` and seed ``seed + k``.
+        seed: base seed.
+        reuse_pairs: simulate each start x target pair once and count its outcome for every
+            trial that uses it. Only valid without noise, in static mode and for a
+            deterministic method: the rigid-wall simulator and the method are then
+            deterministic functions of the pair (the demo re-simulation check verifies this
+            to 1 micrometre).
+        noise: the tracker through which ``method`` perceives the tip (default: none).
+        tracked: whether ``method`` sees the tip through ``noise`` (False for a method that
+            uses the simulator's state, e.g. the scripted expert).
     """
-    sc = env.unwrapped.engine.scenarios
+    noise = noise if noise is not None else TrackingNoise(0.0, 0.0)
+    noisy = tracked and noise.enabled
+    if reuse_pairs and noisy:
+        raise ValueError('reuse_pairs needs a noise-free evaluation (tracking noise makes '
+                         'every trial different)')
+    eng = env.unwrapped.engine
+    sc = eng.scenarios
     n_s, n_t = len(sc.starts), len(sc.targets)
     out: list[Trial] = []
     done: dict[tuple[int, int], Trial] = {}
@@ -87,10 +190,18 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
             out.append(done[pair])
             continue
         obs, _ = env.reset(seed=seed + k, options={'start': pair[0], 'target': pair[1]})
+        rng = np.random.default_rng([seed, k, 7001])
         if hasattr(method, 'reset'):
             method.reset(seed + k)
         while True:
-            a = method.act() if hasattr(method, 'act') else method(obs)
+            pose = None
+            if noisy:
+                pose = noise.perceive(eng.catheter.tip_position[0],
+                                      eng.catheter.tip_rotation[0], rng)
+            if hasattr(method, 'act'):
+                a = method.act(pose) if pose is not None else method.act()
+            else:
+                a = method(observation_at(env, *pose) if pose is not None else obs)
             obs, _, te, tr, info = env.step(a)
             if te or tr:
                 break
@@ -108,7 +219,10 @@ def summarize(trials: list[Trial]) -> dict[str, float]:
         return float(np.median(xs)) if xs else float('nan')
 
     return {
-        'n': len(trials), 'success_rate': float(np.mean([t.success for t in trials])),
+        'n': len(trials),
+        'distinct': len({(t.success, t.collision, t.timesteps, round(t.targeting_error_mm, 6))
+                         for t in trials}),
+        'success_rate': float(np.mean([t.success for t in trials])),
         'collision_rate': float(np.mean([t.collision for t in trials])),
         'T_s_all': med([t.timesteps for t in trials]),
         'T_s_succ': med([t.timesteps for t in succ]),
@@ -152,17 +266,19 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
     lines = ['# In-silico evaluation', '', notes, '']
     for mode, results in all_results.items():
         lines += [f'## {mode}', '',
-                  '| method | n | success | collision | T_s all | T_s succ | T_a all (mm) | '
-                  'T_a succ (mm) |', '|---|---|---|---|---|---|---|---|']
+                  '| method | n | distinct | success | collision | T_s all | T_s succ | '
+                  'T_a all (mm) | T_a succ (mm) |', '|---|---|---|---|---|---|---|---|---|']
         for name, trials in results.items():
             s = summarize(trials)
-            lines.append(f"| {name} | {s['n']} | {100 * s['success_rate']:.0f}% | "
+            lines.append(f"| {name} | {s['n']} | {s['distinct']} | "
+                         f"{100 * s['success_rate']:.0f}% | "
                          f"{100 * s['collision_rate']:.0f}% | {s['T_s_all']:.0f} | "
                          f"{s['T_s_succ']:.0f} | {s['T_a_all_mm']:.1f} | "
                          f"{s['T_a_succ_mm']:.1f} |")
         p_ts = kruskal({n: [t.timesteps for t in tr if t.success] for n, tr in results.items()})
         p_ta = kruskal({n: [t.targeting_error_mm for t in tr] for n, tr in results.items()})
-        lines += ['', '(medians; T_s/T_a "succ" over successful trials only)', '',
+        lines += ['', '(medians; T_s/T_a "succ" over successful trials only; "distinct": '
+                  'number of different outcomes among the trials)', '',
                   f'Kruskal-Wallis across methods: T_s (successful) p = {p_ts:.3g}; '
                   f'T_a (all) p = {p_ta:.3g}.', '']
         first = next(iter(results))
@@ -191,6 +307,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--anatomy', default='default')
     p.add_argument('--trials', type=int, default=100)
     p.add_argument('--seed', type=int, default=1000)
+    p.add_argument('--position-noise-mm', type=float, default=TrackingNoise.position_mm,
+                   help='RMS position error of the simulated EM tracker, mm (0: none)')
+    p.add_argument('--orientation-noise-deg', type=float, default=TrackingNoise.orientation_deg,
+                   help='RMS orientation error of the simulated EM tracker, deg (0: none)')
     p.add_argument('--out', type=Path, default=Path('reports/insilico'))
     args = p.parse_args(argv)
     from cgail_planner.learning.expert import ScriptedExpert
@@ -198,6 +318,7 @@ def main(argv: list[str] | None = None) -> int:
     from cgail_planner.sim.env import CatheterNavEnv
 
     try:
+        noise = TrackingNoise(args.position_noise_mm, args.orientation_noise_deg)
         policies: dict[str, Any] = {}
         for spec in args.policy:
             name, sep, path = spec.partition('=')
@@ -215,16 +336,27 @@ def main(argv: list[str] | None = None) -> int:
             results = {}
             for name, method in methods.items():
                 t0 = time.monotonic()
-                reuse = mode == 'static' and name != 'expert'   # the expert is seeded
-                results[name] = run_trials(env, method, args.trials, args.seed, reuse)
+                tracked = name != 'expert'  # the demonstrator uses the simulator's state
+                # noise-free static: a deterministic method's outcome is a function of the pair
+                reuse = mode == 'static' and tracked and not noise.enabled
+                results[name] = run_trials(env, method, args.trials, args.seed, reuse,
+                                           noise, tracked)
                 s = summarize(results[name])
                 print(f"{mode} {name}: success {100 * s['success_rate']:.0f}% "
                       f"({time.monotonic() - t0:.0f} s)", flush=True)
             all_results[mode] = results
         notes = (f'Anatomy `{args.anatomy}`, {args.trials} trials per method, epsilon 10 mm, '
-                 f'seed {args.seed}. Trial k: start k % 3, target (k // 3) % 5. In static mode a '
-                 'deterministic method gives the same outcome for a repeated start x target '
-                 'pair, so each pair is simulated once; the seeded expert runs every trial.')
+                 f'seed {args.seed}. Trial k: start k % 3, target (k // 3) % 5. ')
+        if noise.enabled:
+            notes += (f'The methods perceive the tip through a simulated EM tracker '
+                      f'({noise.position_mm:g} mm / {noise.orientation_deg:g} deg RMS, drawn per '
+                      'step from the trial seed), so every trial is an independent sample; the '
+                      'scripted expert uses the simulator state and its own seed.')
+        else:
+            notes += ('No tracking noise: in static mode a deterministic method gives the same '
+                      'outcome for a repeated start x target pair, so each pair is simulated '
+                      'once and counted for each of its trials (the p-values then overstate '
+                      'the evidence); the seeded expert runs every trial.')
         path = write_report(all_results, args.out, notes)
     except (LearningError, ValueError) as exc:
         print(f'evaluate: error: {exc}', file=sys.stderr)

@@ -1,0 +1,113 @@
+"""evaluate: simulated tracker noise, the observation of a perceived pose, independent trials."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cgail_planner.learning.evaluate import (
+    CenterlineFollower,
+    observation_at,
+    run_trials,
+    summarize,
+    TrackingNoise,
+)
+from cgail_planner.sim.config import EnvConfig
+from cgail_planner.sim.env import CatheterNavEnv
+
+
+@pytest.fixture(scope='module')
+def static_env():
+    return CatheterNavEnv(EnvConfig(mode='static'))
+
+
+def env_for(mode: str) -> CatheterNavEnv:
+    return CatheterNavEnv(EnvConfig(mode=mode))
+
+
+def _angle(r: np.ndarray) -> float:
+    return float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+@pytest.mark.parametrize('mode', ['static', 'dynamic'])
+def test_observation_at_true_pose_is_the_env_observation(mode):
+    env = env_for(mode)
+    obs, _ = env.reset(seed=3, options={'start': 1, 'target': 2})
+    rng = np.random.default_rng(0)
+    for step in range(12):
+        eng = env.unwrapped.engine
+        mine = observation_at(env, eng.catheter.tip_position[0].copy(),
+                              eng.catheter.tip_rotation[0].copy())
+        np.testing.assert_allclose(mine, obs, atol=2e-6, err_msg=f'step {step}')
+        obs, *_ = env.step(np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), 1.0],
+                                    dtype=np.float32))
+
+
+def test_observation_of_a_moved_pose_moves_position_and_target_vector(static_env):
+    obs, _ = static_env.reset(seed=0, options={'start': 0, 'target': 0})
+    eng = static_env.engine
+    p, r = eng.catheter.tip_position[0].copy(), eng.catheter.tip_rotation[0].copy()
+    shifted = observation_at(static_env, p + np.array([0.001, 0.0, 0.0]), r)
+    cfg, sc = eng.config, eng.scenarios
+    assert shifted[0] - obs[0] == pytest.approx(0.001 / cfg.position_scale, rel=1e-4)
+    assert shifted[13] - obs[13] == pytest.approx(-0.001 / sc.d_max, rel=1e-4)
+
+
+def test_tracking_noise_has_the_stated_rms():
+    noise = TrackingNoise()
+    rng = np.random.default_rng(1)
+    p, r = np.array([0.01, -0.02, 0.1]), np.eye(3)
+    dp, ang = [], []
+    for _ in range(4000):
+        q, s = noise.perceive(p, r, rng)
+        dp.append(np.linalg.norm(q - p))
+        ang.append(_angle(s @ r.T))
+        np.testing.assert_allclose(s @ s.T, np.eye(3), atol=1e-12)
+    assert np.sqrt(np.mean(np.square(dp))) * 1e3 == pytest.approx(0.48, rel=0.05)
+    assert np.degrees(np.sqrt(np.mean(np.square(ang)))) == pytest.approx(0.30, rel=0.05)
+
+
+def test_zero_noise_is_the_true_pose_and_bad_values_are_named():
+    p, r = np.array([1.0, 2.0, 3.0]), np.eye(3)
+    q, s = TrackingNoise(0.0, 0.0).perceive(p, r, np.random.default_rng(0))
+    assert np.array_equal(q, p) and np.array_equal(s, r)
+    assert not TrackingNoise(0.0, 0.0).enabled
+    with pytest.raises(ValueError, match='position_mm must be in'):
+        TrackingNoise(position_mm=-1.0)
+    with pytest.raises(ValueError, match='orientation_deg must be in'):
+        TrackingNoise(orientation_deg=float('nan'))
+
+
+def test_noisy_trials_of_one_pair_differ_and_reproduce(static_env):
+    follower = CenterlineFollower(static_env)
+    # 16 trials: trials 0 and 15 share start 0 x target 0
+    a = run_trials(static_env, follower, 16, seed=100, noise=TrackingNoise())
+    assert (a[0].timesteps, a[0].targeting_error_mm) != (a[15].timesteps,
+                                                         a[15].targeting_error_mm)
+    assert summarize(a)['distinct'] == 16
+    b = run_trials(static_env, follower, 16, seed=100, noise=TrackingNoise())
+    assert a == b  # same seed, same trials
+    clean = run_trials(static_env, follower, 16, seed=100, reuse_pairs=True)
+    assert clean[15] == clean[0] and summarize(clean)['distinct'] == 15
+
+
+def test_noisy_policy_sees_the_perceived_pose(static_env):
+    seen: list[np.ndarray] = []
+
+    def policy(obs: np.ndarray) -> np.ndarray:
+        seen.append(obs.copy())
+        return np.array([0.0, 0.0, 1.0], dtype=np.float32)
+
+    run_trials(static_env, policy, 1, seed=5, noise=TrackingNoise(position_mm=2.0))
+    eng = static_env.engine
+    assert len(seen) > 3
+    # the first perceived position differs from the start by about the noise, not exactly 0
+    start = (eng.scenarios.starts[0].position - eng.scenarios.origin) / eng.config.position_scale
+    err_mm = np.linalg.norm(seen[0][0:3] - start) * eng.config.position_scale * 1e3
+    assert 0.0 < err_mm < 10.0
+
+
+def test_reuse_pairs_refuses_noise(static_env):
+    with pytest.raises(ValueError, match='noise-free'):
+        run_trials(static_env, CenterlineFollower(static_env), 2, seed=0, reuse_pairs=True,
+                   noise=TrackingNoise())
