@@ -13,8 +13,10 @@ Definitions (documented choices where the paper leaves room):
 * **Tracking error** ``T_r(t) = ||p^d_t - p_t||``. The path in effect at ``t`` (the latest
   ``planner/path`` received at or before ``t``, so replanning is honoured) is B-spline fitted and
   resampled (:func:`~cgail_planner.core.path_fit.fit_path`); ``p^d_t`` is the closest point of
-  that resampled path to ``p_t``. Samples before the first path are left out. Reported: mean,
-  std (population) and max over the samples.
+  that resampled path to ``p_t``. Paths stamped before the trial's first goal belong to an
+  earlier trial (the planner's transient-local path of the previous run, delivered again when
+  the recorder subscribes) and are left out, as are the samples before the first path of this
+  trial. Reported: mean, std (population) and max over the samples.
 * **Targeting error** ``T_a = min_t ||q_g(t) - p_t||`` over the window, with ``q_g(t)`` the latest
   goal at ``t`` (the target may move).
 * **Success**: ``||q_g(t) - p_t|| <= success_radius`` (epsilon, 10 mm by default as in the
@@ -203,6 +205,7 @@ def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None)
 
     path_t = np.asarray(trial.path_t, dtype=np.float64)
     pi = np.searchsorted(path_t, t, side='right') - 1
+    pi[pi >= 0] = np.where(path_t[pi[pi >= 0]] < goal_t[0], -1, pi[pi >= 0])  # stale paths
     errors = np.full(len(t), np.nan)
     length = math.nan
     for k in np.unique(pi[pi >= 0]):
@@ -216,8 +219,8 @@ def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None)
         length = polyline_length(desired)
     tracked = errors[np.isfinite(errors)]
     if len(tracked) == 0:
-        raise MetricsError(f'{where}: expected tip poses after the first planned path, '
-                           f'found none')
+        raise MetricsError(f'{where}: expected tip poses after the first planned path '
+                           f'stamped at or after the first goal, found none')
 
     curv = np.zeros(0)
     if polyline_length(p) >= 2.0 * cfg.curvature_spacing:

@@ -62,7 +62,7 @@ def test_tracking_error_statistics_over_varying_offsets() -> None:
 def test_samples_before_the_goal_and_after_the_time_limit_are_left_out() -> None:
     t = np.array([0.0, 1.0, 2.0, 100.0, 181.0, 200.0])
     tip = along_x([0.0, 0.01, 0.02, 0.03, 0.04, 0.1], y=0.001)
-    m = compute_trial_metrics(trial(t, tip, goal_t=(1.0,)))
+    m = compute_trial_metrics(trial(t, tip, goal_t=(1.0,), path_t=(1.0,)))
     # window: t0 = 1 s (first pose at/after the goal), up to 181 s inclusive
     assert m.samples == 4
     assert m.duration == 180.0
@@ -192,3 +192,18 @@ def test_markdown_report_and_box_plot(tmp_path: Path) -> None:
 def test_paper_comparison_needs_both_conditions() -> None:
     trials = metrics_for('a', [0.001]) + metrics_for('b', [0.004])
     assert 'Side by side with the paper' not in markdown_report(trials, [])
+
+
+def test_a_path_latched_from_an_earlier_trial_is_not_the_desired_path() -> None:
+    # The previous trial's path (far away, stamped before this trial's goal) is delivered again
+    # when the recorder subscribes (transient-local); this trial's path comes 0.5 s after the
+    # goal. The samples before it are left out instead of measured against the old path.
+    old = LINE + np.array([0.0, 0.05, 0.0])
+    t = np.arange(0.0, 5.0, 0.25)
+    tip = along_x(np.linspace(0.0, 0.05, len(t)), y=0.001)
+    m = compute_trial_metrics(trial(t, tip, goal_t=(1.0,), path_t=(-60.0, 1.5),
+                                    paths=(old, LINE)))
+    assert m.tracking_max == pytest.approx(0.001, abs=1e-9)
+    assert m.samples == int(np.sum(t >= 1.0))
+    with pytest.raises(MetricsError, match='stamped at or after the first goal'):
+        compute_trial_metrics(trial(t, tip, goal_t=(1.0,), path_t=(-60.0,), paths=(old,)))
