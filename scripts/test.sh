@@ -30,10 +30,10 @@ if [ -n "${CGAIL_SLOW:-}" ]; then marker=(-m ""); fi
 
 echo "[test] ruff"
 ruff check src test bench
-echo "[test] mypy (pure core / hw / sim / learning modules)"
+echo "[test] mypy (every module of the four packages)"
 mypy_pkgs=()
 for pkg in cgail_planner em_tracker pam_controller catheter_driver; do
-    for sub in core hw sim learning bags; do
+    for sub in core hw sim learning bags nodes system gui; do
         if [ -d "src/$pkg/$pkg/$sub" ] && ls "src/$pkg/$pkg/$sub"/*.py >/dev/null 2>&1; then
             mypy_pkgs+=(-p "$pkg.$sub")
         fi

@@ -110,6 +110,21 @@ class SimRig:
         self.session = rclpy.create_node('session', parameter_overrides=[
             rclpy.parameter.Parameter('use_sim_time', value=True)])
         self.executor.add_node(self.session)
+        from geometry_msgs.msg import PoseStamped
+
+        from cgail_planner.nodes import conversions as conv
+
+        self._goal_pub = self.session.create_publisher(PoseStamped, 'planner/goal',
+                                                       conv.COMMAND_QOS)
+
+    def publish_goal(self, position: Any) -> None:
+        """Publish the target (m, phantom frame) on ``planner/goal``, stamped now."""
+        import numpy as np
+
+        from cgail_planner.nodes import conversions as conv
+
+        self._goal_pub.publish(conv.pose_msg(self.session.get_clock().now().to_msg(), 'phantom',
+                                             np.asarray(position, dtype=float), np.eye(3)))
 
     def _spin(self) -> None:
         import traceback
@@ -186,7 +201,6 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     import rclpy
 
     from cgail_planner.bags.record import BagRecorder, RecorderConfig
-    from cgail_planner.nodes import conversions as conv
 
     phantom, operator = rig.nodes['phantom'], rig.nodes['operator']
     # a fresh planner per trial: no latched path of the previous trial in this trial's bag
@@ -211,8 +225,7 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
     time.sleep(0.3)  # let the new subscriptions match
     failed_before = planner.counts['failed_plans']
     goal = phantom.target_position()
-    rig.goal_pub.publish(conv.pose_msg(rig.session.get_clock().now().to_msg(), 'phantom', goal,
-                                       [[1, 0, 0], [0, 1, 0], [0, 0, 1]]))
+    rig.publish_goal(goal)
     t0 = phantom.sim_time
     last_goal, last_print = t0, time.monotonic()
     outcome = ''
@@ -232,9 +245,7 @@ def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit:
             outcome = 'time limit (operator still running)'
         if mode == 'dynamic' and now - last_goal >= 1.0:
             last_goal = now
-            rig.goal_pub.publish(conv.pose_msg(rig.session.get_clock().now().to_msg(),
-                                               'phantom', phantom.target_position(),
-                                               [[1, 0, 0], [0, 1, 0], [0, 0, 1]]))
+            rig.publish_goal(phantom.target_position())
         if time.monotonic() - last_print >= 2.0:
             last_print = time.monotonic()
             dist = float(((phantom.target_position() - phantom.physics.tip_position) ** 2)
@@ -334,11 +345,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                  skip=frozenset() if args.gui else frozenset({'gui'}))
     if 'gui' in rig.nodes:
         log(f'invitro_session: guidance GUI on {rig.nodes["gui"].url} (open it in a browser)')
-    from geometry_msgs.msg import PoseStamped
-
-    from cgail_planner.nodes import conversions as conv
-
-    rig.goal_pub = rig.session.create_publisher(PoseStamped, 'planner/goal', conv.COMMAND_QOS)
     outcomes: list[tuple[str, int, str]] = []
     try:
         if not wait_until(lambda: rig.nodes['planner'].last_pose is not None, 60.0):
