@@ -140,21 +140,35 @@ def _build(tri_min, tri_max, centroids, leaf_size):
 @njit(cache=True)
 def refit_tree(vertices, faces, order, node_min, node_max, left, right, start, count, n_nodes):
     # Children always have larger indices than their parent: a reverse sweep is bottom-up.
+    # The bounds are accumulated in locals and stored once per node (the arrays may alias for
+    # the compiler, so updating them in place forced a store per comparison: ~2x slower).
     for k in range(n_nodes - 1, -1, -1):
         if left[k] < 0:
-            for a in range(3):
-                node_min[k, a] = np.inf
-                node_max[k, a] = -np.inf
+            mn0 = np.inf
+            mn1 = np.inf
+            mn2 = np.inf
+            mx0 = -np.inf
+            mx1 = -np.inf
+            mx2 = -np.inf
             for i in range(start[k], start[k] + count[k]):
                 f = order[i]
                 for c in range(3):
                     v = faces[f, c]
-                    for a in range(3):
-                        x = vertices[v, a]
-                        if x < node_min[k, a]:
-                            node_min[k, a] = x
-                        if x > node_max[k, a]:
-                            node_max[k, a] = x
+                    x0 = vertices[v, 0]
+                    x1 = vertices[v, 1]
+                    x2 = vertices[v, 2]
+                    mn0 = min(mn0, x0)
+                    mn1 = min(mn1, x1)
+                    mn2 = min(mn2, x2)
+                    mx0 = max(mx0, x0)
+                    mx1 = max(mx1, x1)
+                    mx2 = max(mx2, x2)
+            node_min[k, 0] = mn0
+            node_min[k, 1] = mn1
+            node_min[k, 2] = mn2
+            node_max[k, 0] = mx0
+            node_max[k, 1] = mx1
+            node_max[k, 2] = mx2
         else:
             lc = left[k]
             rc = right[k]
