@@ -37,6 +37,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_planner.core.mlp import MlpProgram
 from cgail_planner.core.path_fit import fit_path, PathFitConfig, PathFitError
 
 FloatArray = NDArray[np.float64]
@@ -235,6 +236,29 @@ def quaternion_from_rotation(r: FloatArray) -> tuple[float, float, float, float]
     return (float(q[0] / n), float(q[1] / n), float(q[2] / n), float(q[3] / n))
 
 
+def _wall_bvh(wall: object) -> tuple[np.ndarray, ...] | None:
+    """The arrays the numba ray kernel needs, for a simulator wall, else None.
+
+    A :class:`cgail_planner.sim.wall.StaticWall` (or :class:`~cgail_planner.sim.wall.
+    DeformableWall`) casts its rays on a :class:`cgail_planner.sim.raycast.WallBVH`; the wall is
+    brought up to date first by a one-ray cast (a deformable wall refits its tree lazily), then
+    the tree is read as ``WallBVH.raycast`` passes it to its kernel: ``(vertices, faces, order,
+    node_min, node_max, left, right, start, count)``.
+    """
+    from cgail_planner.sim.raycast import WallBVH
+    from cgail_planner.sim.wall import StaticWall
+
+    if not isinstance(wall, StaticWall):
+        return None
+    # the wall keeps its tree private: the public ``bvh`` is preferred where it exists
+    bvh = getattr(wall, "bvh", None) or getattr(wall, "_bvh", None)
+    if not isinstance(bvh, WallBVH):
+        return None
+    wall.raycast(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), 1e-3)
+    nmin, nmax, left, right, start, count, order, _fitted, _n_nodes = bvh.tree
+    return (bvh.vertices, bvh.faces, order, nmin, nmax, left, right, start, count)
+
+
 def _bend_rotation(alpha: float, gamma: float) -> FloatArray:
     ca, sa, cg, sg = math.cos(alpha), math.sin(alpha), math.cos(gamma), math.sin(gamma)
     return np.array([[cg, -sg, 0.0], [ca * sg, ca * cg, -sa], [sa * sg, sa * cg, ca]])
@@ -271,6 +295,11 @@ class Planner:
             raise ValueError(f"policy observation size must be {self.obs_dim} (16 + "
                              f"{len(self.rays)} rays), found {obs_dim}")
         self._fit = PathFitConfig(spacing=config.path_spacing)
+        program = policy if isinstance(policy, MlpProgram) else getattr(policy, "mlp", None)
+        self._program: MlpProgram | None = None
+        if isinstance(program, MlpProgram) and program.in_dim == self.obs_dim \
+                and program.out_dim == 3:
+            self._program = program
 
     # ------------------------------------------------------------------ validation
     def validate_goal(self, goal: FloatArray) -> FloatArray:
@@ -329,15 +358,72 @@ class Planner:
         np.clip(obs[16:], 0.0, 1.0, out=obs[16:])
         return obs
 
+    @property
+    def uses_kernel(self) -> bool:
+        """True when :meth:`rollout` runs as one numba call (:mod:`.rollout_kernel`): the policy
+        is an :class:`~cgail_planner.core.mlp.MlpProgram` (or has one as ``.mlp``, as
+        :class:`~cgail_planner.learning.onnx_policy.OnnxPolicy` has) with this planner's
+        observation size and 3 actions, and the wall is a simulator wall with a numba BVH."""
+        return self._program is not None and _wall_bvh(self.wall) is not None
+
     def rollout(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                 ) -> tuple[FloatArray, int]:
         """Roll the policy out from ``[r0 | p0]`` towards ``goal``.
+
+        Runs :func:`cgail_planner.core.rollout_kernel.rollout_kernel` when
+        :attr:`uses_kernel`, else :meth:`rollout_reference`; both give the same path.
 
         Returns:
             ``(points, steps)``: the tip positions from ``p0`` to ``goal`` (appended).
 
         Raises:
             NoPathError: contact, exit or step limit before reaching the goal.
+        """
+        program = self._program
+        bvh = _wall_bvh(self.wall) if program is not None else None
+        if program is None or bvh is None:
+            return self.rollout_reference(p0, r0, goal)
+        from cgail_planner.core import rollout_kernel as rk
+
+        cfg = self.config
+        p0 = np.ascontiguousarray(p0, dtype=np.float64)
+        r0 = np.ascontiguousarray(r0, dtype=np.float64)
+        goal = np.ascontiguousarray(goal, dtype=np.float64)
+        positions = np.empty((cfg.max_rollout_steps + 1, 3))
+        rotations = np.empty((cfg.max_rollout_steps + 1, 3, 3))
+        action = np.zeros(3)
+        status, steps, n = rk.rollout_kernel(
+            p0, r0, goal, self.rays, np.ascontiguousarray(self.world.origin, dtype=np.float64),
+            1.0 / cfg.position_scale, 1.0 / self.world.d_max, 1.0 / cfg.ray_length,
+            float(cfg.ray_length), 0.5 * cfg.outer_diameter,
+            cfg.max_insertion_speed * cfg.dt, cfg.theta_max / cfg.segment_length,
+            cfg.goal_tolerance ** 2, np.ascontiguousarray(self.world.bbox_low, dtype=np.float64),
+            np.ascontiguousarray(self.world.bbox_high, dtype=np.float64),
+            int(cfg.max_rollout_steps), *bvh, program.ops, program.consts, program.widths,
+            program.regs, program.out_reg, positions, rotations, action)
+        p = positions[n - 1]
+        if status == rk.REACHED:
+            return np.vstack([positions[:n], goal]), int(steps)
+        if status == rk.TOUCHED_WALL:
+            raise NoPathError(
+                f"cgail rollout touched the wall after {steps} steps at "
+                f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
+                f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal")
+        if status == rk.BAD_ACTION:
+            raise NoPathError(f"policy must return 3 finite actions, found "
+                              f"{[float(np.float32(v)) for v in action]}")
+        if status == rk.LEFT_ANATOMY:
+            raise NoPathError(f"cgail rollout left the anatomy after {steps} steps")
+        dist = float(np.linalg.norm(goal - p))
+        raise NoPathError(f"cgail rollout did not reach the goal within "
+                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)")
+
+    def rollout_reference(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
+                          ) -> tuple[FloatArray, int]:
+        """:meth:`rollout` as a Python loop calling ``wall.raycast`` and ``policy`` per step.
+
+        The specification of the numba kernel, and the rollout for any policy callable and
+        any :class:`RayWall`. Same returns and errors as :meth:`rollout`.
         """
         cfg = self.config
         assert self.policy is not None
