@@ -53,7 +53,8 @@ IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 
 
-@njit(cache=True, inline="always")
+# error_model="numpy": a division by zero gives inf/NaN as in ONNX, not ZeroDivisionError
+@njit(cache=True, inline="always", error_model="numpy")
 def _binary(code, x, y):
     if code == 0:
         return x + y
@@ -64,7 +65,7 @@ def _binary(code, x, y):
     return x / y
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _unary(code, x):
     if code == 1:
         # the logistic function without overflow warnings for large |x|
@@ -96,7 +97,7 @@ def _gemm(consts, c0, n_in, n_out, x, y):
             y[o] += w[i, o] * xi
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def mlp_forward(ops, consts, widths, regs, x):
     """Run the program on one input vector ``x``; the registers are left in ``regs``.
 
@@ -149,7 +150,7 @@ def mlp_forward(ops, consts, widths, regs, x):
                 regs[dst, o] = v
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _forward_batch(ops, consts, widths, regs, out_reg, x, out):
     for n in range(x.shape[0]):
         mlp_forward(ops, consts, widths, regs, x[n])

@@ -55,7 +55,17 @@ class InvalidInputError(PlannerError):
 
 
 class NoPathError(PlannerError):
-    """The planner ran but found no path to the goal (rollout collided, exited or timed out)."""
+    """The planner ran but found no path to the goal (rollout collided, exited or timed out).
+
+    Args:
+        message: what happened.
+        points: (K, 3) the tip positions rolled out before the failure, m (None when the
+            failure is not a rollout's); kept as :attr:`points` for diagnostics.
+    """
+
+    def __init__(self, message: str, points: FloatArray | None = None) -> None:
+        super().__init__(message)
+        self.points = points
 
 
 class RayWall(Protocol):
@@ -392,7 +402,8 @@ class Planner:
         positions = np.empty((cfg.max_rollout_steps + 1, 3))
         rotations = np.empty((cfg.max_rollout_steps + 1, 3, 3))
         action = np.zeros(3)
-        status, steps, n = rk.rollout_kernel(
+        kernel: Callable[..., tuple[int, int, int]] = rk.rollout_kernel
+        status, steps, n = kernel(
             p0, r0, goal, self.rays, np.ascontiguousarray(self.world.origin, dtype=np.float64),
             1.0 / cfg.position_scale, 1.0 / self.world.d_max, 1.0 / cfg.ray_length,
             float(cfg.ray_length), 0.5 * cfg.outer_diameter,
@@ -401,22 +412,24 @@ class Planner:
             np.ascontiguousarray(self.world.bbox_high, dtype=np.float64),
             int(cfg.max_rollout_steps), *bvh, program.ops, program.consts, program.widths,
             program.regs, program.out_reg, positions, rotations, action)
-        p = positions[n - 1]
+        points = positions[:n].copy()
+        p = points[-1]
         if status == rk.REACHED:
-            return np.vstack([positions[:n], goal]), int(steps)
+            return np.vstack([points, goal]), int(steps)
         if status == rk.TOUCHED_WALL:
             raise NoPathError(
                 f"cgail rollout touched the wall after {steps} steps at "
                 f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
-                f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal")
+                f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal", points)
         if status == rk.BAD_ACTION:
             raise NoPathError(f"policy must return 3 finite actions, found "
-                              f"{[float(np.float32(v)) for v in action]}")
+                              f"{action.tolist()}", points)
         if status == rk.LEFT_ANATOMY:
-            raise NoPathError(f"cgail rollout left the anatomy after {steps} steps")
+            raise NoPathError(f"cgail rollout left the anatomy after {steps} steps", points)
         dist = float(np.linalg.norm(goal - p))
         raise NoPathError(f"cgail rollout did not reach the goal within "
-                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)")
+                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)",
+                          points)
 
     def rollout_reference(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                           ) -> tuple[FloatArray, int]:
@@ -453,7 +466,8 @@ class Planner:
                 raise NoPathError(
                     f"cgail rollout touched the wall after {step - 1} steps at "
                     f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
-                    f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal")
+                    f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal",
+                    np.array(positions))
             x, y, z = p.tolist()
             obs[0:3] = (p - origin) * inv_scale
             obs[3:12] = r.T.reshape(9)
@@ -464,7 +478,8 @@ class Planner:
             obs[16:] = hits
             out = np.asarray(self.policy(obs)).reshape(-1).tolist()
             if len(out) != 3 or not all(math.isfinite(v) for v in out):
-                raise NoPathError(f"policy must return 3 finite actions, found {out}")
+                raise NoPathError(f"policy must return 3 finite actions, found {out}",
+                                  np.array(positions))
             a0, a1, a2 = (min(max(v, -1.0), 1.0) for v in out)
             dl = a2 * step_len
             if dl > 0.0:
@@ -491,10 +506,12 @@ class Planner:
                 return np.vstack([*positions, goal]), step
             if not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
                     and low[2] <= z <= high[2]):
-                raise NoPathError(f"cgail rollout left the anatomy after {step} steps")
+                raise NoPathError(f"cgail rollout left the anatomy after {step} steps",
+                                  np.array(positions))
         dist = float(np.linalg.norm(goal - p))
         raise NoPathError(f"cgail rollout did not reach the goal within "
-                             f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)")
+                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)",
+                          np.array(positions))
 
     def branch_for(self, goal: FloatArray) -> str:
         """The branch whose coronary ostium is nearest ``goal``."""

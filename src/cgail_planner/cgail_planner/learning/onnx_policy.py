@@ -221,6 +221,7 @@ def mlp_from_onnx(path: str | Path) -> MlpProgram:
             elif op == 'Gemm':
                 if attrs.get('transA', 0):
                     raise UnsupportedGraphError(f'Gemm {node.name!r} with transA')
+                a = reg(node.input[0], node)
                 w = const(node.input[1], node)
                 if w.ndim != 2:
                     raise UnsupportedGraphError(f'Gemm {node.name!r}: B of shape {w.shape}')
@@ -229,12 +230,13 @@ def mlp_from_onnx(path: str | Path) -> MlpProgram:
                 if len(node.input) > 2 and node.input[2]:
                     bias = vector(const(node.input[2], node), node) \
                         * float(attrs.get('beta', 1.0))
-                regs[out] = builder.gemm(reg(node.input[0], node), w, bias)
+                regs[out] = builder.gemm(a, w, bias)
             elif op == 'MatMul':
+                a = reg(node.input[0], node)
                 w = const(node.input[1], node)
                 if w.ndim != 2:
                     raise UnsupportedGraphError(f'MatMul {node.name!r}: B of shape {w.shape}')
-                regs[out] = builder.gemm(reg(node.input[0], node), w.T, None)
+                regs[out] = builder.gemm(a, w.T, None)
             elif op in _BINARY:
                 a, b = node.input[0], node.input[1]
                 if a in regs and b in regs:
