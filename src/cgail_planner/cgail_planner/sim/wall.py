@@ -250,7 +250,8 @@ class DeformableWall(StaticWall):
             topo.annulus, disp, topo.fixed, h, cfg.damping, cfg.iterations,
             cfg.local_iterations, cfg.local_rings, self._wall_faces, self._bvh.face_edges,
             self._rest_fn, self._rest_vn, self._rest_en, tmin, tmax, left, right, start, count,
-            order, fitted, n_nodes, pts, radius, radius + cfg.contact_margin)
+            order, fitted, n_nodes, pts, radius, radius + cfg.contact_margin,
+            cfg.chebyshev_rho)
         self._bvh.refitted(self.vertices)
         self.last_contact_violation = float(worst)
 
