@@ -2,20 +2,26 @@
 
 Targets (issue 6): a full path in <= 50 ms, a guidance update in <= 2 ms per tracker frame.
 
-For every start x target of the anatomy's scenario set it plans with the ONNX policy (numpy +
-onnxruntime, as the node does) and with the centerline baseline, then replays the planned path as
-a noisy tracker stream (0.5 mm EM noise) through the guidance (projection, next waypoint,
-suggested bend). Prints wall and CPU time per plan (median, max), rollout steps and time per step,
-and guidance time per frame (median, 99th percentile). On a shared, loaded machine the CPU time
-is the cost; the wall time includes waiting for a core.
+For every start x target of the anatomy's scenario set it plans with the ONNX policy loaded as
+the node loads it (:class:`OnnxPolicy`: the numba ``mlp`` backend when the graph allows it, the
+rollout then running as one numba call, :mod:`cgail_planner.core.rollout_kernel`) and with the
+centerline baseline, then replays the planned path as a noisy tracker stream (0.5 mm EM noise)
+through the guidance (projection, next waypoint, suggested bend). Prints wall and CPU time per
+plan (median, max), rollout steps and time per step, the per-step components, the first plan of
+the process (numba cache load), and guidance time per frame (median, 99th percentile). On a
+shared, loaded machine the CPU time is the cost; the wall time includes waiting for a core.
+``--compare`` adds the previous implementation: the Python rollout loop
+(``Planner.rollout_reference``) with the policy on onnxruntime.
 
-Run: ``scripts/ws python bench/bench_planner.py [--policy model.onnx] [--anatomy default]``
-(default policy: the committed C-GAIL model ``learning/models/cgail_default_static.onnx``).
+Run: ``scripts/ws python bench/bench_planner.py [--policy model.onnx] [--anatomy default]
+[--compare]`` (default policy: the committed C-GAIL model
+``learning/models/cgail_default_static.onnx``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 import sys
 import time
@@ -45,6 +51,8 @@ def main() -> int:
     ap.add_argument('--policy', type=Path, default=DEFAULT_POLICY)
     ap.add_argument('--anatomy', default='default')
     ap.add_argument('--repeats', type=int, default=2, help='plans per scenario (first is warm-up)')
+    ap.add_argument('--compare', action='store_true',
+                    help='also time the Python rollout loop with the policy on onnxruntime')
     args = ap.parse_args()
     world = load_world(args.anatomy)
     model = model_world_from_sim(world)
@@ -52,12 +60,24 @@ def main() -> int:
     policy = OnnxPolicy(args.policy, expected_obs_dim=41)
     sc = world.scenarios
     print(f'bench_planner: anatomy {args.anatomy}, policy {args.policy.name} '
-          f'({policy.metadata.get("preset", "?")}), {len(sc.starts)} starts x '
-          f'{len(sc.targets)} targets; torch imported: {"torch" in sys.modules}')
+          f'({policy.metadata.get("preset", "?")}, {policy.backend} backend), {len(sc.starts)} '
+          f'starts x {len(sc.targets)} targets; torch imported: {"torch" in sys.modules}')
+    planner = Planner(PlannerConfig(), model, wall, policy, RAY_DIRECTIONS)
+    start, target = sc.starts[0], sc.targets[0]
+    w0, c0 = time.perf_counter(), time.process_time()
+    with contextlib.suppress(NoPathError):
+        planner.plan(start.position, start.rotation, target.position)
+    print(f'first cgail plan of the process (numba cache load): wall '
+          f'{(time.perf_counter() - w0) * 1e3:.0f} ms, CPU {(time.process_time() - c0) * 1e3:.0f} '
+          f'ms; rollout as one numba call: {planner.uses_kernel}')
+    methods: list[tuple[str, str, OnnxPolicy | None]] = [('cgail', 'cgail', policy),
+                                              ('centerline', 'centerline', None)]
+    if args.compare:
+        methods.append(('cgail (Python loop + onnxruntime)', 'cgail',
+                        OnnxPolicy(args.policy, expected_obs_dim=41, backend='onnxruntime')))
     paths = []
-    for kind in ('cgail', 'centerline'):
-        planner = Planner(PlannerConfig(planner_type=kind), model, wall,
-                          policy if kind == 'cgail' else None, RAY_DIRECTIONS)
+    for label, kind, pol in methods:
+        planner = Planner(PlannerConfig(planner_type=kind), model, wall, pol, RAY_DIRECTIONS)
         walls, cpus, steps, failures = [], [], [], 0
         for start in sc.starts:
             for target in sc.targets:
@@ -72,25 +92,29 @@ def main() -> int:
                         walls.append(time.perf_counter() - w0)
                         cpus.append(time.process_time() - c0)
                         steps.append(res.steps)
-                        paths.append(res.path)
+                        if label == kind:
+                            paths.append(res.path)
         n = len(sc.starts) * len(sc.targets)
-        print(f'{kind:10s} full path: wall {_stats(walls)} | CPU {_stats(cpus)} | '
+        print(f'{label:10s} full path: wall {_stats(walls)} | CPU {_stats(cpus)} | '
               f'{n - failures}/{n} planned' + (
-                  f' | rollout {np.mean(steps):.0f} steps, CPU '
+                  f' | rollout {np.mean(steps):.0f} steps (max {max(steps)}), CPU '
                   f'{np.median(np.array(cpus) / np.array(steps)) * 1e6:.0f} us/step'
                   if kind == 'cgail' and steps else ''))
-    # per-step components of the rollout: policy inference and the 25-ray cast
+    # per-step components of the rollout, each called from Python here (inside the kernel the
+    # policy program and the ray kernel run without the call overhead)
     obs = np.zeros(41, dtype=np.float32)
-    start = sc.starts[0]
     origins = np.repeat(start.position[None], len(RAY_DIRECTIONS), axis=0)
     dirs = RAY_DIRECTIONS @ start.rotation.T
-    for label, fn in (('policy (onnxruntime)', lambda: policy(obs)),
-                      ('25-ray cast', lambda: wall.raycast(origins, dirs, 0.04))):
+    ort_policy = OnnxPolicy(args.policy, expected_obs_dim=41, backend='onnxruntime')
+    components = [(f'policy ({policy.backend} backend)', lambda: policy(obs)),
+                  ('policy (onnxruntime)', lambda: ort_policy(obs)),
+                  ('25-ray cast', lambda: wall.raycast(origins, dirs, 0.04))]
+    for label, fn in components:
         fn()
         c0 = time.process_time()
         for _ in range(2000):
             fn()
-        print(f'  rollout component {label:20s}: CPU {(time.process_time() - c0) * 500:.1f} us '
+        print(f'  rollout component {label:22s}: CPU {(time.process_time() - c0) * 500:.1f} us '
               'per call')
     rng = np.random.default_rng(0)
     walls, cpus = [], []
