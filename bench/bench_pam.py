@@ -106,6 +106,9 @@ def bench_latency(commands: int) -> None:
     finally:
         observer.shutdown()
         executor.shutdown()
+        spinner.join(timeout=5.0)
+        node.trigger_deactivate()  # vents and stops the regulator bank's thread
+        node.trigger_cleanup()
         peer.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown()

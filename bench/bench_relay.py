@@ -52,6 +52,7 @@ def node_state_rate(seconds: float = 3.0) -> float:
     """Sustained catheter/insertion_state rate of the driver node with the simulated device."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
+    from rclpy.lifecycle import TransitionCallbackReturn
     from rclpy.parameter import Parameter
     from sensor_msgs.msg import JointState
 
@@ -62,6 +63,10 @@ def node_state_rate(seconds: float = 3.0) -> float:
     try:
         node = DriverNode(parameter_overrides=[
             Parameter('can_channel', value=f'bench_{uuid.uuid4().hex}')])
+        # a lifecycle node: it publishes its state only once configured and active
+        if (node.trigger_configure() != TransitionCallbackReturn.SUCCESS
+                or node.trigger_activate() != TransitionCallbackReturn.SUCCESS):
+            raise SystemExit('bench_relay: driver_node did not become active')
         probe = rclpy.create_node('bench_probe')
         got: list[float] = []
         probe.create_subscription(JointState, 'catheter/insertion_state',
@@ -73,6 +78,9 @@ def node_state_rate(seconds: float = 3.0) -> float:
         while time.monotonic() < end:
             ex.spin_once(timeout_sec=0.01)
         window = [t for t in got if t >= end - seconds]
+        ex.shutdown()
+        node.trigger_deactivate()
+        node.trigger_cleanup()
         node.destroy_node()
         probe.destroy_node()
         return len(window) / seconds

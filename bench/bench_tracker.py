@@ -26,6 +26,7 @@ from geometry_msgs.msg import PoseStamped
 import numpy as np
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 
@@ -66,6 +67,10 @@ def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
     node = AuroraNode(parameter_overrides=[
         Parameter('port', value=link), Parameter('use_bx', value=mode == 'bx'),
         Parameter('isolate_device', value=isolate)])
+    # a lifecycle node: configure (open the port, start-up handshake) and activate (publish)
+    if (node.trigger_configure() != TransitionCallbackReturn.SUCCESS
+            or node.trigger_activate() != TransitionCallbackReturn.SUCCESS):
+        raise SystemExit(f'bench_tracker: aurora_node did not become active on {link}')
     listener = rclpy.create_node('bench_tracker_listener')
     # (receive monotonic time, x in m, receive time - header.stamp in s)
     arrivals: list[tuple[float, float, float]] = []
@@ -94,6 +99,9 @@ def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
             t_gen = t_mod + WRAP_S * np.floor((received - t_mod) / WRAP_S)
             latencies.append(received - t_gen)
             transport.append(since_stamp)
+        if not arrivals:
+            raise SystemExit(f'bench_tracker: no pose received in {duration_s:.0f} s '
+                             f'({mode} mode); node health: {node.health}')
         lat_ms = np.array(latencies) * 1e3
         # header.stamp = time the reply was read, so the latency splits into
         # device frame -> reply read (polling phase + serial) and reply -> subscriber.
