@@ -124,7 +124,7 @@ def bench_components(seconds: float, n: int) -> dict[str, Timing]:
     # new shape), then the rays, then the tip contact (closest point + Newton force).
     clock = [0.0]
     for name, cfg in ((f"{PBDConfig().iterations} sweeps, PBDConfig()", PBDConfig()),
-                      (f"{DYNAMIC_PBD_CONFIG.iterations} sweeps, env default",
+                      (f"{DYNAMIC_PBD_CONFIG.iterations} Chebyshev sweeps, env default",
                        DYNAMIC_PBD_CONFIG)):
         wall = DeformableWall(anatomy, cfg)
 
@@ -200,7 +200,7 @@ def main() -> None:
         ("static  single env", bench_single("static", args.seconds)),
         (f"static  batched (N={args.num_envs})",
          bench_vec("static", args.num_envs, args.seconds)),
-        (f"dynamic single env ({DYNAMIC_PBD_CONFIG.iterations} sweeps)",
+        (f"dynamic single env ({DYNAMIC_PBD_CONFIG.iterations} acc. sweeps)",
          bench_single("dynamic", args.seconds)),
         (f"dynamic batched (N={args.dyn_envs})",
          bench_vec("dynamic", args.dyn_envs, args.seconds)),
