@@ -21,7 +21,7 @@ followed by the bias (n_out,); a ``CLIP`` stores ``[low, high]``; a constant ope
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 import math
 
 from numba import njit
@@ -175,8 +175,6 @@ class MlpProgram:
     """(n_regs,) int64 width of every register; register 0 is the input."""
     out_reg: int
     """Register holding the output after the last instruction."""
-    regs: FloatArray = field(init=False, repr=False)
-    """(n_regs, max width) scratch registers (a program is not thread-safe)."""
 
     def __post_init__(self) -> None:
         ops = np.ascontiguousarray(self.ops, dtype=np.int64)
@@ -229,7 +227,11 @@ class MlpProgram:
         if int(self.out_reg) not in written:
             raise ValueError(f"out_reg must be a written register, found {self.out_reg}")
         object.__setattr__(self, "out_reg", int(self.out_reg))
-        object.__setattr__(self, "regs", np.zeros((n_regs, int(widths.max()))))
+
+    def scratch(self) -> FloatArray:
+        """New (n_regs, max width) registers for :func:`mlp_forward` (one per caller: a
+        program holds no mutable state, so it may be shared between threads)."""
+        return np.zeros((len(self.widths), int(self.widths.max())))
 
     @property
     def in_dim(self) -> int:
@@ -251,7 +253,8 @@ class MlpProgram:
         if xs.ndim != 2 or xs.shape[1] != self.in_dim:
             raise ValueError(f"input must have shape (B, {self.in_dim}), found {xs.shape}")
         out = np.empty((xs.shape[0], self.out_dim))
-        _forward_batch(self.ops, self.consts, self.widths, self.regs, self.out_reg, xs, out)
+        _forward_batch(self.ops, self.consts, self.widths, self.scratch(), self.out_reg, xs,
+                       out)
         return out
 
     def __call__(self, obs: NDArray[np.floating]) -> NDArray[np.float32]:

@@ -1,8 +1,15 @@
 """Whole-path planning: roll a policy out in the simulator model, or follow the centerline.
 
-Pure numpy (+ the numba BVH of :mod:`cgail_planner.sim.wall` and an injected policy callable);
-no rclpy and no torch. Used by :mod:`cgail_planner.nodes.planner_node` with
+numpy and numba (the BVH of :mod:`cgail_planner.sim.wall`, an injected policy callable); no
+rclpy and no torch. Used by :mod:`cgail_planner.nodes.planner_node` with
 :class:`cgail_planner.learning.onnx_policy.OnnxPolicy`.
+
+**Speed.** When the policy is a numba :class:`~cgail_planner.core.mlp.MlpProgram` (an
+``OnnxPolicy`` on its ``mlp`` backend) and the wall a simulator wall, the whole rollout is one
+numba call (:mod:`cgail_planner.core.rollout_kernel`, ~20 us per step, mostly the 25-ray cast)
+that gives the same path as the Python loop :meth:`Planner.rollout_reference` (~85 us per step
+with onnxruntime), which remains the rollout for any other policy or wall. The kernel is loaded
+(compiled, without a numba cache) when the planner is built, not in the first plan.
 
 **C-GAIL planner** (``planner_type='cgail'``): from the current tip pose ``[R | p]`` the policy
 is rolled out in the model of the anatomy, exactly with the environment's observation
@@ -310,6 +317,12 @@ class Planner:
         if isinstance(program, MlpProgram) and program.in_dim == self.obs_dim \
                 and program.out_dim == 3:
             self._program = program
+            bvh = _wall_bvh(wall)
+            if bvh is not None:
+                # load (or, without a numba cache, compile: seconds) the kernel now rather
+                # than in the first plan: a one-step rollout from the observation origin
+                origin = np.asarray(world.origin, dtype=np.float64)
+                self._run_kernel(program, bvh, origin, np.eye(3), origin + 1.0, 1)
 
     # ------------------------------------------------------------------ validation
     def validate_goal(self, goal: FloatArray) -> FloatArray:
@@ -396,23 +409,9 @@ class Planner:
         from cgail_planner.core import rollout_kernel as rk
 
         cfg = self.config
-        p0 = np.ascontiguousarray(p0, dtype=np.float64)
-        r0 = np.ascontiguousarray(r0, dtype=np.float64)
         goal = np.ascontiguousarray(goal, dtype=np.float64)
-        positions = np.empty((cfg.max_rollout_steps + 1, 3))
-        rotations = np.empty((cfg.max_rollout_steps + 1, 3, 3))
-        action = np.zeros(3)
-        kernel: Callable[..., tuple[int, int, int]] = rk.rollout_kernel
-        status, steps, n = kernel(
-            p0, r0, goal, self.rays, np.ascontiguousarray(self.world.origin, dtype=np.float64),
-            1.0 / cfg.position_scale, 1.0 / self.world.d_max, 1.0 / cfg.ray_length,
-            float(cfg.ray_length), 0.5 * cfg.outer_diameter,
-            cfg.max_insertion_speed * cfg.dt, cfg.theta_max / cfg.segment_length,
-            cfg.goal_tolerance ** 2, np.ascontiguousarray(self.world.bbox_low, dtype=np.float64),
-            np.ascontiguousarray(self.world.bbox_high, dtype=np.float64),
-            int(cfg.max_rollout_steps), *bvh, program.ops, program.consts, program.widths,
-            program.regs, program.out_reg, positions, rotations, action)
-        points = positions[:n].copy()
+        status, steps, points, action = self._run_kernel(program, bvh, p0, r0, goal,
+                                                         cfg.max_rollout_steps)
         p = points[-1]
         if status == rk.REACHED:
             return np.vstack([points, goal]), int(steps)
@@ -430,6 +429,32 @@ class Planner:
         raise NoPathError(f"cgail rollout did not reach the goal within "
                           f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)",
                           points)
+
+    def _run_kernel(self, program: MlpProgram, bvh: tuple[np.ndarray, ...], p0: FloatArray,
+                    r0: FloatArray, goal: FloatArray, max_steps: int
+                    ) -> tuple[int, int, FloatArray, FloatArray]:
+        """One call of the rollout kernel: ``(status, steps, points, last action)``."""
+        from cgail_planner.core import rollout_kernel as rk
+
+        cfg = self.config
+        positions = np.empty((max_steps + 1, 3))
+        rotations = np.empty((max_steps + 1, 3, 3))
+        action = np.zeros(3)
+        kernel: Callable[..., tuple[int, int, int]] = rk.rollout_kernel
+        # every scalar as a Python float/int: one compiled signature whatever the config types
+        status, steps, n = kernel(
+            np.ascontiguousarray(p0, dtype=np.float64), np.ascontiguousarray(r0, np.float64),
+            np.ascontiguousarray(goal, dtype=np.float64), self.rays,
+            np.ascontiguousarray(self.world.origin, dtype=np.float64),
+            1.0 / float(cfg.position_scale), 1.0 / float(self.world.d_max),
+            1.0 / float(cfg.ray_length), float(cfg.ray_length), 0.5 * float(cfg.outer_diameter),
+            float(cfg.max_insertion_speed) * float(cfg.dt),
+            float(cfg.theta_max) / float(cfg.segment_length), float(cfg.goal_tolerance) ** 2,
+            np.ascontiguousarray(self.world.bbox_low, dtype=np.float64),
+            np.ascontiguousarray(self.world.bbox_high, dtype=np.float64), int(max_steps), *bvh,
+            program.ops, program.consts, program.widths, program.scratch(), program.out_reg,
+            positions, rotations, action)
+        return int(status), int(steps), positions[:n].copy(), action
 
     def rollout_reference(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                           ) -> tuple[FloatArray, int]:
