@@ -491,170 +491,6 @@ def solve(x, inv_mass, rest, edges, edge_rest, edge_k, factor, hinges, hinge_res
     return worst
 
 
-#: Spring slots processed together by :func:`_sweep` (one SIMD vector of doubles).
-_LANES = 8
-
-
-@njit(cache=True, fastmath=True)
-def _sweep(x, y, inv_mass, mass, inv_h2, tether_k, rest, adj_ptr, adj_other, keff, adj_rest,
-           order):
-    """One block Gauss-Seidel sweep with the lagged secant stiffness ``keff`` (in place).
-
-    The springs of a particle are read in fixed chunks of :data:`_LANES` consecutive CSR slots,
-    the slots past the particle's own springs masked to zero stiffness, so the compiler
-    vectorises the chunk (contiguous loads, one gather per coordinate, packed sqrt and
-    divide): ~15 % faster than the per-spring loop, same arithmetic per spring (the chunk sums
-    are reassociated, as ``fastmath`` already allowed). Valence <= 8 (every free particle of
-    the built-in meshes) takes one chunk.
-    """
-    n_slots = adj_other.shape[0]
-    for oi in range(order.shape[0]):
-        i = order[oi]
-        if inv_mass[i] <= 0.0:
-            continue
-        mh = mass[i] * inv_h2
-        kt = tether_k[i]
-        xi0 = x[i, 0]
-        xi1 = x[i, 1]
-        xi2 = x[i, 2]
-        g0 = mh * (xi0 - y[i, 0]) + kt * (xi0 - rest[i, 0])
-        g1 = mh * (xi1 - y[i, 1]) + kt * (xi1 - rest[i, 1])
-        g2 = mh * (xi2 - y[i, 2]) + kt * (xi2 - rest[i, 2])
-        d = mh + kt
-        h00 = d
-        h11 = d
-        h22 = d
-        h01 = 0.0
-        h02 = 0.0
-        h12 = 0.0
-        lo = adj_ptr[i]
-        hi = adj_ptr[i + 1]
-        for base in range(lo, hi, _LANES):
-            for lane in range(_LANES):
-                a = min(base + lane, n_slots - 1)
-                live = base + lane < hi
-                j = adj_other[a] if live else i
-                dx = xi0 - x[j, 0]
-                dy = xi1 - x[j, 1]
-                dz = xi2 - x[j, 2]
-                ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-                k = keff[a] if live and ln >= 1e-15 else 0.0
-                inv = 1.0 / max(ln, 1e-15)
-                nx = dx * inv
-                ny = dy * inv
-                nz = dz * inv
-                fs = k * (ln - adj_rest[a])
-                g0 += fs * nx
-                g1 += fs * ny
-                g2 += fs * nz
-                c = max(fs * inv, 0.0)  # geometric stiffness k (1 - L0 / L), clamped to PSD
-                kn = k - c
-                h00 += kn * nx * nx + c
-                h11 += kn * ny * ny + c
-                h22 += kn * nz * nz + c
-                h01 += kn * nx * ny
-                h02 += kn * nx * nz
-                h12 += kn * ny * nz
-        # Solve H d = -g (symmetric 3x3, Cramer's rule).
-        c00 = h11 * h22 - h12 * h12
-        c01 = h02 * h12 - h01 * h22
-        c02 = h01 * h12 - h02 * h11
-        det = h00 * c00 + h01 * c01 + h02 * c02
-        if det <= 1e-300:
-            continue
-        c11 = h00 * h22 - h02 * h02
-        c12 = h01 * h02 - h00 * h12
-        c22 = h00 * h11 - h01 * h01
-        idet = 1.0 / det
-        x[i, 0] = xi0 - (c00 * g0 + c01 * g1 + c02 * g2) * idet
-        x[i, 1] = xi1 - (c01 * g0 + c11 * g1 + c12 * g2) * idet
-        x[i, 2] = xi2 - (c02 * g0 + c12 * g1 + c22 * g2) * idet
-
-
-@njit(cache=True, fastmath=True)
-def _sweep_exact(x, y, inv_mass, mass, inv_h2, tether_k, rest, adj_ptr, adj_other, adj_k,
-                 adj_rest, adj_edge, keff, order, exact_b):
-    """One sweep with the exact stiffening law of the stretch springs (see :func:`solve_vbd`)."""
-    exact = exact_b > 0.0
-    for oi in range(order.shape[0]):
-        i = order[oi]
-        if inv_mass[i] <= 0.0:
-            continue
-        mh = mass[i] * inv_h2
-        kt = tether_k[i]
-        xi0 = x[i, 0]
-        xi1 = x[i, 1]
-        xi2 = x[i, 2]
-        g0 = mh * (xi0 - y[i, 0]) + kt * (xi0 - rest[i, 0])
-        g1 = mh * (xi1 - y[i, 1]) + kt * (xi1 - rest[i, 1])
-        g2 = mh * (xi2 - y[i, 2]) + kt * (xi2 - rest[i, 2])
-        d = mh + kt
-        h00 = d
-        h11 = d
-        h22 = d
-        h01 = 0.0
-        h02 = 0.0
-        h12 = 0.0
-        for a in range(adj_ptr[i], adj_ptr[i + 1]):
-            j = adj_other[a]
-            dx = xi0 - x[j, 0]
-            dy = xi1 - x[j, 1]
-            dz = xi2 - x[j, 2]
-            ln = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if ln < 1e-15:
-                continue
-            l0 = adj_rest[a]
-            inv = 1.0 / ln
-            nx = dx * inv
-            ny = dy * inv
-            nz = dz * inv
-            if exact and adj_edge[a] >= 0:
-                # Exact stiffening law: force k L0 / b expm1(z), tangent k exp(z).
-                z = exact_b * (ln - l0) / l0
-                if z <= 0.0:
-                    k = adj_k[a]
-                    fs = k * (ln - l0)
-                    kt = k
-                elif z <= _Z_MAX:
-                    k = adj_k[a] * np.expm1(z) / z
-                    fs = k * (ln - l0)
-                    kt = adj_k[a] * np.exp(z)
-                else:
-                    k = adj_k[a] * _G_MAX
-                    fs = k * (ln - l0)
-                    kt = k
-            else:
-                kt = keff[a]
-                fs = kt * (ln - l0)
-            g0 += fs * nx
-            g1 += fs * ny
-            g2 += fs * nz
-            c = fs * inv  # geometric stiffness k (1 - L0 / L), clamped to PSD
-            if c < 0.0:
-                c = 0.0
-            kn = kt - c
-            h00 += kn * nx * nx + c
-            h11 += kn * ny * ny + c
-            h22 += kn * nz * nz + c
-            h01 += kn * nx * ny
-            h02 += kn * nx * nz
-            h12 += kn * ny * nz
-        # Solve H d = -g (symmetric 3x3, Cramer's rule).
-        c00 = h11 * h22 - h12 * h12
-        c01 = h02 * h12 - h01 * h22
-        c02 = h01 * h12 - h02 * h11
-        det = h00 * c00 + h01 * c01 + h02 * c02
-        if det <= 1e-300:
-            continue
-        c11 = h00 * h22 - h02 * h02
-        c12 = h01 * h02 - h00 * h12
-        c22 = h00 * h11 - h01 * h01
-        idet = 1.0 / det
-        x[i, 0] = xi0 - (c00 * g0 + c01 * g1 + c02 * g2) * idet
-        x[i, 1] = xi1 - (c01 * g0 + c11 * g1 + c12 * g2) * idet
-        x[i, 2] = xi2 - (c02 * g0 + c12 * g1 + c22 * g2) * idet
-
-
 @njit(cache=True, fastmath=True)
 def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_edge, factor,
               tether_k, order, dt, iterations, faces, face_edges, face_normals, vertex_normals,
@@ -687,6 +523,7 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
     for a in range(adj_k.shape[0]):
         e = adj_edge[a]
         keff[a] = adj_k[a] * factor[e] if e >= 0 else adj_k[a]
+    exact = exact_b > 0.0
     has_contact = pair_face.shape[0] > 0
     worst = 0.0
     bary, anchor, normal, mark = linearize_contacts(
@@ -697,34 +534,103 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
     prev2 = x.copy() if accel else np.empty((0, 3))  # x_(n-2)
     omega = 1.0
     for it in range(iterations):
-        if exact_b > 0.0:
-            _sweep_exact(x, y, inv_mass, mass, inv_h2, tether_k, rest, adj_ptr, adj_other,
-                         adj_k, adj_rest, adj_edge, keff, order, exact_b)
-        else:
-            _sweep(x, y, inv_mass, mass, inv_h2, tether_k, rest, adj_ptr, adj_other, keff,
-                   adj_rest, order)
+        for oi in range(order.shape[0]):
+            i = order[oi]
+            if inv_mass[i] <= 0.0:
+                continue
+            mh = mass[i] * inv_h2
+            kt = tether_k[i]
+            xi0 = x[i, 0]
+            xi1 = x[i, 1]
+            xi2 = x[i, 2]
+            g0 = mh * (xi0 - y[i, 0]) + kt * (xi0 - rest[i, 0])
+            g1 = mh * (xi1 - y[i, 1]) + kt * (xi1 - rest[i, 1])
+            g2 = mh * (xi2 - y[i, 2]) + kt * (xi2 - rest[i, 2])
+            d = mh + kt
+            h00 = d
+            h11 = d
+            h22 = d
+            h01 = 0.0
+            h02 = 0.0
+            h12 = 0.0
+            for a in range(adj_ptr[i], adj_ptr[i + 1]):
+                j = adj_other[a]
+                dx = xi0 - x[j, 0]
+                dy = xi1 - x[j, 1]
+                dz = xi2 - x[j, 2]
+                ln = np.sqrt(dx * dx + dy * dy + dz * dz)
+                if ln < 1e-15:
+                    continue
+                l0 = adj_rest[a]
+                inv = 1.0 / ln
+                nx = dx * inv
+                ny = dy * inv
+                nz = dz * inv
+                if exact and adj_edge[a] >= 0:
+                    # Exact stiffening law: force k L0 / b expm1(z), tangent k exp(z).
+                    z = exact_b * (ln - l0) / l0
+                    if z <= 0.0:
+                        k = adj_k[a]
+                        fs = k * (ln - l0)
+                        kt = k
+                    elif z <= _Z_MAX:
+                        k = adj_k[a] * np.expm1(z) / z
+                        fs = k * (ln - l0)
+                        kt = adj_k[a] * np.exp(z)
+                    else:
+                        k = adj_k[a] * _G_MAX
+                        fs = k * (ln - l0)
+                        kt = k
+                else:
+                    kt = keff[a]
+                    fs = kt * (ln - l0)
+                g0 += fs * nx
+                g1 += fs * ny
+                g2 += fs * nz
+                c = fs * inv  # geometric stiffness k (1 - L0 / L), clamped to PSD
+                if c < 0.0:
+                    c = 0.0
+                kn = kt - c
+                h00 += kn * nx * nx + c
+                h11 += kn * ny * ny + c
+                h22 += kn * nz * nz + c
+                h01 += kn * nx * ny
+                h02 += kn * nx * nz
+                h12 += kn * ny * nz
+            # Solve H d = -g (symmetric 3x3, Cramer's rule).
+            c00 = h11 * h22 - h12 * h12
+            c01 = h02 * h12 - h01 * h22
+            c02 = h01 * h12 - h02 * h11
+            det = h00 * c00 + h01 * c01 + h02 * c02
+            if det <= 1e-300:
+                continue
+            c11 = h00 * h22 - h02 * h02
+            c12 = h01 * h02 - h00 * h12
+            c22 = h00 * h11 - h01 * h01
+            idet = 1.0 / det
+            x[i, 0] = xi0 - (c00 * g0 + c01 * g1 + c02 * g2) * idet
+            x[i, 1] = xi1 - (c01 * g0 + c11 * g1 + c12 * g2) * idet
+            x[i, 2] = xi2 - (c02 * g0 + c12 * g1 + c22 * g2) * idet
         if accel:
             if it == 1:
                 omega = 2.0 / (2.0 - rho * rho)
             elif it > 1:
                 omega = 4.0 / (4.0 - rho * rho * omega)
-            for oi in range(order.shape[0]):
-                i = order[oi]
-                if inv_mass[i] <= 0.0:
-                    continue
-                for c in range(3):
-                    xn = prev2[i, c] + omega * (x[i, c] - prev2[i, c])
-                    prev2[i, c] = prev[i, c]
-                    prev[i, c] = xn
-                    x[i, c] = xn
+            # Flat over all particles: those the sweep left alone (kinematic, or outside
+            # ``order``) have x = x_(n-1) = x_(n-2) and stay exactly where they are.
+            xf = x.reshape(-1)
+            p1 = prev.reshape(-1)
+            p2 = prev2.reshape(-1)
+            for a in range(xf.shape[0]):
+                xn = p2[a] + omega * (xf[a] - p2[a])
+                p2[a] = p1[a]
+                p1[a] = xn
+                xf[a] = xn
         if has_contact:
             project_planes(x, inv_mass, faces, pair_face, bary, anchor, normal, mark, radius,
                            dt, impulse, touched)
             if accel:
-                for oi in range(order.shape[0]):
-                    i = order[oi]
-                    for c in range(3):
-                        prev[i, c] = x[i, c]
+                prev[:] = x
     if has_contact:
         for _ in range(2):
             worst = project_contacts(x, inv_mass, faces, face_edges, face_normals,
