@@ -120,7 +120,7 @@ def action_to_command(
     Returns:
         ``alpha`` and ``gamma`` (rad) and ``delta_l`` (m), each of shape ``action.shape[:-1]``.
     """
-    a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+    a = np.minimum(np.maximum(np.asarray(action, dtype=np.float64), -1.0), 1.0)  # (as np.clip)
     delta_l = a[..., 2] * max_step_insertion
     limit = bend_limit(delta_l, theta_max, segment_length)
     return a[..., 0] * limit, a[..., 1] * limit, delta_l
@@ -184,7 +184,7 @@ def bend_rotation(alpha: FloatArray, gamma: FloatArray) -> FloatArray:
     ca, sa = np.cos(alpha), np.sin(alpha)
     cg, sg = np.cos(gamma), np.sin(gamma)
     # Rx(a) @ Rz(g) = [[cg, -sg, 0], [ca*sg, ca*cg, -sa], [sa*sg, sa*cg, ca]]
-    out = np.empty(np.broadcast(ca, cg).shape + (3, 3))
+    out = np.empty((*np.broadcast(ca, cg).shape, 3, 3))
     out[..., 0, 0] = cg
     out[..., 0, 1] = -sg
     out[..., 0, 2] = 0.0

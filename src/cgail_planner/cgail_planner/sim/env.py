@@ -258,15 +258,16 @@ class NavEngine:
         rots = self.catheter.tip_rotation[idx]
         dirs = np.matmul(RAY_DIRECTIONS, rots.transpose(0, 2, 1))  # (n, R, 3): R @ d_local
         origins = np.repeat(tips[:, None, :], N_RAYS, axis=1)
-        length = self.config.ray_length
+        length = float(self.config.ray_length)
+        # (the walls' unchecked casts: these rays are finite and well-formed by construction)
         if self._shared_wall:
-            hits = self.walls[0].raycast(origins.reshape(-1, 3), dirs.reshape(-1, 3), length)
-            self.rays[idx] = np.asarray(hits).reshape(len(idx), N_RAYS) / length
+            hits = self.walls[0]._cast(origins.reshape(-1, 3), dirs.reshape(-1, 3), length)
+            self.rays[idx] = hits.reshape(len(idx), N_RAYS) / length
         else:
-            for k, i in enumerate(idx):
-                hits = self.walls[i].raycast(origins[k], dirs[k], length)
-                self.rays[i] = np.asarray(hits) / length
-        np.clip(self.rays, 0.0, 1.0, out=self.rays)
+            for k, i in enumerate(idx.tolist()):
+                self.rays[i] = self.walls[i]._cast(origins[k], dirs[k], length) / length
+        np.minimum(self.rays, 1.0, out=self.rays)  # hits lie in (0, length]: only the upper
+        np.maximum(self.rays, 0.0, out=self.rays)  # bound can bite (as np.clip, cheaper)
 
     # ------------------------------------------------------------------ stepping
     def step(self, actions: FloatArray) -> tuple[FloatArray, NDArray[np.bool_],
@@ -291,10 +292,11 @@ class NavEngine:
         if cfg.mode == "dynamic":
             for i in range(n):
                 wall = self.walls[i]
-                wall.step(float(self.time[i]), cfg.dt,
-                          cat.body_points(i, cfg.body_spacing), self.radius)
-                tid = self.target_id[i]
-                self.target[i] = (wall.vertex_position(int(self._target_vertex[tid]))
+                # (unchecked step: finite times, a body from the catheter kinematics)
+                wall._advance(float(self.time[i]), float(cfg.dt),
+                              cat.body_points(i, cfg.body_spacing), float(self.radius))
+                tid = int(self.target_id[i])
+                self.target[i] = (wall.vertices[int(self._target_vertex[tid])]
                                   + self._target_offset[tid])
         # Static broad phase (exact, not a heuristic): the clearance to a rigid wall is
         # 1-Lipschitz in the tip position, so after the tip travelled |delta_l| it is >= the last
@@ -309,9 +311,8 @@ class NavEngine:
             self.in_contact[:] = False
         else:
             query = np.arange(n)
-        for j in query.tolist():
-            i = int(j)
-            c = self.walls[i].tip_contact(tips[i], self.radius, cfg.dt)
+        for i in query.tolist():
+            c = self.walls[i]._contact(tips[i], float(self.radius), float(cfg.dt))
             self.contact_force[i] = c.force
             self.penetration[i] = c.penetration
             self.in_contact[i] = c.in_contact

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 import hashlib
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -745,10 +746,13 @@ class WallBVH:
             raise ValueError(f"max_dist must be a finite number > 0, found {max_dist!r}")
         if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
             raise ValueError("origins and directions must be finite, found NaN or inf")
+        return self._cast(origins, directions, float(max_dist))
+
+    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float) -> np.ndarray:
+        """:meth:`raycast` without the checks: C-contiguous float64 (R, 3) arrays, a float."""
         out = np.empty(origins.shape[0])
         _raycast(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
-                 self._right, self._start, self._count, origins, directions, float(max_dist),
-                 out)
+                 self._right, self._start, self._count, origins, directions, max_dist, out)
         return out
 
     def closest_point(self, point: np.ndarray, max_dist: float = np.inf
@@ -773,7 +777,7 @@ class WallBVH:
             return float("inf"), p.copy(), np.zeros(3), -1
         n = _feature_normal(self.vertices, self.faces, self._face_edges, self._vf_ptr,
                             self._vf_face, self._ef_ptr, self._ef_face, face, u, v, w)
-        n = n / max(float(np.linalg.norm(n)), 1e-300)
+        n = n / max(math.sqrt(float(n @ n)), 1e-300)  # (np.linalg.norm: same value, slower)
         sign = 1.0 if float(np.dot(p - q, n)) > 0.0 else -1.0
         return sign * float(dist), q, n, int(face)
 

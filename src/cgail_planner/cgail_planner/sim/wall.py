@@ -107,6 +107,12 @@ class StaticWall:
         """
         return self._bvh.raycast(origins, directions, max_dist)
 
+    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+              ) -> np.ndarray:
+        """:meth:`raycast` for trusted input (the environment's own rays: C-contiguous float64
+        (R, 3) arrays, a float), without the checks."""
+        return self._bvh._cast(origins, directions, max_dist)
+
     def _geometric_contact(self, tip: np.ndarray, radius: float
                            ) -> tuple[float, float, np.ndarray]:
         """(penetration, clearance, outward normal) of the tip sphere vs the current wall."""
@@ -134,8 +140,13 @@ class StaticWall:
         if p.shape[0] != 1:
             raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
         r = _check_finite_scalar("radius", radius, positive=True)
-        _check_finite_scalar("dt", dt, positive=True)
-        pen, clearance, normal = self._geometric_contact(p[0], r)
+        dt = _check_finite_scalar("dt", dt, positive=True)
+        return self._contact(p[0], r, dt)
+
+    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """:meth:`tip_contact` for trusted input ((3,) float64 tip, floats), without the
+        checks."""
+        pen, clearance, normal = self._geometric_contact(tip, radius)
         return Contact(penetration=pen, force=0.0, normal=normal,
                        in_contact=bool(pen > 0.0 or clearance == 0.0), clearance=clearance)
 
@@ -220,6 +231,11 @@ class DeformableWall(StaticWall):
         pts = _check_points("body_points", body_points, allow_empty=True)
         radius = _check_finite_scalar("body_radius", body_radius, positive=pts.shape[0] > 0) \
             if pts.shape[0] else 0.0
+        self._advance(t, dt, pts, radius)
+
+    def _advance(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
+        """:meth:`step` for trusted input (floats, C-contiguous float64 (B, 3) body points, a
+        radius > 0 when B > 0), without the checks."""
         self._impulse[:] = 0.0
         self._touched[:] = 0
         self._dp[:] = 0.0
@@ -303,6 +319,11 @@ class DeformableWall(StaticWall):
         self._sync()
         return self._bvh.raycast(origins, directions, max_dist)
 
+    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+              ) -> np.ndarray:
+        self._sync()
+        return self._bvh._cast(origins, directions, max_dist)
+
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
         """Tip sphere vs the deformed wall, with the force from Newton's second law.
 
@@ -320,11 +341,15 @@ class DeformableWall(StaticWall):
             raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
         r = _check_finite_scalar("radius", radius, positive=True)
         dt = _check_finite_scalar("dt", dt, positive=True)
+        return self._contact(p[0], r, dt)
+
+    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        r = radius
         self._sync()
-        pen, clearance, normal = self._geometric_contact(p[0], r)
+        pen, clearance, normal = self._geometric_contact(tip, r)
         touched = np.flatnonzero(self._touched == 2)
         if touched.size:  # the tip-sphere contacts of the last step near this tip
-            touched = touched[np.linalg.norm(self.vertices[touched] - p[0], axis=1)
+            touched = touched[np.linalg.norm(self.vertices[touched] - tip, axis=1)
                               <= r + self.topology.max_edge]
         force = 0.0
         if touched.size:
