@@ -267,7 +267,7 @@ class DeformableWall(StaticWall):
             cfg.local_iterations, cfg.local_rings, self._wall_faces, self._bvh.face_edges,
             self._rest_fn, self._rest_vn, self._rest_en, tmin, tmax, left, right, start, count,
             order, fitted, n_nodes, pts, radius, radius + cfg.contact_margin,
-            cfg.chebyshev_rho)
+            cfg.chebyshev_rho, topo.ell_other, topo.ell_k, topo.ell_rest, topo.ell_edge)
         self._bvh.refitted(self.vertices)
         self.last_contact_violation = float(worst)
 
