@@ -9,7 +9,7 @@ observations and reward, one batched raycast per step in static mode);
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple
+from typing import Any, cast, NamedTuple
 
 import gymnasium as gym
 from gymnasium import spaces
@@ -291,7 +291,7 @@ class NavEngine:
         n = self.n_envs
         if cfg.mode == "dynamic":
             for i in range(n):
-                wall = self.walls[i]
+                wall = cast(DeformableWall, self.walls[i])  # (dynamic mode)
                 # (unchecked step: finite times, a body from the catheter kinematics)
                 wall._advance(float(self.time[i]), float(cfg.dt),
                               cat.body_points(i, cfg.body_spacing), float(self.radius))
