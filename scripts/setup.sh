@@ -61,5 +61,9 @@ if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
     PYTHONWARNINGS="ignore:Unknown distribution option" \
         colcon --log-base log build --symlink-install --event-handlers console_cohesion- summary+ \
         2>&1 | grep -v -E '^(Starting >>>|Finished <<<)' >&2
+    # 6. numba kernels and built-in anatomies into their disk caches (~1 min on a fresh clone,
+    #    a few seconds after that), so no test deadline or first trial pays the compile.
+    log "warm-up: numba kernels and anatomy caches"
+    python -m cgail_planner.system.warmup >&2
 fi
 log "ready"
