@@ -2,7 +2,7 @@
 
 * the one-call VBD wall step (:func:`cgail_planner.sim.pbd.step_vbd`: broad phase on the tree of
   the last refit, grown by the displacement since) against the substep loop that refits the tree
-  at the predicted positions and calls the kernels one by one: bit-identical;
+  at the predicted positions and calls the kernels one by one: equal to round-off (1e-14 m);
 * the pseudo-normal of one closest feature against the full per-mesh normals;
 * the tree refit inside the step against a tree built from scratch on the new shape;
 * the dynamic env's wall solver: configurable, and its default (5 Chebyshev-accelerated sweeps)
@@ -121,7 +121,7 @@ def reference_step(wall: DeformableWall, t: float, dt: float, pts: np.ndarray,
 
 
 @pytest.mark.parametrize(("substeps", "rho"), [(1, 0.0), (2, 0.0), (1, 0.85)])
-def test_one_call_step_is_bit_identical_to_the_substep_loop(tube, substeps, rho):
+def test_one_call_step_equals_the_substep_loop(tube, substeps, rho):
     cfg = PBDConfig(substeps=substeps, chebyshev_rho=rho)
     hb = HeartbeatConfig()
     fast = DeformableWall(tube, cfg, hb)
@@ -137,13 +137,16 @@ def test_one_call_step_is_bit_identical_to_the_substep_loop(tube, substeps, rho)
                 w.velocities[:] = (-0.25, 0.0, 0.0)
         fast.step(t, DT, pts, CATHETER_R)
         reference_step(ref, t, DT, pts, CATHETER_R)
-        np.testing.assert_array_equal(fast.vertices, ref.vertices)
-        np.testing.assert_array_equal(fast.velocities, ref.velocities)
+        # Same arithmetic, but two separately compiled fastmath kernels may vectorise
+        # (reassociate) a sum differently: equal to round-off, not always to the bit.
+        np.testing.assert_allclose(fast.vertices, ref.vertices, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(fast.velocities, ref.velocities, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(fast._touched, ref._touched)
-        np.testing.assert_array_equal(fast._dp, ref._dp)
+        np.testing.assert_allclose(fast._dp, ref._dp, rtol=0, atol=1e-15)
         a = fast.tip_contact(pts[-1], CATHETER_R, DT)
         b = ref.tip_contact(pts[-1], CATHETER_R, DT)
-        assert a.force == b.force and a.penetration == b.penetration
+        assert a.force == pytest.approx(b.force, rel=1e-9, abs=1e-12)
+        assert a.penetration == pytest.approx(b.penetration, abs=1e-14)
         forces.append(a.force)
     assert max(forces) > 0.0  # the comparison covered steps with contact forces
 
