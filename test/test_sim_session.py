@@ -23,11 +23,17 @@ def test_cgail_condition_needs_a_policy(tmp_path, capsys) -> None:
         in capsys.readouterr().err
 
 
-def test_default_policy_is_the_committed_cgail_model() -> None:
-    from cgail_planner.system.session import build_parser
+def test_default_policy_is_the_committed_cgail_model_of_the_anatomy_and_mode() -> None:
+    from cgail_planner.system.session import build_parser, default_policy
 
-    policy = build_parser().parse_args([]).policy
-    assert policy.name == 'cgail_default_static.onnx' and policy.is_file()
+    assert build_parser().parse_args([]).policy is None  # resolved from --anatomy and --mode
+    for anatomy, mode, name in (('default', 'static', 'cgail_default_static.onnx'),
+                                ('default', 'dynamic', 'cgail_default_dynamic.onnx'),
+                                ('elongated', 'static', 'cgail_elongated_static.onnx'),
+                                ('elongated', 'dynamic', 'cgail_elongated_static.onnx')):
+        policy = default_policy(anatomy, mode)
+        assert policy.name == name and policy.is_file()
+    assert not default_policy('nonexistent', 'static').is_file()
 
 
 def test_refuses_to_mix_with_existing_bags(tmp_path, capsys) -> None:

@@ -57,12 +57,15 @@ def default_launch_file() -> Path:
     return here
 
 
-def default_policy() -> Path:
-    """The committed C-GAIL policy of the default anatomy (installed with the package)."""
+def default_policy(anatomy: str = 'default', mode: str = 'static') -> Path:
+    """The committed C-GAIL policy for ``anatomy`` in ``mode`` (installed with the package):
+    ``learning/models/cgail_<anatomy>_<mode>.onnx``, or the anatomy's static policy when there is
+    no policy re-trained for that mode. The path may not exist (no policy for that anatomy)."""
     import cgail_planner.learning
 
-    return Path(cgail_planner.learning.__file__).resolve().parent / 'models' / \
-        'cgail_default_static.onnx'
+    models = Path(cgail_planner.learning.__file__).resolve().parent / 'models'
+    path = models / f'cgail_{anatomy}_{mode}.onnx'
+    return path if path.is_file() else models / f'cgail_{anatomy}_static.onnx'
 
 
 class SimRig:
@@ -268,9 +271,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='rigid phantom or deformable beating wall')
     p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
                    help='output directory (bags/, metrics.md, metrics.csv, box plots)')
-    p.add_argument('--policy', type=Path, default=default_policy(),
+    p.add_argument('--policy', type=Path, default=None,
                    help='ONNX C-GAIL policy (export_onnx); default: the committed '
-                        'learning/models/cgail_default_static.onnx')
+                        'learning/models/cgail_<anatomy>_<mode>.onnx (static if there is no '
+                        'policy for the mode)')
     p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
                    help='conditions to run, in order')
     p.add_argument('--time-scale', type=float, default=6.0,
@@ -303,7 +307,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print('invitro_session: ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); '
               'run through scripts/ws', file=sys.stderr)
         return 2
-    if 'cgail' in args.conditions and (args.policy is None or not args.policy.is_file()):
+    if args.policy is None:
+        args.policy = default_policy(args.anatomy, args.mode)
+    if 'cgail' in args.conditions and not args.policy.is_file():
         print(f'invitro_session: the cgail condition needs --policy <model.onnx> (export_onnx), '
               f'found no file at {args.policy}', file=sys.stderr)
         return 2
