@@ -179,3 +179,33 @@ def test_load_launch_file_reports_yaml_errors(tmp_path):
         load_launch_file(f)
     with pytest.raises(LaunchSpecError, match='does not exist'):
         load_launch_file(tmp_path / 'missing.yaml')
+
+
+def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services():
+    import rclpy
+
+    from cgail_planner.system.launch_spec import NodeSpec
+    from cgail_planner.system.launcher import build_node
+
+    rclpy.init()
+    try:
+        built = []
+        for lean in (False, True):
+            for exe, cls, name in (('teleop_node', 'TeleopNode', 'teleop'),
+                                   ('driver_node', 'DriverNode', 'sleeve_driver')):
+                spec = NodeSpec(name=name, package='catheter_driver', executable=exe,
+                                plugin=f'catheter_driver.nodes.{exe}:{cls}')
+                node = build_node(spec, {'can_channel': f'lean_{lean}'}
+                                  if name == 'sleeve_driver' else None, lean=lean)
+                built.append(node)
+                services = {s.srv_name for s in node.services}
+                has_params = any(s.endswith('/get_parameters') for s in services)
+                has_lifecycle = any(s.endswith('/change_state') for s in services)
+                assert has_params == (not lean), (name, services)
+                if name == 'sleeve_driver':
+                    assert has_lifecycle == (not lean), services
+                    assert node._state_machine.current_state[1] == 'active'
+        for node in built:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()

@@ -250,12 +250,18 @@ def _import_plugin(plugin: str) -> Callable[..., Any]:
             from exc
 
 
-def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None) -> Any:
+def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
+               lean: bool = False) -> Any:
     """Build one ROS node of a spec in this process, configured and activated if lifecycle.
 
     Parameters: the ``parameters_file`` first, then the inline ``parameters``, then ``extra``.
     The node class is built as ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r',
     '__node:=<name>'])``, so it must forward ``**kwargs`` to ``rclpy.node.Node.__init__``.
+
+    With ``lean`` the node offers no parameter services and (lifecycle nodes) no lifecycle
+    services: for a closed in-process rig that nothing outside calls (the simulated in-vitro
+    session). Every service is a wait-set entry that rclpy's executor rebuilds on every wait;
+    the rig's ~70 such services cost it ~10 % of its CPU.
     """
     from rclpy.parameter import Parameter
 
@@ -265,8 +271,15 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None) -> Any:
     params.update(spec_node.parameters)
     params.update(extra or {})
     cls = _import_plugin(spec_node.plugin)
+    options: dict[str, Any] = {}
+    if lean:
+        from rclpy.lifecycle import LifecycleNode
+
+        options['start_parameter_services'] = False
+        if isinstance(cls, type) and issubclass(cls, LifecycleNode):
+            options['enable_communication_interface'] = False
     node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-               cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'])
+               cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'], **options)
     if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
         node.trigger_configure()
         node.trigger_activate()

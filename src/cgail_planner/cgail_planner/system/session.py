@@ -150,7 +150,7 @@ class SimRig:
         from cgail_planner.system.launcher import build_node
 
         spec_node = next(n for n in self.spec.nodes if n.name == name)
-        node = build_node(spec_node, {**self.overrides.get(name, {}), **extra})
+        node = build_node(spec_node, {**self.overrides.get(name, {}), **extra}, lean=True)
         self.nodes[name] = node
         self.executor.add_node(node)
         return node
