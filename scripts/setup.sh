@@ -64,6 +64,8 @@ if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
     # 6. numba kernels and built-in anatomies into their disk caches (~1 min on a fresh clone,
     #    a few seconds after that), so no test deadline or first trial pays the compile.
     log "warm-up: numba kernels and anatomy caches"
+    # shellcheck disable=SC1091
+    source scripts/env.sh  # again: install/setup.bash exists only now on a fresh clone
     python -m cgail_planner.system.warmup >&2
 fi
 log "ready"
