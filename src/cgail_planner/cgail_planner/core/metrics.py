@@ -205,7 +205,8 @@ def compute_trial_metrics(trial: TrialData, config: MetricsConfig | None = None)
 
     path_t = np.asarray(trial.path_t, dtype=np.float64)
     pi = np.searchsorted(path_t, t, side='right') - 1
-    pi[pi >= 0] = np.where(path_t[pi[pi >= 0]] < goal_t[0], -1, pi[pi >= 0])  # stale paths
+    stale = path_t < goal_t[0]  # planned before this trial's goal: an earlier trial's path
+    pi[(pi >= 0) & stale[pi]] = -1
     errors = np.full(len(t), np.nan)
     length = math.nan
     for k in np.unique(pi[pi >= 0]):

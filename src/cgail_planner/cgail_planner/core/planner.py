@@ -267,13 +267,33 @@ def _wall_bvh(wall: object) -> tuple[np.ndarray, ...] | None:
 
     if not isinstance(wall, StaticWall):
         return None
-    # the wall keeps its tree private: the public ``bvh`` is preferred where it exists
-    bvh = getattr(wall, "bvh", None) or getattr(wall, "_bvh", None)
+    bvh = wall.bvh
     if not isinstance(bvh, WallBVH):
         return None
     wall.raycast(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), 1e-3)
     nmin, nmax, left, right, start, count, order, _fitted, _n_nodes = bvh.tree
     return (bvh.vertices, bvh.faces, order, nmin, nmax, left, right, start, count)
+
+
+def pose_observation(p: FloatArray, r: FloatArray, goal: FloatArray, hits: FloatArray,
+                     origin: FloatArray, d_max: float, position_scale: float,
+                     ray_length: float) -> NDArray[np.float32]:
+    """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of one tip
+    pose ``[r | p]`` towards ``goal``, with the ray hit distances ``hits`` (m) cast from it.
+
+    The single-pose form of :meth:`cgail_planner.sim.env.NavEngine.observe`, shared by the
+    planner and the evaluation's simulated tracker.
+    """
+    obs = np.empty(16 + len(hits), dtype=np.float32)
+    obs[0:3] = (p - origin) / position_scale
+    obs[3:12] = r.T.reshape(9)
+    vec = (goal - p) / d_max
+    obs[12] = math.sqrt(float(vec @ vec))
+    obs[13:16] = vec
+    obs[16:] = hits
+    obs[16:] *= 1.0 / ray_length
+    np.clip(obs[16:], 0.0, 1.0, out=obs[16:])
+    return obs
 
 
 def _bend_rotation(alpha: float, gamma: float) -> FloatArray:
@@ -370,16 +390,8 @@ class Planner:
                     hits: FloatArray) -> NDArray[np.float32]:
         """The environment's observation of tip pose ``[r | p]`` (layout in the module doc)."""
         cfg = self.config
-        obs = np.empty(self.obs_dim, dtype=np.float32)
-        obs[0:3] = (p - self.world.origin) / cfg.position_scale
-        obs[3:12] = r.T.reshape(9)
-        vec = (goal - p) / self.world.d_max
-        obs[12] = math.sqrt(float(vec @ vec))
-        obs[13:16] = vec
-        obs[16:] = hits
-        obs[16:] *= 1.0 / cfg.ray_length
-        np.clip(obs[16:], 0.0, 1.0, out=obs[16:])
-        return obs
+        return pose_observation(p, r, goal, hits, self.world.origin, self.world.d_max,
+                                cfg.position_scale, cfg.ray_length)
 
     @property
     def uses_kernel(self) -> bool:

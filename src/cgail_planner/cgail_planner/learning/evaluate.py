@@ -93,20 +93,15 @@ def observation_at(env: Any, p: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of env 0 as if
     its tip were at ``(p, R)``: the rays are cast against the wall's current shape from that
     pose. With the true pose it equals the env's own observation (tested)."""
-    from cgail_planner.sim.env import N_RAYS, OBS_DIM, RAY_DIRECTIONS
+    from cgail_planner.core.planner import pose_observation
+    from cgail_planner.sim.env import N_RAYS, RAY_DIRECTIONS
 
     eng = env.unwrapped.engine
     cfg, sc = eng.config, eng.scenarios
-    obs = np.empty(OBS_DIM, dtype=np.float32)
-    obs[0:3] = (p - sc.origin) / cfg.position_scale
-    obs[3:12] = r.T.reshape(9)
-    vec = (eng.target[0] - p) / sc.d_max
-    obs[12] = np.linalg.norm(vec)
-    obs[13:16] = vec
-    dirs = RAY_DIRECTIONS @ r.T
-    hits = eng.walls[0].raycast(np.repeat(p[None], N_RAYS, axis=0), dirs, cfg.ray_length)
-    obs[16:] = np.clip(np.asarray(hits) / cfg.ray_length, 0.0, 1.0)
-    return obs
+    hits = eng.walls[0].raycast(np.repeat(p[None], N_RAYS, axis=0), RAY_DIRECTIONS @ r.T,
+                                cfg.ray_length)
+    return pose_observation(p, r, eng.target[0], hits, sc.origin, sc.d_max,
+                            cfg.position_scale, cfg.ray_length)
 
 
 @dataclass

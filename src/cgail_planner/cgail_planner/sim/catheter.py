@@ -348,9 +348,8 @@ class CatheterBatch:
             self.n_nodes[idx] += 1
             applied_dl[idx] = dl[idx]
 
-        if back.any():
-            for i in np.flatnonzero(back):
-                applied_dl[i] = -self._retract(int(i), float(-dl[i]))
+        for i in np.flatnonzero(back):
+            applied_dl[i] = -self._retract(int(i), float(-dl[i]))
         applied_al = np.where(fwd, al, 0.0)
         applied_ga = np.where(fwd, ga, 0.0)
         return applied_al, applied_ga, applied_dl

@@ -96,6 +96,13 @@ class StaticWall:
         if pts.shape[0]:
             _check_finite_scalar("body_radius", body_radius, positive=True)
 
+    @property
+    def bvh(self) -> WallBVH:
+        """The bounding-volume tree the wall casts rays on (for kernels that call the ray
+        kernel directly, e.g. the planner's rollout). A deformable wall refits it lazily: cast a
+        ray first to bring it up to date."""
+        return self._bvh
+
     def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
                 ) -> np.ndarray:
         """(R,) distance along each unit direction to the first wall hit, m.
