@@ -18,6 +18,7 @@ import json
 import threading
 import time
 
+import _localhost  # noqa: F401  (before rclpy starts: discovery on this machine only)
 from geometry_msgs.msg import PointStamped, PoseStamped
 import numpy as np
 import rclpy

@@ -15,6 +15,7 @@ import statistics
 import threading
 import time
 
+import _localhost  # noqa: F401  (before rclpy starts: discovery on this machine only)
 import can
 import numpy as np
 

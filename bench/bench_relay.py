@@ -8,6 +8,8 @@ from __future__ import annotations
 import time
 import uuid
 
+import _localhost  # noqa: F401  (before rclpy starts: discovery on this machine only)
+
 from catheter_driver.core.mechanism import SleeveMechanism
 from catheter_driver.core.relay import Phase, RelayConfig, RelayController
 from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand

@@ -22,6 +22,7 @@ import sys
 import tempfile
 import time
 
+import _localhost  # noqa: F401  (before rclpy starts: discovery on this machine only)
 from geometry_msgs.msg import PoseStamped
 import numpy as np
 import rclpy
