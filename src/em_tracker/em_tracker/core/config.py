@@ -48,6 +48,10 @@ class TrackerConfig:
     """Period of /diagnostics, s."""
     isolate_device: bool = True
     """Run ndicapi in a child process so a crash inside the C library cannot kill the node."""
+    poll_mode: str = 'thread'
+    """``'thread'``: a reader thread polls on the steady clock (a real rig). ``'clock'``: a
+    timer of the node's clock polls synchronously at ``rate_hz`` (the lockstep simulated rig,
+    where the node clock is simulated time; a slow reply then stalls the executor)."""
 
     def __post_init__(self) -> None:
         if not self.port:
@@ -58,6 +62,8 @@ class TrackerConfig:
             raise ValueError(f'tool_handle must be in 0..255, found {self.tool_handle!r}')
         if self.priority not in ('D', 'S', 'B'):
             raise ValueError(f"priority must be 'D', 'S' or 'B', found {self.priority!r}")
+        if self.poll_mode not in ('thread', 'clock'):
+            raise ValueError(f"poll_mode must be 'thread' or 'clock', found {self.poll_mode!r}")
         for entry in self.srom_files:
             handle, _, path = entry.partition(':')
             if len(handle) != 2 or not path or not all(c in '0123456789abcdefABCDEF'

@@ -13,10 +13,13 @@ A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and act
 * ``on_shutdown`` / ``on_error`` / ``destroy_node``: stop the reader (TSTOP) and release, in
   any state.
 
-The reader thread (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) owns every blocking
-serial call: start-up sequence, polling at the device frame rate, validation and conversion,
-reconnects with exponential backoff. It hands poses to the executor through a deque and a guard
-condition; the link state is published on ``/diagnostics``.
+The link (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) runs the start-up sequence, polls
+at the device frame rate, validates and converts, and reconnects with exponential backoff. With
+``poll_mode: thread`` (default, a real rig) a reader thread owns every blocking serial call and
+hands poses to the executor through a deque and a guard condition. With ``poll_mode: clock``
+(the lockstep simulated rig) a timer of the node clock polls once per frame period and
+publishes in the same callback, stamped with the node clock: the poses are then a function of
+simulated time only. The link state is published on ``/diagnostics``.
 """
 
 from __future__ import annotations
@@ -76,6 +79,8 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
     'isolate_device': (_DEFAULTS.isolate_device,
                        'run ndicapi in a child process (a crash there cannot kill the node)',
                        None),
+    'poll_mode': (_DEFAULTS.poll_mode, "'thread': reader thread on the steady clock (a rig); "
+                  "'clock': node-clock timer, synchronous (lockstep simulated rig)", None),
 }
 
 
@@ -128,6 +133,8 @@ class AuroraNode(LifecycleNode):
         self._diag_pub: LifecyclePublisher | None = None
         self._guard: GuardCondition | None = None
         self._diag_timer: Timer | None = None
+        self._poll_timer: Timer | None = None
+        self._clocked = self.config.poll_mode == 'clock'
 
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:
@@ -138,7 +145,10 @@ class AuroraNode(LifecycleNode):
                                                         qos_profile_sensor_data)
         self._diag_pub = self.create_lifecycle_publisher(DiagnosticArray, '/diagnostics',
                                                          QoSProfile(depth=10))
-        self._guard = self.create_guard_condition(self._on_new_pose)
+        if self._clocked:
+            self._poll_timer = self.create_timer(1.0 / self.config.rate_hz, self._on_poll_timer)
+        else:
+            self._guard = self.create_guard_condition(self._on_new_pose)
         self._diag_timer = self.create_timer(self.config.diagnostics_period_s,
                                              self._on_diagnostics_timer)
         self.get_logger().info(f'configured for the Aurora on {self.config.port}')
@@ -151,7 +161,8 @@ class AuroraNode(LifecycleNode):
                                  self._on_link_warning)
         self.health = self._loop.health
         self._health_lock = self._loop.lock
-        self._loop.start()
+        if not self._clocked:
+            self._loop.start()
         self.get_logger().info('active: tracking started')
         return super().on_activate(state)
 
@@ -184,9 +195,10 @@ class AuroraNode(LifecycleNode):
 
     def _release(self) -> None:
         """Destroy the configured entities and close the device; idempotent."""
-        if self._diag_timer is not None:
-            self.destroy_timer(self._diag_timer)
-            self._diag_timer = None
+        for timer in (self._diag_timer, self._poll_timer):
+            if timer is not None:
+                self.destroy_timer(timer)
+        self._diag_timer = self._poll_timer = None
         if self._guard is not None:
             self.destroy_guard_condition(self._guard)
             self._guard = None
@@ -223,18 +235,36 @@ class AuroraNode(LifecycleNode):
             reconnect_max_s=get('reconnect_max_s').value,
             stale_after_s=get('stale_after_s').value,
             diagnostics_period_s=get('diagnostics_period_s').value,
-            isolate_device=get('isolate_device').value)
+            isolate_device=get('isolate_device').value, poll_mode=get('poll_mode').value)
 
     # ------------------------------------------------------------------ executor callbacks
+    def _now(self) -> float:
+        """Seconds on the clock the link runs on: the node clock in clock mode, else steady."""
+        if self._clocked:
+            return self.get_clock().now().nanoseconds * 1e-9
+        return time.monotonic()
+
+    def _on_poll_timer(self) -> None:
+        """Clock mode: one poll (after connecting, if the link is down and a retry is due),
+        then publish what it read."""
+        if self._loop is None:
+            return
+        now = self._now()
+        connecting = not self._loop.tracking
+        self._loop.step(now)
+        if connecting and self._loop.tracking:
+            self._loop.step(now)
+        self._on_new_pose()
+
     def _on_new_pose(self) -> None:
         if self._loop is None or self._pose_pub is None or self._rms_pub is None:
             self._queue.clear()
             return
         now_ros = self.get_clock().now()
-        now_mono = time.monotonic()
+        now_link = self._now()
         while self._queue:
             pose, host_time = self._queue.popleft()
-            age_ns = int(max(0.0, now_mono - host_time) * 1e9)
+            age_ns = int(max(0.0, now_link - host_time) * 1e9)
             # clamped: under use_sim_time the clock can be younger than the frame's wall age
             stamp = rclpy.time.Time(nanoseconds=max(0, now_ros.nanoseconds - age_ns),
                                     clock_type=now_ros.clock_type).to_msg()
@@ -247,7 +277,7 @@ class AuroraNode(LifecycleNode):
         if self._loop is None or self._diag_pub is None:
             return  # inactive: nothing is published
         with self._health_lock:
-            level, message = self.health.level(time.monotonic(), self.config.stale_after_s)
+            level, message = self.health.level(self._now(), self.config.stale_after_s)
             values = self.health.values()
         values['port'] = self.config.port
         values['protocol'] = 'BX' if self.config.use_bx else 'TX'
