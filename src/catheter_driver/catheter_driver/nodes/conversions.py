@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 import math
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -97,3 +99,10 @@ def diagnostics(stamp: Time, name: str, hardware_id: str, level: bytes, message:
     array.header.stamp = stamp.to_msg()
     array.status = [status]
     return array
+
+
+def node_seconds(node: Node) -> float:
+    """Seconds for watchdogs and timeouts: the node clock when it runs on simulated time (the
+    lockstep rig, ``use_sim_time``), else the steady clock (immune to system-time jumps)."""
+    clock = node.get_clock()
+    return clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.monotonic()

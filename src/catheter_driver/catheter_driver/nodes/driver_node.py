@@ -18,8 +18,6 @@ A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and act
 
 from __future__ import annotations
 
-import time
-
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -137,7 +135,7 @@ class DriverNode(LifecycleNode):
                                        codec=self._codec).start()
         self._backoff.reset()
         self._next_attempt = 0.0
-        self._open(time.monotonic())
+        self._open(conv.node_seconds(self))
         self._state_pub = self.create_lifecycle_publisher(
             JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
         self._diag_pub = self.create_lifecycle_publisher(
@@ -200,7 +198,7 @@ class DriverNode(LifecycleNode):
         try:
             self._link.send_command(DriverCommand(0.0, True, True))
         except (DeviceDisconnectedError, ProtocolError) as exc:
-            self._drop(time.monotonic(), str(exc))
+            self._drop(conv.node_seconds(self), str(exc))
 
     def _release(self) -> None:
         """Destroy the configured entities, close the bus, stop the simulated device."""
@@ -242,7 +240,7 @@ class DriverNode(LifecycleNode):
                                       throttle_duration_sec=1.0)
             return
         self._velocity_cmd = velocity
-        self._watchdog.feed(time.monotonic())
+        self._watchdog.feed(conv.node_seconds(self))
 
     def _on_estop(self, request: SetBool.Request, response: SetBool.Response):
         self._estop = bool(request.data)
@@ -258,7 +256,7 @@ class DriverNode(LifecycleNode):
         return response
 
     def _on_control(self) -> None:
-        now = time.monotonic()
+        now = conv.node_seconds(self)
         if self._link is None and not self._open(now):
             return
         assert self._link is not None
@@ -349,7 +347,7 @@ class DriverNode(LifecycleNode):
 
     def diagnostics_message(self) -> DiagnosticArray:
         """The current /diagnostics array (one status for the sleeve driver)."""
-        now = time.monotonic()
+        now = conv.node_seconds(self)
         fb, ctrl = self._feedback, self._controller
         connected = self._link is not None and fb is not None
         fault = ctrl.fault if ctrl is not None else None

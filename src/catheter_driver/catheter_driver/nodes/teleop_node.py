@@ -6,8 +6,6 @@ Run: ``ros2 run catheter_driver teleop_node`` (or ``scripts/ws teleop_node``). S
 
 from __future__ import annotations
 
-import time
-
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -57,14 +55,14 @@ class TeleopNode(Node):
 
     def _on_joy(self, msg: Joy) -> None:
         try:
-            out = self.teleop.on_joy(list(msg.axes), list(msg.buttons), time.monotonic())
+            out = self.teleop.on_joy(list(msg.axes), list(msg.buttons), conv.node_seconds(self))
         except CommandError as exc:
             self.get_logger().warning(f'Joy message rejected: {exc}', throttle_duration_sec=1.0)
             out = self.teleop.on_invalid()
         self._publish(out)
 
     def _on_tick(self) -> None:
-        out = self.teleop.on_tick(time.monotonic())
+        out = self.teleop.on_tick(conv.node_seconds(self))
         if out.insertion_velocity is not None:
             self.get_logger().warning('Joy went stale while enabled: stop sent')
         self._publish(out)

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 import math
+import time
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 import numpy as np
 from numpy.typing import NDArray
+from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
@@ -68,3 +70,10 @@ def diagnostic_status(name: str, hardware_id: str, level: bytes, message: str,
 
     return DiagnosticStatus(level=level, name=name, hardware_id=hardware_id, message=message,
                             values=[KeyValue(key=k, value=fmt(v)) for k, v in values])
+
+
+def node_seconds(node: Node) -> float:
+    """Seconds for watchdogs and timeouts: the node clock when it runs on simulated time (the
+    lockstep rig, ``use_sim_time``), else the steady clock (immune to system-time jumps)."""
+    clock = node.get_clock()
+    return clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.monotonic()

@@ -8,7 +8,6 @@ Lifecycle node (``main`` configures and activates it). Topics, QoS and parameter
 from __future__ import annotations
 
 import math
-import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
@@ -110,7 +109,7 @@ class PamNode(LifecycleNode):
         self.diagnostics_period_s = p['diagnostics_period_s']
         # Checks the vent pressure against the limits now, so a bad one raises here.
         self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
-                                        time.monotonic())
+                                        conv.node_seconds(self))
         self.sim: SimRegulatorBank | None = None
         self.bank = CanRegulatorBank(self.link.interface, self.link.channel, self.link.bitrate)
         self.backoff = Backoff(self.link.reconnect_initial_s, self.link.reconnect_max_s)
@@ -163,7 +162,7 @@ class PamNode(LifecycleNode):
 
     def on_activate(self, state: State) -> TransitionCallbackReturn:
         self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
-                                        time.monotonic())
+                                        conv.node_seconds(self))
         self._reset_link_state()
         self._active = True
         sim = ' (simulated regulator bank in-process)' if self.sim is not None else ''
@@ -224,7 +223,7 @@ class PamNode(LifecycleNode):
             self._log_rejection(err)
             return
         try:
-            self.supervisor.command(bend, time.monotonic())
+            self.supervisor.command(bend, conv.node_seconds(self))
         except CommandRejectedError as err:
             self._log_rejection(err)
 
@@ -254,7 +253,7 @@ class PamNode(LifecycleNode):
                 self.bank.send_heartbeat(mode)
                 self.bank.send_setpoints(np.full(4, self.supervisor_config.vent_pressure_pa))
         except DeviceUnavailableError as err:
-            self._link_failed(str(err), time.monotonic())
+            self._link_failed(str(err), conv.node_seconds(self))
 
     def _link_failed(self, reason: str, now: float) -> None:
         self.link_error = reason
@@ -266,7 +265,7 @@ class PamNode(LifecycleNode):
     def _on_control_timer(self) -> None:
         if not self._active:
             return
-        now = time.monotonic()
+        now = conv.node_seconds(self)
         if not self.bank.is_open and self.backoff.due(now):
             try:
                 self.bank.open()
@@ -351,7 +350,7 @@ class PamNode(LifecycleNode):
             ('malformed_frames_total', self.bank.bad_frames_total),
             ('lost_frames_total', self.bank.lost_frames),
             ('reconnect_attempts', self.backoff.attempts),
-            ('next_retry_s', self.backoff.seconds_to_next(time.monotonic())),
+            ('next_retry_s', self.backoff.seconds_to_next(conv.node_seconds(self))),
         ]
         self.bad_frames_recent = 0
         return conv.diagnostic_status('pam_controller: regulator bank',
