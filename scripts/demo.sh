@@ -11,11 +11,11 @@ cd "$WS"
 bash scripts/setup.sh
 # shellcheck disable=SC1091
 source scripts/env.sh
-# A domain of its own, so a demo never talks to a test run or another demo on this machine.
-if [ "${ROS_DOMAIN_ID:-0}" = 0 ]; then export ROS_DOMAIN_ID=$(( (RANDOM % 42) + 60 )); fi
+# The session runs every trial on a free ROS domain of its own (or on ROS_DOMAIN_ID if you set
+# it), and refuses a domain where a rig's device nodes answer.
 args=("$@")
 if ! printf '%s\n' "${args[@]}" | grep -q -- '^--out'; then
     args+=(--out runs/invitro_session)
 fi
-echo "[demo] simulated in-vitro session (ROS_DOMAIN_ID=$ROS_DOMAIN_ID); Ctrl-C stops it cleanly"
+echo "[demo] simulated in-vitro session; Ctrl-C stops it and evaluates the trials done so far"
 exec "$WS/scripts/ros2run" cgail_planner invitro_session "${args[@]}"

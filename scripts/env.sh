@@ -10,8 +10,9 @@
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_STATIC_PEERS=""
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
-# Domain 0 unless the caller chose one (the test command picks a random one per run).
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-0}"
+# ROS_DOMAIN_ID is left as the caller set it (unset: ROS's default, domain 0). The simulated
+# session picks a free domain of its own unless it is set, and refuses a domain where a rig's
+# device nodes answer (cgail_planner/system/domain.py); the test command holds one per run.
 # Headless defaults for matplotlib / SDL (gamepad) so nothing opens a window.
 export MPLBACKEND="${MPLBACKEND:-Agg}"
 export SDL_VIDEODRIVER="${SDL_VIDEODRIVER:-dummy}"

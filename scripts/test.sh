@@ -19,10 +19,29 @@ if ! command -v chromium >/dev/null 2>&1 && [ -z "${CGAIL_NO_APT:-}" ] \
         >/dev/null) || echo "[test] warning: could not install chromium; the browser test will skip"
 fi
 
-# A per-run DDS domain, so parallel runs on one machine never see each other.
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( (RANDOM % 50) + 10 ))}"
 # shellcheck disable=SC1091
 source scripts/env.sh
+# A DDS domain of this run's own, held (flock) until the run ends, so parallel runs and
+# simulated sessions on one machine never see each other (cgail_planner/system/domain.py).
+if [ -z "${ROS_DOMAIN_ID:-}" ]; then
+    lock_dir="${XDG_RUNTIME_DIR:-/tmp}/cgail_ros_domains"
+    mkdir -p "$lock_dir"
+    for id in $(seq 1 101); do
+        exec {domain_fd}>>"$lock_dir/$id.lock"
+        if flock -n "$domain_fd"; then
+            if [ -z "$(python -m cgail_planner.system.domain --probe "$id")" ]; then
+                echo "$$" > "$lock_dir/$id.lock"
+                export ROS_DOMAIN_ID=$id
+                break
+            fi
+        fi
+        exec {domain_fd}>&-
+    done
+    if [ -z "${ROS_DOMAIN_ID:-}" ]; then
+        echo "[test] error: expected a free ROS domain in 1..101, found none" >&2
+        exit 1
+    fi
+fi
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"
 
 marker=()
