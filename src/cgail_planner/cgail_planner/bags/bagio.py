@@ -15,6 +15,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 import struct
+from typing import Any
 
 from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
@@ -176,3 +177,20 @@ def iter_raw(
                 raise BagError(f'{reader.path}: truncated or corrupt bag, topic {conn.topic}: '
                                f'expected {conn.msgcount} messages (bag index), read '
                                f'{counts[conn.id]}')
+
+
+def content_digest(path: Path | str) -> dict[str, tuple[int, str]]:
+    """Per topic: the number of messages and a SHA-256 of their log times and CDR bytes, in
+    log-time order. Two bags with equal digests hold the same messages, however their MCAP
+    chunks were laid out (what a deterministic simulated session must reproduce)."""
+    import hashlib
+
+    digests: dict[str, Any] = {}
+    counts: dict[str, int] = {}
+    with open_bag(path) as reader:
+        for conn, timestamp, raw in iter_raw(reader):
+            h = digests.setdefault(conn.topic, hashlib.sha256())
+            h.update(timestamp.to_bytes(8, 'little', signed=True))
+            h.update(bytes(raw))
+            counts[conn.topic] = counts.get(conn.topic, 0) + 1
+    return {t: (counts[t], digests[t].hexdigest()) for t in sorted(digests)}

@@ -82,6 +82,8 @@ class BagRecorder:
         # Relative names resolve against the root namespace, as for `ros2 bag record`.
         self._wanted_names = {'/' + t.lstrip('/') for t in config.topics}
         self._received = 0
+        self.counts: dict[str, int] = {}
+        """Messages received per topic."""
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._write_loop, name='bag_writer', daemon=True)
         self._thread.start()
@@ -121,8 +123,11 @@ class BagRecorder:
                 continue
             self._queue.put(('add', topic, (msgtype, offered)))
 
+            self.counts[topic] = 0
+
             def callback(data: bytes, topic: str = topic) -> None:
                 self._received += 1
+                self.counts[topic] += 1
                 self._queue.put(('msg', topic, (self._node.get_clock().now().nanoseconds, data)))
 
             self._subs[topic] = self._node.create_subscription(

@@ -18,11 +18,17 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   the measured ``catheter/bend_state`` (per inserted dl the heading turns by bend * dl / L), the
   wall (static, or deformable + heartbeat) constrains it.
 
-Time: one steady-clock timer steps devices and physics by ``1 / physics_rate_hz`` simulated
-seconds every ``1 / (physics_rate_hz * time_scale)`` wall seconds. With ``publish_clock`` the
-simulated time goes out on ``/clock`` and the other nodes run with ``use_sim_time``, so the whole
-rig runs ``time_scale`` times faster than real time (it slows down, never takes bigger steps, when
-the CPU cannot keep up).
+Time, two ways:
+
+* ``lockstep: true`` (``invitro_session``): the lockstep executor
+  (:mod:`cgail_planner.system.lockstep`) owns the simulated clock of every node of the rig and
+  calls :meth:`PhantomNode.advance` at the start of each tick; stamps are the node clock
+  (simulated time from 0). Results are then a function of seed and configuration only.
+* otherwise (``rig_launch ... --in-process``): one steady-clock timer steps devices and physics
+  by ``1 / physics_rate_hz`` simulated seconds every ``1 / (physics_rate_hz * time_scale)`` wall
+  seconds. With ``publish_clock`` the simulated time goes out on ``/clock`` and the other nodes
+  run with ``use_sim_time``, so the rig runs ``time_scale`` times faster than real time (it slows
+  down, never takes bigger steps, when the CPU cannot keep up).
 """
 
 from __future__ import annotations
@@ -81,6 +87,9 @@ class PhantomNode(Node):
                                        'second', lo=0.01, hi=100.0)
         self.publish_clock = conv.declare(self, 'publish_clock', False,
                                           'publish the simulated time on /clock')
+        self.lockstep = conv.declare(self, 'lockstep', False, 'stepped by the lockstep '
+                                     'executor (advance() each tick, node-clock stamps) instead '
+                                     'of its own steady-clock timer')
         link = conv.declare(self, 'aurora_link', '', 'symlink to the simulated Aurora pty '
                             "('' = <tmp>/cgail_sim_aurora_<pid>)")
         sim_aurora = conv.declare(self, 'simulate_aurora', True, 'host the simulated Aurora')
@@ -116,9 +125,10 @@ class PhantomNode(Node):
         self.insertion: float | None = None
         self.bend = (0.0, 0.0)
         self.sim_time = 0.0
-        # simulated time starts at the wall-clock time of construction (stamps look like the
-        # rig's; nodes that subtract a wall-clock age from a stamp never go below zero)
-        self._clock_offset = time.time()
+        # free-running: simulated time starts at the wall-clock time of construction (stamps
+        # look like the rig's; nodes that subtract a wall-clock age from a stamp never go below
+        # zero). Lockstep: the node clock is the simulated time, from 0.
+        self._clock_offset = 0.0 if self.lockstep else time.time()
         self._em_cache: tuple[float, np.ndarray, np.ndarray] | None = None
         self.reset_trial(self.start_id, self.target_id)
 
@@ -154,9 +164,12 @@ class PhantomNode(Node):
         self._port_pub.publish(String(data=self.aurora_port))
         self._ticks = 0
         self.publish_target()
-        steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
-        self.create_timer(diag_period, self._on_diagnostics, clock=steady)
+        if self.lockstep:
+            self.create_timer(diag_period, self._on_diagnostics)
+        else:
+            steady = Clock(clock_type=ClockType.STEADY_TIME)
+            self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
+            self.create_timer(diag_period, self._on_diagnostics, clock=steady)
         self.get_logger().info(
             f'phantom: {anatomy} ({self.mode}), start {self.start_id}, target {self.target_id}, '
             f'aurora port {self.aurora_port or "-"}, x{self.time_scale:g} time'
@@ -185,7 +198,9 @@ class PhantomNode(Node):
         return wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
 
     def now_msg(self):
-        """Stamp of the simulated time (or the node clock when not publishing /clock)."""
+        """Stamp of the simulated time (the node clock in lockstep)."""
+        if self.lockstep:
+            return self.get_clock().now().to_msg()
         return Time(nanoseconds=int((self.sim_time + self._clock_offset) * 1e9)).to_msg()
 
     # ------------------------------------------------------------------ callbacks
@@ -211,14 +226,24 @@ class PhantomNode(Node):
         return response
 
     def _on_tick(self) -> None:
-        dt = self.physics_dt
+        self.advance(self.physics_dt)
+
+    def advance(self, dt: float) -> None:
+        """Step the simulated devices and the physics by ``dt`` simulated seconds, then publish
+        the clock (``publish_clock``), the true pose and, in dynamic mode, the target.
+
+        In lockstep the executor has already moved the node clock to the end of the step.
+        """
         if self.bank is not None:
             self.bank.step(dt)
         if self.driver is not None:
             self.driver.step(dt)
         with self._lock:
             self.physics.step(dt, self.insertion, self.bend)
-            self.sim_time += dt
+            if self.lockstep:
+                self.sim_time = self.get_clock().now().nanoseconds * 1e-9
+            else:
+                self.sim_time += dt
         stamp = self.now_msg()
         if self._clock_pub is not None:
             self._clock_pub.publish(ClockMsg(clock=stamp))

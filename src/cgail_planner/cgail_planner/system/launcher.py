@@ -251,17 +251,28 @@ def _import_plugin(plugin: str) -> Callable[..., Any]:
 
 
 def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
-               lean: bool = False) -> Any:
+               lean: bool = False, *, context: Any = None,
+               prepare: Callable[[Any], None] | None = None) -> Any:
     """Build one ROS node of a spec in this process, configured and activated if lifecycle.
 
     Parameters: the ``parameters_file`` first, then the inline ``parameters``, then ``extra``.
     The node class is built as ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r',
     '__node:=<name>'])``, so it must forward ``**kwargs`` to ``rclpy.node.Node.__init__``.
 
-    With ``lean`` the node offers no parameter services and (lifecycle nodes) no lifecycle
-    services: for a closed in-process rig that nothing outside calls (the simulated in-vitro
-    session). Every service is a wait-set entry that rclpy's executor rebuilds on every wait;
-    the rig's ~70 such services cost it ~10 % of its CPU.
+    With ``lean`` the node offers no parameter services, no ``/rosout`` publisher and
+    (lifecycle nodes) no lifecycle services: for a closed in-process rig that nothing outside
+    calls (the simulated in-vitro session; its node logs go to the log file). Every service is
+    an entity an executor has to watch; the rig's ~70 such services cost rclpy's executor
+    ~10 % of its CPU.
+
+    Args:
+        spec_node: the node's entry of the launch file.
+        extra: parameters over the file's.
+        lean: as above.
+        context: the rclpy context of the node (default: the global one).
+        prepare: called with the node after construction, before configure/activate (the
+            lockstep executor attaches the node's clock there, so activation already reads
+            simulated time).
     """
     from rclpy.parameter import Parameter
 
@@ -272,14 +283,19 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
     params.update(extra or {})
     cls = _import_plugin(spec_node.plugin)
     options: dict[str, Any] = {}
+    if context is not None:
+        options['context'] = context
     if lean:
         from rclpy.lifecycle import LifecycleNode
 
         options['start_parameter_services'] = False
+        options['enable_rosout'] = False
         if isinstance(cls, type) and issubclass(cls, LifecycleNode):
             options['enable_communication_interface'] = False
     node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
                cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'], **options)
+    if prepare is not None:
+        prepare(node)
     if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
         node.trigger_configure()
         node.trigger_activate()

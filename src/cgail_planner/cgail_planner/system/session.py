@@ -3,46 +3,65 @@
     scripts/ros2run cgail_planner invitro_session --out runs/invitro     # the paper's protocol
     scripts/ws python -m cgail_planner.system.session --trials 2 --policy model.onnx --mode dynamic
 
-The whole simulated rig runs in THIS process (python-can virtual buses only connect objects of one
-process), built from ``config/launch/sim_rig.yaml`` like the launcher's ``--in-process`` mode:
-``phantom`` (simulated Aurora on a pty, regulator bank and sleeve driver on virtual CAN, the
-catheter-in-aorta physics), the real ``aurora`` (ndicapi over the pty), ``pam_controller``,
-``sleeve_driver``, ``teleop``, ``planner`` and the scripted ``operator``, on one executor
-(``SingleThreadedExecutor`` by default, ``--threads``). Protocol: ``--trials`` trials following
-the C-GAIL path, then as many following the centerline (``planner_type: centerline``), cycling
-the 3 starts and 5 targets. Before each trial the catheter is reloaded (phantom reset to the
-start pose, sleeve driver re-homed, a fresh planner); a trial ends when the operator stops
-(target reached, or closest approach passed) or at the 3-minute limit, and is recorded to its
-own bag (``cgail_planner.bags`` recorder). Then the offline metrics (``bag_metrics``) print the
-markdown table with the paper's in-vitro numbers side by side and write the box plots.
+**Protocol.** ``--trials`` trials following the C-GAIL path, then as many following the
+centerline (``planner_type: centerline``); trial ``k`` of a condition starts at start
+``k mod 3`` with target ``k mod 5``. Each trial runs on a rig of its own, built from
+``config/launch/sim_rig.yaml``: ``phantom`` (the catheter-in-aorta physics, a simulated Aurora
+on a pty, the regulator bank and the sleeve driver on virtual CAN), the real ``aurora`` node
+(ndicapi over the pty), ``pam_controller``, ``sleeve_driver``, ``teleop``, ``planner`` and the
+scripted ``operator`` at the gamepad. After 1 s of simulated time (the tracker connects, the
+first poses arrive) the goal is published; the trial ends when the operator stops (target
+reached, or closest approach passed) or at the 3-minute limit, and is recorded to its own bag.
+Then the offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro
+numbers side by side and write the box plots.
 
-**Time acceleration.** 20 trials of up to 3 minutes cannot run in real time, so the rig runs on
-simulated time: the phantom steps the physics and the simulated devices by fixed simulated
-increments, ``--time-scale`` (default 6) times faster than the wall clock, and publishes
-``/clock``; every node runs with ``use_sim_time``, so their timers, stamps, the operator's
-reaction delay and the 3-minute limit are in simulated seconds. The real nodes and the real
-protocols stay in the loop (ndicapi over the pty, CAN frames, Joy -> teleop -> commands). What
-does not scale by itself is set accordingly: the tracker polls the simulated Aurora on the wall
-clock, so its ``rate_hz`` is ``--tracker-rate`` (40) times the time scale; the rig nodes' own
-watchdogs use wall-clock time (they are only stricter in simulated time). When the CPU cannot
-keep up, simulated time slows down rather than taking bigger steps.
+**Simulated time is the only time** (:mod:`cgail_planner.system.lockstep`). The rig's nodes run
+on one lockstep executor that owns their clocks: a tick advances the simulated clock by
+``1 / --physics-rate`` s, steps the phantom, fires the due timers and returns only when every
+message of the tick has been handled. The simulated devices are stepped by the phantom, the
+Aurora node polls from a timer of its clock (``poll_mode: clock``), and every watchdog reads
+the node clock. A trial is therefore a function of the configuration and of its seed
+(``--seed`` with the condition and trial index), never of the host: the same command gives the
+same bags and metrics at any load, in any order and in any worker. It runs as fast as the CPU
+allows (``--time-scale`` caps it, e.g. 1 to watch it live with ``--gui``).
+
+**Parallel trials.** ``--jobs N`` (default: the number of CPUs) runs the trials in N worker
+processes, each with its own rig, ROS domain and time source; the results equal ``--jobs 1``.
+
+**Isolation** (:mod:`cgail_planner.system.domain`). Every rig runs on a ROS domain of its own:
+a free one picked automatically and printed, or ``ROS_DOMAIN_ID`` if set (then the trials run
+one at a time on it). A session refuses to start on a domain where device nodes (``aurora``,
+``pam_controller``, ``sleeve_driver``) answer that it did not start: a simulated session must
+never command a real rig.
+
+**Console.** One line per trial, then the table; the nodes' logs go to ``<out>/logs/``.
 """
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Callable, Sequence
+import concurrent.futures
+from dataclasses import dataclass, field
+import multiprocessing
 import os
 from pathlib import Path
+import shutil
+import signal
 import sys
 import tempfile
-import threading
 import time
 from typing import Any
 
 TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
           'planner/suggested_bend', 'phantom/tip_pose')
 CONDITIONS = ('cgail', 'centerline')
+#: Simulated seconds between the rig's start and the goal (the tracker connects, poses flow).
+SETTLE_S = 1.0
+#: Simulated seconds recorded after the operator stopped.
+TAIL_S = 0.2
+#: ros-args of every rig context: node logs go to the log file only.
+ROS_ARGS = ['--ros-args', '--disable-stdout-logs', '--disable-rosout-logs']
 
 
 def default_launch_file() -> Path:
@@ -68,199 +87,328 @@ def default_policy(anatomy: str = 'default', mode: str = 'static') -> Path:
     return path if path.is_file() else models / f'cgail_{anatomy}_static.onnx'
 
 
-class SimRig:
-    """The simulated rig's nodes in this process, spinning on a background executor.
+@dataclass(frozen=True)
+class SessionSettings:
+    """What every trial of a session shares (picklable: it goes to the worker processes)."""
+
+    anatomy: str = 'default'
+    """Built-in anatomy name."""
+    mode: str = 'static'
+    """'static' (rigid phantom) or 'dynamic' (deformable beating wall, moving target)."""
+    policy: str = ''
+    """ONNX C-GAIL policy of the cgail condition."""
+    time_limit: float = 180.0
+    """Trial time limit, simulated s (paper: 180)."""
+    physics_rate: float = 50.0
+    """Lockstep tick rate = phantom physics and simulated devices, Hz of simulated time."""
+    tracker_rate: float = 40.0
+    """EM tracker frame rate, Hz of simulated time (the Aurora: 40)."""
+    launch_file: str = ''
+    """Rig launch YAML; '' = the package's sim_rig.yaml."""
+    time_scale: float = 0.0
+    """At most this many simulated seconds per wall second; 0 = as fast as the CPU allows."""
+    gui: bool = False
+    """Also run the guidance GUI (gui_node) in the rig."""
+    gui_port: int = 8780
+    """Port of the guidance GUI."""
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial: its condition, index, start, target, seed and bag."""
+
+    condition: str
+    index: int
+    """0-based index within the condition."""
+    start_id: int
+    target_id: int
+    seed: int
+    """Seed of the EM noise and of the operator's stick noise of this trial."""
+    bag: str
+
+    @property
+    def label(self) -> str:
+        """``<condition>_<nn>``, as the bag is named."""
+        return f'{self.condition}_{self.index + 1:02d}'
+
+
+@dataclass
+class TrialResult:
+    """What a trial produced (besides its bag)."""
+
+    spec: TrialSpec
+    outcome: str = ''
+    """The operator's reason to stop, or why the trial could not run."""
+    sim_s: float = 0.0
+    """Simulated seconds from the goal to the end of the trial."""
+    ticks: int = 0
+    wall_s: float = 0.0
+    domain_id: int = -1
+    messages: dict[str, int] = field(default_factory=dict)
+    """Recorded messages per topic."""
+    callback_errors: list[str] = field(default_factory=list)
+    unscheduled: int = 0
+    """Messages that reached the rig from outside it during the trial (0 when isolated)."""
+    failed: bool = False
+    """The trial could not run (rig error), as opposed to a trial outcome."""
+
+
+def trial_seed(seed: int, condition: str, index: int) -> int:
+    """Seed of one trial from the session seed: independent of the order trials run in."""
+    import numpy as np
+
+    entropy = [int(seed), CONDITIONS.index(condition) if condition in CONDITIONS else 99,
+               int(index)]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def plan_trials(conditions: Sequence[str], trials: int, seed: int, bags_dir: Path,
+                n_starts: int = 3, n_targets: int = 5) -> list[TrialSpec]:
+    """The session's trials in protocol order."""
+    return [TrialSpec(condition, k, k % n_starts, k % n_targets, trial_seed(seed, condition, k),
+                      str(bags_dir / condition / f'{condition}_{k + 1:02d}'))
+            for condition in conditions for k in range(trials)]
+
+
+class TrialRig:
+    """One trial's simulated rig: a fresh rclpy context on ``domain_id``, every node of the
+    launch file on a :class:`~cgail_planner.system.lockstep.LockstepExecutor`, a recorder.
 
     Args:
-        launch_file: the rig's launch YAML (``sim_rig.yaml``).
-        overrides: per node name, parameters applied over the launch file's.
-        threads: executor threads (1: SingleThreadedExecutor).
-        skip: nodes of the launch file not to start (e.g. ``gui`` unless asked for).
+        settings: the session's settings.
+        spec: the trial.
+        domain_id: the ROS domain of the rig.
     """
 
-    def __init__(self, launch_file: Path, overrides: dict[str, dict[str, Any]],
-                 threads: int = 1, skip: frozenset[str] = frozenset()) -> None:
+    def __init__(self, settings: SessionSettings, spec: TrialSpec, domain_id: int) -> None:
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+        from rclpy.signals import SignalHandlerOptions
 
         from cgail_planner.system.launch_spec import load_launch_file
+        from cgail_planner.system.launcher import build_node
+        from cgail_planner.system.lockstep import LockstepExecutor
 
-        spec = load_launch_file(launch_file)
-        self.spec = spec.select([n.name for n in spec.nodes if n.name not in skip])
-        self.overrides = overrides
-        rclpy.init()
-        self.executor = SingleThreadedExecutor() if threads == 1 \
-            else MultiThreadedExecutor(num_threads=threads)
+        self.settings, self.spec = settings, spec
+        self.context = rclpy.Context()
+        rclpy.init(args=ROS_ARGS, context=self.context, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
         self.nodes: dict[str, Any] = {}
-        self.errors: list[str] = []
-        self._spin_lock = threading.Lock()
-        self._stopping = threading.Event()
-        self._retired: dict[str, list[Any]] = {}
-        self._thread = threading.Thread(target=self._spin, name='rig_executor', daemon=True)
+        self.recorder: Any = None
+        self._tmp = tempfile.mkdtemp(prefix='cgail_trial_')
+        self.executor = LockstepExecutor(period_s=1.0 / settings.physics_rate)
         try:
-            first, *others = self.spec.nodes
-            phantom = self.add(first.name)
-            # the phantom's /clock runs before the other nodes exist, so none of them stamps
-            # anything with a simulated time of 0
-            self._thread.start()
-            if hasattr(phantom, 'sim_time'):
-                wait_until(lambda: phantom.sim_time > 0.2, 30.0)
-            for spec_node in others:
-                self.add(spec_node.name)
+            launch = load_launch_file(Path(settings.launch_file or default_launch_file()))
+            overrides = self._overrides(Path(self._tmp) / 'aurora')
+            for spec_node in launch.nodes:
+                if spec_node.name == 'gui' and not settings.gui:
+                    continue
+                self.nodes[spec_node.name] = build_node(
+                    spec_node, overrides.get(spec_node.name, {}), lean=True,
+                    context=self.context, prepare=self.executor.add_node)
+            self.phantom = self.nodes['phantom']
+            self.planner = self.nodes['planner']
+            self.operator = self.nodes['operator']
+            self.executor.add_hook(self.phantom.advance)
+            self.session = rclpy.create_node('session', context=self.context,
+                                             start_parameter_services=False,
+                                             enable_rosout=False)
+            self.executor.add_node(self.session)
+            self._start_recorder()
         except BaseException:
             self.close()
             raise
-        self.session = rclpy.create_node('session', parameter_overrides=[
-            rclpy.parameter.Parameter('use_sim_time', value=True)])
-        self.executor.add_node(self.session)
+
+    def _overrides(self, link: Path) -> dict[str, dict[str, Any]]:
+        s, spec = self.settings, self.spec
+        control = s.physics_rate / 2.0  # host control loops: every second tick
+        return {
+            'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
+                        'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
+                        'start_id': spec.start_id, 'target_id': spec.target_id},
+            'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
+            'pam_controller': {'control_rate_hz': control},
+            'sleeve_driver': {'control_rate_hz': control},
+            'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,
+                        'planner_type': spec.condition},
+            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed},
+            'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
+        }
+
+    def _start_recorder(self) -> None:
         from geometry_msgs.msg import PoseStamped
 
+        from cgail_planner.bags.record import BagRecorder, RecorderConfig
         from cgail_planner.nodes import conversions as conv
 
         self._goal_pub = self.session.create_publisher(PoseStamped, 'planner/goal',
                                                        conv.COMMAND_QOS)
+        self.recorder = BagRecorder(self.session, RecorderConfig(
+            output=Path(self.spec.bag), topics=TOPICS, condition=self.spec.condition))
+        # discovery of the rig's own publishers takes wall time, not simulated time
+        deadline = time.monotonic() + 30.0
+        while len(self.recorder.topics) < len(TOPICS):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'expected the recorder to find {list(TOPICS)} within 30 s, '
+                                   f'found {self.recorder.topics}')
+            time.sleep(0.01)
+            self.recorder.discover()
+        self.executor.seal()
 
-    def publish_goal(self, position: Any) -> None:
-        """Publish the target (m, phantom frame) on ``planner/goal``, stamped now."""
+    def publish_goal(self) -> None:
+        """Publish the phantom's current target on ``planner/goal``, stamped now."""
         import numpy as np
 
         from cgail_planner.nodes import conversions as conv
 
         self._goal_pub.publish(conv.pose_msg(self.session.get_clock().now().to_msg(), 'phantom',
-                                             np.asarray(position, dtype=float), np.eye(3)))
+                                             self.phantom.target_position(), np.eye(3)))
 
-    def _spin(self) -> None:
-        import traceback
+    def run(self) -> TrialResult:
+        """The trial's protocol; returns its result (the bag is closed by :meth:`close`)."""
+        ex = self.executor
+        result = TrialResult(self.spec)
+        unscheduled_before = ex.stats.unscheduled
+        wall0 = time.monotonic()
+        pace = self.settings.time_scale
 
+        def tick() -> None:
+            ex.tick()
+            if pace > 0.0:
+                ahead = ex.now_s / pace - (time.monotonic() - wall0)
+                if ahead > 0.0:
+                    time.sleep(ahead)
+
+        while ex.now_s < SETTLE_S - 1e-9:
+            tick()
+        if self.planner.last_pose is None:
+            result.outcome = f'no tip pose from the tracker within {SETTLE_S} s (simulated)'
+            result.failed = True
+        else:
+            self.publish_goal()
+            t0 = ex.now_s
+            failed_before = self.planner.counts['failed_plans']
+            last_goal = t0
+            while not result.outcome:
+                tick()
+                now = ex.now_s
+                if self.operator.done:
+                    result.outcome = self.operator.operator.reason
+                elif self.planner.counts['failed_plans'] > failed_before and \
+                        self.planner.follower is None and self.operator.operator.state == 'idle':
+                    result.outcome = f'no path: {self.planner.last_error}'
+                elif now - t0 > self.settings.time_limit + 5.0:
+                    result.outcome = 'time limit (operator still running)'
+                if self.settings.mode == 'dynamic' and now - last_goal >= 1.0 - 1e-9:
+                    last_goal = now
+                    self.publish_goal()
+            result.sim_s = ex.now_s - t0
+            end = ex.now_s + TAIL_S
+            while ex.now_s < end - 1e-9:
+                tick()
+        result.ticks = ex.stats.ticks
+        result.unscheduled = ex.stats.unscheduled - unscheduled_before
+        result.callback_errors = list(ex.errors)
+        return result
+
+    def close(self) -> dict[str, int]:
+        """Stop recording (the bag is closed), destroy the nodes and the context; returns the
+        recorded messages per topic."""
         import rclpy
-        from rclpy.executors import ExternalShutdownException
 
-        while rclpy.ok() and not self._stopping.is_set():
-            try:
-                with self._spin_lock:  # nodes are replaced only between callbacks
-                    self.executor.spin_once(timeout_sec=0.05)
-            except (ExternalShutdownException, rclpy.executors.ShutdownException):
-                return
-            except Exception:
-                self.errors.append(traceback.format_exc())
-                print(f'invitro_session: a callback raised:\n{self.errors[-1]}', file=sys.stderr)
-
-    def add(self, name: str, **extra: Any) -> Any:
-        """Build node ``name`` of the launch file (plus ``extra`` parameters) and spin it."""
-        from cgail_planner.system.launcher import build_node
-
-        spec_node = next(n for n in self.spec.nodes if n.name == name)
-        node = build_node(spec_node, {**self.overrides.get(name, {}), **extra}, lean=True)
-        self.nodes[name] = node
-        self.executor.add_node(node)
-        return node
-
-    def locked(self) -> threading.Lock:
-        """Hold it to create or destroy entities from another thread: no callback runs and the
-        executor is not between collecting its wait set and using it."""
-        return self._spin_lock
-
-    def replace(self, name: str, **extra: Any) -> Any:
-        """Destroy node ``name`` and build it again with ``extra`` parameters."""
-        with self._spin_lock:
-            old = self.nodes.pop(name)
-            self.executor.remove_node(old)
-            # rclpy's executor may still hold the removed node's entities in its current wait
-            # iteration: destroy it one replacement later, when that iteration is long gone
-            for retired in self._retired.pop(name, []):
-                retired.destroy_node()
-            self._retired[name] = [old]
-            return self.add(name, **extra)
-
-    def close(self) -> None:
-        """Stop spinning, destroy every node, shut rclpy down."""
-        import rclpy
-
-        self._stopping.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=10.0)
-        self.executor.shutdown()
-        retired = [n for nodes in self._retired.values() for n in nodes]
-        for node in [*self.nodes.values(), *retired, getattr(self, 'session', None)]:
+        counts: dict[str, int] = {}
+        if self.recorder is not None:
+            self.recorder.stop()
+            counts = dict(self.recorder.counts)
+            self.recorder = None
+        for node in [*reversed(list(self.nodes.values())), getattr(self, 'session', None)]:
             if node is not None:
                 node.destroy_node()
         self.nodes.clear()
-        rclpy.try_shutdown()
+        rclpy.try_shutdown(context=self.context)
+        shutil.rmtree(self._tmp, ignore_errors=True)
+        return counts
 
 
-def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.05) -> bool:
-    """Poll ``predicate`` on the wall clock until it holds or ``timeout_s`` passes."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(poll_s)
-    return predicate()
+def run_trial(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> TrialResult:
+    """Build the trial's rig on ``domain_id``, run it, close it; never raises for a rig error
+    (the result says ``failed``), only for KeyboardInterrupt."""
+    import traceback
+
+    wall0 = time.monotonic()
+    rig: TrialRig | None = None
+    try:
+        rig = TrialRig(settings, spec, domain_id)
+        result = rig.run()
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        result = TrialResult(spec, outcome=f'rig error: {type(exc).__name__}: {exc}',
+                             failed=True, callback_errors=[traceback.format_exc()])
+    finally:
+        if rig is not None:
+            counts = rig.close()
+    if rig is not None:
+        result.messages = counts
+    result.domain_id = domain_id
+    result.wall_s = time.monotonic() - wall0
+    return result
 
 
-def run_trial(rig: SimRig, condition: str, index: int, bag: Path, *, time_limit: float,
-              mode: str, log: Callable[[str], None]) -> str:
-    """One trial: reset, record, send the goal, wait for the operator; returns the outcome."""
-    import rclpy
-
-    from cgail_planner.bags.record import BagRecorder, RecorderConfig
-
-    phantom, operator = rig.nodes['phantom'], rig.nodes['operator']
-    # a fresh planner per trial: no latched path of the previous trial in this trial's bag
-    planner = rig.replace('planner', planner_type=condition)
-    # the catheter is reloaded between trials: the sleeve driver is re-homed (its catheter
-    # position restarts at 0; it would otherwise reach position_max = 1 m after ~4 trials),
-    # then the phantom puts the tip back at the start (the next reading is its reference)
-    rig.replace('sleeve_driver')
-    t_home = phantom.sim_time
-    wait_until(lambda: phantom.sim_time - t_home > 0.5, 30.0)
-    sc = phantom.world.scenarios
-    start_id, target_id = index % len(sc.starts), index % len(sc.targets)
-    phantom.reset_trial(start_id, target_id)
-    operator.reset()
-    t_reset = phantom.sim_time
-    wait_until(lambda: phantom.sim_time - t_reset > 1.0, 30.0)  # poses from the new start
-    with rig.locked():
-        recorder = BagRecorder(rig.session, RecorderConfig(output=bag, topics=TOPICS,
-                                                           condition=condition,
-                                                           discovery_period=0.2))
-    wait_until(lambda: len(recorder.topics) >= len(TOPICS), 5.0)
-    time.sleep(0.3)  # let the new subscriptions match
-    failed_before = planner.counts['failed_plans']
-    goal = phantom.target_position()
-    rig.publish_goal(goal)
-    t0 = phantom.sim_time
-    last_goal, last_print = t0, time.monotonic()
-    outcome = ''
-    while not outcome:
-        time.sleep(0.05)
-        if not rclpy.ok():  # SIGINT: rclpy's handler shut the context down
-            with rig.locked():
-                recorder.stop()
-            raise KeyboardInterrupt
-        now = phantom.sim_time
-        if operator.done:
-            outcome = operator.operator.reason
-        elif planner.counts['failed_plans'] > failed_before and planner.follower is None \
-                and operator.operator.state == 'idle':
-            outcome = f'no path: {planner.last_error}'
-        elif now - t0 > time_limit + 5.0:
-            outcome = 'time limit (operator still running)'
-        if mode == 'dynamic' and now - last_goal >= 1.0:
-            last_goal = now
-            rig.publish_goal(phantom.target_position())
-        if time.monotonic() - last_print >= 2.0:
-            last_print = time.monotonic()
-            dist = float(((phantom.target_position() - phantom.physics.tip_position) ** 2)
-                         .sum() ** 0.5)
-            log(f'  [{condition} {index + 1}] t = {now - t0:6.1f} s (sim), tip-target '
-                f'{dist * 1e3:6.1f} mm, inserted {phantom.physics.inserted * 1e3:6.1f} mm')
-    time.sleep(0.2)
-    with rig.locked():
-        recorder.stop()
-    return outcome
+# ---------------------------------------------------------------------- worker processes
+_WORKER: dict[str, Any] = {}
 
 
+def _worker_init(log_dir: str) -> None:
+    """A worker: Ctrl-C is the parent's to handle; a domain of its own; logs to ``log_dir``."""
+    from cgail_planner.system.domain import reserve_domain
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.environ['ROS_LOG_DIR'] = log_dir
+    _WORKER['lease'] = reserve_domain(env={})
+
+
+def _worker_run(settings: SessionSettings, spec: TrialSpec) -> TrialResult:
+    return run_trial(settings, spec, _WORKER['lease'].domain_id)
+
+
+def run_trials(settings: SessionSettings, specs: Sequence[TrialSpec], *, jobs: int,
+               domain_id: int | None, log_dir: Path,
+               on_result: Callable[[TrialResult], None]) -> list[TrialResult]:
+    """Run ``specs``: in this process on ``domain_id`` (``jobs == 1``), or in ``jobs`` worker
+    processes with a domain each. ``on_result`` sees each result as it completes; the list
+    comes back in ``specs`` order. Ctrl-C stops early: the finished trials come back."""
+    results: dict[TrialSpec, TrialResult] = {}
+    if jobs == 1:
+        assert domain_id is not None
+        try:
+            for spec in specs:
+                results[spec] = run_trial(settings, spec, domain_id)
+                on_result(results[spec])
+        except KeyboardInterrupt:
+            pass
+        return [results[s] for s in specs if s in results]
+    ctx = multiprocessing.get_context('spawn')
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
+                                                  initializer=_worker_init,
+                                                  initargs=(str(log_dir),))
+    futures = {pool.submit(_worker_run, settings, spec): spec for spec in specs}
+    try:
+        for future in concurrent.futures.as_completed(futures):
+            spec = futures[future]
+            try:
+                results[spec] = future.result()
+            except Exception as exc:
+                results[spec] = TrialResult(spec, outcome=f'worker error: {exc}', failed=True)
+            on_result(results[spec])
+    except KeyboardInterrupt:
+        for f in futures:
+            f.cancel()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [results[s] for s in specs if s in results]
+
+
+# ---------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
     """Command-line options of ``invitro_session``."""
     p = argparse.ArgumentParser(prog='invitro_session', description=__doc__.split('\n\n')[0],
@@ -270,114 +418,153 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
                    help='rigid phantom or deformable beating wall')
     p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
-                   help='output directory (bags/, metrics.md, metrics.csv, box plots)')
+                   help='output directory (bags/, logs/, metrics.md, metrics.csv, box plots)')
     p.add_argument('--policy', type=Path, default=None,
                    help='ONNX C-GAIL policy (export_onnx); default: the committed '
                         'learning/models/cgail_<anatomy>_<mode>.onnx (static if there is no '
                         'policy for the mode)')
     p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
                    help='conditions to run, in order')
-    p.add_argument('--time-scale', type=float, default=6.0,
-                   help='simulated seconds per wall second (default 6)')
+    p.add_argument('--jobs', type=int, default=None,
+                   help='worker processes running trials in parallel (default: the number of '
+                        'CPUs); the results do not depend on it')
+    p.add_argument('--time-scale', type=float, default=None,
+                   help='at most this many simulated seconds per wall second (default: as '
+                        'fast as the CPU allows; 1 with --gui)')
     p.add_argument('--time-limit', type=float, default=180.0,
                    help='trial time limit, simulated s (paper: 180)')
     p.add_argument('--physics-rate', type=float, default=50.0,
-                   help='phantom physics, device and /clock rate, Hz of simulated time (the '
-                        'pam and sleeve-driver control loops run at half of it)')
+                   help='lockstep tick rate: phantom physics and simulated devices, Hz of '
+                        'simulated time (the pam and sleeve-driver control loops run at half '
+                        'of it)')
     p.add_argument('--tracker-rate', type=float, default=40.0,
-                   help='EM tracker rate in simulated time, Hz (the Aurora: 40); the tracker '
-                        'polls tracker_rate * time_scale times per wall second')
-    p.add_argument('--threads', type=int, default=1,
-                   help='executor threads (1: SingleThreadedExecutor, the fastest in rclpy)')
+                   help='EM tracker frame rate in simulated time, Hz (the Aurora: 40)')
     p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
-    p.add_argument('--seed', type=int, default=0, help='seed of the EM and stick noise')
+    p.add_argument('--seed', type=int, default=0,
+                   help='session seed (each trial gets its own from it: EM and stick noise)')
     p.add_argument('--gui', action='store_true',
-                   help='also start the guidance GUI (gui_node) and print its URL')
+                   help='also start the guidance GUI (gui_node) and print its URL (one trial '
+                        'at a time, paced at --time-scale 1 unless given)')
     p.add_argument('--gui-port', type=int, default=8780, help='port of the guidance GUI')
     return p
 
 
+def _trial_line(done: int, total: int, r: TrialResult) -> str:
+    s = r.spec
+    extra = ''
+    if r.callback_errors:
+        extra += f'  {len(r.callback_errors)} callback error(s), see logs/'
+    if r.unscheduled:
+        extra += f'  {r.unscheduled} message(s) from outside the rig'
+    return (f'[{done:{len(str(total))}d}/{total}] {s.label:<14} start {s.start_id} target '
+            f'{s.target_id}  {r.outcome:<38} T {r.sim_s:6.1f} s  ({r.wall_s:5.1f} s wall, '
+            f'domain {r.domain_id}){extra}')
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``invitro_session``; returns the exit status."""
+    from cgail_planner.system.domain import DomainError, requested_domain, reserve_domain
+
     args = build_parser().parse_args(argv)
+
+    def fail(text: str) -> int:
+        print(f'invitro_session: {text}', file=sys.stderr)
+        return 2
+
     if args.trials < 1:
-        print(f'invitro_session: --trials must be >= 1, found {args.trials}', file=sys.stderr)
-        return 2
+        return fail(f'--trials must be >= 1, found {args.trials}')
+    if args.jobs is not None and args.jobs < 1:
+        return fail(f'--jobs must be >= 1, found {args.jobs}')
+    if args.time_scale is not None and not args.time_scale >= 0.0:
+        return fail(f'--time-scale must be >= 0 (0: as fast as possible), found '
+                    f'{args.time_scale}')
+    if not 1.0 <= args.physics_rate <= 1000.0:
+        return fail(f'--physics-rate must be in [1, 1000] Hz, found {args.physics_rate}')
     if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'):
-        print('invitro_session: ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); '
-              'run through scripts/ws', file=sys.stderr)
-        return 2
+        return fail('ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); run through '
+                    'scripts/ws')
     if args.policy is None:
         args.policy = default_policy(args.anatomy, args.mode)
     if 'cgail' in args.conditions and not args.policy.is_file():
-        print(f'invitro_session: the cgail condition needs --policy <model.onnx> (export_onnx), '
-              f'found no file at {args.policy}', file=sys.stderr)
-        return 2
+        return fail(f'the cgail condition needs --policy <model.onnx> (export_onnx), found no '
+                    f'file at {args.policy}')
     bags_dir = args.out / 'bags'
     if bags_dir.exists() and any(bags_dir.iterdir()):
-        print(f'invitro_session: {bags_dir} already holds bags; choose another --out',
-              file=sys.stderr)
-        return 2
+        return fail(f'{bags_dir} already holds bags; choose another --out')
+    try:
+        user_domain = requested_domain()
+    except DomainError as exc:
+        return fail(str(exc))
+    specs = plan_trials(args.conditions, args.trials, args.seed, bags_dir)
+    jobs = args.jobs or os.cpu_count() or 1
+    jobs = max(1, min(jobs, len(specs)))
+    notes = []
+    if args.gui and jobs > 1:
+        jobs = 1
+        notes.append('--gui: one trial at a time')
+    if user_domain is not None and jobs > 1:
+        jobs = 1
+        notes.append(f'ROS_DOMAIN_ID={user_domain} is set: one trial at a time on it (unset it '
+                     f'to run trials in parallel on free domains)')
+    time_scale = args.time_scale if args.time_scale is not None else (1.0 if args.gui else 0.0)
+    settings = SessionSettings(
+        anatomy=args.anatomy, mode=args.mode, policy=str(args.policy),
+        time_limit=args.time_limit, physics_rate=args.physics_rate,
+        tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
+        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port)
+    log_dir = (args.out / 'logs').resolve()
+    log_dir.mkdir(parents=True, exist_ok=True)
+    os.environ['ROS_LOG_DIR'] = str(log_dir)
 
     def log(text: str) -> None:
         print(text, flush=True)
 
-    tmp = tempfile.TemporaryDirectory(prefix='invitro_')
-    link = str(Path(tmp.name) / 'aurora')
-    common = {'use_sim_time': True}
-    overrides = {
-        'phantom': {**common, 'anatomy': args.anatomy, 'mode': args.mode, 'aurora_link': link,
-                    'publish_clock': True, 'time_scale': args.time_scale, 'seed': args.seed,
-                    'physics_rate_hz': args.physics_rate},
-        'aurora': {**common, 'port': link,
-                   'rate_hz': min(1000.0, args.tracker_rate * args.time_scale)},
-        # The host control loops run at half the /clock rate: a sim-time timer fires on /clock
-        # ticks, so its real period is a whole number of ticks (1-1.5 x the nominal period here).
-        # The relay's return stroke commands error/period: an actual period >= 2x the nominal
-        # one would make the sleeve oscillate around the stroke end instead of converging.
-        'pam_controller': {**common, 'control_rate_hz': args.physics_rate / 2.0},
-        'sleeve_driver': {**common, 'control_rate_hz': args.physics_rate / 2.0},
-        'teleop': dict(common),
-        'planner': {**common, 'anatomy': args.anatomy, 'mode': args.mode,
-                    'policy_path': str(args.policy or ''), 'planner_type': args.conditions[0]},
-        'operator': {**common, 'time_limit_s': args.time_limit, 'seed': args.seed},
-        'gui': {**common, 'anatomy': args.anatomy, 'dynamic': args.mode == 'dynamic',
-                'port': args.gui_port},
-    }
+    lease = None
+    if jobs == 1:
+        try:
+            lease = reserve_domain()
+        except DomainError as exc:
+            return fail(str(exc))
+        where = f'ROS domain {lease.domain_id} ({lease.source})'
+    else:
+        where = f'{jobs} worker processes, each on a free ROS domain of its own'
     t_start = time.monotonic()
-    log(f'invitro_session: building the simulated rig ({args.anatomy}, {args.mode}, '
-        f'x{args.time_scale:g} simulated time); policy {args.policy}...')
-    rig = SimRig(args.launch_file or default_launch_file(), overrides, threads=args.threads,
-                 skip=frozenset() if args.gui else frozenset({'gui'}))
-    if 'gui' in rig.nodes:
-        log(f'invitro_session: guidance GUI on {rig.nodes["gui"].url} (open it in a browser)')
-    outcomes: list[tuple[str, int, str]] = []
+    log(f'invitro_session: {len(specs)} trials ({", ".join(args.conditions)}; '
+        f'{args.anatomy}, {args.mode}) on {where}; policy {args.policy}; node logs in '
+        f'{log_dir}' + ''.join(f'; {n}' for n in notes))
+    if args.gui:
+        log(f'invitro_session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '
+            f'runs')
+    done = [0]
+
+    def on_result(result: TrialResult) -> None:
+        done[0] += 1
+        log(_trial_line(done[0], len(specs), result))
+
     try:
-        if not wait_until(lambda: rig.nodes['planner'].last_pose is not None, 60.0):
-            log('invitro_session: error: no tip pose from the tracker within 60 s')
-            return 1
-        for condition in args.conditions:
-            for k in range(args.trials):
-                bag = bags_dir / condition / f'{condition}_{k + 1:02d}'
-                log(f'[{condition} trial {k + 1}/{args.trials}] recording to {bag}')
-                outcome = run_trial(rig, condition, k, bag, time_limit=args.time_limit,
-                                    mode=args.mode, log=log)
-                outcomes.append((condition, k + 1, outcome))
-                log(f'[{condition} trial {k + 1}/{args.trials}] {outcome} '
-                    f'({time.monotonic() - t_start:.0f} s wall so far)')
-    except KeyboardInterrupt:
-        log('invitro_session: interrupted; evaluating the trials recorded so far')
+        results = run_trials(settings, specs, jobs=jobs,
+                             domain_id=lease.domain_id if lease else None, log_dir=log_dir,
+                             on_result=on_result)
     finally:
-        rig.close()
-        tmp.cleanup()
-    if rig.errors:
-        log(f'invitro_session: {len(rig.errors)} node callback(s) raised (tracebacks above)')
-    return report(args.out, bags_dir, outcomes, log, wall_s=time.monotonic() - t_start,
-                  callback_errors=len(rig.errors))
+        if lease is not None:
+            lease.release()
+    wall_s = time.monotonic() - t_start
+    if len(results) < len(specs):
+        log(f'invitro_session: interrupted after {len(results)} of {len(specs)} trials; '
+            f'evaluating those')
+    errors = sum(len(r.callback_errors) for r in results)
+    if errors:
+        (log_dir / 'callback_errors.txt').write_text(
+            '\n'.join(f'--- {r.spec.label}\n{e}' for r in results for e in r.callback_errors))
+    outcomes = [(r.spec.condition, r.spec.index + 1, r.outcome) for r in results]
+    code = report(args.out, bags_dir, outcomes, log, wall_s=wall_s, callback_errors=errors,
+                  jobs=jobs)
+    return code if all(not r.failed for r in results) else max(code, 1)
 
 
 def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
-           log: Callable[[str], None], wall_s: float, callback_errors: int = 0) -> int:
+           log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
+           jobs: int = 1) -> int:
     """Metrics of every evaluable trial bag: markdown table, CSV, box plots."""
     from cgail_planner.bags.errors import BagError
     from cgail_planner.bags.metrics_cli import evaluate_bags
@@ -399,8 +586,8 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     tests = kruskal_by_condition(trials)
     text = markdown_report(trials, tests)
     lines = ['# Simulated in-vitro session', '',
-             f'{len(outcomes)} trials, {wall_s:.0f} s wall time, callback errors: '
-             f'{callback_errors}.', '', '## Outcomes', '',
+             f'{len(outcomes)} trials, {wall_s:.0f} s wall time ({jobs} job(s)), callback '
+             f'errors: {callback_errors}.', '', '## Outcomes', '',
              '| trial | condition | operator outcome |', '|---|---|---|']
     lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
     if skipped:
