@@ -170,10 +170,11 @@ class PhantomNode(Node):
             steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
             self.create_timer(diag_period, self._on_diagnostics, clock=steady)
+        timing = 'lockstep' if self.lockstep else (
+            f'x{self.time_scale:g} time{" on /clock" if self.publish_clock else ""}')
         self.get_logger().info(
             f'phantom: {anatomy} ({self.mode}), start {self.start_id}, target {self.target_id}, '
-            f'aurora port {self.aurora_port or "-"}, x{self.time_scale:g} time'
-            f'{" on /clock" if self.publish_clock else ""}')
+            f'aurora port {self.aurora_port or "-"}, {timing}')
 
     # ------------------------------------------------------------------ trial control
     def reset_trial(self, start_id: int, target_id: int) -> None:

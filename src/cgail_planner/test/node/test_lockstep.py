@@ -191,3 +191,34 @@ def test_refuses_guard_conditions_and_clients(context) -> None:
 def test_bad_arguments(kwargs, match) -> None:
     with pytest.raises(ValueError, match=match):
         LockstepExecutor(**kwargs)
+
+
+def test_the_phantom_steps_with_the_lockstep_clock(context, tmp_path) -> None:
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+    from rclpy.time import Time
+
+    from cgail_planner.nodes.phantom_node import PhantomNode
+
+    ex = LockstepExecutor(period_s=0.02)
+    phantom = PhantomNode(context=context, enable_rosout=False, parameter_overrides=[
+        Parameter('lockstep', value=True), Parameter('aurora_link', value=str(tmp_path / 'a')),
+        Parameter('pose_rate_hz', value=10.0)])
+    listener = _node(context, 'pose_listener')
+    stamps: list[int] = []
+    listener.create_subscription(PoseStamped, 'phantom/tip_pose',
+                                 lambda m: stamps.append(Time.from_msg(m.header.stamp).nanoseconds),
+                                 qos_profile_sensor_data)
+    for node in (phantom, listener):
+        ex.add_node(node)
+    ex.add_hook(phantom.advance)
+    ex.seal()
+    try:
+        ex.spin_for(0.5)
+        assert phantom.sim_time == pytest.approx(0.5, abs=1e-12)
+        # the true pose every 5th tick (10 Hz), stamped with the simulated time
+        assert stamps == [100_000_000, 200_000_000, 300_000_000, 400_000_000, 500_000_000]
+        assert [list(n.timers) != [] for n in (phantom,)] == [True]  # diagnostics only
+        assert all(t.timer_period_ns == 1_000_000_000 for t in phantom.timers)
+    finally:
+        phantom.destroy_node()
