@@ -40,8 +40,14 @@ def _metrics(out: Path) -> dict[str, dict[str, str]]:
         return {row['name']: row for row in csv.DictReader(stream)}
 
 
+def _normal_priority() -> None:
+    # a busy loop must not inherit a real-time policy (chrt -f) from the test process
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def _busy_loops(n: int) -> list[subprocess.Popen[bytes]]:
-    return [subprocess.Popen([sys.executable, '-c', 'while True: pass']) for _ in range(n)]
+    return [subprocess.Popen([sys.executable, '-c', 'while True: pass'],
+                             preexec_fn=_normal_priority) for _ in range(n)]
 
 
 def test_same_bags_and_metrics_idle_in_one_job_and_loaded_in_two(tmp_path) -> None:
