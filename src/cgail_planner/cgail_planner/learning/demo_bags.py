@@ -324,12 +324,19 @@ def _custom_info(path: Path, custom: dict[str, str] | None) -> dict[str, Any]:
     return info
 
 
-class _Drift(NamedTuple):
+class ReplayDrift(NamedTuple):
+    """How far a replay strayed from its recording (:func:`resimulate`)."""
+
     start_max_m: float
+    """Largest distance of a recorded start from the scenario's start pose, m."""
     start_mean_m: float
+    """Mean of that distance over the episodes, m."""
     max_m: float
+    """Largest distance of a re-simulated tip from its recorded pose, m."""
     mean_m: float
+    """Mean of that distance over the steps, m."""
     ended_early: int
+    """Episodes that reached the target before their recorded end."""
 
 
 def recorded_start_pose(ep: DemoEpisode) -> tuple[np.ndarray, np.ndarray] | None:
@@ -352,7 +359,7 @@ def recorded_start_pose(ep: DemoEpisode) -> tuple[np.ndarray, np.ndarray] | None
 
 def resimulate(env: Any, episodes: list[DemoEpisode], *,
                tolerance_m: float = POSE_TOLERANCE_M, source: str = 'demonstrations',
-               anatomy_note: str = '') -> tuple[np.ndarray, np.ndarray, _Drift]:
+               anatomy_note: str = '') -> tuple[np.ndarray, np.ndarray, ReplayDrift]:
     """(obs, act) of ``episodes`` replayed in ``env`` (a CatheterNavEnv of the bag's anatomy).
 
     Each episode is replayed from the pose it was recorded from (:func:`recorded_start_pose`),
@@ -427,8 +434,9 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
                                 f'{anatomy_note}')
     obs_all = np.stack(obs_l).astype(np.float32)
     act_all = np.stack(act_l).astype(np.float32)
-    return obs_all, act_all, _Drift(max(starts, default=0.0), float(np.mean(starts or [0.0])),
-                                    drift_max, drift_sum / max(n_steps, 1), early)
+    drift = ReplayDrift(max(starts, default=0.0), float(np.mean(starts or [0.0])), drift_max,
+                        drift_sum / max(n_steps, 1), early)
+    return obs_all, act_all, drift
 
 
 def replay_demo_bag(path: Path, only_successful: bool = True, *,

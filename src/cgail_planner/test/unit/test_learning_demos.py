@@ -127,30 +127,41 @@ def test_expert_demos_resimulate_in_the_simulator(tmp_path: Path):
 ACTIONS = [[0.3, -0.2, 1.0]] * 30 + [[0.0, 0.0, -0.6]] * 3 + [[-0.4, 0.5, 0.8]] * 7
 
 
-@pytest.fixture(scope='module')
-def recording():
-    """40 scripted steps (a bend, a retraction, another bend) recorded in the static simulator
-    from start 1 towards target 2, as make_demos records, with the observations the env gave.
-    """
-    from cgail_planner.sim.config import EnvConfig
-    from cgail_planner.sim.env import CatheterNavEnv
-
-    env = CatheterNavEnv(EnvConfig(mode='static'))
-    obs, _ = env.reset(options={'start': 1, 'target': 2})
+def _record(env, start: int, target: int, policy, max_steps: int = 2000
+            ) -> tuple[DemoEpisode, np.ndarray, dict]:
+    """An episode recorded as make_demos records it (``policy()`` gives each action), the
+    observations the env gave and the last step's info."""
+    obs, _ = env.reset(options={'start': start, 'target': target})
     rows: dict[str, list] = {k: [] for k in ('al', 'ga', 'dl', 'p', 'q', 'g', 'obs')}
-    for a in np.asarray(ACTIONS, dtype=np.float32):
+    for _ in range(max_steps):
         rows['obs'].append(obs)
-        obs, _, te, tr, info = env.step(a)
-        assert not (te or tr)
+        obs, _, te, tr, info = env.step(np.asarray(policy(), dtype=np.float32))
         rows['al'].append(info['bend'][0])
         rows['ga'].append(info['bend'][1])
         rows['dl'].append(info['insertion'])
         rows['p'].append(env.catheter.tip_position[0].copy())
         rows['q'].append(rotation_to_quaternion(env.catheter.tip_rotation[0]))
         rows['g'].append(np.asarray(info['target_position'], float))
-    episode = DemoEpisode(1, 2, *(np.asarray(rows[k]) for k in ('al', 'ga', 'dl', 'p', 'q', 'g')),
+        if te or tr:
+            break
+    episode = DemoEpisode(start, target,
+                          *(np.asarray(rows[k]) for k in ('al', 'ga', 'dl', 'p', 'q', 'g')),
                           success=True)
-    return env, episode, np.stack(rows['obs'])
+    return episode, np.stack(rows['obs']), info
+
+
+@pytest.fixture(scope='module')
+def recording():
+    """40 scripted steps (a bend, a retraction, another bend) recorded in the static simulator
+    from start 1 towards target 2, with the observations the env gave."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    env = CatheterNavEnv(EnvConfig(mode='static'))
+    actions = iter(ACTIONS)
+    episode, obs, info = _record(env, 1, 2, lambda: next(actions), len(ACTIONS))
+    assert len(obs) == len(ACTIONS) and not (info['success'] or info['collision'])
+    return env, episode, obs
 
 
 def _bag(tmp_path: Path, episode: DemoEpisode, name: str = 'bag', **kw) -> Path:
@@ -246,6 +257,37 @@ def test_replay_follows_a_recording_made_from_a_moved_start(tmp_path: Path, reco
     assert replay.report.max_drift_m < 1e-12
     np.testing.assert_array_equal(replay.act, replay_demo_bag(_bag(tmp_path, episode, 'b')).act)
     assert np.abs(replay.obs[:, :3] - obs[:, :3]).max() > 1e-4  # observed where it went
+
+
+def _extended(episode: DemoEpisode, extra: int) -> DemoEpisode:
+    """``episode`` with its last recorded step repeated ``extra`` times: a recording that
+    went on after the simulator ended it."""
+    ext = copy.deepcopy(episode)
+    for name in ('alpha', 'gamma', 'delta_l', 'tip_position', 'tip_quaternion',
+                 'target_position'):
+        arr = getattr(ext, name)
+        setattr(ext, name, np.concatenate([arr, np.repeat(arr[-1:], extra, axis=0)]))
+    return ext
+
+
+def test_replay_that_ends_before_the_recorded_end(tmp_path: Path, recording):
+    """Reaching the target early (a target moved by the remeshing) keeps the steps until then;
+    a collision or exit before the recorded end is an error."""
+    from cgail_planner.sim.env import pursuit_actions
+
+    env = recording[0]
+    reached, _, info = _record(env, 0, 1, lambda: pursuit_actions(env.engine)[0])
+    assert info['success']
+    replay = replay_demo_bag(_bag(tmp_path, _extended(reached, 3)))
+    assert (replay.report.ended_early, replay.report.steps) == (1, len(reached.alpha))
+    assert ', 1 reached the target early;' in replay.report.summary()
+    curl = iter([[1.0, 0.0, 1.0]] * 200)
+    crashed, _, info = _record(env, 0, 0, lambda: next(curl), 200)
+    assert info['collision']
+    with pytest.raises(DemoError, match=(
+            f'episode 0: expected the re-simulation to last {len(crashed.alpha) + 2} steps, '
+            f'found it ended by a collision at step {len(crashed.alpha) - 1}$')):
+        replay_demo_bag(_bag(tmp_path, _extended(crashed, 2), 'crashed'))
 
 
 def test_replay_warns_when_the_anatomy_hash_differs(tmp_path: Path, recording):
