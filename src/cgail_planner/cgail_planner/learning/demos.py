@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -10,11 +10,18 @@ import numpy as np
 from cgail_planner.learning.errors import DemoError
 
 
-def load_demos(paths: Sequence[Path]) -> tuple[np.ndarray, np.ndarray]:
+def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
 
     A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays, or a demo bag directory
-    written by ``make_demos`` (see :mod:`cgail_planner.learning.demo_bags`).
+    written by ``make_demos`` (see :mod:`cgail_planner.learning.demo_bags`), re-simulated within
+    :data:`~cgail_planner.learning.demo_bags.POSE_TOLERANCE_M` of its recorded poses.
+
+    Args:
+        paths: the sources.
+        report: called with one line per demo bag: its re-simulated tip drift (max / mean)
+            and anatomy hashes (:meth:`~cgail_planner.learning.demo_bags.ReplayReport.summary`).
 
     Raises:
         DemoError: no path given, a path missing, or no samples.
@@ -31,9 +38,11 @@ def load_demos(paths: Sequence[Path]) -> tuple[np.ndarray, np.ndarray]:
                     raise DemoError(f'{path}: expected arrays obs and act, found {list(data)}')
                 obs, act = data['obs'], data['act']
         else:
-            from cgail_planner.learning.demo_bags import load_demo_bag
+            from cgail_planner.learning.demo_bags import replay_demo_bag
 
-            obs, act = load_demo_bag(path)
+            obs, act, replay = replay_demo_bag(path)
+            if report is not None:
+                report(replay.summary())
         obs_l.append(np.asarray(obs, np.float32))
         act_l.append(np.asarray(act, np.float32))
     obs_all, act_all = np.concatenate(obs_l), np.concatenate(act_l)

@@ -5,7 +5,8 @@ Example::
     scripts/ws make_demos --anatomy default --episodes 70 --out bags/demos/default
 
 Episode k uses start ``k % 3`` and target ``(k // 3) % 5`` (every start x target pair, then
-again), seeded by ``--seed``; the expert's success rate is printed and stored in the bag.
+again), seeded by ``--seed``; the expert's success rate is printed and stored in the bag, with
+the content hash of the anatomy the episodes were recorded in.
 """
 
 from __future__ import annotations
@@ -77,7 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         episodes, stats = record_episodes(env, args.episodes, args.seed)
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy=args.anatomy, mode='static',
-                       dt=env.config.dt)
+                       dt=env.config.dt,
+                       anatomy_hash=env.anatomy.content_hash)
     except (LearningError, ValueError) as exc:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2

@@ -1,4 +1,4 @@
-"""Exceptions of the learning package (no torch import here)."""
+"""Exceptions and warnings of the learning package (no torch import here)."""
 
 
 class LearningError(Exception):
@@ -15,3 +15,9 @@ class DemoError(LearningError, ValueError):
 
 class PolicyLoadError(LearningError, ValueError):
     """A checkpoint or ONNX model is missing, corrupt or does not fit the observation size."""
+
+
+class DemoAnatomyWarning(UserWarning):
+    """Demonstrations were recorded in an anatomy whose content hash differs from the current
+    one (another CPU's numpy or another commit built the mesh); they still re-simulate within
+    the pose tolerance."""

@@ -142,7 +142,9 @@ def main(argv: list[str] | None = None) -> int:
 
         demo_obs = demo_act = None
         if cfg.needs_demos:
-            demo_obs, demo_act = load_demos([Path(d) for d in args.demos])
+            demo_obs, demo_act = load_demos(
+                [Path(d) for d in args.demos],
+                report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr))
         env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,

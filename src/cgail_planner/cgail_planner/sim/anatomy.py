@@ -17,7 +17,10 @@ How the built-in aorta is made (all in :func:`build_anatomy`):
 3. Marching tetrahedra on a 3 mm grid (thin stubs inflated so they appear), then isotropic
    remeshing with projection onto the true field: ~3.7 mm edges, ~1.2 mm around the coronary
    ostia; ~2,450 vertices for "default", ~2,800 for "elongated". A cold build takes ~4 s CPU,
-   so results are cached in memory and on disk.
+   so results are cached in memory and on disk (keyed by the parameters, the generator's
+   source and numpy's SIMD level, :mod:`cgail_planner.sim.disk_cache`: the remeshing
+   amplifies the last-bit differences of numpy's SIMD ufuncs into a slightly different mesh
+   on another CPU; :attr:`Anatomy.content_hash` identifies the mesh one got).
 4. The open ends (descending end, branch-stub ends, coronary-stub ends) are cut flat and
    closed with cap faces (``wall_face_mask`` False, vertices in ``fixed_vertices``); the root is
    closed at the annulus by a flat valve plane that counts as WALL (``annulus_vertices``).
@@ -60,6 +63,7 @@ arch plane (BCT leaning right, LCCA and LSA leaning left).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import functools
 import hashlib
 import itertools
 import math
@@ -73,7 +77,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 import trimesh
 
-from cgail_planner.sim import mesh_io
+from cgail_planner.sim import disk_cache, mesh_io
 from cgail_planner.sim.mesh_io import AnatomyError, MeshLoadError
 
 __all__ = [
@@ -89,10 +93,6 @@ __all__ = [
     "load_anatomy_mesh",
     "save_anatomy_mesh",
 ]
-
-_GEN_VERSION = 3
-"""Bumped whenever the generator changes, so stale disk caches are ignored."""
-
 
 _DEG = math.pi / 180.0
 
@@ -309,7 +309,8 @@ class Anatomy:
         start_point: (3,) lumen point in the descending aorta near the exit end.
         start_direction: (3,) unit lumen direction there (cranial).
 
-    All arrays are read-only copies. Equality and hashing are by identity (``eq=False``).
+    All arrays are read-only copies. Equality and hashing are by identity (``eq=False``);
+    :attr:`content_hash` compares contents.
     """
 
     name: str
@@ -348,6 +349,27 @@ class Anatomy:
         object.__setattr__(self, "ostia", ostia)
         mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         object.__setattr__(self, "_mesh", mesh)
+
+    @functools.cached_property
+    def content_hash(self) -> str:
+        """SHA-256 (16 hex digits) of the mesh and landmarks: every array attribute, the
+        ostia and their vertices, not the name.
+
+        Two builds of a built-in anatomy agree on it only where numpy ran the same SIMD code
+        (:mod:`cgail_planner.sim.disk_cache`); demonstration bags store it to identify the
+        anatomy they were recorded in.
+        """
+        h = hashlib.sha256()
+        for key in _ARRAYS:
+            arr = np.asarray(getattr(self, key))
+            kind = {"f": "<f8", "i": "<i8", "b": "u1"}[arr.dtype.kind]
+            h.update(f"{key}{arr.shape}".encode())
+            h.update(np.ascontiguousarray(arr, dtype=kind).tobytes())
+        for side in sorted(self.ostia):
+            h.update(f"ostium_{side}".encode())
+            h.update(np.ascontiguousarray(self.ostia[side], dtype="<f8").tobytes())
+            h.update(str(int(self.ostium_vertices[side])).encode())
+        return h.hexdigest()[:16]
 
     @property
     def mesh(self) -> trimesh.Trimesh:
@@ -658,13 +680,20 @@ _ARRAYS = ("vertices", "faces", "wall_face_mask", "exit_point", "exit_normal", "
 
 
 def _cache_path(name: str, params: AnatomyParams) -> Path | None:
-    if os.environ.get("CGAIL_PLANNER_NO_DISK_CACHE"):
+    """Disk-cache file of a built anatomy, or None when the disk cache is off.
+
+    Keyed by the name and parameters, the sources of the generator (this module,
+    :mod:`~cgail_planner.sim.mesh_io` and the key's own module) and the numerical environment
+    (numpy's SIMD level and the library versions, :func:`disk_cache.numerical_environment`):
+    a mesh built by another commit or by another CPU's numpy is never read back.
+    """
+    root = disk_cache.cache_dir()
+    if root is None:
         return None
-    h = hashlib.sha1(f"{name}|{params!r}|{_GEN_VERSION}".encode())
+    key = disk_cache.cache_key(sources=(__file__, mesh_io.__file__, disk_cache.__file__),
+                               inputs=f"{name}|{params!r}", length=16)
     name = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in name)[:40]
-    for module in (__file__, mesh_io.__file__):
-        h.update(Path(module).read_bytes())
-    return Path.home() / ".cache" / "cgail_planner" / f"anatomy_{name}_{h.hexdigest()[:16]}.npz"
+    return root / f"anatomy_{name}_{key}.npz"
 
 
 def _load_cached(name: str, path: Path | None) -> Anatomy | None:
@@ -724,8 +753,9 @@ def build_anatomy(name: str = "default") -> Anatomy:
 
     Returns:
         The anatomy. It is cached in memory per process and on disk under
-        ``~/.cache/cgail_planner/`` (keyed by the parameters and this code; set
-        ``CGAIL_PLANNER_NO_DISK_CACHE=1`` to disable), since a cold build takes a few seconds.
+        ``~/.cache/cgail_planner/`` (keyed by the parameters, this code and numpy's SIMD
+        level, see :mod:`cgail_planner.sim.disk_cache`; set ``CGAIL_PLANNER_NO_DISK_CACHE=1``
+        to disable), since a cold build takes a few seconds.
 
     Raises:
         AnatomyError: unknown name.

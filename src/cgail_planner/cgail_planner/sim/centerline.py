@@ -15,14 +15,17 @@ works for user meshes too (VMTK-style, Antiga et al. 2003):
 5. arc-length resampling, Gaussian smoothing and resampling to ``n_waypoints`` points; the
    radius at each point is re-measured as the distance to the nearest wall sample.
 
-Results are cached in memory per mesh (keyed by a hash of vertices, faces and landmarks) and on
-disk under ``~/.cache/cgail_planner/`` (set ``CGAIL_PLANNER_NO_DISK_CACHE=1`` to disable).
+Results are cached in memory per mesh (keyed by :attr:`Anatomy.content_hash`) and on disk under
+``~/.cache/cgail_planner/`` (set ``CGAIL_PLANNER_NO_DISK_CACHE=1`` to disable), keyed there also
+by this module's source and numpy's SIMD level (:mod:`cgail_planner.sim.disk_cache`): numpy's
+SIMD paths change the last bits of the result even for the same mesh (1.5e-16 m between the
+AVX-512 and AVX2 paths for the default aorta), so a centerline computed by another commit or
+another CPU's numpy is never read back.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-import hashlib
 import itertools
 import os
 from pathlib import Path
@@ -33,6 +36,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree, Voronoi
 
+from cgail_planner.sim import disk_cache
 from cgail_planner.sim.anatomy import Anatomy, AnatomyError
 
 __all__ = ["Centerline", "CenterlineError", "compute_centerlines", "sample_wall"]
@@ -42,7 +46,6 @@ _SAMPLE_SPACING = 0.0018
 _MAX_SAMPLES = 20000
 _SMOOTH_SIGMA = 0.003
 """Standard deviation of the Gaussian smoothing along the path (m of arc length)."""
-_CACHE_VERSION = 1
 
 
 class CenterlineError(AnatomyError):
@@ -95,12 +98,10 @@ def sample_wall(anatomy: Anatomy, spacing: float = _SAMPLE_SPACING,
 
 
 def _mesh_key(anatomy: Anatomy, n_waypoints: int) -> str:
-    h = hashlib.sha1()
-    for arr in (anatomy.vertices, anatomy.faces, anatomy.wall_face_mask, anatomy.exit_point,
-                anatomy.exit_normal, anatomy.ostia["left"], anatomy.ostia["right"]):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    h.update(f"{n_waypoints}-{_CACHE_VERSION}".encode())
-    return h.hexdigest()[:20]
+    """Cache key: the mesh and landmarks (incl. the start point the path starts from), the
+    waypoint count, this module's source and the numerical environment."""
+    return disk_cache.cache_key(sources=(__file__, disk_cache.__file__),
+                                inputs=f"{anatomy.content_hash}|{n_waypoints}")
 
 
 def _resample(points: np.ndarray, n: int) -> np.ndarray:
@@ -180,9 +181,8 @@ _MEMORY: dict[str, dict[str, Centerline]] = {}
 
 
 def _disk_path(key: str) -> Path | None:
-    if os.environ.get("CGAIL_PLANNER_NO_DISK_CACHE"):
-        return None
-    return Path.home() / ".cache" / "cgail_planner" / f"centerline_{key}.npz"
+    root = disk_cache.cache_dir()
+    return None if root is None else root / f"centerline_{key}.npz"
 
 
 def _load_disk(key: str) -> dict[str, Centerline] | None:

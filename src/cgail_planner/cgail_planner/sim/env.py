@@ -28,7 +28,7 @@ from cgail_planner.sim.reward import (
     StepEvents,
     update_waypoints,
 )
-from cgail_planner.sim.scenarios import load_world, World
+from cgail_planner.sim.scenarios import introducer_tail, load_world, World
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
 FloatArray = NDArray[np.float64]
@@ -137,6 +137,24 @@ def _make_wall(world: World, mode: str, pbd_config: PBDConfig | None = None
                           pbd_config if pbd_config is not None else DYNAMIC_PBD_CONFIG)
 
 
+def _checked_pose(pose: Any) -> tuple[FloatArray, FloatArray]:
+    """``(position (3,), rotation (3, 3))`` as float arrays, checked finite and a rotation."""
+    try:
+        p = np.array(pose[0], dtype=np.float64)
+        r = np.array(pose[1], dtype=np.float64)
+    except (TypeError, ValueError, IndexError, KeyError):
+        raise ValueError(f"start_pose must be (position, rotation), found {pose!r}") from None
+    if p.shape != (3,) or r.shape != (3, 3) or not (np.isfinite(p).all()
+                                                     and np.isfinite(r).all()):
+        raise ValueError(f"start_pose must be a finite (3,) position and (3, 3) rotation, "
+                         f"found shapes {p.shape} and {r.shape}")
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > 1e-6 or np.linalg.det(r) < 0.0:
+        raise ValueError(f"start_pose rotation must be a rotation matrix, found orthogonality "
+                         f"error {err:.3g} and determinant {np.linalg.det(r):.3g}")
+    return p, r
+
+
 def _check_pbd_config(pbd_config: Any) -> PBDConfig | None:
     if pbd_config is not None and not isinstance(pbd_config, PBDConfig):
         raise ValueError(f"pbd_config must be a PBDConfig or None, found "
@@ -224,15 +242,26 @@ class NavEngine:
         self._clearance_lb = np.full(n_envs, -np.inf)
 
     # ------------------------------------------------------------------ episodes
-    def reset_env(self, i: int, start_id: int, target_id: int) -> None:
-        """Start episode ``i`` from start ``start_id`` towards target ``target_id``."""
+    def reset_env(self, i: int, start_id: int, target_id: int,
+                  start_pose: tuple[FloatArray, FloatArray] | None = None) -> None:
+        """Start episode ``i`` from start ``start_id`` towards target ``target_id``.
+
+        ``start_pose`` ``(position (3,), rotation (3, 3))`` puts the tip there instead of at
+        the start's pose, with the introducer behind it
+        (:func:`~cgail_planner.sim.scenarios.introducer_tail`): a demonstration replayed from
+        the pose it was recorded from (:mod:`cgail_planner.learning.demo_bags`).
+        """
         sc = self.scenarios
         if not 0 <= start_id < len(sc.starts):
             raise ValueError(f"start must be in [0, {len(sc.starts) - 1}], found {start_id}")
         if not 0 <= target_id < len(sc.targets):
             raise ValueError(f"target must be in [0, {len(sc.targets) - 1}], found {target_id}")
         start = sc.starts[start_id]
-        self.catheter.reset_env(i, start.position, start.rotation, start.introducer_tail)
+        if start_pose is None:
+            self.catheter.reset_env(i, start.position, start.rotation, start.introducer_tail)
+        else:
+            p, r = _checked_pose(start_pose)
+            self.catheter.reset_env(i, p, r, introducer_tail(self.world.anatomy, p, r))
         if not self._shared_wall:
             self.walls[i].reset()
         self.start_id[i] = start_id
@@ -467,7 +496,9 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     for inspection, not for training).
 
     **Reset options**: ``{'start': int, 'target': int}`` picks the scenario (default: drawn from
-    the env's seeded generator). ``set_theta_max(rad)`` changes theta_max (curriculum).
+    the env's seeded generator); ``'start_pose': (position, rotation)`` puts the tip at that pose
+    instead of the start's (replaying a demonstration from the pose it was recorded from).
+    ``set_theta_max(rad)`` changes theta_max (curriculum).
 
     **Wall solver** (dynamic mode): ``pbd_config``, default :data:`DYNAMIC_PBD_CONFIG` (the
     calibrated wall with 5 Chebyshev-accelerated Gauss-Seidel sweeps per step, ~35 % cheaper
@@ -516,14 +547,14 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
         """Start an episode; ``options`` may fix ``start`` and ``target`` (ids)."""
         super().reset(seed=seed)
         opts = dict(options or {})
-        unknown = set(opts) - {"start", "target"}
+        unknown = set(opts) - {"start", "target", "start_pose"}
         if unknown:
-            raise ValueError(
-                f"options keys must be in ['start', 'target'], found {sorted(unknown)}")
+            raise ValueError(f"options keys must be in ['start', 'start_pose', 'target'], "
+                             f"found {sorted(unknown)}")
         sc = self.engine.scenarios
         start = int(opts.get("start", self.np_random.integers(len(sc.starts))))
         target = int(opts.get("target", self.np_random.integers(len(sc.targets))))
-        self.engine.reset_env(0, start, target)
+        self.engine.reset_env(0, start, target, opts.get("start_pose"))
         self._needs_reset = False
         return self.engine.observe()[0], self._reset_info()
 

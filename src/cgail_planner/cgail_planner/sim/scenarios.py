@@ -116,23 +116,30 @@ def build_starts(anatomy: Anatomy, centerline: Centerline, *, n_starts: int = 3,
             f"expected a centerline longer than start_span {start_span} m above the start point, "
             f"found {arc[-1] - s0:.3f} m")
     offsets = np.linspace(0.0, start_span, n_starts) if n_starts > 1 else np.zeros(1)
-    n = np.asarray(anatomy.exit_normal, dtype=np.float64)
     starts = []
     for off in offsets:
         s = s0 + float(off)
         p = _interp(pts, arc, s)
         tangent = _interp(pts, arc, s + 0.005) - _interp(pts, arc, max(s - 0.005, 0.0))
         rot = frame_from_heading(tangent)
-        h = rot[:, 1]
-        depth = float((p - anatomy.exit_point) @ n)  # < 0 inside
-        cos = float(h @ n)
-        if cos < -0.2:
-            tail = p - (depth - 0.005) / cos * h
-        else:  # heading not away from the exit: run the introducer straight out of the end
-            tail = anatomy.exit_point + 0.005 * n
-        starts.append(StartConfig(position=p, rotation=rot, introducer_tail=tail,
+        starts.append(StartConfig(position=p, rotation=rot,
+                                  introducer_tail=introducer_tail(anatomy, p, rot),
                                   arc_offset=float(off)))
     return tuple(starts)
+
+
+def introducer_tail(anatomy: Anatomy, position: FloatArray, rotation: FloatArray) -> FloatArray:
+    """(3,) proximal end of the introducer behind a start pose (module docstring): straight
+    back along ``-y_A`` to 5 mm beyond the exit plane, or straight out of the exit end when the
+    heading does not point away from it."""
+    n = np.asarray(anatomy.exit_normal, dtype=np.float64)
+    p = np.asarray(position, dtype=np.float64)
+    h = np.asarray(rotation, dtype=np.float64)[:, 1]
+    depth = float((p - anatomy.exit_point) @ n)  # < 0 inside
+    cos = float(h @ n)
+    if cos < -0.2:
+        return p - (depth - 0.005) / cos * h
+    return anatomy.exit_point + 0.005 * n
 
 
 def build_targets(anatomy: Anatomy, *, n_targets: int = 5, target_radius: float = 0.030,

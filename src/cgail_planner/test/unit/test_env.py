@@ -134,6 +134,38 @@ def test_bad_reset_options(env: CatheterNavEnv) -> None:
         env.reset(options={"start": 3})
     with pytest.raises(ValueError, match="options keys"):
         env.reset(options={"goal": 1})
+    start = env.scenarios.starts[0]
+    for pose, match in (((start.position[:2], start.rotation), "finite \\(3,\\) position"),
+                        ((start.position, 2.0 * start.rotation), "orthogonality error 3"),
+                        ((start.position, -start.rotation), "determinant -1"),
+                        (5, "start_pose must be \\(position, rotation\\)")):
+        with pytest.raises(ValueError, match=match):
+            env.reset(options={"start": 0, "target": 0, "start_pose": pose})
+
+
+def test_start_pose_option_replays_from_a_given_pose(env: CatheterNavEnv) -> None:
+    """The tip starts at ``start_pose`` with the introducer behind it; the scenario's own pose
+    gives the scenario's episode bit for bit."""
+    from cgail_planner.sim.scenarios import introducer_tail
+
+    start = env.scenarios.starts[1]
+    a = np.array([0.4, -0.3, 1.0], dtype=np.float32)
+    obs0, _ = env.reset(options={"start": 1, "target": 2})
+    nxt0 = env.step(a)[0]
+    obs1, _ = env.reset(options={"start": 1, "target": 2,
+                                 "start_pose": (start.position, start.rotation)})
+    np.testing.assert_array_equal(obs1, obs0)
+    np.testing.assert_array_equal(env.step(a)[0], nxt0)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(0.02), -math.sin(0.02)],
+                     [0.0, math.sin(0.02), math.cos(0.02)]])
+    p, r = start.position + np.array([0.0, 0.0, 1e-4]), start.rotation @ turn
+    obs2, _ = env.reset(options={"start": 1, "target": 2, "start_pose": (p, r)})
+    cat = env.catheter
+    assert cat.tip_position[0] == pytest.approx(p, abs=0)
+    assert cat.tip_rotation[0] == pytest.approx(r, abs=0)
+    assert cat.positions[0, 0] == pytest.approx(introducer_tail(env.anatomy, p, r), abs=0)
+    assert obs2[2] == pytest.approx(obs0[2] + 1e-4 / 0.15, abs=1e-6)
+    assert obs2[6:9] == pytest.approx(r[:, 1], abs=1e-7)
 
 
 def test_collision_ends_episode_with_r_obst(env: CatheterNavEnv) -> None:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
+import subprocess
+import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -10,13 +14,18 @@ import pytest
 from cgail_planner.learning.demo_bags import (
     DemoEpisode,
     load_demo_bag,
+    POSE_TOLERANCE_M,
     read_demo_bag,
+    recorded_start_pose,
+    replay_demo_bag,
     rotation_to_quaternion,
     write_demo_bag,
 )
 from cgail_planner.learning.demos import load_demos
-from cgail_planner.learning.errors import DemoError
+from cgail_planner.learning.errors import DemoAnatomyWarning, DemoError
 from cgail_planner.learning.evaluate import kruskal, summarize, Trial
+
+REPO = Path(__file__).resolve().parents[4]
 
 
 def _episode(n: int = 5, success: bool = True) -> DemoEpisode:
@@ -28,16 +37,23 @@ def _episode(n: int = 5, success: bool = True) -> DemoEpisode:
                        success)
 
 
-@pytest.mark.parametrize('compress', [False, True])
-def test_demo_bag_round_trip(tmp_path: Path, compress: bool):
+@pytest.mark.parametrize(('compress', 'anatomy_hash'), [(False, None), (True, '0123abcd')])
+def test_demo_bag_round_trip(tmp_path: Path, compress: bool, anatomy_hash: str | None):
     if compress:
         pytest.importorskip('zstandard')
     eps = [_episode(5), _episode(7, success=False)]
     write_demo_bag(tmp_path / 'bag', eps, anatomy='default', mode='static', dt=0.1,
-                   compress=compress)
+                   compress=compress, anatomy_hash=anatomy_hash)
     assert list((tmp_path / 'bag').glob('*.mcap'))
     meta, back = read_demo_bag(tmp_path / 'bag')
-    assert meta == {'anatomy': 'default', 'mode': 'static'}
+    if anatomy_hash is None:  # as the bags written before the hash was stored
+        assert meta == {'anatomy': 'default', 'mode': 'static'}
+    else:
+        from cgail_planner.sim.disk_cache import numpy_simd_targets
+
+        assert meta == {'anatomy': 'default', 'mode': 'static', 'anatomy_hash': anatomy_hash,
+                        'numpy_simd': ','.join(numpy_simd_targets())}
+        assert 'anatomy_hash' in (tmp_path / 'bag' / 'metadata.yaml').read_text()
     assert [len(e.alpha) for e in back] == [5, 7] and [e.success for e in back] == [True, False]
     for a, b in zip(eps, back, strict=True):
         np.testing.assert_array_equal(a.delta_l, b.delta_l)
@@ -93,11 +109,217 @@ def test_expert_demos_resimulate_in_the_simulator(tmp_path: Path):
     env = CatheterNavEnv(EnvConfig(mode='static'))
     episodes, stats = record_episodes(env, 2, seed=0)
     assert stats['success_rate'] == 1.0
-    write_demo_bag(tmp_path / 'd', episodes, anatomy='default', mode='static', dt=0.1)
-    obs, act = load_demo_bag(tmp_path / 'd')
-    assert obs.shape == (sum(len(e.alpha) for e in episodes), 41)
-    assert np.all(np.abs(act) <= 1.0) and np.all(act[:, 2] > 0)
-    episodes[0].tip_position[10] += 0.001
+    write_demo_bag(tmp_path / 'd', episodes, anatomy='default', mode='static', dt=0.1,
+                   anatomy_hash=env.anatomy.content_hash)
+    replay = replay_demo_bag(tmp_path / 'd')
+    assert replay.obs.shape == (sum(len(e.alpha) for e in episodes), 41)
+    assert np.all(np.abs(replay.act) <= 1.0) and np.all(replay.act[:, 2] > 0)
+    assert replay.report.max_drift_m == 0.0 and replay.report.same_anatomy
+    episodes[0].tip_position[10] += 0.002
     write_demo_bag(tmp_path / 'e', episodes, anatomy='default', mode='static', dt=0.1)
     with pytest.raises(DemoError, match='episode 0 step 10'):
         load_demo_bag(tmp_path / 'e')
+
+
+# ----------------------------------------------------------------------------------------------
+# Replay: a physical tolerance, the drift reported, the anatomy hash compared
+# ----------------------------------------------------------------------------------------------
+ACTIONS = [[0.3, -0.2, 1.0]] * 30 + [[0.0, 0.0, -0.6]] * 3 + [[-0.4, 0.5, 0.8]] * 7
+
+
+def _record(env, start: int, target: int, policy, max_steps: int = 2000
+            ) -> tuple[DemoEpisode, np.ndarray, dict]:
+    """An episode recorded as make_demos records it (``policy()`` gives each action), the
+    observations the env gave and the last step's info."""
+    obs, _ = env.reset(options={'start': start, 'target': target})
+    rows: dict[str, list] = {k: [] for k in ('al', 'ga', 'dl', 'p', 'q', 'g', 'obs')}
+    for _ in range(max_steps):
+        rows['obs'].append(obs)
+        obs, _, te, tr, info = env.step(np.asarray(policy(), dtype=np.float32))
+        rows['al'].append(info['bend'][0])
+        rows['ga'].append(info['bend'][1])
+        rows['dl'].append(info['insertion'])
+        rows['p'].append(env.catheter.tip_position[0].copy())
+        rows['q'].append(rotation_to_quaternion(env.catheter.tip_rotation[0]))
+        rows['g'].append(np.asarray(info['target_position'], float))
+        if te or tr:
+            break
+    episode = DemoEpisode(start, target,
+                          *(np.asarray(rows[k]) for k in ('al', 'ga', 'dl', 'p', 'q', 'g')),
+                          success=True)
+    return episode, np.stack(rows['obs']), info
+
+
+@pytest.fixture(scope='module')
+def recording():
+    """40 scripted steps (a bend, a retraction, another bend) recorded in the static simulator
+    from start 1 towards target 2, with the observations the env gave."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    env = CatheterNavEnv(EnvConfig(mode='static'))
+    actions = iter(ACTIONS)
+    episode, obs, info = _record(env, 1, 2, lambda: next(actions), len(ACTIONS))
+    assert len(obs) == len(ACTIONS) and not (info['success'] or info['collision'])
+    return env, episode, obs
+
+
+def _bag(tmp_path: Path, episode: DemoEpisode, name: str = 'bag', **kw) -> Path:
+    return write_demo_bag(tmp_path / name, [episode], anatomy='default', mode='static', dt=0.1,
+                          compress=False, **kw)
+
+
+def test_recorded_start_pose_inverts_the_first_step(recording):
+    env, episode, _ = recording
+    start = env.scenarios.starts[1]
+    p0, r0 = recorded_start_pose(episode)
+    assert p0 == pytest.approx(start.position, abs=1e-15)
+    assert r0 == pytest.approx(start.rotation, abs=1e-15)
+    retracting = copy.deepcopy(episode)
+    retracting.delta_l[0] = -1e-4
+    assert recorded_start_pose(retracting) is None
+
+
+def test_replay_of_a_recording_in_this_anatomy_is_the_recording(tmp_path: Path, recording):
+    env, episode, obs = recording
+    bag = _bag(tmp_path, episode, anatomy_hash=env.anatomy.content_hash)
+    with warnings.catch_warnings():
+        warnings.simplefilter('error', DemoAnatomyWarning)
+        replay = replay_demo_bag(bag)
+    np.testing.assert_array_equal(replay.obs, obs)
+    np.testing.assert_allclose(replay.act, np.asarray(ACTIONS, np.float32), rtol=0, atol=1e-6)
+    r = replay.report
+    assert (r.episodes, r.steps, r.ended_early, r.same_anatomy) == (1, 40, 0, True)
+    assert r.max_drift_m == 0.0 and r.max_start_offset_m < 1e-15
+    assert r.tolerance_m == POSE_TOLERANCE_M == 1e-3
+    assert r.summary() == (
+        f'{bag}: 1 episodes, 40 steps re-simulated; recorded starts off the scenario starts by '
+        f'max {r.max_start_offset_m * 1e3:.3g} mm, mean {r.mean_start_offset_m * 1e3:.3g} mm; '
+        f'tip drift from the recorded poses max 0 mm, mean 0 mm (tolerance 1 mm); anatomy '
+        f'{env.anatomy.content_hash}, as recorded')
+
+
+def test_replay_reports_drift_within_the_tolerance(tmp_path: Path, recording):
+    _, episode, _ = recording
+    moved = copy.deepcopy(episode)
+    moved.tip_position[10] += [0.0, 0.0004, 0.0003]   # 0.5 mm off at one step
+    bag = _bag(tmp_path, moved)
+    replay = replay_demo_bag(bag)
+    assert replay.report.max_drift_m == pytest.approx(5e-4, abs=1e-12)
+    assert replay.report.mean_drift_m == pytest.approx(5e-4 / 40, abs=1e-12)
+    assert 'tip drift from the recorded poses max 0.5 mm, mean 0.0125 mm' \
+        in replay.report.summary()
+    with pytest.raises(DemoError, match='step 10: the re-simulated tip: expected it within '
+                                        r'0\.4 mm of the recording, found 0\.500 mm'):
+        replay_demo_bag(bag, tolerance_m=4e-4)
+    with pytest.raises(DemoError, match=r'tolerance_m must be in \(0, 1\) m, found 0'):
+        replay_demo_bag(bag, tolerance_m=0)
+
+
+@pytest.mark.parametrize(('what', 'move', 'match'), [
+    ('pose', 0.002, r'episode 0 step 10: the re-simulated tip: expected it within 1 mm of the '
+                    r'recording, found 2\.000 mm: re-record the demonstrations \(make_demos\)$'),
+    ('start', 0.0015, r'episode 0: the recorded start: expected it within 1 mm of the '
+                      r'recording, found 1\.500 mm'),
+    ('target', 0.0012, r'episode 0: the recorded target: expected it within 1 mm of the '
+                       r'recording, found 1\.200 mm'),
+])
+def test_replay_beyond_the_tolerance_is_a_one_line_error(tmp_path: Path, recording, what, move,
+                                                        match):
+    _, episode, _ = recording
+    bad = copy.deepcopy(episode)
+    if what == 'pose':
+        bad.tip_position[10, 0] += move
+    elif what == 'start':   # the whole recording shifted: it started elsewhere
+        bad.tip_position[:, 0] += move
+    else:
+        bad.target_position[:, 2] += move
+    with pytest.raises(DemoError, match=match) as err:
+        load_demo_bag(_bag(tmp_path, bad))
+    assert '\n' not in str(err.value)
+
+
+def test_replay_follows_a_recording_made_from_a_moved_start(tmp_path: Path, recording):
+    """Another CPU's mesh moves the scenario start by tens of micrometres and its heading by up
+    to ~1 deg: the recording is replayed from the pose it was made from, so its path is
+    reproduced, and only the start offset is reported."""
+    from scipy.spatial.transform import Rotation
+
+    env, episode, obs = recording
+    start = env.scenarios.starts[1].position
+    q = Rotation.from_rotvec(np.radians(1.0) * np.array([0.6, 0.0, 0.8]))
+    offset = np.array([0.0, 0.0001, 0.0])
+    moved = copy.deepcopy(episode)
+    moved.tip_position = start + offset + q.apply(episode.tip_position - start)
+    moved.tip_quaternion = (q * Rotation.from_quat(episode.tip_quaternion)).as_quat()
+    replay = replay_demo_bag(_bag(tmp_path, moved))
+    assert replay.report.max_start_offset_m == pytest.approx(1e-4, abs=1e-12)
+    assert replay.report.max_drift_m < 1e-12
+    np.testing.assert_array_equal(replay.act, replay_demo_bag(_bag(tmp_path, episode, 'b')).act)
+    assert np.abs(replay.obs[:, :3] - obs[:, :3]).max() > 1e-4  # observed where it went
+
+
+def _extended(episode: DemoEpisode, extra: int) -> DemoEpisode:
+    """``episode`` with its last recorded step repeated ``extra`` times: a recording that
+    went on after the simulator ended it."""
+    ext = copy.deepcopy(episode)
+    for name in ('alpha', 'gamma', 'delta_l', 'tip_position', 'tip_quaternion',
+                 'target_position'):
+        arr = getattr(ext, name)
+        setattr(ext, name, np.concatenate([arr, np.repeat(arr[-1:], extra, axis=0)]))
+    return ext
+
+
+def test_replay_that_ends_before_the_recorded_end(tmp_path: Path, recording):
+    """Reaching the target early (a target moved by the remeshing) keeps the steps until then;
+    a collision or exit before the recorded end is an error."""
+    from cgail_planner.sim.env import pursuit_actions
+
+    env = recording[0]
+    reached, _, info = _record(env, 0, 1, lambda: pursuit_actions(env.engine)[0])
+    assert info['success']
+    replay = replay_demo_bag(_bag(tmp_path, _extended(reached, 3)))
+    assert (replay.report.ended_early, replay.report.steps) == (1, len(reached.alpha))
+    assert ', 1 reached the target early;' in replay.report.summary()
+    curl = iter([[1.0, 0.0, 1.0]] * 200)
+    crashed, _, info = _record(env, 0, 0, lambda: next(curl), 200)
+    assert info['collision']
+    with pytest.raises(DemoError, match=(
+            f'episode 0: expected the re-simulation to last {len(crashed.alpha) + 2} steps, '
+            f'found it ended by a collision at step {len(crashed.alpha) - 1}$')):
+        replay_demo_bag(_bag(tmp_path, _extended(crashed, 2), 'crashed'))
+
+
+def test_replay_warns_when_the_anatomy_hash_differs(tmp_path: Path, recording):
+    env, episode, _ = recording
+    with pytest.warns(DemoAnatomyWarning, match=(
+            r"recorded in 'default' anatomy 0000000000000000 \(numpy SIMD .*\), re-simulated "
+            rf"in anatomy {env.anatomy.content_hash} .* drifts up to 0 mm, within the 1 mm "
+            "tolerance")):
+        replay = replay_demo_bag(_bag(tmp_path, episode, anatomy_hash='0' * 16))
+    assert replay.report.same_anatomy is False
+    assert replay.report.summary().endswith(
+        f'anatomy {env.anatomy.content_hash}, recorded in 0000000000000000')
+    with warnings.catch_warnings():   # a bag without a hash: no warning, None
+        warnings.simplefilter('error', DemoAnatomyWarning)
+        old = replay_demo_bag(_bag(tmp_path, episode, 'old'))
+    assert old.report.same_anatomy is None and old.report.recorded_anatomy_hash is None
+    assert old.report.summary().endswith('(the bag records no anatomy hash)')
+    lines: list[str] = []
+    obs, _ = load_demos([tmp_path / 'old'], report=lines.append)
+    assert lines == [old.report.summary()] and len(obs) == 40
+
+
+@pytest.mark.slow  # re-simulates the 70 committed demonstrations and trains 8,192 steps
+def test_train_smoke_runs_on_the_committed_demonstrations(tmp_path: Path):
+    """``train --preset smoke --demos bags/demos/default`` on this machine's numpy, whatever the
+    CPU the demonstrations were recorded on."""
+    out = subprocess.run(
+        [sys.executable, '-m', 'cgail_planner.learning.train', '--preset', 'smoke', '--mode',
+         'static', '--demos', str(REPO / 'bags' / 'demos' / 'default'), '--out',
+         str(tmp_path / 'run'), '--no-progress'],
+        capture_output=True, text=True, timeout=1800, check=False)
+    assert out.returncode == 0, out.stderr[-2000:]
+    line = next(x for x in out.stderr.splitlines() if x.startswith('train: demonstrations: '))
+    assert '70 episodes, 30185 steps re-simulated' in line and '(tolerance 1 mm)' in line
+    assert (tmp_path / 'run' / 'final.pt').is_file()

@@ -174,9 +174,19 @@ def test_onnx_straight_policy_fixture_plans_in_the_default_anatomy() -> None:
     planner = Planner(PlannerConfig(), model_world_from_sim(world), StaticWall(world.anatomy),
                       policy, RAY_DIRECTIONS, obs_dim=policy.obs_dim)
     start = world.scenarios.starts[0]
-    goal = start.position + 0.03 * start.rotation[:, 1]
+    heading = start.rotation[:, 1]
+    # The goal lies a quarter step off a multiple of the 0.5 mm step beyond the 10 mm
+    # tolerance, so the step count does not hang on the last bit of |goal - p| (at 30 mm,
+    # 40 steps end exactly 10 mm from the goal: d^2 - tol^2 = -1.9e-18 on one CPU, > 0 on
+    # another). The straight policy inserts 0.5 mm a step along the start heading.
+    cfg, dist = PlannerConfig(), 0.03025
+    step = cfg.max_insertion_speed * cfg.dt
+    expected = math.ceil((dist - cfg.goal_tolerance) / step)   # 20.25 mm / 0.5 mm -> 41
+    goal = start.position + dist * heading
     res = planner.plan(start.position, start.rotation, goal)
-    assert res.steps == 41
+    assert res.steps == expected == 41
+    np.testing.assert_allclose(res.raw[:-1], start.position + np.outer(
+        np.arange(expected + 1) * step, heading), rtol=0, atol=1e-12)
     assert res.path[-1] == pytest.approx(goal, abs=1e-12)
 
 
