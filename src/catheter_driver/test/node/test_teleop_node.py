@@ -96,8 +96,8 @@ def test_deadman_held_commands_release_sends_one_stop_then_quiet(harness, rig):
 
 
 def _enable(harness, joy, insertion) -> float:
-    """Hold the deadman with the stick pushed until commands flow, then let go of the pad
-    (the Joy stream stops); returns when the last Joy was sent."""
+    """Hold the deadman with the stick pushed until commands flow, then silence the pad (no
+    more Joy, the deadman still held in the last one); returns when the last Joy was sent."""
     pad = Gamepad(harness, joy, _joy([0, 1.0, 0, 0], True))
     assert harness.spin_until(lambda: len(insertion) >= 1)
     pad.stop()
