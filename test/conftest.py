@@ -15,11 +15,21 @@ def pytest_configure(config: pytest.Config) -> None:
 
 @pytest.fixture
 def rclpy_context():
-    """rclpy initialised for one test, shut down afterwards."""
-    import rclpy
+    """rclpy initialised for one test, shut down afterwards (yields the rclpy module).
 
-    rclpy.init()
+    No rclpy signal handlers (``SignalHandlerOptions.NO``): SIGTERM ends the test process, so
+    ``timeout`` works, and SIGINT raises ``KeyboardInterrupt`` as usual. A node whose
+    constructor raised is only reachable from the exception's traceback cycle; the collection
+    before shutdown destroys it, so its DDS participant does not outlive the test.
+    """
+    import gc
+
+    import rclpy
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
         yield rclpy
     finally:
+        gc.collect()
         rclpy.try_shutdown()

@@ -27,26 +27,16 @@ def run_module(module: str, *args: str, timeout: float = 60.0) -> subprocess.Com
                           capture_output=True, text=True, timeout=timeout, check=False)
 
 
-@pytest.fixture
-def ros():
-    import rclpy
-
-    rclpy.init()
-    try:
-        yield rclpy
-    finally:
-        rclpy.try_shutdown()
-
-
 @pytest.mark.parametrize('fixture', ['cgail_trial', 'centerline_trial'])
-def test_replayed_fixture_gives_the_known_metrics(ros, tmp_path: Path, fixture: str) -> None:
+def test_replayed_fixture_gives_the_known_metrics(rclpy_context, tmp_path: Path,
+                                                  fixture: str) -> None:
     from rclpy.executors import SingleThreadedExecutor
 
     from cgail_planner.bags.metrics_cli import evaluate_bags
     from cgail_planner.bags.record import BagRecorder, RecorderConfig
 
     expected = json.loads((FIXTURES / fixture / 'expected.json').read_text())
-    node = ros.create_node('playback_recorder')
+    node = rclpy_context.create_node('playback_recorder')
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     recorder = BagRecorder(node, RecorderConfig(output=tmp_path / fixture, topics=TOPICS,

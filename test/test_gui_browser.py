@@ -24,6 +24,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 
 from cgail_planner.gui.cdp import Chromium, find_chromium
@@ -105,7 +106,7 @@ def free_port() -> int:
 
 @pytest.fixture
 def gui() -> Iterator[tuple[GuiNode, Scene]]:
-    rclpy.init()
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGTERM ends the run
     node = GuiNode(parameter_overrides=[Parameter('port', value=free_port()),
                                         Parameter('anatomy', value='default'),
                                         Parameter('stale_after_s', value=3.0),

@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import pytest
@@ -41,7 +42,7 @@ def _spec(tmp_path, nodes):
     return parse_launch({'name': 't', 'nodes': nodes}, tmp_path)
 
 
-def _wait_ready(out: io.StringIO, names, timeout=10.0):
+def _wait_ready(out: io.StringIO, names, timeout=15.0):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         text = out.getvalue()
@@ -138,10 +139,22 @@ def test_respawn_restarts_a_crashed_node(tmp_path):
               'raise SystemExit(1)')
     spec = _spec(tmp_path, [{'name': 'flaky', 'command': [sys.executable, '-c', script],
                              'ros': False, 'respawn': True}])
-    launcher = ProcessLauncher(spec, out=io.StringIO(), shutdown_timeout=1.0)
+    out = io.StringIO()
+    launcher = ProcessLauncher(spec, out=out, shutdown_timeout=1.0)
     launcher.start()
-    launcher.supervise(max_duration=2.5)
-    assert len(counter.read_text()) >= 3
+    # supervise in a thread until the third start (respawn delays 0.5 s, then 1 s; each start
+    # is a Python interpreter, slow on a loaded machine), then stop it
+    supervisor = threading.Thread(target=launcher.supervise, kwargs={'max_duration': 60.0})
+    supervisor.start()
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and not (
+            counter.exists() and len(counter.read_text()) >= 3):
+        time.sleep(0.05)
+    launcher.request_stop()
+    supervisor.join(timeout=30.0)
+    assert not supervisor.is_alive()
+    assert len(counter.read_text()) >= 3, out.getvalue()
+    assert 'respawn #2' in out.getvalue()
 
 
 def test_cli_refuses_without_localhost_discovery(tmp_path, monkeypatch, capsys):
@@ -181,15 +194,12 @@ def test_load_launch_file_reports_yaml_errors(tmp_path):
         load_launch_file(tmp_path / 'missing.yaml')
 
 
-def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services():
-    import rclpy
-
+def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_context):
     from cgail_planner.system.launch_spec import NodeSpec
     from cgail_planner.system.launcher import build_node
 
-    rclpy.init()
+    built = []
     try:
-        built = []
         for lean in (False, True):
             for exe, cls, name in (('teleop_node', 'TeleopNode', 'teleop'),
                                    ('driver_node', 'DriverNode', 'sleeve_driver')):
@@ -205,7 +215,6 @@ def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services():
                 if name == 'sleeve_driver':
                     assert has_lifecycle == (not lean), services
                     assert node._state_machine.current_state[1] == 'active'
+    finally:
         for node in built:
             node.destroy_node()
-    finally:
-        rclpy.try_shutdown()

@@ -1,12 +1,45 @@
-"""In-process node test helpers: one rclpy context per test, an executor and a spin-until."""
+"""In-process node test helpers: one rclpy context per test, an executor and a spin-until.
 
-from collections.abc import Callable
+Rules that keep these tests true on an idle machine as well as a loaded one:
+
+* nothing is sent from a busy loop: inputs come from timers of the probe node at a realistic
+  rate (:meth:`Harness.repeat`), so the executor sleeps in ``rcl_wait`` between callbacks and a
+  device thread of the node under test is never starved of the GIL;
+* waits for something to happen spin with a real timeout and a generous deadline (15 s);
+  only checks that something does *not* happen use short windows (:meth:`Harness.spin_for`);
+* rclpy installs no signal handlers (``SignalHandlerOptions.NO``), so SIGTERM ends the test
+  process (``timeout`` works) and SIGINT raises ``KeyboardInterrupt`` as usual.
+"""
+
+from collections.abc import Callable, Iterator
+import gc
 import time
 
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+from rclpy.timer import Timer
+
+WAIT_S = 15.0
+"""Default deadline of a wait for something that must happen, s."""
+
+
+@pytest.fixture
+def ros() -> Iterator[None]:
+    """rclpy initialised for one test without signal handlers, shut down afterwards.
+
+    A node whose constructor raised is only reachable from the exception's traceback cycle; the
+    collection before shutdown destroys it, so its DDS participant (and that participant's
+    threads) does not outlive the test.
+    """
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        yield
+    finally:
+        gc.collect()
+        rclpy.try_shutdown()
 
 
 class Harness:
@@ -17,13 +50,15 @@ class Harness:
         self.probe = Node('probe')
         self.executor.add_node(self.probe)
         self.nodes: list[Node] = [self.probe]
+        self.closers: list[Callable[[], None]] = []
 
     def add(self, node: Node) -> Node:
         self.executor.add_node(node)
         self.nodes.append(node)
         return node
 
-    def spin_until(self, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = WAIT_S) -> bool:
+        """Spin until ``predicate()`` holds (True) or ``timeout`` s passed (False)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if predicate():
@@ -32,16 +67,26 @@ class Harness:
         return predicate()
 
     def spin_for(self, seconds: float) -> None:
+        """Spin for ``seconds`` (a window in which something must *not* happen)."""
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             self.executor.spin_once(timeout_sec=0.02)
+
+    def repeat(self, period_s: float, callback: Callable[[], object]) -> Timer:
+        """Call ``callback`` every ``period_s`` from a timer of the probe node (stop it with
+        :meth:`stop`)."""
+        return self.probe.create_timer(period_s, callback)
+
+    def stop(self, timer: Timer) -> None:
+        """Stop a timer made by :meth:`repeat`."""
+        self.probe.destroy_timer(timer)
 
     def collect(self, msg_type, topic: str, qos) -> list:
         received: list = []
         self.probe.create_subscription(msg_type, topic, received.append, qos)
         return received
 
-    def call(self, client, request, timeout: float = 5.0):
+    def call(self, client, request, timeout: float = WAIT_S):
         assert client.wait_for_service(timeout_sec=timeout)
         future = client.call_async(request)
         assert self.spin_until(future.done, timeout)
@@ -49,8 +94,7 @@ class Harness:
 
 
 @pytest.fixture
-def harness():
-    rclpy.init()
+def harness(ros: None) -> Iterator[Harness]:
     h = Harness()
     try:
         yield h
@@ -59,4 +103,5 @@ def harness():
             h.executor.remove_node(node)
             node.destroy_node()
         h.executor.shutdown()
-        rclpy.try_shutdown()
+        for close in reversed(h.closers):
+            close()

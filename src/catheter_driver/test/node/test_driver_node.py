@@ -1,6 +1,14 @@
-"""sleeve_driver node in-process: topics, QoS, watchdog, e-stop, bad commands, disconnects."""
+"""sleeve_driver node in-process: topics, QoS, watchdog, e-stop, bad commands, disconnects.
+
+Most tests own the simulated board (:class:`SteppedDriver`, ``simulate_device:=false``) and step
+it from a timer of the test's executor at the board's 100 Hz: board time advances with the
+node's callbacks, and no device thread races the test for the GIL. Commands come from a 50 Hz
+timer, like the teleop node's. The lifecycle test keeps the node's own simulated board (its
+thread is what configure starts and cleanup stops).
+"""
 
 import math
+import time
 import uuid
 
 import can
@@ -14,18 +22,48 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool
 
 from catheter_driver.core.relay import GripperState
-from catheter_driver.hw.can_protocol import DriverCodec
+from catheter_driver.hw.can_protocol import DriverCodec, DriverStatus
+from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes.driver_node import DriverNode
 
+COMMAND_RATE_HZ = 50.0
+
+
+class SteppedDriver(SimulatedDriver):
+    """The simulated board without its thread: the test's executor steps it; ``time`` is the
+    board's clock, s."""
+
+    time = 0.0
+
+    def step(self, dt: float) -> DriverStatus | None:
+        self.time += dt
+        return super().step(dt)
+
 
 def _node(harness, **params):
+    """A configured, active driver node (with its own simulated board unless told not to)."""
     params.setdefault('can_channel', f'drv_{uuid.uuid4().hex}')
     overrides = [Parameter(k, value=v) for k, v in params.items()]
     node = harness.add(DriverNode(parameter_overrides=overrides))
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     return node
+
+
+def _rig(harness, **params) -> tuple[DriverNode, SteppedDriver]:
+    """A configured, active driver node and the simulated board on its bus, stepped at the
+    board's rate by a timer of the harness executor."""
+    channel = params.setdefault('can_channel', f'drv_{uuid.uuid4().hex}')
+    overrides = [Parameter(k, value=v) for k, v in {**params, 'simulate_device': False}.items()]
+    node = harness.add(DriverNode(parameter_overrides=overrides))
+    sim = SteppedDriver(channel, config=node.relay_config, codec=node._codec)
+    harness.closers.append(sim.stop)
+    dt = 1.0 / sim.rate_hz
+    harness.repeat(dt, lambda: sim.step(dt))
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    return node, sim
 
 
 def _cmd(velocity, name='insertion'):
@@ -35,12 +73,18 @@ def _cmd(velocity, name='insertion'):
     return msg
 
 
-def _publishing(pub, msg, predicate):
-    """A spin_until predicate that publishes ``msg`` on every poll."""
-    def step():
+def _commanding(harness, pub, msg, sent_at: list[float] | None = None):
+    """Publish ``msg`` at COMMAND_RATE_HZ until ``harness.stop``; each send time is appended
+    to ``sent_at``."""
+    def send() -> None:
         pub.publish(msg)
-        return predicate()
-    return step
+        if sent_at is not None:
+            sent_at.append(time.monotonic())
+    return harness.repeat(1.0 / COMMAND_RATE_HZ, send)
+
+
+def _driving(node) -> bool:
+    return node._controller is not None and node._controller.phase.name == 'DRIVE'
 
 
 def _values(array):
@@ -70,17 +114,13 @@ def test_topics_services_and_qos(harness):
 
 
 def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
-    node = _node(harness)
+    node, sim = _rig(harness)
     states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: states and node._controller.phase.name == 'DRIVE')
-
-    def keep_commanding():
-        pub.publish(_cmd(0.005))
-        return states[-1].position[0] > 0.002
-
-    assert harness.spin_until(keep_commanding, timeout=15.0)
+    assert harness.spin_until(lambda: states and _driving(node))
+    _commanding(harness, pub, _cmd(0.005))
+    assert harness.spin_until(lambda: states[-1].position[0] > 0.002)
     last = states[-1]
     assert last.name == ['insertion']
     # the catheter waits (velocity 0) while the sleeve returns between relays, so look at
@@ -88,20 +128,27 @@ def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
     velocities = [m.velocity[0] for m in states]
     assert 0.0 < max(velocities) <= 0.005 + 1e-9
     assert min(velocities) >= 0.0
-    assert node.sim.mechanism.catheter_position == pytest.approx(last.position[0], abs=5e-4)
+    assert sim.mechanism.catheter_position == pytest.approx(last.position[0], abs=5e-4)
 
 
 def test_watchdog_stops_on_stale_commands(harness):
-    node = _node(harness, command_timeout_s=0.2)
+    node, sim = _rig(harness, command_timeout_s=0.2)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
-    assert harness.spin_until(_publishing(pub, _cmd(0.005),
-                                          lambda: node.sim.mechanism.sleeve_velocity > 0))
-    harness.spin_for(0.5)  # no more commands
-    assert node.sim.mechanism.sleeve_velocity == 0.0
-    diag = node.diagnostics_message()
-    assert _values(diag)['command_fresh'] == 'False'
+    assert harness.spin_until(lambda: _driving(node))
+    sent_at: list[float] = []
+    commands = _commanding(harness, pub, _cmd(0.005), sent_at)
+    assert harness.spin_until(lambda: sim.mechanism.sleeve_velocity > 0)
+    harness.stop(commands)  # no more commands
+    assert harness.spin_until(
+        lambda: _values(node.diagnostics_message())['command_fresh'] == 'False')
+    assert time.monotonic() - sent_at[-1] >= 0.2  # never before command_timeout_s
+    assert harness.spin_until(lambda: sim.mechanism.sleeve_velocity == 0.0)
+    stopped_at = sim.mechanism.catheter_position
+    harness.spin_for(0.3)
+    assert sim.mechanism.sleeve_velocity == 0.0
+    assert sim.mechanism.catheter_position == stopped_at
+    assert _values(node.diagnostics_message())['command_fresh'] == 'False'
 
 
 @pytest.mark.parametrize(('msg', 'reason'), [
@@ -111,60 +158,61 @@ def test_watchdog_stops_on_stale_commands(harness):
     (_cmd(0.001, name='wrong'), "expected joint 'insertion' in name, found ['wrong']"),
 ])
 def test_bad_commands_are_rejected_and_nothing_is_sent(harness, msg, reason):
-    node = _node(harness)
+    node, sim = _rig(harness)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
-    start = node.sim.mechanism.catheter_position
-    assert harness.spin_until(_publishing(pub, msg, lambda: node.rejected_commands >= 3))
-    harness.spin_for(0.2)
-    assert node.sim.mechanism.catheter_position == start
+    assert harness.spin_until(lambda: _driving(node))
+    start = sim.mechanism.catheter_position
+    _commanding(harness, pub, msg)
+    assert harness.spin_until(lambda: node.rejected_commands >= 3)
+    harness.spin_for(0.2)  # bad commands keep coming: still nothing moves
+    assert sim.mechanism.catheter_position == start
     assert node._velocity_cmd == 0.0
     assert _values(node.diagnostics_message())['last_rejection'] == reason
 
 
 def test_estop_service_holds_the_sleeve_and_reports(harness):
-    node = _node(harness)
+    node, sim = _rig(harness)
     diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
     client = harness.probe.create_client(SetBool, 'sleeve_driver/estop')
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
+    assert harness.spin_until(lambda: _driving(node))
     result = harness.call(client, SetBool.Request(data=True))
     assert result.success and result.message == 'e-stop engaged'
-    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.6)
-    assert node.sim.mechanism.catheter_position == 0.0
+    _commanding(harness, pub, _cmd(0.005))
+    harness.spin_for(0.6)
+    assert sim.mechanism.catheter_position == 0.0
     assert harness.spin_until(lambda: diags and diags[-1].status[0].level == DiagnosticStatus.WARN)
     status = diags[-1].status[0]
     assert status.message == 'e-stop engaged' and status.hardware_id == 'sleeve_driver'
-    assert harness.spin_until(lambda: node.sim._stopped)  # the latch frame reached the device
+    assert harness.spin_until(lambda: sim._stopped)  # the latch frame reached the device
     result = harness.call(client, SetBool.Request(data=False))
     assert result.message == 'e-stop released'
-    assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: node.sim.mechanism.catheter_position > 1e-4))
+    assert harness.spin_until(lambda: sim.mechanism.catheter_position > 1e-4)
 
 
 def test_disconnect_reported_and_recovered_with_backoff(harness):
-    node = _node(harness, status_timeout_s=0.1, reconnect_backoff_initial_s=0.05,
-                 reconnect_backoff_max_s=0.4)
+    node, sim = _rig(harness, status_timeout_s=0.1, reconnect_backoff_initial_s=0.05,
+                     reconnect_backoff_max_s=0.4)
     assert harness.spin_until(lambda: node._controller is not None)
-    node.sim.disconnect()
-    assert harness.spin_until(lambda: node.reconnects >= 3, timeout=15.0)
+    sim.disconnect()
+    assert harness.spin_until(lambda: node.reconnects >= 3)
     diag = node.diagnostics_message().status[0]
     assert diag.level == DiagnosticStatus.ERROR
     assert diag.message.startswith('disconnected: expected DRV_STATUS within 0.1 s')
     assert node._backoff.attempts >= 3
-    node.sim.reconnect()
+    sim.reconnect()
     assert harness.spin_until(lambda: node.diagnostics_message().status[0].level
-                              == DiagnosticStatus.OK, timeout=15.0)
+                              == DiagnosticStatus.OK)
     assert node._backoff.attempts == 0
 
 
 def test_garbage_frames_do_not_crash_the_node(harness):
-    node = _node(harness)
+    node, sim = _rig(harness)
     assert harness.spin_until(lambda: node._controller is not None)
     for _ in range(5):
-        node.sim.inject_garbage(20)
+        sim.inject_garbage(20)
         harness.spin_for(0.05)
     assert harness.spin_until(lambda: node._link is not None and node._link.protocol_errors >= 90)
     assert node._controller is not None
@@ -172,14 +220,14 @@ def test_garbage_frames_do_not_crash_the_node(harness):
 
 
 def test_stall_is_reported_in_diagnostics(harness):
-    node = _node(harness)
+    node, sim = _rig(harness)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE')
-    node.sim.set_stall(True)
-    assert harness.spin_until(_publishing(
-        pub, _cmd(0.005),
-        lambda: node.diagnostics_message().status[0].message == 'sleeve stalled'))
+    assert harness.spin_until(lambda: _driving(node))
+    sim.set_stall(True)
+    _commanding(harness, pub, _cmd(0.005))
+    assert harness.spin_until(
+        lambda: node.diagnostics_message().status[0].message == 'sleeve stalled')
 
 
 def test_missing_can_interface_reports_error_and_retries(harness):
@@ -205,31 +253,33 @@ def test_bad_parameters_raise_at_construction(harness, params, error, match):
 
 
 def test_position_is_tracked_across_a_disconnect(harness):
-    # status_timeout 0.25 s: short enough to see the disconnect quickly, long enough that a
-    # loaded CI machine does not declare the link lost before the first millimetre
-    node = _node(harness, status_timeout_s=0.25, reconnect_backoff_initial_s=0.05,
-                 reconnect_backoff_max_s=0.1)
+    node, sim = _rig(harness, status_timeout_s=0.25, reconnect_backoff_initial_s=0.05,
+                     reconnect_backoff_max_s=0.1)
     states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
     pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
                                          conv.COMMAND_QOS)
-    assert harness.spin_until(lambda: node._controller and node._controller.phase.name == 'DRIVE',
-                              timeout=15.0)
-    assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: node.sim.mechanism.catheter_position > 0.001), timeout=15.0)
-    node.sim.disconnect()  # the board drives on until its own 200 ms watchdog
-    assert harness.spin_until(_publishing(pub, _cmd(0.005), lambda: node.reconnects >= 1),
-                              timeout=15.0)
-    harness.spin_for(0.4)
-    moved_blind = node.sim.mechanism.catheter_position
-    node.sim.reconnect()
+    assert harness.spin_until(lambda: _driving(node))
+    commands = _commanding(harness, pub, _cmd(0.005))
+    assert harness.spin_until(lambda: sim.mechanism.catheter_position > 0.001)
+    sim.disconnect()  # the board drives on until its own 200 ms watchdog (board time)
+    pulled_at = sim.time
+    assert harness.spin_until(lambda: node.reconnects >= 1
+                              and sim.time > pulled_at + sim.command_timeout + 0.05)
+    harness.stop(commands)
+    assert sim.mechanism.sleeve_velocity == 0.0  # the board's watchdog stopped it
+    # the node's watchdog too: nothing moves the catheter once the cable is back
+    assert harness.spin_until(
+        lambda: _values(node.diagnostics_message())['command_fresh'] == 'False')
+    moved_blind = sim.mechanism.catheter_position
+    sim.reconnect()
     assert harness.spin_until(lambda: node._controller is not None and states
-                              and states[-1].position[0] >= moved_blind - 1e-6, timeout=15.0)
+                              and states[-1].position[0] >= moved_blind - 1e-6)
     assert states[-1].position[0] == pytest.approx(moved_blind, abs=2e-6)
 
 
 def test_driver_latch_engaged_elsewhere_is_a_warning(harness):
     channel = f'drv_{uuid.uuid4().hex}'
-    node = _node(harness, can_channel=channel)
+    node, _ = _rig(harness, can_channel=channel)
     assert harness.spin_until(lambda: node._controller is not None)
     other_host = can.Bus(interface='virtual', channel=channel)
     try:
@@ -266,20 +316,20 @@ def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
     assert _state(node) == 'inactive' and node.sim is not None and node._link is not None
     assert _own_topics(node) == {'/catheter/insertion_state', '/diagnostics'}
     mech = node.sim.mechanism
+    # commands at 50 Hz from here to the end, through every transition
+    _commanding(harness, pub, _cmd(0.005))
     # inactive: commands ignored, nothing published, both grippers held closed
-    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.5)
+    harness.spin_for(0.5)
     assert mech.catheter_position == 0.0 and states == [] and diags == []
     assert mech.moving.state == GripperState.CLOSED and mech.fixed.state == GripperState.CLOSED
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
-    assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: mech.catheter_position > 0.002 and states and diags),
-        timeout=15.0)
+    assert harness.spin_until(lambda: mech.catheter_position > 0.002 and states and diags)
     assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
     assert _state(node) == 'inactive'
-    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0, timeout=1.0)
+    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0)
     harness.spin_for(0.1)  # drain messages in flight
     n_states, n_diags, stopped_at = len(states), len(diags), mech.catheter_position
-    harness.spin_until(_publishing(pub, _cmd(0.005), lambda: False), timeout=0.6)
+    harness.spin_for(0.6)
     assert mech.catheter_position == stopped_at and mech.sleeve_velocity == 0.0
     assert mech.moving.state == GripperState.CLOSED and mech.fixed.state == GripperState.CLOSED
     assert len(states) == n_states and len(diags) == n_diags
@@ -291,10 +341,8 @@ def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
     mech2 = node.sim.mechanism
-    # generous deadline: a fresh-clone CI run once needed more than 5 s here
-    assert harness.spin_until(_publishing(
-        pub, _cmd(0.005), lambda: mech2.catheter_position > 0.001 and len(states) > n_states),
-        timeout=15.0)
+    assert harness.spin_until(lambda: mech2.catheter_position > 0.001
+                              and len(states) > n_states)
 
 
 @pytest.mark.parametrize('steps', [(), ('configure',), ('configure', 'activate'),

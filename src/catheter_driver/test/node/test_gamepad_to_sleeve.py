@@ -29,10 +29,10 @@ def test_deadman_drives_the_simulated_sleeve_and_release_stops_it(harness):
     buttons = [False] * 8
     buttons[4] = True
     pad.set(buttons=buttons)
-    assert harness.spin_until(lambda: mech.catheter_position > 0.002, timeout=15.0)
+    assert harness.spin_until(lambda: mech.catheter_position > 0.002)
     assert abs(mech.catheter_velocity) <= 0.005 + 1e-9
     pad.set(buttons=[False] * 8)  # release: one stop, then the sleeve stays put
-    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0, timeout=2.0)
+    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0)
     stopped_at = mech.catheter_position
     harness.spin_for(0.5)
     assert mech.catheter_position == stopped_at

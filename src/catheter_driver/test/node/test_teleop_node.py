@@ -1,6 +1,10 @@
-"""teleop node in-process: deadman, one stop on release, joy timeout, caps, parameters."""
+"""teleop node in-process: deadman, one stop on release, joy timeout, caps, parameters.
+
+Joy comes from a 50 Hz timer of the probe node (a gamepad's rate), never from a busy loop.
+"""
 
 import math
+import time
 
 import pytest
 from rclpy.exceptions import InvalidParameterValueException
@@ -21,11 +25,30 @@ def _node(harness, **params):
         parameter_overrides=[Parameter(k, value=v) for k, v in merged.items()]))
 
 
+JOY_RATE_HZ = 50.0
+
+
 def _joy(axes, held):
     msg = Joy()
     msg.axes = [float(a) for a in axes]
     msg.buttons = [int(held), 0]
     return msg
+
+
+class Gamepad:
+    """Publishes one Joy at JOY_RATE_HZ from a timer of the probe node until :meth:`stop`."""
+
+    def __init__(self, harness, pub, msg) -> None:
+        self.harness = harness
+        self.sent_at: list[float] = []
+
+        def send() -> None:
+            pub.publish(msg)
+            self.sent_at.append(time.monotonic())
+        self.timer = harness.repeat(1.0 / JOY_RATE_HZ, send)
+
+    def stop(self) -> None:
+        self.harness.stop(self.timer)
 
 
 @pytest.fixture
@@ -55,11 +78,11 @@ def test_deadman_held_commands_release_sends_one_stop_then_quiet(harness, rig):
     harness.spin_for(0.2)
     assert insertion == [] and bend == []
 
-    def held():
-        joy.publish(_joy([0, 0.5, 1.0, -1.0], held=True))
-        return len(insertion) >= 3
-    assert harness.spin_until(held)
-    harness.spin_for(0.15)  # drain the Joy messages still in flight
+    pad = Gamepad(harness, joy, _joy([0, 0.5, 1.0, -1.0], held=True))
+    assert harness.spin_until(lambda: len(insertion) >= 3)
+    pad.stop()
+    # every held Joy gives one insertion command: wait for those still in flight
+    assert harness.spin_until(lambda: len(insertion) >= len(pad.sent_at))
     assert insertion[-1].name == ['insertion']
     assert insertion[-1].velocity[0] == pytest.approx(0.0025)
     assert bend[-1].name == ['bend_alpha', 'bend_gamma']
@@ -72,20 +95,25 @@ def test_deadman_held_commands_release_sends_one_stop_then_quiet(harness, rig):
     assert len(insertion) == n + 1 and insertion[-1].velocity[0] == 0.0
 
 
-def _enable(harness, joy, insertion):
-    def step():
-        joy.publish(_joy([0, 1.0, 0, 0], True))
-        return len(insertion) >= 1
-    assert harness.spin_until(step)
-    harness.spin_for(0.15)  # drain the Joy messages still in flight
+def _enable(harness, joy, insertion) -> float:
+    """Hold the deadman with the stick pushed until commands flow, then silence the pad (no
+    more Joy, the deadman still held in the last one); returns when the last Joy was sent."""
+    pad = Gamepad(harness, joy, _joy([0, 1.0, 0, 0], True))
+    assert harness.spin_until(lambda: len(insertion) >= 1)
+    pad.stop()
+    # every held Joy gives one insertion command: wait for those still in flight
+    assert harness.spin_until(lambda: len(insertion) >= len(pad.sent_at))
+    return pad.sent_at[-1]
 
 
 def test_joy_timeout_sends_one_stop(harness):
     _node(harness, joy_timeout_s=0.3)
     insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
     joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
-    _enable(harness, joy, insertion)
-    harness.spin_for(0.8)  # joy goes silent while the deadman was held
+    last_joy = _enable(harness, joy, insertion)  # joy goes silent while the deadman is held
+    assert harness.spin_until(lambda: insertion[-1].velocity[0] == 0.0)
+    assert time.monotonic() - last_joy >= 0.3  # never before joy_timeout_s
+    harness.spin_for(0.3)  # and only one stop
     velocities = [m.velocity[0] for m in insertion]
     assert velocities[-1] == 0.0 and velocities.count(0.0) == 1
     assert set(velocities[:-1]) == {0.005}
@@ -106,10 +134,8 @@ def test_position_mode_and_caps(harness):
     bend = harness.collect(JointState, 'catheter/bend_command', conv.COMMAND_QOS)
     insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
     joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
-    def step():
-        joy.publish(_joy([0, -1.0, -1.0, 0.5], True))
-        return len(bend) >= 2
-    assert harness.spin_until(step)
+    Gamepad(harness, joy, _joy([0, -1.0, -1.0, 0.5], True))
+    assert harness.spin_until(lambda: len(bend) >= 2)
     # full alpha and half gamma deflection: the total bend is capped at pi/2 (the cap the PAM
     # controller enforces) with the direction kept (alpha = -2 gamma)
     alpha, gamma = bend[-1].position

@@ -28,15 +28,6 @@ T0 = 1_700_000_000 * 10**9
 T = TYPESTORE.types
 
 
-@pytest.fixture
-def ros():
-    rclpy.init()
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
-
-
 def spin_until(executor, predicate: Callable[[], bool], timeout: float) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -232,6 +223,16 @@ def test_signal_during_recording_leaves_a_complete_bag(ros, tmp_path: Path, sign
         for i in range(150):
             pub.publish(String(data=f'msg {i}'))
             time.sleep(0.002)
+        # the signal comes while the recorder runs, after it wrote the last message (a flush
+        # every 0.2 s): a loaded machine may deliver the burst late, never loses it
+        mcap = out / 'rec.mcap'
+
+        def written() -> bool:
+            return mcap.exists() and b'msg 149' in mcap.read_bytes()
+        deadline = time.monotonic() + 15.0
+        while not written() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert written(), 'the recorder never wrote the last message'
         proc.send_signal(signum)
         output, _ = proc.communicate(timeout=20.0)
     finally:

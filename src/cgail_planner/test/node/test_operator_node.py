@@ -18,15 +18,6 @@ from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.operator_node import OperatorNode
 
 
-@pytest.fixture
-def ros():
-    rclpy.init()
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
-
-
 def spin_until(executor, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -61,25 +52,28 @@ def test_operator_drives_with_the_deadman_and_stops_at_the_target(ros) -> None:
         path_pub.publish(conv.path_msg(stamp, 'phantom', np.array([[0, 0, 0], [0, 0.1, 0.0]])))
         assert spin_until(ex, lambda: node.operator.state == 'running')
 
-        def show(tip_y: float) -> None:
-            now = probe.get_clock().now().to_msg()
-            tip_pub.publish(conv.pose_msg(now, 'phantom', np.array([0.0, tip_y, 0.0]),
-                                          np.eye(3)))
-            spin_until(ex, lambda: False, 0.02)
-            bend_pub.publish(conv.bend_msg(now, 0.3, 0.0))
+        def showing(tip_y: float):
+            """Show the tip at ``tip_y`` and the suggested bend at 20 Hz (a timer)."""
+            def show() -> None:
+                now = probe.get_clock().now().to_msg()
+                tip_pub.publish(conv.pose_msg(now, 'phantom', np.array([0.0, tip_y, 0.0]),
+                                              np.eye(3)))
+                bend_pub.publish(conv.bend_msg(now, 0.3, 0.0))
+            return probe.create_timer(0.05, show)
 
-        for _ in range(15):
-            show(0.05)
-            spin_until(ex, lambda: False, 0.03)
-        enabled = [j for j in joys if j.buttons[4] == 1]
-        assert enabled, 'the deadman must be held while running'
-        assert enabled[-1].axes[1] > 0.0                       # inserting
-        assert enabled[-1].axes[4] > 0.0                       # bend_alpha towards 0.3 rad
-        assert enabled[-1].axes[3] == pytest.approx(0.0, abs=0.1)
-        for _ in range(10):
-            show(0.0995)                                       # 0.5 mm from the target
-            spin_until(ex, lambda: False, 0.03)
+        def enabled() -> list[Joy]:
+            return [j for j in joys if j.buttons[4] == 1]
+
+        display = showing(0.05)
+        # the deadman is held while running, and the stick follows the bend (after the delay)
+        assert spin_until(ex, lambda: enabled() and enabled()[-1].axes[4] > 0.0)
+        assert enabled()[-1].axes[1] > 0.0                     # inserting
+        assert enabled()[-1].axes[4] > 0.0                     # bend_alpha towards 0.3 rad
+        assert enabled()[-1].axes[3] == pytest.approx(0.0, abs=0.1)
+        probe.destroy_timer(display)
+        display = showing(0.0995)                              # 0.5 mm from the target
         assert spin_until(ex, lambda: node.done and done and done[-1].data)
+        probe.destroy_timer(display)
         assert joys[-1].buttons[4] == 0 and joys[-1].axes[1] == 0.0   # deadman released
         n = len(joys)
         spin_until(ex, lambda: False, 0.3)

@@ -19,15 +19,6 @@ from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.phantom_node import PhantomNode
 
 
-@pytest.fixture
-def ros():
-    rclpy.init()
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
-
-
 def spin_until(executor, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -23,15 +23,6 @@ from cgail_planner.sim.scenarios import load_world
 FIXTURES = Path(__file__).resolve().parents[1] / 'fixtures'
 
 
-@pytest.fixture
-def ros():
-    rclpy.init()
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
-
-
 @pytest.fixture(scope='module')
 def world():
     return load_world('default')

@@ -1,5 +1,11 @@
 """pam_controller node in-process: parameters, endpoints, QoS, commands, watchdog, e-stop,
-bad input, disconnects and garbage frames (simulated bank on a python-can virtual bus)."""
+bad input, disconnects and garbage frames (simulated bank on a python-can virtual bus).
+
+The behaviour tests own the simulated regulator bank (``simulate_regulators:=false``) and step
+it from a 100 Hz timer of the test's executor: bank time advances with the node's callbacks and
+no bank thread races the test. Bend commands come from a 20 Hz timer. The lifecycle tests keep
+the node's own simulated bank (its thread is what configure starts and cleanup stops).
+"""
 
 from __future__ import annotations
 
@@ -13,7 +19,6 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
 import pytest
-import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -28,31 +33,42 @@ from pam_controller.core.bending_model import BendingModelConfig
 from pam_controller.core.hysteresis import HysteresisConfig
 from pam_controller.core.supervisor import SupervisorConfig
 from pam_controller.hw.regulator_bank import LinkConfig
+from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes.pam_node import PamNode, PARAMETERS
 
 _channels = itertools.count()
 CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'pam_controller.yaml'
-
-
-@pytest.fixture
-def ros():
-    rclpy.init()
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
+BANK_STEP_S = 0.01
+"""Step of the test-owned simulated bank (its PAM_MEASURED period), s."""
+COMMAND_PERIOD_S = 0.05
+"""Period of the bend commands sent while waiting (20 Hz), s."""
+WAIT_S = 15.0
+"""Deadline of a wait for something that must happen, s."""
 
 
 class Harness:
-    """The node under test plus a peer node that commands it and records its outputs."""
+    """The node under test plus a peer node that commands it and records its outputs.
 
-    def __init__(self, namespace: str = '/', **params: object) -> None:
+    Args:
+        namespace: of both nodes.
+        own_bank: the node starts its own simulated bank (thread) instead of the test stepping
+            one (:attr:`sim`).
+        **params: node parameters.
+    """
+
+    def __init__(self, namespace: str = '/', own_bank: bool = False, **params: object) -> None:
         params.setdefault('can_channel', f'pam_node_test_{next(_channels)}')
+        if not own_bank:
+            params['simulate_regulators'] = False
         self.node = PamNode(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
                             namespace=namespace)
+        self.peer = Node('pam_test_peer', namespace=namespace)
+        self.sim: SimRegulatorBank | None = None
+        if not own_bank:
+            self.sim = SimRegulatorBank(SimRegulatorConfig(channel=str(params['can_channel'])))
+            self.peer.create_timer(BANK_STEP_S, lambda: self.sim.step(BANK_STEP_S))
         self.node.trigger_configure()
         self.node.trigger_activate()
-        self.peer = Node('pam_test_peer', namespace=namespace)
         self.pressures: list[Float64MultiArray] = []
         self.bends: list[JointState] = []
         self.diags: list[DiagnosticStatus] = []
@@ -74,23 +90,33 @@ class Harness:
     def command(self, alpha: float, gamma: float, names=('bend_alpha', 'bend_gamma')) -> None:
         self.pub.publish(JointState(name=list(names), position=[alpha, gamma]))
 
-    def spin_until(self, predicate: Callable[[], bool], timeout: float,
+    def spin_until(self, predicate: Callable[[], bool], timeout: float = WAIT_S,
                    every: Callable[[], None] | None = None) -> bool:
-        deadline = time.monotonic() + timeout
-        next_every = 0.0
-        while time.monotonic() < deadline:
-            if every is not None and time.monotonic() >= next_every:
-                every()
-                next_every = time.monotonic() + 0.05
-            self.executor.spin_once(timeout_sec=0.01)
-            if predicate():
-                return True
-        return False
+        """Spin until ``predicate()`` holds or ``timeout`` s passed; meanwhile ``every`` is
+        called from a COMMAND_PERIOD_S timer of the peer node (first call right away)."""
+        timer = None
+        if every is not None:
+            every()
+            timer = self.peer.create_timer(COMMAND_PERIOD_S, every)
+        try:
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                self.executor.spin_once(timeout_sec=0.01)
+                if predicate():
+                    return True
+            return False
+        finally:
+            if timer is not None:
+                self.peer.destroy_timer(timer)
+
+    def spin_for(self, seconds: float, every: Callable[[], None] | None = None) -> None:
+        """Spin for ``seconds`` (a window in which something must *not* happen)."""
+        self.spin_until(lambda: False, seconds, every)
 
     def call_estop(self, engage: bool) -> SetBool.Response:
-        assert self.estop.wait_for_service(timeout_sec=2.0)
+        assert self.estop.wait_for_service(timeout_sec=WAIT_S)
         future = self.estop.call_async(SetBool.Request(data=engage))
-        assert self.spin_until(future.done, 10.0)
+        assert self.spin_until(future.done)
         return future.result()
 
     def last_pressures(self) -> np.ndarray:
@@ -100,14 +126,16 @@ class Harness:
         self.executor.shutdown()
         self.peer.destroy_node()
         self.node.destroy_node()
+        if self.sim is not None:
+            self.sim.stop()
 
 
 @pytest.fixture
 def harness(ros):
     made: list[Harness] = []
 
-    def make(namespace: str = '/', **params: object) -> Harness:
-        h = Harness(namespace, **params)
+    def make(namespace: str = '/', own_bank: bool = False, **params: object) -> Harness:
+        h = Harness(namespace, own_bank, **params)
         made.append(h)
         return h
 
@@ -191,7 +219,7 @@ def test_endpoints_and_qos_match_the_contract(harness):
 
     # The graph cache fills through discovery, even for the node's own endpoints.
     assert h.spin_until(lambda: f'{ns}/pam/pressures' in graph()[0]
-                        and f'{ns}/pam_controller/estop' in graph()[2], 15.0)
+                        and f'{ns}/pam_controller/estop' in graph()[2])
     pubs, subs, srvs = graph()
     assert pubs[f'{ns}/pam/pressures'] == ['std_msgs/msg/Float64MultiArray']
     assert pubs[f'{ns}/catheter/bend_state'] == ['sensor_msgs/msg/JointState']
@@ -221,7 +249,7 @@ def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
     def close_enough() -> bool:
         return bool(h.bends) and np.allclose(h.bends[-1].position, target, atol=5e-3)
 
-    assert h.spin_until(close_enough, 10.0, every=lambda: h.command(*target))
+    assert h.spin_until(close_enough, every=lambda: h.command(*target))
     assert list(h.bends[-1].name) == ['bend_alpha', 'bend_gamma']
     msg = h.pressures[-1]
     assert msg.layout.dim[0].label == 'alpha_pos,alpha_neg,gamma_pos,gamma_neg'
@@ -230,7 +258,7 @@ def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
     assert p[0] > p[1] and p[3] > p[2]          # +alpha, -gamma
     assert np.all(p <= 300e3 + 100.0)
     assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.OK,
-                        2.0, every=lambda: h.command(*target))
+                        every=lambda: h.command(*target))
     status = h.diags[-1]
     assert status.hardware_id == f'can:virtual:{h.node.link.channel}'
     assert _values(status)['connected'] == 'True'
@@ -239,32 +267,32 @@ def test_bend_command_reaches_bank_and_comes_back_as_bend_state(harness):
 
 def test_watchdog_vents_when_commands_stop(harness):
     h = harness(command_timeout_s=0.3)
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3,
                         every=lambda: h.command(0.5, 0.0))
-    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 10.0)
-    assert h.spin_until(lambda: bool(h.diags) and 'watchdog' in h.diags[-1].message, 10.0)
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3)
+    assert h.spin_until(lambda: bool(h.diags) and 'watchdog' in h.diags[-1].message)
     assert h.diags[-1].level == DiagnosticStatus.WARN
 
 
 def test_estop_vents_refuses_commands_and_releases(harness):
     h = harness()
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3,
                         every=lambda: h.command(0.4, 0.4))
     resp = h.call_estop(True)
     assert resp.success and 'engaged' in resp.message
-    sim = h.node.sim
+    sim = h.sim
     assert sim is not None
-    # The VENT heartbeat goes out inside the service call; the bank thread reads it next step.
-    assert h.spin_until(lambda: sim.mode.name == 'VENT', 3.0)
+    # The VENT heartbeat goes out inside the service call; the bank reads it at its next step.
+    assert h.spin_until(lambda: sim.mode.name == 'VENT')
     refused = h.node.supervisor.rejected_count
-    assert h.spin_until(lambda: h.last_pressures().max() < 2e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() < 2e3,
                         every=lambda: h.command(0.4, 0.4))
     assert h.node.supervisor.rejected_count > refused
-    np.testing.assert_array_equal(h.node.sim.setpoints_pa, np.zeros(4))
-    assert h.spin_until(lambda: bool(h.diags) and 'e-stop' in h.diags[-1].message, 10.0)
+    np.testing.assert_array_equal(h.sim.setpoints_pa, np.zeros(4))
+    assert h.spin_until(lambda: bool(h.diags) and 'e-stop' in h.diags[-1].message)
     resp = h.call_estop(False)
     assert resp.success and 'released' in resp.message
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3,
                         every=lambda: h.command(0.4, 0.4))
 
 
@@ -276,46 +304,44 @@ def test_estop_vents_refuses_commands_and_releases(harness):
 ])
 def test_bad_commands_rejected_nothing_sent(harness, alpha, gamma, names, reason):
     h = harness()
-    assert h.spin_until(lambda: h.node.sim is not None and h.node.sim.setpoint_frames_received > 5,
-                        2.0)
+    assert h.spin_until(lambda: h.sim is not None and h.sim.setpoint_frames_received > 5)
     h.command(alpha, gamma, names)
-    assert h.spin_until(lambda: h.node.supervisor.rejected_count >= 1, 10.0)
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count >= 1)
     assert reason in h.node.supervisor.last_rejection
-    h.spin_until(lambda: False, 0.3)
+    h.spin_for(0.3)
     # Nothing but the vented state ever reached the bank.
-    np.testing.assert_array_equal(h.node.sim.setpoints_pa, np.zeros(4))
+    np.testing.assert_array_equal(h.sim.setpoints_pa, np.zeros(4))
     np.testing.assert_array_equal(h.node.supervisor.target_pa, np.zeros(4))
     assert h.spin_until(lambda: any(reason in _values(d).get('last_rejection', '')
-                                    for d in h.diags), 2.0)
+                                    for d in h.diags))
 
 
 def test_disconnect_reported_and_recovered_with_backoff(harness):
     h = harness(device_timeout_s=0.1, reconnect_initial_s=0.05, reconnect_max_s=0.4,
                 diagnostics_period_s=0.1)
-    assert h.spin_until(lambda: bool(h.diags) and _values(h.diags[-1])['connected'] == 'True',
-                        3.0)
-    h.node.sim.set_silent(True)
-    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.ERROR, 10.0)
+    assert h.spin_until(lambda: bool(h.diags) and _values(h.diags[-1])['connected'] == 'True')
+    h.sim.set_silent(True)
+    assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.ERROR)
     assert 'disconnected' in h.diags[-1].message
-    h.spin_until(lambda: h.node.backoff.attempts >= 4, 10.0)
+    h.spin_until(lambda: h.node.backoff.attempts >= 4)
     attempts = h.node.backoff.attempts
     assert attempts >= 4
     # Backoff: delays grow to the cap, so 1 s of silence makes few attempts, not 50.
-    h.spin_until(lambda: False, 1.0)
+    h.spin_for(1.0)
     assert h.node.backoff.attempts - attempts <= 4
-    h.node.sim.set_silent(False)
-    assert h.spin_until(lambda: _values(h.diags[-1])['connected'] == 'True', 10.0)
+    h.sim.set_silent(False)
+    assert h.spin_until(lambda: _values(h.diags[-1])['connected'] == 'True')
     assert h.node.backoff.attempts == 0
 
 
 def test_garbage_frames_never_crash_the_node(harness):
     h = harness(diagnostics_period_s=0.1)
-    assert h.spin_until(lambda: len(h.pressures) > 3, 10.0)
+    assert h.spin_until(lambda: len(h.pressures) > 3)
     for _ in range(5):
-        h.node.sim.send_garbage(200)
-        h.spin_until(lambda: False, 0.05)
+        h.sim.send_garbage(200)
+        h.spin_for(0.05)
     n = len(h.pressures)
-    assert h.spin_until(lambda: len(h.pressures) > n + 10, 10.0)
+    assert h.spin_until(lambda: len(h.pressures) > n + 10)
     assert h.node.bank.bad_frames_total > 100
     assert any('malformed' in d.message for d in h.diags)
     assert _values(h.diags[-1])['malformed_frames_total'] != '0'
@@ -323,19 +349,20 @@ def test_garbage_frames_never_crash_the_node(harness):
 
 def test_stuck_regulator_is_an_error_in_diagnostics(harness):
     h = harness(diagnostics_period_s=0.1)
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3,
                         every=lambda: h.command(0.3, 0.0))
-    h.node.sim.set_stuck(1)
-    assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.ERROR,
-                        4.0, every=lambda: h.command(-0.3, 0.0))
-    assert 'FAULT_STUCK' in h.diags[-1].message
+    h.sim.set_stuck(1)
+    # (an ERROR of a link lost while the machine stalls for device_timeout_s may come first)
+    assert h.spin_until(lambda: bool(h.diags) and h.diags[-1].level == DiagnosticStatus.ERROR
+                        and 'FAULT_STUCK' in h.diags[-1].message,
+                        every=lambda: h.command(-0.3, 0.0))
     assert _values(h.diags[-1])['channel_fault_mask'] == '2'
     # Repaired: an e-stop cycle acknowledges the fault (CLEAR_FAULTS) and control resumes.
-    h.node.sim.set_stuck(1, False)
+    h.sim.set_stuck(1, False)
     h.call_estop(True)
     h.call_estop(False)
     assert h.spin_until(lambda: h.diags[-1].level == DiagnosticStatus.OK
-                        and _values(h.diags[-1])['channel_fault_mask'] == '0', 4.0,
+                        and _values(h.diags[-1])['channel_fault_mask'] == '0',
                         every=lambda: h.command(-0.3, 0.0))
 
 
@@ -343,21 +370,22 @@ def test_model_config_reaches_the_node(harness):
     h = harness(max_pressure_pa=200e3, bias_pressure_pa=100e3, max_bend_rad=1.0)
     assert dataclasses.replace(h.node.model_config) == h.node.model_config
     assert h.node.model_config.max_pressure_pa == 200e3
-    assert h.spin_until(lambda: h.last_pressures().max() > 150e3, 10.0,
+    assert h.spin_until(lambda: h.last_pressures().max() > 150e3,
                         every=lambda: h.command(1.0, 0.0))
-    h.spin_until(lambda: False, 0.5, every=lambda: h.command(1.0, 0.0))
+    h.spin_for(0.5, every=lambda: h.command(1.0, 0.0))
     assert h.last_pressures().max() <= 200e3 + 100.0
     h.command(0.8, 0.8)   # hypot 1.13 > cap 1.0
-    assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1, 10.0)
+    assert h.spin_until(lambda: h.node.supervisor.rejected_count == 1)
 
 
 def test_deactivate_vents_and_cleanup_releases_the_bus(harness):
-    h = harness()
-    assert h.spin_until(lambda: h.last_pressures().max() > 100e3, 10.0,
+    h = harness(own_bank=True)
+    assert h.spin_until(lambda: h.last_pressures().max() > 100e3,
                         every=lambda: h.command(0.5, 0.0))
     sim = h.node.sim
     h.node.trigger_deactivate()
-    deadline = time.monotonic() + 2.0
+    # inactive: the node's timers send nothing, the bank's own thread vents (no spinning)
+    deadline = time.monotonic() + WAIT_S
     while time.monotonic() < deadline and sim.pressures_pa.max() > 1e3:
         time.sleep(0.02)
     assert sim.mode.name == 'IDLE' and sim.pressures_pa.max() <= 1e3
@@ -394,12 +422,12 @@ def test_console_entry_point_starts_and_stops_on_sigint():
 
 def test_cleanup_then_configure_again_gives_one_set_of_endpoints(harness):
     ns = f'/reconf{next(_channels)}'
-    h = harness(namespace=ns)
+    h = harness(namespace=ns, own_bank=True)
     h.node.trigger_deactivate()
     h.node.trigger_cleanup()
     h.node.trigger_configure()
     h.node.trigger_activate()
-    assert h.spin_until(lambda: len(h.pressures) > 3, 10.0)
+    assert h.spin_until(lambda: len(h.pressures) > 3)
     infos = [i for i in h.node.get_publishers_info_by_topic(f'{ns}/pam/pressures')
              if i.node_name == 'pam_controller']
     assert len(infos) == 1
