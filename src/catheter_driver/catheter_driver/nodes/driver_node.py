@@ -107,7 +107,7 @@ class DriverNode(LifecycleNode):
         self._controller: RelayController | None = None
         self._feedback: DriverStatus | None = None
         self._last_known: SleeveFeedback | None = None  # kept across disconnects
-        self._backoff = Backoff(s.backoff_initial, s.backoff_max)
+        self._backoff = Backoff(self.supervision.backoff_initial, self.supervision.backoff_max)
         self._next_attempt = 0.0
         self._last_status = 0.0
         self._link_error = 'not opened yet'

@@ -237,6 +237,8 @@ def test_missing_can_interface_reports_error_and_retries(harness):
     diag = node.diagnostics_message().status[0]
     assert diag.level == DiagnosticStatus.ERROR
     assert 'expected to open CAN no_such_interface' in diag.message
+    # the node's own backoff parameters: 0.05 s doubling, capped at 0.1 s (not 0.5 / 8 s)
+    assert 'retrying in 0.10 s' in diag.message, diag.message
 
 
 @pytest.mark.parametrize(('params', 'error', 'match'), [
