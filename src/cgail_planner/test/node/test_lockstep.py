@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import threading
 
 import pytest
@@ -15,6 +16,9 @@ from std_srvs.srv import Trigger
 from cgail_planner.system.lockstep import LockstepError, LockstepExecutor
 
 
+_CREATED: list = []
+
+
 @pytest.fixture
 def context():
     ctx = rclpy.Context()
@@ -22,12 +26,22 @@ def context():
     try:
         yield ctx
     finally:
+        _destroy_created()
         rclpy.try_shutdown(context=ctx)
 
 
+def _destroy_created() -> None:
+    """Destroy the nodes a test made and collect them: a leaked DDS participant can spin."""
+    while _CREATED:
+        _CREATED.pop().destroy_node()
+    gc.collect()
+
+
 def _node(ctx, name):
-    return rclpy.create_node(name, context=ctx, start_parameter_services=False,
+    node = rclpy.create_node(name, context=ctx, start_parameter_services=False,
                              enable_rosout=False)
+    _CREATED.append(node)
+    return node
 
 
 def _graph(ctx, log, executor, prefix=''):
@@ -106,6 +120,7 @@ def test_two_runs_give_the_same_order_of_callbacks() -> None:
             ex.spin_for(2.0)
             logs.append(log)
         finally:
+            _destroy_created()
             rclpy.try_shutdown(context=ctx)
     assert len(logs[0]) > 500
     assert logs[0] == logs[1]
