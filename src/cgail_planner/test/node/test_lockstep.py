@@ -15,7 +15,6 @@ from std_srvs.srv import Trigger
 
 from cgail_planner.system.lockstep import LockstepError, LockstepExecutor
 
-
 _CREATED: list = []
 
 
