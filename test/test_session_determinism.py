@@ -1,8 +1,9 @@
 """The simulated session is a function of its seed and configuration, never of the host.
 
-* The same short trials, run once on an idle host in this process (``--jobs 1``) and once in
-  two worker processes while every core is busy with a spinning process, give the same bags
-  (message counts and content) and the same metrics.
+* One short trial run twice in this process, the second time with every core busy with a
+  spinning process, gives the same outcome, the same bag (message counts and content) and the
+  same metrics (fast). The whole command, once idle with ``--jobs 1`` and once loaded with
+  ``--jobs 2``, gives the same bags and metrics too (slow).
 * Two sessions started at the same time on one machine pick different ROS domains, receive
   nothing from each other, and give identical results.
 * A session refuses to start on a domain where a rig's device node answers.
@@ -22,6 +23,39 @@ import pytest
 from cgail_planner.bags.bagio import content_digest
 
 ARGS = ['--trials', '1', '--time-limit', '12', '--seed', '3']
+
+
+def test_one_trial_twice_idle_then_loaded_gives_the_same_bag_and_metrics(tmp_path) -> None:
+    from cgail_planner.bags.metrics_cli import evaluate_bags
+    from cgail_planner.system.domain import reserve_domain
+    from cgail_planner.system.session import (
+        default_policy,
+        plan_trials,
+        run_trial,
+        SessionSettings,
+    )
+
+    settings = SessionSettings(policy=str(default_policy()), time_limit=6.0)
+    results, metrics = [], []
+    with reserve_domain(env={}) as lease:
+        for run, load in (('idle', 0), ('loaded', os.cpu_count() or 2)):
+            spec = plan_trials(['cgail'], 2, 5, tmp_path / run / 'bags')[1]  # start 1, target 1
+            busy = _busy_loops(load)
+            try:
+                results.append(run_trial(settings, spec, lease.domain_id))
+            finally:
+                for p in busy:
+                    p.kill()
+                    p.wait()
+            metrics.append(evaluate_bags([Path(spec.bag)], condition='cgail')[0])
+    a, b = results
+    assert not a.failed and a.outcome == b.outcome == 'time limit 6 s reached', a.outcome
+    assert a.callback_errors == b.callback_errors == [] and a.unscheduled == b.unscheduled == 0
+    assert a.messages['/em_tracker/tip_pose'] > 250 and a.messages == b.messages
+    assert (a.ticks, a.sim_s) == (b.ticks, b.sim_s)
+    assert content_digest(a.spec.bag) == content_digest(b.spec.bag)
+    for field in ('tracking_mean', 'targeting_error', 'duration'):
+        assert getattr(metrics[0], field) == pytest.approx(getattr(metrics[1], field), abs=1e-6)
 
 
 def _run(out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
@@ -50,6 +84,7 @@ def _busy_loops(n: int) -> list[subprocess.Popen[bytes]]:
                              preexec_fn=_normal_priority) for _ in range(n)]
 
 
+@pytest.mark.slow
 def test_same_bags_and_metrics_idle_in_one_job_and_loaded_in_two(tmp_path) -> None:
     idle = _run(tmp_path / 'idle', '--jobs', '1')
     assert idle.returncode == 0, idle.stdout + idle.stderr
@@ -83,8 +118,8 @@ def test_same_bags_and_metrics_idle_in_one_job_and_loaded_in_two(tmp_path) -> No
 
 def test_two_concurrent_sessions_pick_their_own_domains_and_do_not_mix(tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
-    cmd = [sys.executable, '-m', 'cgail_planner.system.session', *ARGS, '--jobs', '1',
-           '--conditions', 'cgail']
+    cmd = [sys.executable, '-m', 'cgail_planner.system.session', '--trials', '1',
+           '--time-limit', '4', '--jobs', '1', '--conditions', 'cgail']
     procs = [subprocess.Popen([*cmd, '--out', str(tmp_path / name)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
              for name in ('one', 'two')]
@@ -104,7 +139,10 @@ def test_refuses_to_start_next_to_a_foreign_device_node(tmp_path, monkeypatch, c
     from cgail_planner.system import domain
     from cgail_planner.system.session import main
 
-    free = domain.reserve_domain(env={}, listen_s=0.2)
+    # from the top of the range: a rig of an earlier test in this process may have just
+    # closed on the lowest free domain, and its node names can linger in discovery for a
+    # second or two
+    free = domain.reserve_domain(env={}, candidates=range(101, 0, -1), listen_s=0.2)
     domain_id = free.domain_id
     free.release()
     ctx = rclpy.Context()

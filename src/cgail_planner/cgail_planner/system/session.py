@@ -43,6 +43,7 @@ import argparse
 from collections.abc import Callable, Sequence
 import concurrent.futures
 from dataclasses import dataclass, field
+import gc
 import multiprocessing
 import os
 from pathlib import Path
@@ -99,8 +100,9 @@ class SessionSettings:
     """ONNX C-GAIL policy of the cgail condition."""
     time_limit: float = 180.0
     """Trial time limit, simulated s (paper: 180)."""
-    physics_rate: float = 50.0
-    """Lockstep tick rate = phantom physics and simulated devices, Hz of simulated time."""
+    physics_rate: float = 40.0
+    """Lockstep tick rate = phantom physics and simulated devices, Hz of simulated time (40:
+    one tick per Aurora frame, so the tracker delivers every frame; control loops at half)."""
     tracker_rate: float = 40.0
     """EM tracker frame rate, Hz of simulated time (the Aurora: 40)."""
     launch_file: str = ''
@@ -324,7 +326,14 @@ class TrialRig:
             if node is not None:
                 node.destroy_node()
         self.nodes.clear()
+        self.phantom = self.planner = self.operator = self.session = None
+        self.executor = None
         rclpy.try_shutdown(context=self.context)
+        # the lifecycle nodes' handles are freed with the last reference to them (cycles): until
+        # then the context's participant would still announce aurora/pam_controller/
+        # sleeve_driver to the domain (a later refusal check would see "device nodes")
+        gc.collect()
+        self.context.destroy()
         shutil.rmtree(self._tmp, ignore_errors=True)
         return counts
 
@@ -433,10 +442,10 @@ def build_parser() -> argparse.ArgumentParser:
                         'fast as the CPU allows; 1 with --gui)')
     p.add_argument('--time-limit', type=float, default=180.0,
                    help='trial time limit, simulated s (paper: 180)')
-    p.add_argument('--physics-rate', type=float, default=50.0,
+    p.add_argument('--physics-rate', type=float, default=40.0,
                    help='lockstep tick rate: phantom physics and simulated devices, Hz of '
-                        'simulated time (the pam and sleeve-driver control loops run at half '
-                        'of it)')
+                        'simulated time (default 40: one tick per Aurora frame; the pam and '
+                        'sleeve-driver control loops run at half of it)')
     p.add_argument('--tracker-rate', type=float, default=40.0,
                    help='EM tracker frame rate in simulated time, Hz (the Aurora: 40)')
     p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')

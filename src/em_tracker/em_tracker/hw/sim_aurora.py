@@ -539,7 +539,9 @@ class SimAurora:
 
     def _current_frames(self) -> list[api.ToolFrame]:
         elapsed = self.clock() - self._t_start
-        index = max(0, math.floor(elapsed * self.frame_rate_hz))
+        # (+1e-6 frame, 25 ns at 40 Hz: a host clock stepped in whole frame periods, as the
+        # lockstep rig's, must not see a frame boundary move by float round-off)
+        index = max(0, math.floor(elapsed * self.frame_rate_hz + 1e-6))
         if index != self._last_frame_index:
             if self.faults.drop_frames > 0:
                 self._frame_offset += self.faults.drop_frames
