@@ -326,8 +326,8 @@ class TrialRig:
             if node is not None:
                 node.destroy_node()
         self.nodes.clear()
-        self.phantom = self.planner = self.operator = self.session = None
-        self.executor = None
+        for name in ('phantom', 'planner', 'operator', 'session', 'executor'):
+            self.__dict__.pop(name, None)  # the rig is spent: drop its references
         rclpy.try_shutdown(context=self.context)
         # the lifecycle nodes' handles are freed with the last reference to them (cycles): until
         # then the context's participant would still announce aurora/pam_controller/
