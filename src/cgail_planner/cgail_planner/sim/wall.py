@@ -114,11 +114,16 @@ class StaticWall:
         """
         return self._bvh.raycast(origins, directions, max_dist)
 
-    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
-              ) -> np.ndarray:
-        """:meth:`raycast` for trusted input (the environment's own rays: C-contiguous float64
-        (R, 3) arrays, a float), without the checks."""
-        return self._bvh._cast(origins, directions, max_dist)
+    def cast_unchecked(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                       ) -> np.ndarray:
+        """:meth:`raycast` for trusted input (the hot path of the environment's own rays:
+        C-contiguous float64 (R, 3) arrays, a float > 0), without the checks."""
+        return self._bvh.cast_unchecked(origins, directions, max_dist)
+
+    @property
+    def penetration_tolerance(self) -> float:
+        """Depth below which :meth:`tip_contact` reports no penetration, m (0: rigid wall)."""
+        return self._tolerance
 
     def _geometric_contact(self, tip: np.ndarray, radius: float
                            ) -> tuple[float, float, np.ndarray]:
@@ -148,11 +153,11 @@ class StaticWall:
             raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
         r = _check_finite_scalar("radius", radius, positive=True)
         dt = _check_finite_scalar("dt", dt, positive=True)
-        return self._contact(p[0], r, dt)
+        return self.tip_contact_unchecked(p[0], r, dt)
 
-    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """:meth:`tip_contact` for trusted input ((3,) float64 tip, floats), without the
-        checks."""
+    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """:meth:`tip_contact` for trusted input (the environment's hot path: a (3,) float64
+        tip, floats > 0), without the checks."""
         pen, clearance, normal = self._geometric_contact(tip, radius)
         return Contact(penetration=pen, force=0.0, normal=normal,
                        in_contact=bool(pen > 0.0 or clearance == 0.0), clearance=clearance)
@@ -237,11 +242,11 @@ class DeformableWall(StaticWall):
         pts = _check_points("body_points", body_points, allow_empty=True)
         radius = _check_finite_scalar("body_radius", body_radius, positive=pts.shape[0] > 0) \
             if pts.shape[0] else 0.0
-        self._advance(t, dt, pts, radius)
+        self.step_unchecked(t, dt, pts, radius)
 
-    def _advance(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
-        """:meth:`step` for trusted input (floats, C-contiguous float64 (B, 3) body points, a
-        radius > 0 when B > 0), without the checks."""
+    def step_unchecked(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
+        """:meth:`step` for trusted input (the environment's hot path: floats, C-contiguous
+        float64 (B, 3) body points, a radius > 0 when B > 0), without the checks."""
         self._impulse[:] = 0.0
         self._touched[:] = 0
         self._dp[:] = 0.0
@@ -324,10 +329,11 @@ class DeformableWall(StaticWall):
         self._sync()
         return self._bvh.raycast(origins, directions, max_dist)
 
-    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
-              ) -> np.ndarray:
+    def cast_unchecked(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                       ) -> np.ndarray:
+        """:meth:`raycast` without the checks (see :meth:`StaticWall.cast_unchecked`)."""
         self._sync()
-        return self._bvh._cast(origins, directions, max_dist)
+        return self._bvh.cast_unchecked(origins, directions, max_dist)
 
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
         """Tip sphere vs the deformed wall, with the force from Newton's second law.
@@ -346,9 +352,11 @@ class DeformableWall(StaticWall):
             raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
         r = _check_finite_scalar("radius", radius, positive=True)
         dt = _check_finite_scalar("dt", dt, positive=True)
-        return self._contact(p[0], r, dt)
+        return self.tip_contact_unchecked(p[0], r, dt)
 
-    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """:meth:`tip_contact` without the checks (see
+        :meth:`StaticWall.tip_contact_unchecked`)."""
         r = radius
         self._sync()
         pen, clearance, normal = self._geometric_contact(tip, r)
