@@ -38,7 +38,7 @@ Both raw paths are B-spline fitted and resampled at ``path_spacing``
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 import math
 import time
 from typing import Any, Protocol
@@ -125,11 +125,10 @@ class PlannerConfig:
             raise ValueError(f"observation must be an ObservationConfig, found "
                              f"{type(self.observation).__name__}")
 
-    @classmethod
-    def from_contract(cls, contract: PolicyContract, **settings: Any) -> PlannerConfig:
-        """The settings ``settings`` with the catheter model and observation of a policy."""
-        return cls(catheter=contract.catheter, observation=contract.observation.config,
-                   **settings)
+    def with_contract(self, contract: PolicyContract) -> PlannerConfig:
+        """These settings with the catheter model and observation of a policy's contract."""
+        return replace(self, catheter=contract.catheter,
+                       observation=contract.observation.config)
 
 
 def _check(name: str, value: float, low: float, high: float, low_open: bool = False) -> None:
@@ -341,7 +340,7 @@ class Planner:
 
     @classmethod
     def from_contract(cls, contract: PolicyContract, world: Any, wall: RayWall, policy: Policy,
-                      **settings: Any) -> Planner:
+                      settings: PlannerConfig | None = None) -> Planner:
         """A C-GAIL planner built from its policy's contract.
 
         Args:
@@ -349,12 +348,13 @@ class Planner:
             world: the simulator's world of the contract's anatomy.
             wall: the wall to plan in.
             policy: the policy.
-            **settings: the other :class:`PlannerConfig` fields.
+            settings: the planner settings (default ``PlannerConfig()``); their catheter model
+                and observation are replaced by the contract's.
 
         Raises:
             ContractError: the world is not the contract's anatomy (observation origin).
         """
-        config = PlannerConfig.from_contract(contract, **settings)
+        config = (settings or PlannerConfig()).with_contract(contract)
         model = model_world_from_sim(world, contract.observation)
         return cls(config, model, wall, policy, contract.observation.ray_directions,
                    obs_dim=contract.observation.dim)

@@ -58,8 +58,8 @@ def _penetration(bvh, px, py, pz, radius, tolerance):
     p = np.empty(3)
     p[0], p[1], p[2] = px, py, pz
     dist, face, q, u, v, w = closest_kernel(bvh.vertices, bvh.faces, bvh.order, bvh.node_min,
-                                            bvh.node_max, bvh.left, bvh.right, bvh.start,
-                                            bvh.count, p, np.inf)
+                                            bvh.node_max, bvh.left, bvh.right, bvh.leaf_start,
+                                            bvh.leaf_count, p, np.inf)
     if face < 0:
         return 0.0, np.inf
     n = feature_normal_kernel(bvh.vertices, bvh.faces, bvh.face_edges, bvh.vf_ptr,
@@ -121,7 +121,8 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_s
             for a in range(3):
                 dirs[k, a] = rays[k, 0] * r[a, 0] + rays[k, 1] * r[a, 1] + rays[k, 2] * r[a, 2]
         raycast_kernel(bvh.vertices, bvh.faces, bvh.order, bvh.node_min, bvh.node_max, bvh.left,
-                       bvh.right, bvh.start, bvh.count, origins, dirs, ray_length, hits)
+                       bvh.right, bvh.leaf_start, bvh.leaf_count, origins, dirs, ray_length,
+                       hits)
         observe_nb(obs, p[0], p[1], p[2], r, gx, gy, gz, hits, origin, position_scale, d_max,
                    ray_length)
         mlp_forward(ops, consts, widths, regs, obs)

@@ -11,11 +11,19 @@ workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxrunt
 * Bad input (missing/corrupt model, goal outside the lumen or in another frame, NaN/inf or
   non-unit poses, stale poses) is logged with the reason, counted and shown on ``/diagnostics``;
   nothing is planned or guided from it.
+* The catheter model (theta_max, L, step, diameter) and the observation (origin, scales, rays)
+  are the policy's contract (:class:`cgail_planner.sim.ftl_model.PolicyContract`).
+  ``theta_max``, ``segment_length`` and ``anatomy`` must agree with it (0 = take the policy's):
+  a disagreeing one raises :class:`~cgail_planner.core.errors.ContractError` at construction,
+  unless ``override_policy_contract`` is set (then it wins, with a warning). A policy without a
+  contract is refused unless ``override_policy_contract`` is set.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 import math
+import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -27,7 +35,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
-from cgail_planner.core.errors import InvalidInputError, PlannerError
+from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
 from cgail_planner.core.planner import (
     model_world_from_sim,
@@ -49,7 +57,7 @@ class PlannerNode(Node):
         d, g, r = PlannerConfig(), GuidanceConfig(), ReplanConfig()
         policy_path = conv.declare(self, 'policy_path', '', 'ONNX policy written by export_onnx '
                                    "(required by planner_type 'cgail')")
-        settings = dict(
+        settings = PlannerConfig(
             planner_type=conv.declare(self, 'planner_type', d.planner_type,
                                       "'cgail' (policy rollout) or 'centerline' (baseline)"),
             goal_tolerance=conv.declare(self, 'goal_tolerance', d.goal_tolerance,
@@ -109,37 +117,44 @@ class PlannerNode(Node):
             else DeformableWall(world.anatomy)
         self.policy_error = ''
         policy = None
-        if settings['planner_type'] == 'cgail':
+        if settings.planner_type == 'cgail':
             policy = self._load_policy(policy_path)
         catheter = CatheterConfig(**{k: v for k, v in (('theta_max', theta_max),
                                                         ('segment_length', segment_length))
                                      if v > 0.0})
         self.planner: Planner | None = None
+        #: Lines about the policy's contract (overrides: logged as warnings, else as info).
+        self.contract_notes: list[str] = []
         if policy is not None and policy.contract is None and not override:
             self.policy_error = (f'policy not loaded: {policy_path} carries no catheter contract '
                                  '(re-export it, or set override_policy_contract to use the '
                                  'parameters and the model defaults); goals will be refused')
             self.get_logger().error(self.policy_error)
         elif policy is not None and policy.contract is not None:
-            contract, notes = reconcile_contract(
-                policy.contract, anatomy=anatomy, mode=self.mode,
-                theta_max=theta_max or None, segment_length=segment_length or None,
-                override=override, world_spec=ObservationSpec.for_world(world.scenarios))
-            for note in notes:
-                (self.get_logger().warning if note.startswith('override')
-                 else self.get_logger().info)(note)
+            try:
+                contract, self.contract_notes = reconcile_contract(
+                    policy.contract, anatomy=anatomy, mode=self.mode,
+                    theta_max=theta_max or None, segment_length=segment_length or None,
+                    override=override, world_spec=ObservationSpec.for_world(world.scenarios))
+                self.planner = Planner.from_contract(contract, world, self.wall, policy,
+                                                     settings)
+            except ContractError:
+                self.destroy_node()
+                raise
             catheter = contract.catheter
-            self.planner = Planner.from_contract(contract, world, self.wall, policy, **settings)
         else:
             if policy is not None:
-                self.get_logger().warning(
+                self.contract_notes.append(
                     f'override_policy_contract: {policy_path} carries no catheter contract; '
                     'using the parameters and the catheter model defaults')
-            if settings['planner_type'] == 'centerline' or policy is not None:
-                self.planner = Planner(PlannerConfig(catheter=catheter, **settings),
+            if settings.planner_type == 'centerline' or policy is not None:
+                self.planner = Planner(replace(settings, catheter=catheter),
                                        model_world_from_sim(world), self.wall, policy)
+        for note in self.contract_notes:
+            (self.get_logger().warning if note.startswith('override')
+             else self.get_logger().info)(note)
         self.config = self.planner.config if self.planner is not None \
-            else PlannerConfig(catheter=catheter, **settings)
+            else replace(settings, catheter=catheter)
         self.guidance_config = GuidanceConfig(lookahead=lookahead, max_bend=max_bend,
                                               segment_length=catheter.segment_length)
         self.follower: PathFollower | None = None
@@ -321,6 +336,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ContractError as exc:  # the parameters disagree with the policy: say so, exit 2
+        print(f'planner_node: error: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
     finally:
         if node is not None:
             node.destroy_node()

@@ -493,7 +493,7 @@ def steer_towards(tip_position: FloatArray, tip_rotation: FloatArray, goal: Floa
     return np.stack(np.broadcast_arrays(a0, a1, np.full_like(a0, insertion)), axis=-1)
 
 
-def bend_rotation(alpha: FloatArray, gamma: FloatArray) -> FloatArray:
+def bend_rotation(alpha: FloatArray | float, gamma: FloatArray | float) -> FloatArray:
     """Batched ``Rx(alpha) @ Rz(gamma)``: ``(...,)`` angles -> ``(..., 3, 3)`` rotations.
 
     The closed form of ``scipy.spatial.transform.Rotation.from_euler('XZ', [alpha, gamma])``
@@ -535,7 +535,7 @@ def advance_batch(rotations: FloatArray, positions: FloatArray, alpha: FloatArra
 def advance_pose(p: FloatArray, r: FloatArray, alpha: float, gamma: float, delta_l: float
                  ) -> tuple[FloatArray, FloatArray]:
     """:func:`advance_batch` of one tip: the new ``(position, rotation)``."""
-    r_new = r @ bend_rotation(np.float64(alpha), np.float64(gamma))
+    r_new: FloatArray = r @ bend_rotation(alpha, gamma)
     return p + delta_l * r_new[:, 1], r_new
 
 

@@ -659,8 +659,8 @@ class BVHArrays(NamedTuple):
     node_max: np.ndarray
     left: np.ndarray
     right: np.ndarray
-    start: np.ndarray
-    count: np.ndarray
+    leaf_start: np.ndarray
+    leaf_count: np.ndarray
     face_edges: np.ndarray
     vf_ptr: np.ndarray
     vf_face: np.ndarray

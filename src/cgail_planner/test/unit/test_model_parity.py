@@ -27,7 +27,7 @@ import pytest
 from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.mlp import MlpBuilder, MlpProgram
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
-from cgail_planner.core.planner import Planner
+from cgail_planner.core.planner import Planner, PlannerConfig
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import CatheterNavEnv
@@ -56,8 +56,8 @@ def planner_for(env: CatheterNavEnv, policy, max_steps: int = MAX_STEPS) -> Plan
     contract = PolicyContract(catheter=env.config.catheter, observation=eng.spec,
                               anatomy=env.config.anatomy, mode='static')
     return Planner.from_contract(contract, eng.world, eng.walls[0], policy,
-                                 max_rollout_steps=max_steps,
-                                 goal_tolerance=env.config.reward.epsilon)
+                                 PlannerConfig(max_rollout_steps=max_steps,
+                                               goal_tolerance=env.config.reward.epsilon))
 
 
 class Recording:

@@ -315,7 +315,7 @@ def test_a_planner_built_from_a_contract_runs_its_model() -> None:
     c = PolicyContract(catheter=CatheterConfig(theta_max=1.0), observation=spec,
                        anatomy='default', mode='static')
     planner = Planner.from_contract(c, world, OpenSpace(), constant([0, 0, 1]),
-                                    goal_tolerance=0.005)
+                                    PlannerConfig(goal_tolerance=0.005))
     assert planner.config.catheter == c.catheter and planner.config.goal_tolerance == 0.005
     assert planner.spec.same_as(spec)
     moved = ObservationSpec(origin=spec.origin + 0.002, d_max=spec.d_max)
