@@ -122,6 +122,7 @@ class PhantomNode(Node):
                 raise ValueError(f'{name} must be in [0, {n - 1}], found {value}')
         wall = StaticWall(self.world.anatomy) if self.mode == 'static' \
             else DeformableWall(self.world.anatomy)
+        self.wall: StaticWall = wall  # (a DeformableWall in dynamic mode)
         self.physics = PhantomPhysics(self.config, wall)
         self.rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -198,8 +199,7 @@ class PhantomNode(Node):
     def target_position(self) -> np.ndarray:
         """(3,) current target position (moves with its wall particle in dynamic mode), m."""
         t = self.world.scenarios.targets[self.target_id]
-        wall = self.physics.wall
-        return wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
+        return self.wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
 
     def now_msg(self):
         """Stamp of the simulated time (the node clock in lockstep)."""
