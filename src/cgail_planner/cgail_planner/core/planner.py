@@ -51,9 +51,9 @@ from cgail_planner.core.mlp import MlpProgram
 from cgail_planner.core.path_fit import fit_path, PathFitConfig, PathFitError
 from cgail_planner.core.rotations import validate_pose
 from cgail_planner.sim.ftl_model import (
-    action_to_command,
     advance_pose,
     CatheterConfig,
+    command_nb,
     introducer_tail,
     ObservationConfig,
     ObservationSpec,
@@ -519,6 +519,10 @@ class Planner:
         positions, rotations, arc = self._seed(p, r, cfg.max_rollout_steps + 2)
         n = 2
         origins = np.empty((len(self.rays), 3))
+        ex, ey, ez = w.exit_point.tolist()
+        nx, ny, nz = w.exit_normal.tolist()
+        low, high = w.bbox_low.tolist(), w.bbox_high.tolist()
+        gx, gy, gz = goal.tolist()
         clearance = -math.inf  # a lower bound of the exact clearance (as the env's broad phase)
         for step in range(1, cfg.max_rollout_steps + 1):
             origins[:] = p
@@ -529,9 +533,9 @@ class Planner:
             if out.shape != (3,) or not np.isfinite(out).all():
                 raise NoPathError(f"policy must return 3 finite actions, found {out.tolist()}",
                                   _points(positions, n), "bad_action", step)
-            alpha, gamma, dl = (float(v) for v in action_to_command(
-                out.astype(np.float64), cat.theta_max, cat.segment_length,
-                cat.max_step_insertion))
+            a0, a1, a2 = out.tolist()
+            alpha, gamma, dl = command_nb(a0, a1, a2, cat.theta_max, cat.segment_length,
+                                          cat.max_step_insertion)
             travelled = 0.0
             if dl > 0.0:
                 p, r = advance_pose(p, r, alpha, gamma, dl)
@@ -550,11 +554,12 @@ class Planner:
                 if contact.penetration > 0.0:
                     raise self._failure("collided", step, _points(positions, n), goal)
                 clearance = contact.clearance if math.isfinite(contact.clearance) else -math.inf
-            if float((p - w.exit_point) @ w.exit_normal) > 0.0 \
-                    or bool(np.any((p < w.bbox_low) | (p > w.bbox_high))):
+            x, y, z = p.tolist()
+            if (x - ex) * nx + (y - ey) * ny + (z - ez) * nz > 0.0 \
+                    or not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
+                            and low[2] <= z <= high[2]):
                 raise self._failure("left", step, _points(positions, n), goal)
-            d = goal - p
-            if math.sqrt(float(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])) < cfg.goal_tolerance:
+            if math.sqrt((gx - x) ** 2 + (gy - y) ** 2 + (gz - z) ** 2) < cfg.goal_tolerance:
                 return np.vstack([_points(positions, n), goal]), step
         raise self._failure("limit", cfg.max_rollout_steps, _points(positions, n), goal)
 
