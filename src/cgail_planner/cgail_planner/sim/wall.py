@@ -137,16 +137,18 @@ class StaticWall:
         return penetration, clearance, normal
 
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """Tip sphere vs the rigid wall.
+        """Tip sphere vs the wall (checked; :meth:`tip_contact_unchecked` is the query).
 
         A rigid wall has no moving particles, so the Newton's-law force is 0; any crossing of
         the wall is reported as ``penetration`` (> 0), which the environment treats as a
-        non-minor collision.
+        non-minor collision. A :class:`DeformableWall` adds the force on the particles the
+        tip moved.
 
         Args:
-            tip: (3,) tip centre, m.
+            tip: (3,) tip centre, m (on a deformable wall normally the last body point of the
+                last step).
             radius: tip (catheter) radius, m.
-            dt: step length, s (validated; unused by a rigid wall).
+            dt: length of the last step, s (unused by a rigid wall).
         """
         p = _check_points("tip", tip, allow_empty=False)
         if p.shape[0] != 1:
@@ -335,28 +337,15 @@ class DeformableWall(StaticWall):
         self._sync()
         return self._bvh.cast_unchecked(origins, directions, max_dist)
 
-    def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """Tip sphere vs the deformed wall, with the force from Newton's second law.
+    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """Tip sphere vs the deformed wall, with the force from Newton's second law (the
+        checked :meth:`~StaticWall.tip_contact` calls this).
 
         ``force = |sum_{i in S} (dp_i / dt - f_i^elastic)|`` over the particles ``S`` the tip
         sphere (the last body point of the last :meth:`step`) moved, kept when within
-        ``radius + max rest edge`` of ``tip`` (see :mod:`cgail_planner.sim.contact`).
-
-        Args:
-            tip: (3,) tip centre, m (normally the last body point of the last step).
-            radius: tip (catheter) radius, m.
-            dt: length of the last step, s (the impulse is turned into a mean force with it).
+        ``radius + max rest edge`` of ``tip`` (see :mod:`cgail_planner.sim.contact`); ``dt``
+        is the length of the last step (the impulse is turned into a mean force with it).
         """
-        p = _check_points("tip", tip, allow_empty=False)
-        if p.shape[0] != 1:
-            raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
-        r = _check_finite_scalar("radius", radius, positive=True)
-        dt = _check_finite_scalar("dt", dt, positive=True)
-        return self.tip_contact_unchecked(p[0], r, dt)
-
-    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """:meth:`tip_contact` without the checks (see
-        :meth:`StaticWall.tip_contact_unchecked`)."""
         r = radius
         self._sync()
         pen, clearance, normal = self._geometric_contact(tip, r)
