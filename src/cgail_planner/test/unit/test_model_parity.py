@@ -199,3 +199,20 @@ def test_the_phantom_moves_the_tip_as_the_episode_does(env, policy, case, target
         tips.append(phantom.tip_position)
     np.testing.assert_allclose(np.array(tips), ep['tips'], rtol=0, atol=1e-9)
     assert phantom.contacts == 0 and phantom.insertion_jumps == 0
+
+
+@pytest.mark.parametrize(('name', 'anatomy', 'mode'), [
+    ('cgail_default_static', 'default', 'static'), ('cgail_default_dynamic', 'default', 'dynamic'),
+    ('cgail_elongated_static', 'elongated', 'static')])
+def test_the_committed_policies_carry_this_models_contract(name, anatomy, mode) -> None:
+    """A change of the model (ray layout, step, bend limit, scales) fails here until the
+    committed policies are retrained or re-contracted; origin and d_max agree to 10 um (the
+    meshes built with AVX2 and with AVX-512 numpy put the default origin 1 um apart)."""
+    from cgail_planner.sim.env import observation_spec
+
+    contract = OnnxPolicy(MODEL.parent / f'{name}.onnx').contract
+    assert contract is not None and (contract.anatomy, contract.mode) == (anatomy, mode)
+    config = EnvConfig(anatomy=anatomy, mode=mode)
+    assert contract.catheter == config.catheter
+    assert contract.observation.same_as(observation_spec(config), atol=1e-5)
+    assert contract.training['train_steps'] > 0
