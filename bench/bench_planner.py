@@ -29,8 +29,9 @@ import time
 
 import numpy as np
 
+from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.guidance import PathFollower
-from cgail_planner.core.planner import model_world_from_sim, NoPathError, Planner, PlannerConfig
+from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 from cgail_planner.sim.env import RAY_DIRECTIONS
 from cgail_planner.sim.ftl_model import frame_from_heading
