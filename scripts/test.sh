@@ -52,8 +52,9 @@ echo "[test] ruff"
 ruff check src test bench
 echo "[test] mypy (every module of the four packages, nodes included, and the bench scripts)"
 MYPYPATH="src/cgail_planner:src/em_tracker:src/pam_controller:src/catheter_driver" \
-    mypy --config-file pyproject.toml -p cgail_planner -p em_tracker -p pam_controller \
-    -p catheter_driver bench/*.py src/cgail_planner/test/fixtures/make_policies.py
+    mypy --config-file pyproject.toml src/cgail_planner/cgail_planner src/em_tracker/em_tracker \
+    src/pam_controller/pam_controller src/catheter_driver/catheter_driver bench/*.py \
+    src/cgail_planner/test/fixtures/make_policies.py
 
 echo "[test] colcon test"
 rm -rf build/*/test_results
