@@ -41,8 +41,10 @@ def quaternion_to_matrix(q: Sequence[float] | FloatArray) -> FloatArray:
 
 
 def matrix_to_quaternion(r: FloatArray) -> FloatArray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix."""
-    return np.asarray(Rotation.from_matrix(np.asarray(r, dtype=np.float64))
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix, or ``(N, 4)`` of
+    ``(N, 3, 3)``. ``r`` must be a rotation (as every pose here is: checked or composed of
+    rotations); it is not re-orthogonalised (scipy's ``assume_valid``, 3x faster)."""
+    return np.asarray(Rotation.from_matrix(np.asarray(r, dtype=np.float64), assume_valid=True)
                       .as_quat(canonical=True), dtype=np.float64)
 
 

@@ -106,15 +106,17 @@ def path_msg(stamp: Time, frame_id: str, points: np.ndarray) -> Path:
 
     header = Header(stamp=stamp, frame_id=frame_id)
     tangents = np.gradient(points, axis=0) if len(points) > 1 else np.array([[0.0, 1.0, 0.0]])
-    poses = []
-    for p, t in zip(points, tangents, strict=True):
+    frames = np.empty((len(points), 3, 3))
+    for k, t in enumerate(tangents):
         try:
-            x, y, z, w = (float(v) for v in matrix_to_quaternion(frame_from_heading(t)))
-        except ValueError:
-            x, y, z, w = 0.0, 0.0, 0.0, 1.0
-        poses.append(PoseStamped(header=header, pose=Pose(
-            position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-            orientation=Quaternion(x=x, y=y, z=z, w=w))))
+            frames[k] = frame_from_heading(t)
+        except ValueError:  # a zero tangent: the identity
+            frames[k] = np.eye(3)
+    quats = matrix_to_quaternion(frames).reshape(-1, 4).tolist()  # one scipy call
+    poses = [PoseStamped(header=header, pose=Pose(
+        position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
+        for p, q in zip(points, quats, strict=True)]
     return Path(header=header, poses=poses)
 
 

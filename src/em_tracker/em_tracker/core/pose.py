@@ -36,8 +36,9 @@ def quat_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
 
 def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (scipy
-    ``Rotation``)."""
-    return np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float)).as_quat(canonical=True))
+    ``Rotation``; ``rot`` must be a rotation, it is not re-orthogonalised)."""
+    return np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float), assume_valid=True)
+                      .as_quat(canonical=True))
 
 
 @dataclass(frozen=True)
