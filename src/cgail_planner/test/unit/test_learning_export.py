@@ -156,3 +156,17 @@ def test_onnx_rollout_equals_torch_rollout_in_simulator(tmp_path: Path):
     assert ta.shape == tb.shape
     np.testing.assert_allclose(ta, tb, atol=1e-6)
     assert ia['success'] == ib['success'] and ia['collision'] == ib['collision']
+
+
+def test_training_notes_record_the_curriculum_lesson_of_the_checkpoint():
+    import math
+
+    from cgail_planner.learning.export import training_notes
+
+    ckpt = {'config': {'name': 'cgail', 'curriculum': {'theta_max_deg': [90.0, 75.0, 60.0]}},
+            'step': 491520, 'curriculum_lesson': 1}
+    assert training_notes(ckpt) == {
+        'preset': 'cgail', 'train_steps': 491520, 'curriculum_theta_max_deg': [90.0, 75.0, 60.0],
+        'curriculum_lesson': 1, 'final_theta_max_rad': math.radians(75.0)}
+    no_curriculum = {'config': {'name': 'gail'}, 'step': 5, 'curriculum_lesson': 0}
+    assert training_notes(no_curriculum)['final_theta_max_rad'] is None
