@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 import tempfile
 import time
+from typing import Any
 
 import numpy as np
 
@@ -27,13 +28,13 @@ T = TYPESTORE.types
 T0 = 1_700_000_000 * 10**9
 
 
-def header(ns: int) -> object:
+def header(ns: int) -> Any:
     return T['std_msgs/msg/Header'](
         stamp=T['builtin_interfaces/msg/Time'](sec=ns // 10**9, nanosec=ns % 10**9),
         frame_id='phantom')
 
 
-def pose(ns: int, xyz: np.ndarray) -> object:
+def pose(ns: int, xyz: np.ndarray) -> Any:
     return T['geometry_msgs/msg/PoseStamped'](header=header(ns), pose=T['geometry_msgs/msg/Pose'](
         position=T['geometry_msgs/msg/Point'](x=float(xyz[0]), y=float(xyz[1]),
                                               z=float(xyz[2])),
@@ -60,9 +61,9 @@ def make_bag(path: Path, minutes: float, rate: float) -> int:
         for k in range(count):
             ns = T0 + k * period
             if k in replans:
-                path = centre + replans[k]
+                shifted = centre + replans[k]
                 msg = T['nav_msgs/msg/Path'](header=header(ns - 1),
-                                             poses=[pose(ns - 1, q) for q in path])
+                                             poses=[pose(ns - 1, q) for q in shifted])
                 w.write('/planner/path', ns - 1, ser(msg, 'nav_msgs/msg/Path'))
             w.write('/em_tracker/tip_pose', ns,
                     ser(pose(ns, tip[k]), 'geometry_msgs/msg/PoseStamped'))

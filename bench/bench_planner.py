@@ -29,11 +29,12 @@ import time
 
 import numpy as np
 
+from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.guidance import PathFollower
-from cgail_planner.core.planner import model_world_from_sim, NoPathError, Planner, PlannerConfig
+from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.learning.onnx_policy import OnnxPolicy
-from cgail_planner.sim.catheter import frame_from_heading
 from cgail_planner.sim.env import RAY_DIRECTIONS
+from cgail_planner.sim.ftl_model import frame_from_heading
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.wall import StaticWall
 

@@ -7,6 +7,7 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import ROSClock
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -105,4 +106,5 @@ def node_seconds(node: Node) -> float:
     """Seconds for watchdogs and timeouts: the node clock when it runs on simulated time (the
     lockstep rig, ``use_sim_time``), else the steady clock (immune to system-time jumps)."""
     clock = node.get_clock()
-    return clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.monotonic()
+    sim = isinstance(clock, ROSClock) and clock.ros_time_is_active
+    return clock.now().nanoseconds * 1e-9 if sim else time.monotonic()

@@ -1,6 +1,6 @@
 """Guidance along a planned path: next waypoint and the suggested bend (the paper's internal view).
 
-Pure numpy, no rclpy. Conventions follow :mod:`cgail_planner.sim.catheter`: the tip pose is
+Pure numpy, no rclpy. Conventions follow :mod:`cgail_planner.sim.ftl_model`: the tip pose is
 ``[R | p]`` with the heading ``y_A = R[:, 1]``; a bend ``(alpha, gamma)`` of the steerable
 segment turns the heading about ``x_A`` (alpha, ``y_A`` towards ``z_A``) and about ``z_A``
 (gamma, ``y_A`` towards ``-x_A``) by ``bend * dl / L`` per inserted length ``dl``
@@ -28,6 +28,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_planner.sim.ftl_model import CatheterConfig
+
 FloatArray = NDArray[np.float64]
 
 
@@ -37,9 +39,10 @@ class GuidanceConfig:
 
     lookahead: float = 0.025
     """Arc length from the tip's projection on the path to the next waypoint, m; (0, 0.2]."""
-    segment_length: float = 0.050
-    """Steerable segment length L, m (paper: 50 mm); the bend per curvature; [1 mm, 0.5 m]."""
-    max_bend: float = math.pi / 2.0
+    segment_length: float = CatheterConfig().segment_length
+    """Steerable segment length L, m (the catheter model's); the bend per curvature;
+    [1 mm, 0.5 m]."""
+    max_bend: float = CatheterConfig().theta_max
     """Cap of the suggested bend magnitude hypot(alpha, gamma), rad; (0, pi/2]."""
     search_window: float = 0.030
     """Half-width of the arc window searched around the last projection, m; (0, 1]."""

@@ -4,15 +4,17 @@ Pure numpy (with the simulator's wall); no rclpy. :mod:`cgail_planner.nodes.phan
 it the driver's measured insertion and the PAMs' measured bend and sends the resulting tip pose
 to the simulated Aurora.
 
-* **Insertion.** The catheter body is a :class:`~cgail_planner.sim.catheter.CatheterBatch`
+* **Insertion.** The catheter body is a :class:`~cgail_planner.sim.ftl_model.CatheterBatch`
   chain. A measured insertion increase ``dl`` advances the tip along its heading in sub-steps of
   at most ``max_substep``; a decrease retracts it along its own body (follow-the-leader).
   A measured change faster than the driver's cap (``max_insertion_speed * dt + max_jump``) is a
   re-homed driver (its position restarted), counted in ``insertion_jumps``, not motion.
-* **Bend.** The steerable segment bent by ``(alpha, gamma)`` (rad) is an arc of constant
-  curvature ``|bend| / L``: per inserted ``dl`` the heading turns by ``alpha dl / L`` about
-  ``x_A`` and ``gamma dl / L`` about ``z_A`` (``R <- R Rx(alpha dl/L) Rz(gamma dl/L)``), so the
-  tip curves only while it advances, as in the paper's FTL model.
+* **Bend.** The measured bend ``(alpha, gamma)`` (rad) is the bend of the whole steerable
+  segment, an arc of constant curvature ``|bend| / L``: per inserted ``dl`` the heading turns by
+  ``alpha dl / L`` about ``x_A`` and ``gamma dl / L`` about ``z_A``
+  (:func:`cgail_planner.sim.ftl_model.segment_bend_step`), so the tip curves only while it
+  advances. The kinematics are the catheter model's (:mod:`cgail_planner.sim.ftl_model`, its
+  batched form with one row): the phantom and the simulator move a catheter the same way.
 * **Wall.** After each step the tip sphere (catheter radius) is tested against the wall (static,
   or the deformable wall stepped with the heartbeat and the body): a penetrating tip is pushed
   back into the lumen along the wall normal and its heading loses its outward component (it slides
@@ -22,14 +24,20 @@ to the simulated Aurora.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.catheter import bend_rotation, CatheterBatch, CatheterConfig
+from cgail_planner.core.rotations import rotate_onto
+from cgail_planner.sim.ftl_model import (
+    bend_rotation,
+    CatheterBatch,
+    CatheterConfig,
+    segment_bend_step,
+)
 from cgail_planner.sim.wall import DeformableWall
 
 FloatArray = NDArray[np.float64]
@@ -39,31 +47,30 @@ FloatArray = NDArray[np.float64]
 class PhantomConfig:
     """Physics settings of the simulated phantom."""
 
-    segment_length: float = 0.050
-    """Steerable segment length L, m (paper 50 mm); [1 mm, 0.5 m]."""
-    outer_diameter: float = 0.007
-    """Catheter outer diameter, m (7 mm); (0, 0.02]."""
+    catheter: CatheterConfig = field(default_factory=CatheterConfig)
+    """The catheter model (segment length, diameter, theta_max, v_max)."""
     max_substep: float = 0.0005
     """Largest insertion per integration sub-step, m; [1e-5, 0.005]."""
     em_noise_rms: float = 0.0005
     """RMS (3-D) of the EM position noise, m (Aurora: ~0.5 mm); [0, 0.01]."""
     em_angle_noise_rms: float = 0.005
     """RMS of the EM orientation noise, rad; [0, 0.1]."""
-    max_insertion_speed: float = 0.005
-    """The driver's speed cap, m/s: a measured insertion change beyond
-    ``max_insertion_speed * dt + max_jump`` is a re-referenced driver, not motion; (0, 0.1]."""
     max_jump: float = 0.002
-    """Slack of that test for delayed readings, m; [0, 0.1]."""
+    """Slack of the re-homing test for delayed readings, m: a measured insertion change beyond
+    ``catheter.max_insertion_speed * dt + max_jump`` is a re-referenced driver, not motion;
+    [0, 0.1]."""
     wall_dt: float = 0.05
     """Step of the deformable wall (PBD + heartbeat), s; the physics steps it once this much
     time has accumulated; [1 ms, 0.2 s]."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.catheter, CatheterConfig):
+            raise ValueError(f"catheter must be a CatheterConfig, found "
+                             f"{type(self.catheter).__name__}")
         for name, low, high, low_open in (
-                ("segment_length", 1e-3, 0.5, False), ("outer_diameter", 0.0, 0.02, True),
                 ("max_substep", 1e-5, 0.005, False), ("em_noise_rms", 0.0, 0.01, False),
                 ("em_angle_noise_rms", 0.0, 0.1, False), ("wall_dt", 1e-3, 0.2, False),
-                ("max_insertion_speed", 0.0, 0.1, True), ("max_jump", 0.0, 0.1, False)):
+                ("max_jump", 0.0, 0.1, False)):
             value = getattr(self, name)
             ok = (isinstance(value, (int, float)) and math.isfinite(value)
                   and (value > low if low_open else value >= low) and value <= high)
@@ -84,11 +91,9 @@ class PhantomPhysics:
     def __init__(self, config: PhantomConfig, wall: Any | None = None) -> None:
         self.config = config
         self.wall = wall
-        self.radius = 0.5 * config.outer_diameter
-        cat = CatheterConfig(segment_length=config.segment_length,
-                             outer_diameter=config.outer_diameter,
-                             max_insertion_speed=0.1, dt=config.max_substep / 0.1)
-        self.catheter = CatheterBatch(1, cat, capacity=4096)
+        self.radius = config.catheter.radius
+        self.catheter = CatheterBatch(1, config.catheter, capacity=4096,
+                                      max_step=config.max_substep)
         self.time = 0.0
         self.contacts = 0
         self.insertion_jumps = 0
@@ -138,7 +143,8 @@ class PhantomPhysics:
                 self._last_insertion = insertion_position
             delta = insertion_position - self._last_insertion
             self._last_insertion = insertion_position
-            if abs(delta) > self.config.max_insertion_speed * dt + self.config.max_jump:
+            cap = self.config.catheter.max_insertion_speed * dt + self.config.max_jump
+            if abs(delta) > cap:
                 # a re-homed or replaced driver: its position restarted, the catheter did not
                 self.insertion_jumps += 1
             else:
@@ -154,13 +160,14 @@ class PhantomPhysics:
     def move(self, delta: float, bend: tuple[float, float]) -> None:
         """Insert (``delta > 0``) or retract the catheter by ``delta`` m with the given bend."""
         cfg = self.config
-        alpha, gamma = (float(b) for b in bend)
+        cat = cfg.catheter
         remaining = float(delta)
         while abs(remaining) > 1e-12:
             dl = math.copysign(min(abs(remaining), cfg.max_substep), remaining)
             remaining -= dl
-            k = abs(dl) / cfg.segment_length
-            self.catheter.step(np.array([alpha * k]), np.array([gamma * k]), np.array([dl]))
+            alpha, gamma = segment_bend_step(bend, dl, self.catheter.theta_max,
+                                             cat.segment_length)
+            self.catheter.step(np.array([alpha]), np.array([gamma]), np.array([dl]))
             if dl > 0.0:
                 self.inserted += dl
             self._constrain()
@@ -197,13 +204,3 @@ class PhantomPhysics:
         r = self.tip_rotation @ bend_rotation(np.array(ang[0]), np.array(ang[1]))
         return p, r
 
-
-def rotate_onto(a: FloatArray, b: FloatArray) -> FloatArray:
-    """The smallest rotation taking unit vector ``a`` onto unit vector ``b`` (Rodrigues)."""
-    v = np.cross(a, b)
-    c = float(a @ b)
-    s2 = float(v @ v)
-    if s2 < 1e-24:
-        return np.eye(3)
-    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-    return np.eye(3) + vx + vx @ vx * ((1.0 - c) / s2)

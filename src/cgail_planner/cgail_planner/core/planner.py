@@ -1,28 +1,30 @@
-"""Whole-path planning: roll a policy out in the simulator model, or follow the centerline.
+"""Whole-path planning: roll a policy out in the model of the anatomy, or follow the centerline.
 
 numpy and numba (the BVH of :mod:`cgail_planner.sim.wall`, an injected policy callable); no
 rclpy and no torch. Used by :mod:`cgail_planner.nodes.planner_node` with
 :class:`cgail_planner.learning.onnx_policy.OnnxPolicy`.
 
+**C-GAIL planner** (``planner_type='cgail'``): from the current tip pose ``[R | p]`` the policy
+is rolled out exactly as the simulator runs an episode, with the catheter model of
+:mod:`cgail_planner.sim.ftl_model`: its observation (:func:`~cgail_planner.sim.ftl_model.
+observe_pose`), its action scaling and follow-the-leader step, and its retraction rule (the body
+behind the tip pose is a straight introducer to :func:`~cgail_planner.sim.ftl_model.
+introducer_tail`, as behind an episode's start pose). After every step the rollout ends as an
+episode does, by the same priority: a **collision** (the tip sphere penetrates the wall:
+``wall.tip_contact(...).penetration > 0``; the frozen model wall exerts no force), an **exit**
+(the tip crossed the exit plane of the open descending end, or left the anatomy's bounding box
+grown by 10 mm), or **success** (the tip within ``goal_tolerance`` of the goal, which is then
+appended as the last point); else it fails after ``max_rollout_steps``. So a policy rolled out
+from an episode's start pose gives the episode's tip path and ending (``test_model_parity.py``).
+In dynamic mode the wall is the deformable wall's current (deformed) shape, frozen for the
+rollout.
+
 **Speed.** When the policy is a numba :class:`~cgail_planner.core.mlp.MlpProgram` (an
 ``OnnxPolicy`` on its ``mlp`` backend) and the wall a simulator wall, the whole rollout is one
 numba call (:mod:`cgail_planner.core.rollout_kernel`, ~20 us per step, mostly the 25-ray cast)
-that gives the same path as the Python loop :meth:`Planner.rollout_reference` (~85 us per step
-with onnxruntime), which remains the rollout for any other policy or wall. The kernel is loaded
-(compiled, without a numba cache) when the planner is built, not in the first plan.
-
-**C-GAIL planner** (``planner_type='cgail'``): from the current tip pose ``[R | p]`` the policy
-is rolled out in the model of the anatomy, exactly with the environment's observation
-(:data:`cgail_planner.sim.env.OBS_LAYOUT`: position relative to the anatomy's bounding-box centre
-over ``position_scale``, the tip axes, ``u`` and ``v`` towards the goal over ``d_max``, 25 ray
-hits over ``ray_length``) and its follow-the-leader kinematics (:mod:`cgail_planner.sim.catheter`:
-``R <- R Rx(alpha) Rz(gamma)``, ``p <- p + dl y_A`` with ``|alpha|, |gamma| <= theta_max dl / L``,
-``dl <= v_max dt``). The rollout succeeds when the tip comes within ``goal_tolerance`` of the
-goal (the goal is then appended as the last point); it fails on a wall contact (a ray shorter than
-the catheter radius: the tip sphere touches the wall), on leaving the anatomy's bounding box, or
-after ``max_rollout_steps``. In dynamic mode the rays are cast against the wall's current
-(deformed) shape, frozen for the rollout. Retraction (``dl < 0``) slides back along the rolled-out
-body, as in the simulator.
+that gives the same path as the Python loop :meth:`Planner.rollout_reference`, which remains the
+rollout for any other policy or wall. The kernel is loaded (compiled, without a numba cache) when
+the planner is built, not in the first plan.
 
 **Centerline planner** (``planner_type='centerline'``, the traditional baseline): the Voronoi
 centerline of the branch whose coronary ostium is nearest the goal, from the tip's projection on
@@ -36,43 +38,39 @@ Both raw paths are B-spline fitted and resampled at ``path_spacing``
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field, replace
 import math
 import time
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_planner.core.errors import ContractError, InvalidInputError, NoPathError
 from cgail_planner.core.mlp import MlpProgram
 from cgail_planner.core.path_fit import fit_path, PathFitConfig, PathFitError
+from cgail_planner.core.rotations import validate_pose
+from cgail_planner.sim.ftl_model import (
+    advance_pose,
+    CatheterConfig,
+    command_nb,
+    introducer_tail,
+    ObservationConfig,
+    ObservationSpec,
+    observe_pose,
+    PolicyContract,
+    RAY_DIRECTIONS,
+    retract_chain,
+    seed_body,
+)
 
 FloatArray = NDArray[np.float64]
 
 PLANNER_TYPES = ("cgail", "centerline")
 MODES = ("static", "dynamic")
-
-
-class PlannerError(ValueError):
-    """Planning refused or failed; the message says what was wrong and what was expected."""
-
-
-class InvalidInputError(PlannerError):
-    """A pose or goal is unusable (NaN/inf, not a rotation, goal outside the lumen)."""
-
-
-class NoPathError(PlannerError):
-    """The planner ran but found no path to the goal (rollout collided, exited or timed out).
-
-    Args:
-        message: what happened.
-        points: (K, 3) the tip positions rolled out before the failure, m (None when the
-            failure is not a rollout's); kept as :attr:`points` for diagnostics.
-    """
-
-    def __init__(self, message: str, points: FloatArray | None = None) -> None:
-        super().__init__(message)
-        self.points = points
+#: Largest distance between a policy's observation origin and the anatomy's bounding-box
+#: centre accepted as the same anatomy, m (built meshes differ by micrometres across CPUs).
+ORIGIN_TOLERANCE = 1e-3
 
 
 class RayWall(Protocol):
@@ -82,13 +80,17 @@ class RayWall(Protocol):
                 ) -> np.ndarray:
         """(R,) hit distances along unit directions, ``max_dist`` when nothing is hit."""
 
+    def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Any:
+        """The tip sphere vs the wall: an object with ``penetration`` (m, > 0 when the sphere
+        crosses the wall) and ``clearance`` (m, exact distance to contact, inf if unknown)."""
+
 
 Policy = Callable[[NDArray[np.float32]], NDArray[np.float32]]
 
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """Planner settings (the node's parameters of the same names)."""
+    """Planner settings (the node's parameters of the same names) and the catheter model."""
 
     planner_type: str = "cgail"
     """``cgail`` (ONNX policy rollout) or ``centerline`` (the traditional baseline)."""
@@ -100,38 +102,33 @@ class PlannerConfig:
     """Arc-length spacing of the published (B-spline fitted, resampled) path, m; [0.1 mm, 1 cm]."""
     fit_stride: int = 4
     """Every ``fit_stride``-th rollout point is a B-spline knot (ends always kept); [1, 50]."""
-    theta_max: float = math.pi / 2.0
-    """Maximal bending angle of the rollout kinematics, rad (paper 90 deg); (0, pi]."""
-    segment_length: float = 0.050
-    """Steerable segment length L, m (paper 50 mm); [1 mm, 0.5 m]."""
-    max_insertion_speed: float = 0.005
-    """Insertion speed of the rollout at full action, m/s (paper 5 mm/s); (0, 0.1]."""
-    dt: float = 0.1
-    """Rollout time step, s (the environment's; 0.5 mm per step); [1 ms, 2 s]."""
-    outer_diameter: float = 0.007
-    """Catheter outer diameter, m (7 mm): a ray shorter than its radius is a contact; (0, 0.02]."""
-    ray_length: float = 0.040
-    """Observation ray length, m (the environment's 40 mm); [5 mm, 0.2 m]."""
-    position_scale: float = 0.15
-    """Observed position scale, m (the environment's 0.15 m); [1 cm, 10 m]."""
+    catheter: CatheterConfig = field(default_factory=CatheterConfig)
+    """The catheter model of the rollout (a policy's: its contract's)."""
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    """Position scale and ray length of the rollout's observation (a policy's: its contract's)."""
 
     def __post_init__(self) -> None:
         if self.planner_type not in PLANNER_TYPES:
             raise ValueError(f"planner_type must be one of {PLANNER_TYPES}, found "
                              f"{self.planner_type!r}")
-        for name, low, high in (("goal_tolerance", 0.0, 0.05), ("theta_max", 0.0, math.pi),
-                                ("max_insertion_speed", 0.0, 0.1),
-                                ("outer_diameter", 0.0, 0.02)):
-            _check(name, getattr(self, name), low, high, low_open=True)
-        for name, low, high in (("path_spacing", 1e-4, 0.01), ("segment_length", 1e-3, 0.5),
-                                ("dt", 1e-3, 2.0), ("ray_length", 0.005, 0.2),
-                                ("position_scale", 0.01, 10.0)):
-            _check(name, getattr(self, name), low, high)
+        _check("goal_tolerance", self.goal_tolerance, 0.0, 0.05, low_open=True)
+        _check("path_spacing", self.path_spacing, 1e-4, 0.01)
         for name, ilow, ihigh in (("max_rollout_steps", 1, 100_000), ("fit_stride", 1, 50)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) \
                     or not ilow <= value <= ihigh:
                 raise ValueError(f"{name} must be an int in [{ilow}, {ihigh}], found {value!r}")
+        if not isinstance(self.catheter, CatheterConfig):
+            raise ValueError(f"catheter must be a CatheterConfig, found "
+                             f"{type(self.catheter).__name__}")
+        if not isinstance(self.observation, ObservationConfig):
+            raise ValueError(f"observation must be an ObservationConfig, found "
+                             f"{type(self.observation).__name__}")
+
+    def with_contract(self, contract: PolicyContract) -> PlannerConfig:
+        """These settings with the catheter model and observation of a policy's contract."""
+        return replace(self, catheter=contract.catheter,
+                       observation=contract.observation.config)
 
 
 def _check(name: str, value: float, low: float, high: float, low_open: bool = False) -> None:
@@ -161,7 +158,7 @@ class PlanResult:
 
 @dataclass(frozen=True)
 class ModelWorld:
-    """The model of the anatomy the planner plans in (from :func:`sim.scenarios.load_world`)."""
+    """The model of the anatomy the planner plans in (from :func:`model_world_from_sim`)."""
 
     origin: FloatArray
     """(3,) observation origin: the anatomy's bounding-box centre, m."""
@@ -177,140 +174,134 @@ class ModelWorld:
     """Branch name -> (3,) coronary ostium position, m."""
     contains: Callable[[FloatArray], NDArray[np.bool_]]
     """Lumen test of (N, 3) points."""
+    exit_point: FloatArray
+    """(3,) centre of the open descending end, m (the rollout's exit plane)."""
+    exit_normal: FloatArray
+    """(3,) unit normal of the exit plane, out of the lumen."""
 
 
-def model_world_from_sim(world: object) -> ModelWorld:
-    """Build a :class:`ModelWorld` from a :class:`cgail_planner.sim.scenarios.World`."""
-    anatomy = world.anatomy  # type: ignore[attr-defined]
-    sc = world.scenarios  # type: ignore[attr-defined]
-    verts = np.asarray(anatomy.vertices, dtype=np.float64)
+def model_world_from_sim(world: Any, observation: ObservationSpec | None = None) -> ModelWorld:
+    """Build a :class:`ModelWorld` from a :class:`cgail_planner.sim.scenarios.World`.
+
+    Args:
+        world: the simulator's world (anatomy, centerlines, scenarios).
+        observation: a policy's observation spec (its contract's): its ``origin`` and ``d_max``
+            replace the world's own.
+
+    Raises:
+        ContractError: the spec's origin is more than :data:`ORIGIN_TOLERANCE` from this
+            anatomy's bounding-box centre (the policy was trained on another anatomy).
+    """
+    from cgail_planner.sim.scenarios import episode_bounds
+
+    anatomy = world.anatomy
+    sc = world.scenarios
+    origin = np.asarray(sc.origin, dtype=np.float64)
+    d_max = float(sc.d_max)
+    if observation is not None:
+        moved = float(np.linalg.norm(observation.origin - origin))
+        if moved > ORIGIN_TOLERANCE:
+            raise ContractError(
+                f"observation origin: expected this anatomy's bounding-box centre "
+                f"{origin.round(4).tolist()} m, found the policy's "
+                f"{observation.origin.round(4).tolist()} m ({moved * 1e3:.1f} mm apart)")
+        origin, d_max = observation.origin.copy(), observation.d_max
+    low, high = episode_bounds(anatomy)
     return ModelWorld(
-        origin=np.asarray(sc.origin, dtype=np.float64), d_max=float(sc.d_max),
-        bbox_low=verts.min(axis=0) - 0.01, bbox_high=verts.max(axis=0) + 0.01,
+        origin=origin, d_max=d_max, bbox_low=low, bbox_high=high,
         centerlines={b: np.asarray(c.points, dtype=np.float64)
-                     for b, c in world.centerlines.items()},  # type: ignore[attr-defined]
+                     for b, c in world.centerlines.items()},
         ostia={b: np.asarray(p, dtype=np.float64) for b, p in anatomy.ostia.items()},
-        contains=anatomy.contains)
+        contains=anatomy.contains,
+        exit_point=np.asarray(anatomy.exit_point, dtype=np.float64),
+        exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64))
 
 
-def validate_pose(position: FloatArray, rotation: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Check a tip pose: finite position, a proper rotation matrix (tolerance 1e-3).
+def _wall_arrays(wall: object) -> Any | None:
+    """The BVH arrays of a simulator wall (:attr:`cgail_planner.sim.raycast.WallBVH.
+    query_arrays`) brought up to date, or None for any other wall.
 
-    Raises:
-        InvalidInputError: naming what is wrong.
-    """
-    p = np.asarray(position, dtype=np.float64)
-    r = np.asarray(rotation, dtype=np.float64)
-    if p.shape != (3,) or r.shape != (3, 3):
-        raise InvalidInputError(f"tip pose must be a (3,) position and a (3, 3) rotation, found "
-                                f"{p.shape} and {r.shape}")
-    if not (np.isfinite(p).all() and np.isfinite(r).all()):
-        raise InvalidInputError(f"tip pose must be finite, found position {p.tolist()} "
-                                "or a rotation with NaN/inf")
-    err = float(np.abs(r.T @ r - np.eye(3)).max())
-    if err > 1e-3 or np.linalg.det(r) < 0.0:
-        raise InvalidInputError(f"tip orientation must be a rotation (unit quaternion), found "
-                                f"orthogonality error {err:.3g}")
-    return p, r
-
-
-def rotation_from_quaternion(x: float, y: float, z: float, w: float) -> FloatArray:
-    """Rotation matrix of a unit quaternion ``(x, y, z, w)``.
-
-    Raises:
-        InvalidInputError: NaN/inf or a norm not within 1e-3 of 1.
-    """
-    q = np.array([x, y, z, w], dtype=np.float64)
-    n = float(np.linalg.norm(q))
-    if not math.isfinite(n) or abs(n - 1.0) > 1e-3:
-        raise InvalidInputError(f"orientation must be a unit quaternion, found {q.tolist()} "
-                                f"(norm {n:.4g})")
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
-
-
-def quaternion_from_rotation(r: FloatArray) -> tuple[float, float, float, float]:
-    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix (Shepperd's method)."""
-    m = np.asarray(r, dtype=np.float64)
-    tr = float(m[0, 0] + m[1, 1] + m[2, 2])
-    if tr > 0.0:
-        s = math.sqrt(tr + 1.0) * 2.0
-        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2.0
-        q = (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
-    elif m[1, 1] > m[2, 2]:
-        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2.0
-        q = ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
-    else:
-        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2.0
-        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s)
-    n = math.sqrt(sum(v * v for v in q))
-    return (float(q[0] / n), float(q[1] / n), float(q[2] / n), float(q[3] / n))
-
-
-def _wall_bvh(wall: object) -> tuple[np.ndarray, ...] | None:
-    """The arrays the numba ray kernel needs, for a simulator wall, else None.
-
-    A :class:`cgail_planner.sim.wall.StaticWall` (or :class:`~cgail_planner.sim.wall.
-    DeformableWall`) casts its rays on a :class:`cgail_planner.sim.raycast.WallBVH`; the wall is
-    brought up to date first by a one-ray cast (a deformable wall refits its tree lazily), then
-    the tree is read as ``WallBVH.raycast`` passes it to its kernel: ``(vertices, faces, order,
-    node_min, node_max, left, right, start, count)``.
+    A deformable wall refits its tree lazily, so a one-ray cast comes first.
     """
     from cgail_planner.sim.raycast import WallBVH
     from cgail_planner.sim.wall import StaticWall
 
-    if not isinstance(wall, StaticWall):
-        return None
-    bvh = wall.bvh
-    if not isinstance(bvh, WallBVH):
+    if not isinstance(wall, StaticWall) or not isinstance(wall.bvh, WallBVH):
         return None
     wall.raycast(np.zeros((1, 3)), np.array([[0.0, 1.0, 0.0]]), 1e-3)
-    nmin, nmax, left, right, start, count, order, _fitted, _n_nodes = bvh.tree
-    return (bvh.vertices, bvh.faces, order, nmin, nmax, left, right, start, count)
+    return wall.bvh.query_arrays
 
 
-def pose_observation(p: FloatArray, r: FloatArray, goal: FloatArray, hits: FloatArray,
-                     origin: FloatArray, d_max: float, position_scale: float,
-                     ray_length: float) -> NDArray[np.float32]:
-    """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of one tip
-    pose ``[r | p]`` towards ``goal``, with the ray hit distances ``hits`` (m) cast from it.
+def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
+                       theta_max: float | None, segment_length: float | None, override: bool,
+                       world_spec: ObservationSpec | None = None
+                       ) -> tuple[PolicyContract, list[str]]:
+    """The contract a planner runs with, given settings that may repeat some of its entries.
 
-    The single-pose form of :meth:`cgail_planner.sim.env.NavEngine.observe`, shared by the
-    planner and the evaluation's simulated tracker.
+    A setting of None takes the contract's value. A setting that disagrees with the contract
+    raises :class:`ContractError` (one line: the name, the policy's value, the setting's value),
+    unless ``override`` is set: then the setting wins and a warning is returned. ``mode`` only
+    informs: a policy trained in the rigid (static) world may run in the beating one.
+
+    Args:
+        contract: the policy's contract.
+        anatomy: the anatomy the planner plans in.
+        mode: ``static`` or ``dynamic``: the world the planner plans in.
+        theta_max: the maximal bending angle setting, rad, or None.
+        segment_length: the steerable segment length setting, m, or None.
+        override: let disagreeing settings win (with a warning).
+        world_spec: this anatomy's own observation spec (origin, d_max), used in place of the
+            policy's when an overridden anatomy disagrees.
+
+    Returns:
+        ``(contract, notes)``: the contract to run with and the lines to log (warnings for
+        overrides, a note when the mode differs).
     """
-    obs = np.empty(16 + len(hits), dtype=np.float32)
-    obs[0:3] = (p - origin) / position_scale
-    obs[3:12] = r.T.reshape(9)
-    vec = (goal - p) / d_max
-    obs[12] = math.sqrt(float(vec @ vec))
-    obs[13:16] = vec
-    obs[16:] = hits
-    obs[16:] *= 1.0 / ray_length
-    np.clip(obs[16:], 0.0, 1.0, out=obs[16:])
-    return obs
-
-
-def _bend_rotation(alpha: float, gamma: float) -> FloatArray:
-    ca, sa, cg, sg = math.cos(alpha), math.sin(alpha), math.cos(gamma), math.sin(gamma)
-    return np.array([[cg, -sg, 0.0], [ca * sg, ca * cg, -sa], [sa * sg, sa * cg, ca]])
+    notes: list[str] = []
+    cat = contract.catheter
+    changes: dict[str, float] = {}
+    for name, value, want in (("theta_max", theta_max, cat.theta_max),
+                              ("segment_length", segment_length, cat.segment_length)):
+        if value is None or math.isclose(value, want, rel_tol=1e-9, abs_tol=1e-12):
+            continue
+        if not override:
+            raise ContractError(f"{name}: expected the policy's {want:.6g}, found parameter "
+                                f"{value:.6g} (set override_policy_contract to run anyway)")
+        changes[name] = value
+        notes.append(f"override_policy_contract: {name} {value:.6g} instead of the policy's "
+                     f"{want:.6g}")
+    observation = contract.observation
+    if anatomy != contract.anatomy:
+        if not override:
+            raise ContractError(f"anatomy: expected the policy's {contract.anatomy!r}, found "
+                                f"parameter {anatomy!r} (set override_policy_contract to run "
+                                "anyway)")
+        notes.append(f"override_policy_contract: anatomy {anatomy!r} instead of the policy's "
+                     f"{contract.anatomy!r} (observed in this anatomy's frame)")
+        if world_spec is not None:
+            observation = ObservationSpec(origin=world_spec.origin, d_max=world_spec.d_max,
+                                          config=observation.config,
+                                          ray_directions=observation.ray_directions)
+    if mode != contract.mode:
+        notes.append(f"policy trained in the {contract.mode} world runs in the {mode} world")
+    if not changes and observation is contract.observation:
+        return contract, notes
+    return PolicyContract(catheter=CatheterConfig(**{**asdict(cat), **changes}),
+                          observation=observation, anatomy=anatomy, mode=contract.mode,
+                          training=contract.training), notes
 
 
 class Planner:
     """Plans whole paths from a tip pose to a goal (module docstring).
 
     Args:
-        config: planner settings.
-        world: the anatomy model.
-        wall: ray-cast wall (static, or the deformable wall whose current shape is used).
-        policy: ``obs (41,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
-        ray_directions: (R, 3) ray set in the tip frame (:data:`cgail_planner.sim.env.
-            RAY_DIRECTIONS`).
+        config: planner settings and the catheter model.
+        world: the anatomy model (observation origin and ``d_max``, exit plane, bounds).
+        wall: ray-cast and contact wall (static, or the deformable wall whose current shape is
+            used).
+        policy: ``obs (16 + R,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
+        ray_directions: (R, 3) ray set in the tip frame (default
+            :data:`~cgail_planner.sim.ftl_model.RAY_DIRECTIONS`; a policy's: its contract's).
         obs_dim: the policy's observation size (checked against ``16 + R``).
 
     Raises:
@@ -318,14 +309,17 @@ class Planner:
     """
 
     def __init__(self, config: PlannerConfig, world: ModelWorld, wall: RayWall,
-                 policy: Policy | None, ray_directions: FloatArray,
+                 policy: Policy | None, ray_directions: FloatArray | None = None,
                  obs_dim: int | None = None) -> None:
         self.config = config
         self.world = world
         self.wall = wall
         self.policy = policy
-        self.rays = np.ascontiguousarray(ray_directions, dtype=np.float64)
-        self.obs_dim = 16 + len(self.rays)
+        self.spec = ObservationSpec(
+            origin=world.origin, d_max=world.d_max, config=config.observation,
+            ray_directions=RAY_DIRECTIONS if ray_directions is None else ray_directions)
+        self.rays = self.spec.ray_directions
+        self.obs_dim = self.spec.dim
         if config.planner_type == "cgail" and policy is None:
             raise ValueError("planner_type 'cgail' needs a policy, found None")
         if obs_dim is not None and obs_dim != self.obs_dim:
@@ -337,12 +331,33 @@ class Planner:
         if isinstance(program, MlpProgram) and program.in_dim == self.obs_dim \
                 and program.out_dim == 3:
             self._program = program
-            bvh = _wall_bvh(wall)
-            if bvh is not None:
+            arrays = _wall_arrays(wall)
+            if arrays is not None:
                 # load (or, without a numba cache, compile: seconds) the kernel now rather
                 # than in the first plan: a one-step rollout from the observation origin
                 origin = np.asarray(world.origin, dtype=np.float64)
-                self._run_kernel(program, bvh, origin, np.eye(3), origin + 1.0, 1)
+                self._run_kernel(program, arrays, origin, np.eye(3), origin + 1.0, 1)
+
+    @classmethod
+    def from_contract(cls, contract: PolicyContract, world: Any, wall: RayWall, policy: Policy,
+                      settings: PlannerConfig | None = None) -> Planner:
+        """A C-GAIL planner built from its policy's contract.
+
+        Args:
+            contract: the policy's contract (catheter model, observation spec).
+            world: the simulator's world of the contract's anatomy.
+            wall: the wall to plan in.
+            policy: the policy.
+            settings: the planner settings (default ``PlannerConfig()``); their catheter model
+                and observation are replaced by the contract's.
+
+        Raises:
+            ContractError: the world is not the contract's anatomy (observation origin).
+        """
+        config = (settings or PlannerConfig()).with_contract(contract)
+        model = model_world_from_sim(world, contract.observation)
+        return cls(config, model, wall, policy, contract.observation.ray_directions,
+                   obs_dim=contract.observation.dim)
 
     # ------------------------------------------------------------------ validation
     def validate_goal(self, goal: FloatArray) -> FloatArray:
@@ -388,10 +403,8 @@ class Planner:
 
     def observation(self, p: FloatArray, r: FloatArray, goal: FloatArray,
                     hits: FloatArray) -> NDArray[np.float32]:
-        """The environment's observation of tip pose ``[r | p]`` (layout in the module doc)."""
-        cfg = self.config
-        return pose_observation(p, r, goal, hits, self.world.origin, self.world.d_max,
-                                cfg.position_scale, cfg.ray_length)
+        """The environment's observation of tip pose ``[r | p]`` (:func:`observe_pose`)."""
+        return observe_pose(self.spec, p, r, goal, hits)
 
     @property
     def uses_kernel(self) -> bool:
@@ -399,7 +412,18 @@ class Planner:
         is an :class:`~cgail_planner.core.mlp.MlpProgram` (or has one as ``.mlp``, as
         :class:`~cgail_planner.learning.onnx_policy.OnnxPolicy` has) with this planner's
         observation size and 3 actions, and the wall is a simulator wall with a numba BVH."""
-        return self._program is not None and _wall_bvh(self.wall) is not None
+        return self._program is not None and _wall_arrays(self.wall) is not None
+
+    def _seed(self, p0: FloatArray, r0: FloatArray, capacity: int
+              ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """A body of ``capacity`` nodes seeded with the introducer behind ``[r0 | p0]``."""
+        positions = np.empty((capacity, 3))
+        rotations = np.empty((capacity, 3, 3))
+        arc = np.empty(capacity)
+        w = self.world
+        seed_body(positions, rotations, arc,
+                  introducer_tail(w.exit_point, w.exit_normal, p0, r0), p0, r0)
+        return positions, rotations, arc
 
     def rollout(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                 ) -> tuple[FloatArray, int]:
@@ -409,146 +433,135 @@ class Planner:
         :attr:`uses_kernel`, else :meth:`rollout_reference`; both give the same path.
 
         Returns:
-            ``(points, steps)``: the tip positions from ``p0`` to ``goal`` (appended).
+            ``(points, steps)``: the body from ``p0`` (or, after a retraction behind ``p0``,
+            from the tip) to the final tip, then ``goal``.
 
         Raises:
-            NoPathError: contact, exit or step limit before reaching the goal.
+            NoPathError: collision, exit or step limit before reaching the goal.
         """
         program = self._program
-        bvh = _wall_bvh(self.wall) if program is not None else None
-        if program is None or bvh is None:
+        arrays = _wall_arrays(self.wall) if program is not None else None
+        if program is None or arrays is None:
             return self.rollout_reference(p0, r0, goal)
         from cgail_planner.core import rollout_kernel as rk
 
         cfg = self.config
         goal = np.ascontiguousarray(goal, dtype=np.float64)
-        status, steps, points, action = self._run_kernel(program, bvh, p0, r0, goal,
+        status, steps, points, action = self._run_kernel(program, arrays, p0, r0, goal,
                                                          cfg.max_rollout_steps)
-        p = points[-1]
         if status == rk.REACHED:
             return np.vstack([points, goal]), int(steps)
-        if status == rk.TOUCHED_WALL:
-            raise NoPathError(
-                f"cgail rollout touched the wall after {steps} steps at "
-                f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
-                f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal", points)
         if status == rk.BAD_ACTION:
             raise NoPathError(f"policy must return 3 finite actions, found "
-                              f"{action.tolist()}", points)
-        if status == rk.LEFT_ANATOMY:
-            raise NoPathError(f"cgail rollout left the anatomy after {steps} steps", points)
-        dist = float(np.linalg.norm(goal - p))
-        raise NoPathError(f"cgail rollout did not reach the goal within "
-                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)",
-                          points)
+                              f"{action.tolist()}", points, "bad_action", int(steps))
+        raise self._failure({rk.COLLIDED: "collided", rk.LEFT_ANATOMY: "left",
+                             rk.STEP_LIMIT: "limit"}[status], int(steps), points, goal)
 
-    def _run_kernel(self, program: MlpProgram, bvh: tuple[np.ndarray, ...], p0: FloatArray,
-                    r0: FloatArray, goal: FloatArray, max_steps: int
+    def _failure(self, kind: str, step: int, points: FloatArray, goal: FloatArray
+                 ) -> NoPathError:
+        """The error of a rollout that ended without reaching the goal."""
+        p = points[-1]
+        if kind == "collided":
+            text = (f"cgail rollout touched the wall at step {step} at "
+                    f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
+                    f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal")
+        elif kind == "left":
+            text = f"cgail rollout left the anatomy at step {step}"
+        else:
+            text = (f"cgail rollout did not reach the goal within "
+                    f"{self.config.max_rollout_steps} steps (ended "
+                    f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from it)")
+        return NoPathError(text, points, kind, step)
+
+    def _run_kernel(self, program: MlpProgram, arrays: Any, p0: FloatArray, r0: FloatArray,
+                    goal: FloatArray, max_steps: int
                     ) -> tuple[int, int, FloatArray, FloatArray]:
         """One call of the rollout kernel: ``(status, steps, points, last action)``."""
         from cgail_planner.core import rollout_kernel as rk
 
-        cfg = self.config
-        positions = np.empty((max_steps + 1, 3))
-        rotations = np.empty((max_steps + 1, 3, 3))
+        cfg, cat, spec, w = self.config, self.config.catheter, self.spec, self.world
+        p0 = np.ascontiguousarray(p0, dtype=np.float64)
+        r0 = np.ascontiguousarray(r0, dtype=np.float64)
+        positions, rotations, arc = self._seed(p0, r0, max_steps + 2)
         action = np.zeros(3)
         kernel: Callable[..., tuple[int, int, int]] = rk.rollout_kernel
         # every scalar as a Python float/int: one compiled signature whatever the config types
         status, steps, n = kernel(
-            np.ascontiguousarray(p0, dtype=np.float64), np.ascontiguousarray(r0, np.float64),
-            np.ascontiguousarray(goal, dtype=np.float64), self.rays,
-            np.ascontiguousarray(self.world.origin, dtype=np.float64),
-            1.0 / float(cfg.position_scale), 1.0 / float(self.world.d_max),
-            1.0 / float(cfg.ray_length), float(cfg.ray_length), 0.5 * float(cfg.outer_diameter),
-            float(cfg.max_insertion_speed) * float(cfg.dt),
-            float(cfg.theta_max) / float(cfg.segment_length), float(cfg.goal_tolerance) ** 2,
-            np.ascontiguousarray(self.world.bbox_low, dtype=np.float64),
-            np.ascontiguousarray(self.world.bbox_high, dtype=np.float64), int(max_steps), *bvh,
+            positions, rotations, arc, 2, np.ascontiguousarray(goal, dtype=np.float64),
+            spec.ray_directions, spec.origin, float(spec.position_scale), float(spec.d_max),
+            float(spec.ray_length), float(cat.theta_max), float(cat.segment_length),
+            float(cat.max_step_insertion), float(cat.radius), float(cat.dt),
+            float(self.wall_tolerance), float(cfg.goal_tolerance),
+            w.exit_point, w.exit_normal, np.ascontiguousarray(w.bbox_low, dtype=np.float64),
+            np.ascontiguousarray(w.bbox_high, dtype=np.float64), int(max_steps), arrays,
             program.ops, program.consts, program.widths, program.scratch(), program.out_reg,
-            positions, rotations, action)
-        return int(status), int(steps), positions[:n].copy(), action
+            action)
+        return int(status), int(steps), _points(positions, int(n)), action
+
+    @property
+    def wall_tolerance(self) -> float:
+        """The wall's penetration tolerance, m (0 for a wall that does not say)."""
+        return float(getattr(self.wall, "penetration_tolerance", 0.0))
 
     def rollout_reference(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                           ) -> tuple[FloatArray, int]:
-        """:meth:`rollout` as a Python loop calling ``wall.raycast`` and ``policy`` per step.
+        """:meth:`rollout` as a Python loop calling ``wall.raycast``, ``wall.tip_contact`` and
+        ``policy`` per step, and the single-pose forms of :mod:`cgail_planner.sim.ftl_model`.
 
         The specification of the numba kernel, and the rollout for any policy callable and
         any :class:`RayWall`. Same returns and errors as :meth:`rollout`.
         """
-        cfg = self.config
+        cfg, cat, spec, w = self.config, self.config.catheter, self.spec, self.world
         assert self.policy is not None
-        radius = 0.5 * cfg.outer_diameter
-        step_len = cfg.max_insertion_speed * cfg.dt
-        per_len = cfg.theta_max / cfg.segment_length
-        n = len(self.rays)
-        positions = [p0.copy()]
-        rotations = [r0.copy()]
-        p, r = p0.copy(), r0.copy()
-        tol2 = cfg.goal_tolerance ** 2
-        origins = np.empty((n, 3))
-        low = self.world.bbox_low.tolist()
-        high = self.world.bbox_high.tolist()
-        # the observation is filled in place (same layout as :meth:`observation`)
-        obs = np.empty(self.obs_dim, dtype=np.float32)
-        inv_scale = 1.0 / cfg.position_scale
-        inv_dmax = 1.0 / self.world.d_max
-        inv_ray = 1.0 / cfg.ray_length
-        origin = self.world.origin
-        gx, gy, gz = (float(v) for v in goal)
+        p = np.array(p0, dtype=np.float64)
+        r = np.array(r0, dtype=np.float64)
+        goal = np.asarray(goal, dtype=np.float64)
+        positions, rotations, arc = self._seed(p, r, cfg.max_rollout_steps + 2)
+        n = 2
+        origins = np.empty((len(self.rays), 3))
+        ex, ey, ez = w.exit_point.tolist()
+        nx, ny, nz = w.exit_normal.tolist()
+        low, high = w.bbox_low.tolist(), w.bbox_high.tolist()
+        gx, gy, gz = goal.tolist()
+        clearance = -math.inf  # a lower bound of the exact clearance (as the env's broad phase)
         for step in range(1, cfg.max_rollout_steps + 1):
             origins[:] = p
-            hits = np.asarray(self.wall.raycast(origins, self.rays @ r.T, cfg.ray_length),
+            hits = np.asarray(self.wall.raycast(origins, self.rays @ r.T, spec.ray_length),
                               dtype=np.float64)
-            if step > 1 and float(hits.min()) < radius:
-                raise NoPathError(
-                    f"cgail rollout touched the wall after {step - 1} steps at "
-                    f"({p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}) m, "
-                    f"{float(np.linalg.norm(goal - p)) * 1e3:.1f} mm from the goal",
-                    np.array(positions))
-            x, y, z = p.tolist()
-            obs[0:3] = (p - origin) * inv_scale
-            obs[3:12] = r.T.reshape(9)
-            vx, vy, vz = (gx - x) * inv_dmax, (gy - y) * inv_dmax, (gz - z) * inv_dmax
-            obs[12] = math.sqrt(vx * vx + vy * vy + vz * vz)
-            obs[13], obs[14], obs[15] = vx, vy, vz
-            np.clip(hits * inv_ray, 0.0, 1.0, out=hits)
-            obs[16:] = hits
-            out = np.asarray(self.policy(obs)).reshape(-1).tolist()
-            if len(out) != 3 or not all(math.isfinite(v) for v in out):
-                raise NoPathError(f"policy must return 3 finite actions, found {out}",
-                                  np.array(positions))
-            a0, a1, a2 = (min(max(v, -1.0), 1.0) for v in out)
-            dl = a2 * step_len
+            out = np.asarray(self.policy(observe_pose(spec, p, r, goal, hits)))
+            out = out.astype(np.float32).reshape(-1)
+            if out.shape != (3,) or not np.isfinite(out).all():
+                raise NoPathError(f"policy must return 3 finite actions, found {out.tolist()}",
+                                  _points(positions, n), "bad_action", step)
+            a0, a1, a2 = out.tolist()
+            alpha, gamma, dl = command_nb(a0, a1, a2, cat.theta_max, cat.segment_length,
+                                          cat.max_step_insertion)
+            travelled = 0.0
             if dl > 0.0:
-                limit = per_len * dl
-                r = r @ _bend_rotation(a0 * limit, a1 * limit)
-                p = p + dl * r[:, 1]
-                positions.append(p)
-                rotations.append(r)
-            elif dl < 0.0 and len(positions) > 1:
-                back = -dl
-                while back > 0.0 and len(positions) > 1:
-                    seg = float(np.linalg.norm(positions[-1] - positions[-2]))
-                    if seg <= back + 1e-12:
-                        positions.pop()
-                        rotations.pop()
-                        back -= seg
-                    else:
-                        frac = back / seg
-                        positions[-1] = positions[-1] + frac * (positions[-2] - positions[-1])
-                        back = 0.0
-                p, r = positions[-1].copy(), rotations[-1].copy()
+                p, r = advance_pose(p, r, alpha, gamma, dl)
+                positions[n] = p
+                rotations[n] = r
+                arc[n] = arc[n - 1] + dl
+                n += 1
+                travelled = dl
+            elif dl < 0.0:
+                n, travelled = retract_chain(positions, arc, n, -dl)
+                p, r = positions[n - 1].copy(), rotations[n - 1].copy()
+            # the episode's ending, in its order: collision, exit, success
+            clearance -= travelled
+            if clearance <= 1e-9:
+                contact = self.wall.tip_contact(p, cat.radius, cat.dt)
+                if contact.penetration > 0.0:
+                    raise self._failure("collided", step, _points(positions, n), goal)
+                clearance = contact.clearance if math.isfinite(contact.clearance) else -math.inf
             x, y, z = p.tolist()
-            if (gx - x) ** 2 + (gy - y) ** 2 + (gz - z) ** 2 < tol2:
-                return np.vstack([*positions, goal]), step
-            if not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
-                    and low[2] <= z <= high[2]):
-                raise NoPathError(f"cgail rollout left the anatomy after {step} steps",
-                                  np.array(positions))
-        dist = float(np.linalg.norm(goal - p))
-        raise NoPathError(f"cgail rollout did not reach the goal within "
-                          f"{cfg.max_rollout_steps} steps (ended {dist * 1e3:.1f} mm from it)",
-                          np.array(positions))
+            if (x - ex) * nx + (y - ey) * ny + (z - ez) * nz > 0.0 \
+                    or not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
+                            and low[2] <= z <= high[2]):
+                raise self._failure("left", step, _points(positions, n), goal)
+            if math.sqrt((gx - x) ** 2 + (gy - y) ** 2 + (gz - z) ** 2) < cfg.goal_tolerance:
+                return np.vstack([_points(positions, n), goal]), step
+        raise self._failure("limit", cfg.max_rollout_steps, _points(positions, n), goal)
 
     def branch_for(self, goal: FloatArray) -> str:
         """The branch whose coronary ostium is nearest ``goal``."""
@@ -604,3 +617,9 @@ def replan_reason(config: ReplanConfig, *, cross_track: float, planned_goal: Flo
     if cross_track > config.corridor_radius:
         return f"tip left the corridor ({cross_track * 1e3:.1f} mm from the path)"
     return None
+
+
+def _points(positions: FloatArray, n: int) -> FloatArray:
+    """The planned body of a rollout: nodes 1..n-1 (from the start pose on; node 0 is the
+    introducer tail), or just the tip when it retracted onto the tail."""
+    return positions[1:n].copy() if n >= 2 else positions[:1].copy()

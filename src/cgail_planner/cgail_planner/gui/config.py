@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import ipaddress
 import math
 
+from cgail_planner.sim.ftl_model import CatheterConfig
+
 
 @dataclass(frozen=True)
 class GuiConfig:
@@ -24,7 +26,7 @@ class GuiConfig:
     """Built-in anatomy shown (:func:`cgail_planner.sim.anatomy.build_anatomy`); '' = none."""
     dynamic: bool = False
     """Dynamic mode: the wall deforms with the heartbeat (PBD) and its vertices are streamed."""
-    max_bend_rad: float = math.pi / 2
+    max_bend_rad: float = CatheterConfig().theta_max
     """Reachable bend of the catheter tip (theta_max), rad, in (0, pi/2]; the internal view
     draws the suggested bend against it."""
     trial_limit_s: float = 180.0

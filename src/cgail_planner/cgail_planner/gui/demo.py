@@ -13,7 +13,8 @@ import math
 
 import numpy as np
 
-from cgail_planner.sim.catheter import frame_from_heading
+from cgail_planner.core.rotations import matrix_to_quaternion
+from cgail_planner.sim.ftl_model import frame_from_heading
 
 
 @dataclass(frozen=True)
@@ -28,25 +29,6 @@ class ScenePose:
     """(3,) next waypoint, m."""
     bend: tuple[float, float]
     """(alpha, gamma) turning the heading towards the waypoint, rad."""
-
-
-def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """(x, y, z, w) of a rotation matrix (Shepperd's method)."""
-    m = np.asarray(r, dtype=float)
-    t = np.trace(m)
-    if t > 0:
-        s = 2.0 * math.sqrt(1.0 + t)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (m[j, i] + m[i, j]) / s
-        q[k] = (m[k, i] + m[i, k]) / s
-    qa = np.array(q)
-    return qa / np.linalg.norm(qa)
 
 
 def centerline_scene(path: np.ndarray, index: float, lookahead: int = 6,
@@ -74,4 +56,4 @@ def centerline_scene(path: np.ndarray, index: float, lookahead: int = 6,
     d = rot.T @ (waypoint - tip)
     alpha = math.atan2(d[2], d[1])
     gamma = math.atan2(-d[0], math.hypot(d[1], d[2]))
-    return ScenePose(tip, matrix_to_quat(rot), waypoint, (alpha, gamma))
+    return ScenePose(tip, matrix_to_quaternion(rot), waypoint, (alpha, gamma))

@@ -1,6 +1,6 @@
 """Tip-frame maths of the internal view (numpy only).
 
-Tip frame conventions are those of :mod:`cgail_planner.sim.catheter`: the columns of the tip
+Tip frame conventions are those of :mod:`cgail_planner.sim.ftl_model`: the columns of the tip
 rotation ``R`` are ``x_A, y_A, z_A`` in ``phantom``; the catheter heads along ``y_A``; a bend
 ``[alpha, gamma]`` turns the heading to ``Rx(alpha) Rz(gamma) e_y = (-sin g, cos g cos a,
 cos g sin a)`` (tip frame). The internal view looks along ``y_A`` with ``z_A`` up, so screen right
@@ -13,26 +13,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (ROS order).
-
-    Raises:
-        ValueError: not 4 finite values or norm not within 1e-3 of 1.
-    """
-    q = np.asarray(q, dtype=float).reshape(-1)
-    if q.shape != (4,) or not np.isfinite(q).all():
-        raise ValueError(f'quaternion must be 4 finite values (x, y, z, w), found {q!r}')
-    n = float(np.linalg.norm(q))
-    if abs(n - 1.0) > 1e-3:
-        raise ValueError(f'quaternion must have norm 1, found {n:.6f}')
-    x, y, z, w = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def to_tip_frame(rotation: np.ndarray, tip: np.ndarray, point: np.ndarray) -> np.ndarray:

@@ -14,11 +14,11 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cgail_planner.core.rotations import quaternion_to_matrix
 from cgail_planner.gui.config import GuiConfig
 from cgail_planner.gui.guidance import (
     bend_on_screen,
     off_heading,
-    quat_to_matrix,
     ray_directions,
     to_tip_frame,
 )
@@ -212,7 +212,7 @@ class GuiModel:
                now: float) -> None:
         """A tip pose (m, quaternion x y z w, header stamp s) received at ``now`` (s)."""
         p = _finite('tip position', position, (3,))
-        rot = quat_to_matrix(quaternion)
+        rot = quaternion_to_matrix(quaternion)
         with self._lock:
             self._tip, self._rot = p, rot
             self._tip_seq += 1

@@ -24,7 +24,7 @@ in, and ``numpy_simd``, the numpy SIMD targets of the recording process.
 
 The bags hold no observation vectors (that keeps them small): :func:`load_demo_bag` re-simulates
 each episode with the recorded commands (normalised back with
-:func:`cgail_planner.sim.catheter.command_to_action`), so the (obs, act) arrays always match the
+:func:`cgail_planner.sim.ftl_model.command_to_action`), so the (obs, act) arrays always match the
 current observation layout. A built-in anatomy is not bit-identical across CPUs (numpy's SIMD
 ufuncs differ in the last bits and the remeshing amplifies that, see
 :mod:`cgail_planner.sim.disk_cache`): the scenario's start pose, taken from the Voronoi
@@ -91,24 +91,6 @@ class DemoEpisode:
     tip_quaternion: np.ndarray  # (T, 4) x, y, z, w
     target_position: np.ndarray  # (T, 3)
     success: bool
-
-
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation -> (x, y, z, w) unit quaternion (Shepperd's method)."""
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, s / 4]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0, 0.0, 0.0, (R[k, j] - R[j, k]) / s]
-        q[i] = s / 4
-        q[j] = (R[j, i] + R[i, j]) / s
-        q[k] = (R[k, i] + R[i, k]) / s
-    out = np.asarray(q, dtype=np.float64)
-    return out / np.linalg.norm(out)
 
 
 def _stamp(ns: int) -> Any:
@@ -342,16 +324,16 @@ class ReplayDrift(NamedTuple):
 def recorded_start_pose(ep: DemoEpisode) -> tuple[np.ndarray, np.ndarray] | None:
     """The tip pose an episode was recorded from, or None when its first step is no insertion.
 
-    Inverts the first follow-the-leader step (:mod:`cgail_planner.sim.catheter`):
+    Inverts the first follow-the-leader step (:mod:`cgail_planner.sim.ftl_model`):
     ``R1 = R0 Rx(alpha) Rz(gamma)`` and ``p1 = p0 + delta_l y_A(R1)``, from the first recorded
     pose ``[R1 | p1]`` and command.
     """
-    from cgail_planner.core.planner import rotation_from_quaternion
-    from cgail_planner.sim.catheter import bend_rotation
+    from cgail_planner.core.rotations import quaternion_to_matrix
+    from cgail_planner.sim.ftl_model import bend_rotation
 
     if len(ep.delta_l) == 0 or not ep.delta_l[0] > 0.0:
         return None
-    r1 = rotation_from_quaternion(*(float(v) for v in ep.tip_quaternion[0]))
+    r1 = quaternion_to_matrix(ep.tip_quaternion[0])
     r0 = r1 @ bend_rotation(np.asarray(ep.alpha[0]), np.asarray(ep.gamma[0])).T
     p0 = np.asarray(ep.tip_position[0], dtype=np.float64) - float(ep.delta_l[0]) * r1[:, 1]
     return p0, r0
@@ -379,7 +361,7 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
         DemoError: a distance beyond ``tolerance_m``, or an episode that collides, exits or
             times out before its recorded end.
     """
-    from cgail_planner.sim.catheter import command_to_action
+    from cgail_planner.sim.ftl_model import command_to_action
 
     eng = env.unwrapped.engine
     cat = eng.config.catheter

@@ -19,7 +19,8 @@ import time
 
 import numpy as np
 
-from cgail_planner.learning.demo_bags import DemoEpisode, rotation_to_quaternion, write_demo_bag
+from cgail_planner.core.rotations import matrix_to_quaternion
+from cgail_planner.learning.demo_bags import DemoEpisode, write_demo_bag
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.expert import ScriptedExpert
 
@@ -41,7 +42,7 @@ def record_episodes(env, n: int, seed: int = 0) -> tuple[list[DemoEpisode], dict
             rows['ga'].append(info['bend'][1])
             rows['dl'].append(info['insertion'])
             rows['p'].append(eng.catheter.tip_position[0].copy())
-            rows['q'].append(rotation_to_quaternion(eng.catheter.tip_rotation[0]))
+            rows['q'].append(matrix_to_quaternion(eng.catheter.tip_rotation[0]))
             rows['g'].append(np.asarray(info['target_position'], float))
             if te or tr:
                 break

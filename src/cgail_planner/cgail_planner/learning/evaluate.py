@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from cgail_planner.core.rotations import rotvec_to_matrix
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 
@@ -76,32 +77,20 @@ class TrackingNoise:
         # per-axis sigma = RMS / sqrt(3) gives the stated 3-D RMS
         dp = rng.normal(0.0, 1e-3 * self.position_mm / np.sqrt(3.0), 3)
         w = rng.normal(0.0, np.radians(self.orientation_deg) / np.sqrt(3.0), 3)
-        return p + dp, _rotvec_to_matrix(w) @ r
-
-
-def _rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation matrix of the rotation vector ``w`` (rad)."""
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = w / theta
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * (kx @ kx)
+        return p + dp, rotvec_to_matrix(w) @ r
 
 
 def observation_at(env: Any, p: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of env 0 as if
     its tip were at ``(p, R)``: the rays are cast against the wall's current shape from that
     pose. With the true pose it equals the env's own observation (tested)."""
-    from cgail_planner.core.planner import pose_observation
-    from cgail_planner.sim.env import N_RAYS, RAY_DIRECTIONS
+    from cgail_planner.sim.ftl_model import observe_pose
 
     eng = env.unwrapped.engine
-    cfg, sc = eng.config, eng.scenarios
-    hits = eng.walls[0].raycast(np.repeat(p[None], N_RAYS, axis=0), RAY_DIRECTIONS @ r.T,
-                                cfg.ray_length)
-    return pose_observation(p, r, eng.target[0], hits, sc.origin, sc.d_max,
-                            cfg.position_scale, cfg.ray_length)
+    spec = eng.spec
+    hits = eng.walls[0].raycast(np.repeat(p[None], spec.n_rays, axis=0),
+                                spec.ray_directions @ r.T, spec.ray_length)
+    return observe_pose(spec, p, r, eng.target[0], hits)
 
 
 @dataclass
@@ -132,7 +121,7 @@ class CenterlineFollower:
         Args:
             pose: the perceived tip pose ``(p, R)`` (a tracker reading); default the true one.
         """
-        from cgail_planner.sim.catheter import steer_towards
+        from cgail_planner.sim.ftl_model import steer_towards
 
         eng = self.env.engine
         if pose is None:

@@ -1,7 +1,7 @@
 """Scripted expert: a kinematically-constrained sampling MPC over the catheter's action space.
 
 Every ``replan_every`` steps the expert samples short action sequences, rolls each one out with
-the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.catheter`: per-step bend
+the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.ftl_model`: per-step bend
 limit ``theta_max * delta_l / L``, insertion <= v_max * dt), and scores the predicted tip path:
 
 * **clearance**: at every predicted point, the inscribed-sphere radius of the nearest centerline
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from cgail_planner.sim.catheter import action_to_command, bend_rotation, steer_towards
+from cgail_planner.sim.ftl_model import action_to_command, bend_rotation, steer_towards
 
 
 @dataclass(frozen=True)

@@ -1,14 +1,19 @@
 """``export_onnx``: the deterministic policy (normaliser baked in) as an ONNX model.
 
 The graph maps ``obs`` (B, obs_dim) float32 raw observations to ``action`` (B, 3) float32 in
-[-1, 1]. ``metadata_props`` carry JSON strings: ``observation_layout``, ``action_scaling``,
-``theta_max_rad``, ``preset``, ``anatomy``, ``mode``, ``obs_dim``, ``act_dim``, ``train_steps``.
+[-1, 1]. ``metadata_props`` carry JSON strings: ``catheter_contract`` (the whole contract the
+planner builds itself from: catheter model, bend convention, retraction rule, action scaling,
+observation spec with origin, scales and rays, anatomy, mode, and training notes including the
+curriculum lesson of the exported checkpoint; :class:`cgail_planner.sim.ftl_model.
+PolicyContract`), ``preset``, ``anatomy``, ``mode``, ``obs_dim``, ``act_dim``, ``train_steps``.
 """
 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import json
+import math
 from pathlib import Path
 import sys
 from typing import Any
@@ -19,6 +24,7 @@ import torch
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.networks import Actor, DeterministicPolicy
 from cgail_planner.learning.trainer import actor_from_checkpoint, load_checkpoint
+from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
 OPSET = 17
 
@@ -46,25 +52,103 @@ def export_actor(actor: Actor, path: Path, metadata: dict[str, Any]) -> Path:
     return path
 
 
+def training_notes(ckpt: dict[str, Any]) -> dict[str, Any]:
+    """The contract's ``training`` entry of a checkpoint: preset, steps and curriculum.
+
+    ``final_theta_max_rad`` is theta_max of the curriculum lesson the checkpoint was trained at
+    (None without a curriculum); the policy still runs at the contract's ``theta_max``, the
+    evaluation env's, at which the checkpoint was selected.
+    """
+    lessons = list(ckpt['config'].get('curriculum', {}).get('theta_max_deg', []))
+    lesson = ckpt.get('curriculum_lesson')
+    final = math.radians(lessons[int(lesson)]) if lessons and lesson is not None else None
+    return {'preset': ckpt['config'].get('name', 'custom'),
+            'train_steps': int(ckpt.get('step', 0)), 'curriculum_theta_max_deg': lessons,
+            'curriculum_lesson': lesson, 'final_theta_max_rad': final}
+
+
 def export_checkpoint(ckpt_path: Path, out: Path) -> Path:
-    """Export a training checkpoint (``final.pt``) to ONNX."""
+    """Export a training checkpoint (``best.pt``, ``final.pt``) to ONNX."""
     ckpt = load_checkpoint(ckpt_path)
     actor = actor_from_checkpoint(ckpt)
     meta = dict(ckpt.get('metadata', {}))
     meta.setdefault('preset', ckpt['config'].get('name', 'custom'))
     meta['train_steps'] = int(ckpt.get('step', 0))
+    if CONTRACT_KEY in meta:
+        contract = PolicyContract.from_dict(meta[CONTRACT_KEY])
+    else:  # a checkpoint of an older train: the default model in its anatomy and mode
+        contract = default_contract(str(meta.get('anatomy', 'default')),
+                                    str(meta.get('mode', 'static')))
+    meta[CONTRACT_KEY] = replace(contract, training=training_notes(ckpt)).to_dict()
+    for key in LEGACY_KEYS:
+        meta.pop(key, None)
     return export_actor(actor, out, meta)
+
+
+#: Metadata keys of exports before the contract; the contract holds what they said.
+LEGACY_KEYS = ('observation_layout', 'action_scaling', 'theta_max_rad')
+
+
+def default_contract(anatomy: str, mode: str,
+                     training: dict[str, Any] | None = None) -> PolicyContract:
+    """The contract of the simulator's default configuration in ``anatomy`` and ``mode``."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import observation_spec
+
+    cfg = EnvConfig(anatomy=anatomy, mode=mode)
+    return PolicyContract(catheter=cfg.catheter, observation=observation_spec(cfg),
+                          anatomy=anatomy, mode=mode, training=dict(training or {}))
+
+
+def write_contract(model_path: Path, contract: PolicyContract, out: Path | None = None) -> Path:
+    """Write ``contract`` into an ONNX file's metadata, the graph unchanged.
+
+    Replaces any earlier contract and drops the :data:`LEGACY_KEYS`; for policies exported
+    before the contract existed (the committed ones were re-contracted this way).
+    """
+    model = onnx.load(str(model_path))
+    kept = [(p.key, p.value) for p in model.metadata_props
+            if p.key not in (CONTRACT_KEY, *LEGACY_KEYS)]
+    del model.metadata_props[:]
+    for key, value in [*kept, (CONTRACT_KEY, contract.to_json())]:
+        prop = model.metadata_props.add()
+        prop.key = key
+        prop.value = value
+    onnx.checker.check_model(model)
+    target = out or model_path
+    onnx.save(model, str(target))
+    return target
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``export_onnx``."""
     p = argparse.ArgumentParser(prog='export_onnx', description=__doc__.split('\n')[0])
-    p.add_argument('checkpoint', type=Path, help='checkpoint written by train (final.pt)')
-    p.add_argument('--out', type=Path, default=None, help='output .onnx (default: next to it)')
+    p.add_argument('checkpoint', type=Path,
+                   help='checkpoint written by train (best.pt, final.pt); with --add-contract '
+                        'an exported .onnx')
+    p.add_argument('--out', type=Path, default=None, help='output .onnx (default: next to it; '
+                   'with --add-contract: the input file)')
+    p.add_argument('--add-contract', action='store_true',
+                   help='write the catheter contract of the default model in the anatomy and '
+                        'mode of its metadata into an exported .onnx (graph unchanged)')
+    p.add_argument('--training-json', default='{}',
+                   help="with --add-contract: the contract's training notes, a JSON object")
     args = p.parse_args(argv)
     try:
-        out = export_checkpoint(args.checkpoint, args.out or args.checkpoint.with_suffix('.onnx'))
-    except LearningError as exc:
+        if args.add_contract:
+            meta = {p.key: json.loads(p.value) for p in onnx.load(str(args.checkpoint))
+                    .metadata_props}
+            training = json.loads(args.training_json)
+            if not isinstance(training, dict):
+                raise LearningError(f'--training-json: expected a JSON object, found '
+                                    f'{args.training_json!r}')
+            contract = default_contract(str(meta.get('anatomy', 'default')),
+                                        str(meta.get('mode', 'static')), training)
+            out = write_contract(args.checkpoint, contract, args.out)
+        else:
+            out = export_checkpoint(args.checkpoint,
+                                    args.out or args.checkpoint.with_suffix('.onnx'))
+    except (LearningError, ValueError) as exc:
         print(f'export_onnx: error: {exc}', file=sys.stderr)
         return 2
     print(out)

@@ -30,6 +30,7 @@ import onnxruntime as ort
 
 from cgail_planner.core.mlp import MlpBuilder, MlpProgram
 from cgail_planner.learning.errors import PolicyLoadError
+from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
 logger = logging.getLogger(__name__)
 
@@ -54,10 +55,14 @@ class OnnxPolicy:
     Attributes:
         mlp: the :class:`MlpProgram` of the graph, or None when onnxruntime evaluates it.
         backend: ``mlp`` or ``onnxruntime``: the backend in use.
+        contract: the catheter model and observation the policy was trained with
+            (:class:`~cgail_planner.sim.ftl_model.PolicyContract`, metadata key
+            ``catheter_contract``), or None for a file written without one.
 
     Raises:
-        PolicyLoadError: missing or corrupt file, an observation size mismatch, a bad
-            ``backend``, or ``backend='mlp'`` with a graph it cannot evaluate.
+        PolicyLoadError: missing or corrupt file, an observation size mismatch (with the
+            caller's ``expected_obs_dim`` or with the contract's), a contract that cannot be
+            read, a bad ``backend``, or ``backend='mlp'`` with a graph it cannot evaluate.
     """
 
     def __init__(self, path: str | Path, expected_obs_dim: int | None = None,
@@ -93,6 +98,16 @@ class OnnxPolicy:
         if expected_obs_dim is not None and expected_obs_dim != self.obs_dim:
             raise PolicyLoadError(f'{self.path}: observation size mismatch: expected '
                                   f'{expected_obs_dim}, found {self.obs_dim} in the model')
+        self.contract: PolicyContract | None = None
+        if CONTRACT_KEY in self.metadata:
+            try:
+                self.contract = PolicyContract.from_dict(self.metadata[CONTRACT_KEY])
+            except ValueError as exc:
+                raise PolicyLoadError(f'{self.path}: {exc}') from None
+            if self.contract.observation.dim != self.obs_dim:
+                raise PolicyLoadError(f'{self.path}: contract observation size: expected the '
+                                      f"model's {self.obs_dim}, found "
+                                      f'{self.contract.observation.dim}')
         self.mlp: MlpProgram | None = None
         if backend != 'onnxruntime':
             try:

@@ -33,20 +33,19 @@ from cgail_planner.learning.trainer import evaluate_policy, Trainer
 
 
 def sim_metadata(env_cfg: Any) -> dict[str, Any]:
-    """Observation layout and action scaling of a simulator config (checkpoint/ONNX metadata)."""
-    from cgail_planner.sim.env import obs_layout_dict
+    """The catheter contract of a simulator config (checkpoint/ONNX metadata).
 
-    return {
-        'observation_layout': obs_layout_dict(),
-        'action_scaling': {
-            'names': ['alpha', 'gamma', 'delta_l'],
-            'alpha_gamma': 'a[0:2] * theta_max * |delta_l| / L (rad)',
-            'delta_l': 'a[2] * max_insertion_speed * dt (m)',
-            'segment_length_m': env_cfg.segment_length,
-            'max_insertion_speed_m_s': env_cfg.max_insertion_speed, 'dt_s': env_cfg.dt,
-        },
-        'theta_max_rad': env_cfg.theta_max, 'anatomy': env_cfg.anatomy, 'mode': env_cfg.mode,
-    }
+    The contract's ``theta_max`` is the evaluation env's (``env_cfg.theta_max``): the periodic
+    evaluation that picks ``best.pt`` runs there, whatever the training curriculum did to the
+    training envs. :func:`cgail_planner.learning.export.export_checkpoint` adds the curriculum
+    lesson the exported checkpoint was trained at.
+    """
+    from cgail_planner.sim.env import observation_spec
+    from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
+
+    contract = PolicyContract(catheter=env_cfg.catheter, observation=observation_spec(env_cfg),
+                              anatomy=env_cfg.anatomy, mode=env_cfg.mode)
+    return {CONTRACT_KEY: contract.to_dict(), 'anatomy': env_cfg.anatomy, 'mode': env_cfg.mode}
 
 
 def make_envs(mode: str, anatomy: str, num_envs: int) -> tuple[Any, Any, dict[str, Any]]:

@@ -27,12 +27,8 @@ from rclpy.qos import (
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Header
 
-from cgail_planner.core.planner import (
-    InvalidInputError,
-    quaternion_from_rotation,
-    rotation_from_quaternion,
-    validate_pose,
-)
+from cgail_planner.core.errors import InvalidInputError
+from cgail_planner.core.rotations import matrix_to_quaternion, quaternion_to_matrix, validate_pose
 
 SENSOR_QOS = qos_profile_sensor_data
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -84,7 +80,7 @@ def pose_from_msg(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
     p = msg.pose.position
     q = msg.pose.orientation
     position = np.array([p.x, p.y, p.z], dtype=np.float64)
-    rotation = rotation_from_quaternion(q.x, q.y, q.z, q.w)
+    rotation = quaternion_to_matrix((q.x, q.y, q.z, q.w))
     return validate_pose(position, rotation)
 
 
@@ -97,7 +93,7 @@ def point_from_pose_msg(msg: PoseStamped) -> np.ndarray:
 def pose_msg(stamp: Time, frame_id: str, position: np.ndarray,
              rotation: np.ndarray) -> PoseStamped:
     """A PoseStamped from a position and a rotation matrix."""
-    x, y, z, w = quaternion_from_rotation(rotation)
+    x, y, z, w = (float(v) for v in matrix_to_quaternion(rotation))
     return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=Pose(
         position=Point(x=float(position[0]), y=float(position[1]), z=float(position[2])),
         orientation=Quaternion(x=x, y=y, z=z, w=w)))
@@ -106,19 +102,21 @@ def pose_msg(stamp: Time, frame_id: str, position: np.ndarray,
 def path_msg(stamp: Time, frame_id: str, points: np.ndarray) -> Path:
     """A nav_msgs/Path through ``points`` (N, 3); each pose's orientation is the path tangent
     (y axis along the direction of travel, as the tip frame's heading)."""
-    from cgail_planner.sim.catheter import frame_from_heading
+    from cgail_planner.sim.ftl_model import frame_from_heading
 
     header = Header(stamp=stamp, frame_id=frame_id)
     tangents = np.gradient(points, axis=0) if len(points) > 1 else np.array([[0.0, 1.0, 0.0]])
-    poses = []
-    for p, t in zip(points, tangents, strict=True):
+    frames = np.empty((len(points), 3, 3))
+    for k, t in enumerate(tangents):
         try:
-            x, y, z, w = quaternion_from_rotation(frame_from_heading(t))
-        except ValueError:
-            x, y, z, w = 0.0, 0.0, 0.0, 1.0
-        poses.append(PoseStamped(header=header, pose=Pose(
-            position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
-            orientation=Quaternion(x=x, y=y, z=z, w=w))))
+            frames[k] = frame_from_heading(t)
+        except ValueError:  # a zero tangent: the identity
+            frames[k] = np.eye(3)
+    quats = matrix_to_quaternion(frames).reshape(-1, 4).tolist()  # one scipy call
+    poses = [PoseStamped(header=header, pose=Pose(
+        position=Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+        orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])))
+        for p, q in zip(points, quats, strict=True)]
     return Path(header=header, poses=poses)
 
 

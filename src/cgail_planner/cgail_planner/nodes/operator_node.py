@@ -29,8 +29,8 @@ from sensor_msgs.msg import JointState, Joy
 from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 
+from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.operator import OperatorConfig, Percept, ScriptedOperator
-from cgail_planner.core.planner import InvalidInputError
 from cgail_planner.nodes import conversions as conv
 
 

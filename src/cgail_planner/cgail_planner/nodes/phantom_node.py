@@ -52,9 +52,11 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
-from cgail_planner.core.planner import InvalidInputError, quaternion_from_rotation
+from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
+from cgail_planner.sim.ftl_model import CatheterConfig
 
 
 class PhantomNode(Node):
@@ -64,8 +66,9 @@ class PhantomNode(Node):
         super().__init__('phantom', **kwargs)
         d = PhantomConfig()
         self.config = PhantomConfig(
-            segment_length=conv.declare(self, 'segment_length', d.segment_length,
-                                        'steerable segment length L, m', lo=1e-3, hi=0.5),
+            catheter=CatheterConfig(segment_length=conv.declare(
+                self, 'segment_length', d.catheter.segment_length,
+                'steerable segment length L, m', lo=1e-3, hi=0.5)),
             em_noise_rms=conv.declare(self, 'em_noise_m', d.em_noise_rms,
                                       'RMS of the EM position noise, m', lo=0.0, hi=0.01),
             em_angle_noise_rms=conv.declare(self, 'em_angle_noise_rad', d.em_angle_noise_rms,
@@ -119,6 +122,7 @@ class PhantomNode(Node):
                 raise ValueError(f'{name} must be in [0, {n - 1}], found {value}')
         wall = StaticWall(self.world.anatomy) if self.mode == 'static' \
             else DeformableWall(self.world.anatomy)
+        self.wall: StaticWall = wall  # (a DeformableWall in dynamic mode)
         self.physics = PhantomPhysics(self.config, wall)
         self.rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
@@ -195,8 +199,7 @@ class PhantomNode(Node):
     def target_position(self) -> np.ndarray:
         """(3,) current target position (moves with its wall particle in dynamic mode), m."""
         t = self.world.scenarios.targets[self.target_id]
-        wall = self.physics.wall
-        return wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
+        return self.wall.vertex_position(int(t.vertex)) + np.asarray(t.offset)
 
     def now_msg(self):
         """Stamp of the simulated time (the node clock in lockstep)."""
@@ -267,7 +270,7 @@ class PhantomNode(Node):
             cache = self._em_cache
             if cache is None or cache[0] != t_frame:
                 p, r = self.physics.measured_pose(self.rng)
-                x, y, z, w = quaternion_from_rotation(r)
+                x, y, z, w = matrix_to_quaternion(r)
                 cache = (t_frame, p * 1e3, np.array([w, x, y, z]))
                 self._em_cache = cache
         return cache[1].copy(), cache[2].copy()

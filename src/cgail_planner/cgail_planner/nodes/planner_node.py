@@ -11,11 +11,19 @@ workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxrunt
 * Bad input (missing/corrupt model, goal outside the lumen or in another frame, NaN/inf or
   non-unit poses, stale poses) is logged with the reason, counted and shown on ``/diagnostics``;
   nothing is planned or guided from it.
+* The catheter model (theta_max, L, step, diameter) and the observation (origin, scales, rays)
+  are the policy's contract (:class:`cgail_planner.sim.ftl_model.PolicyContract`).
+  ``theta_max``, ``segment_length`` and ``anatomy`` must agree with it (0 = take the policy's):
+  a disagreeing one raises :class:`~cgail_planner.core.errors.ContractError` at construction,
+  unless ``override_policy_contract`` is set (then it wins, with a warning). A policy without a
+  contract is refused unless ``override_policy_contract`` is set.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 import math
+import sys
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -27,17 +35,18 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 
+from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
 from cgail_planner.core.planner import (
-    InvalidInputError,
     model_world_from_sim,
     Planner,
     PlannerConfig,
-    PlannerError,
+    reconcile_contract,
     replan_reason,
     ReplanConfig,
 )
 from cgail_planner.nodes import conversions as conv
+from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
 
 
 class PlannerNode(Node):
@@ -48,7 +57,7 @@ class PlannerNode(Node):
         d, g, r = PlannerConfig(), GuidanceConfig(), ReplanConfig()
         policy_path = conv.declare(self, 'policy_path', '', 'ONNX policy written by export_onnx '
                                    "(required by planner_type 'cgail')")
-        self.config = PlannerConfig(
+        settings = PlannerConfig(
             planner_type=conv.declare(self, 'planner_type', d.planner_type,
                                       "'cgail' (policy rollout) or 'centerline' (baseline)"),
             goal_tolerance=conv.declare(self, 'goal_tolerance', d.goal_tolerance,
@@ -59,20 +68,28 @@ class PlannerNode(Node):
                                            lo=1, hi=100000),
             path_spacing=conv.declare(self, 'path_spacing', d.path_spacing,
                                       'arc-length spacing of the published path, m',
-                                      lo=1e-4, hi=0.01),
-            theta_max=conv.declare(self, 'theta_max', d.theta_max,
-                                   'maximal bending angle of the rollout, rad',
-                                   lo=1e-3, hi=math.pi),
-            segment_length=d.segment_length)
-        self.guidance_config = GuidanceConfig(
-            lookahead=conv.declare(self, 'lookahead', g.lookahead,
-                                   'arc length from the tip to the next waypoint, m',
-                                   lo=1e-3, hi=0.2),
-            segment_length=conv.declare(self, 'segment_length', g.segment_length,
-                                        'steerable segment length L, m', lo=1e-3, hi=0.5),
-            max_bend=conv.declare(self, 'max_bend', g.max_bend,
-                                  'cap of the suggested bend magnitude, rad',
-                                  lo=1e-3, hi=math.pi / 2))
+                                      lo=1e-4, hi=0.01))
+        # 0 = not set: the policy's contract (or the catheter model's default) decides
+        theta_max = conv.declare(self, 'theta_max', 0.0, "maximal bending angle of the model, "
+                                 "rad; 0: the policy's (cgail) or the model default",
+                                 lo=0.0, hi=math.pi)
+        segment_length = conv.declare(self, 'segment_length', 0.0, "steerable segment length "
+                                      "L of the model and the guidance, m; 0: the policy's "
+                                      '(cgail) or the model default', lo=0.0, hi=0.5)
+        override = conv.declare(self, 'override_policy_contract', False, 'run a policy whose '
+                                'contract disagrees with theta_max, segment_length or anatomy '
+                                '(logged as a warning); otherwise construction fails')
+        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
+        self.mode = conv.declare(self, 'mode', 'static', "'static' or 'dynamic' (deformable "
+                                 'beating wall, re-planning)')
+        if self.mode not in ('static', 'dynamic'):
+            raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
+        lookahead = conv.declare(self, 'lookahead', g.lookahead,
+                                 'arc length from the tip to the next waypoint, m',
+                                 lo=1e-3, hi=0.2)
+        max_bend = conv.declare(self, 'max_bend', g.max_bend,
+                                'cap of the suggested bend magnitude, rad', lo=1e-3,
+                                hi=math.pi / 2)
         self.replan_config = ReplanConfig(
             corridor_radius=conv.declare(self, 'corridor_radius', r.corridor_radius,
                                          'dynamic mode: re-plan when the tip is further from the '
@@ -83,11 +100,6 @@ class PlannerNode(Node):
                                                lo=1e-4, hi=0.1),
             min_interval_s=conv.declare(self, 'replan_min_interval_s', r.min_interval_s,
                                         'shortest time between re-plans, s', lo=0.0, hi=60.0))
-        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
-        self.mode = conv.declare(self, 'mode', 'static', "'static' or 'dynamic' (deformable "
-                                 'beating wall, re-planning)')
-        if self.mode not in ('static', 'dynamic'):
-            raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
         self.stale_after_s = conv.declare(self, 'stale_after_s', 0.5, 'tip poses older than '
                                           'this (header stamp vs node clock) are stale, s',
                                           lo=0.01, hi=60.0)
@@ -97,7 +109,6 @@ class PlannerNode(Node):
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, 'period of /diagnostics, s',
                                    lo=0.05, hi=60.0)
 
-        from cgail_planner.sim.env import RAY_DIRECTIONS
         from cgail_planner.sim.scenarios import load_world
         from cgail_planner.sim.wall import DeformableWall, StaticWall
 
@@ -106,12 +117,46 @@ class PlannerNode(Node):
             else DeformableWall(world.anatomy)
         self.policy_error = ''
         policy = None
-        if self.config.planner_type == 'cgail':
+        if settings.planner_type == 'cgail':
             policy = self._load_policy(policy_path)
+        catheter = CatheterConfig(**{k: v for k, v in (('theta_max', theta_max),
+                                                        ('segment_length', segment_length))
+                                     if v > 0.0})
         self.planner: Planner | None = None
-        if self.config.planner_type == 'centerline' or policy is not None:
-            self.planner = Planner(self.config, model_world_from_sim(world), self.wall, policy,
-                                   RAY_DIRECTIONS)
+        #: Lines about the policy's contract (overrides: logged as warnings, else as info).
+        self.contract_notes: list[str] = []
+        if policy is not None and policy.contract is None and not override:
+            self.policy_error = (f'policy not loaded: {policy_path} carries no catheter contract '
+                                 '(re-export it, or set override_policy_contract to use the '
+                                 'parameters and the model defaults); goals will be refused')
+            self.get_logger().error(self.policy_error)
+        elif policy is not None and policy.contract is not None:
+            try:
+                contract, self.contract_notes = reconcile_contract(
+                    policy.contract, anatomy=anatomy, mode=self.mode,
+                    theta_max=theta_max or None, segment_length=segment_length or None,
+                    override=override, world_spec=ObservationSpec.for_world(world.scenarios))
+                self.planner = Planner.from_contract(contract, world, self.wall, policy,
+                                                     settings)
+            except ContractError:
+                self.destroy_node()
+                raise
+            catheter = contract.catheter
+        else:
+            if policy is not None:
+                self.contract_notes.append(
+                    f'override_policy_contract: {policy_path} carries no catheter contract; '
+                    'using the parameters and the catheter model defaults')
+            if settings.planner_type == 'centerline' or policy is not None:
+                self.planner = Planner(replace(settings, catheter=catheter),
+                                       model_world_from_sim(world), self.wall, policy)
+        for note in self.contract_notes:
+            (self.get_logger().warning if note.startswith('override')
+             else self.get_logger().info)(note)
+        self.config = self.planner.config if self.planner is not None \
+            else replace(settings, catheter=catheter)
+        self.guidance_config = GuidanceConfig(lookahead=lookahead, max_bend=max_bend,
+                                              segment_length=catheter.segment_length)
         self.follower: PathFollower | None = None
         self.goal: np.ndarray | None = None
         self.planned_goal: np.ndarray | None = None
@@ -151,7 +196,7 @@ class PlannerNode(Node):
                                  'file from export_onnx); goals will be refused')
         else:
             try:
-                return OnnxPolicy(path, expected_obs_dim=41)
+                return OnnxPolicy(path)
             except PolicyLoadError as exc:
                 self.policy_error = f'policy not loaded: {exc}; goals will be refused'
         self.get_logger().error(self.policy_error)
@@ -217,7 +262,8 @@ class PlannerNode(Node):
         self.last_guidance_us = (time.perf_counter() - t0) * 1e6
 
     def _on_wall_timer(self) -> None:
-        self.wall.step(self._now(), self._wall_dt, np.zeros((0, 3)), 0.0035)
+        # the model wall follows the heartbeat only (no catheter body pushes it)
+        self.wall.step(self._now(), self._wall_dt, np.zeros((0, 3)), self.config.catheter.radius)
 
     # ------------------------------------------------------------------ planning
     def _pose_fresh(self) -> bool:
@@ -290,6 +336,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ContractError as exc:  # the parameters disagree with the policy: say so, exit 2
+        print(f'planner_node: error: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
     finally:
         if node is not None:
             node.destroy_node()

@@ -38,7 +38,7 @@ _EXPORTS = {
     "obs_layout_dict": "cgail_planner.sim.env",
     "CatheterNavVecEnv": "cgail_planner.sim.vec_env",
     "EnvConfig": "cgail_planner.sim.config",
-    "CatheterConfig": "cgail_planner.sim.catheter",
+    "CatheterConfig": "cgail_planner.sim.ftl_model",
     "RewardConfig": "cgail_planner.sim.reward",
 }
 

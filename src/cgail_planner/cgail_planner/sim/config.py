@@ -5,8 +5,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 
-from cgail_planner.sim.catheter import CatheterConfig, THETA_MAX_DEFAULT
+from cgail_planner.sim.ftl_model import CatheterConfig, ObservationConfig
 from cgail_planner.sim.reward import RewardConfig
+
+#: The catheter model's defaults (:mod:`cgail_planner.sim.ftl_model`) the fields below start from.
+_MODEL = CatheterConfig()
+_OBS = ObservationConfig()
 
 #: Simulation modes: ``static`` = rigid wall; ``dynamic`` = PBD wall + heartbeat + moving target.
 MODES = ("static", "dynamic")
@@ -23,21 +27,21 @@ class EnvConfig:
     """``static`` (rigid wall) or ``dynamic`` (deformable wall, heartbeat, moving target)."""
     anatomy: str = "default"
     """Name of a built-in anatomy (``cgail_planner.sim.anatomy.build_anatomy``)."""
-    dt: float = 0.1
+    dt: float = _MODEL.dt
     """Control time step, s (0.1 s: 0.5 mm insertion per step at 5 mm/s); in [1 ms, 2 s]."""
     max_steps: int = 2000
     """Steps before truncation (2000 x 0.1 s = 200 s, past the 3-min rig limit); in [1, 1e6]."""
-    theta_max: float = THETA_MAX_DEFAULT
+    theta_max: float = _MODEL.theta_max
     """Initial maximal bending angle, rad (paper: 90 deg; the curriculum lowers it); (0, pi]."""
-    segment_length: float = 0.050
+    segment_length: float = _MODEL.segment_length
     """Steerable segment length L, m (paper: 50 mm); in [1 mm, 0.5 m]."""
-    outer_diameter: float = 0.007
+    outer_diameter: float = _MODEL.outer_diameter
     """Catheter outer diameter, m (paper: 7 mm); in [0.5 mm, 20 mm]."""
-    max_insertion_speed: float = 0.005
+    max_insertion_speed: float = _MODEL.max_insertion_speed
     """Maximal insertion speed, m/s (paper: 5 mm/s); in (0, 0.1]."""
-    ray_length: float = 0.040
+    ray_length: float = _OBS.ray_length
     """Length of every observation ray, m (hits are normalised by it); in [5 mm, 0.2 m]."""
-    position_scale: float = 0.15
+    position_scale: float = _OBS.position_scale
     """Tip positions are observed as ``(p - origin) / position_scale``, m; in [1 cm, 10 m]."""
     body_spacing: float = 0.005
     """Spacing of the body points handed to the deformable wall, m; in [0.5 mm, 0.1 m]."""
@@ -60,10 +64,7 @@ class EnvConfig:
         if not isinstance(self.n_waypoints, int) or not 10 <= self.n_waypoints <= 1000:
             raise ValueError(
                 f"n_waypoints must be an int in [10, 1000], found {self.n_waypoints!r}")
-        for name, low, high in (
-            ("ray_length", 0.005, 0.2), ("position_scale", 0.01, 10.0),
-            ("body_spacing", 5e-4, 0.1),
-        ):
+        for name, low, high in (("body_spacing", 5e-4, 0.1),):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value)
                     and low <= value <= high):
@@ -71,6 +72,7 @@ class EnvConfig:
         if not isinstance(self.reward, RewardConfig):
             raise ValueError(f"reward must be a RewardConfig, found {type(self.reward).__name__}")
         self.catheter  # noqa: B018 - validates dt, theta_max, segment_length, ...
+        self.observation  # noqa: B018 - validates ray_length, position_scale
 
     @property
     def catheter(self) -> CatheterConfig:
@@ -80,3 +82,8 @@ class EnvConfig:
             outer_diameter=self.outer_diameter, max_insertion_speed=self.max_insertion_speed,
             dt=self.dt,
         )
+
+    @property
+    def observation(self) -> ObservationConfig:
+        """The observation normalisers as an :class:`ObservationConfig`."""
+        return ObservationConfig(position_scale=self.position_scale, ray_length=self.ray_length)

@@ -9,15 +9,26 @@ observations and reward, one batched raycast per step in static mode);
 from __future__ import annotations
 
 import math
-from typing import Any, cast, NamedTuple
+from typing import Any, cast
 
 import gymnasium as gym
 from gymnasium import spaces
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.catheter import action_to_command, bend_limit, CatheterBatch, steer_towards
 from cgail_planner.sim.config import EnvConfig
+from cgail_planner.sim.ftl_model import (
+    action_to_command,
+    bend_limit,
+    CatheterBatch,
+    N_RAYS,
+    OBS_DIM,
+    OBS_LAYOUT,
+    ObservationSpec,
+    observe_batch,
+    RAY_DIRECTIONS,
+    steer_towards,
+)
 from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.reward import (
     bending_event,
@@ -28,80 +39,37 @@ from cgail_planner.sim.reward import (
     StepEvents,
     update_waypoints,
 )
-from cgail_planner.sim.scenarios import introducer_tail, load_world, World
+from cgail_planner.sim.scenarios import episode_bounds, introducer_tail, load_world, World
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
 FloatArray = NDArray[np.float64]
 
 
-# ---------------------------------------------------------------------------------- rays
-def _ray_directions() -> NDArray[np.float64]:
-    """The fixed ray set in tip-frame coordinates ``(x_A, y_A, z_A)``: 25 unit vectors.
-
-    Ray 0 points along the heading ``y_A``; rays 1-8, 9-16 and 17-24 form rings at polar angles
-    30, 60 and 90 deg from ``y_A``, at azimuths 0, 45, ..., 315 deg measured from ``x_A``
-    towards ``z_A``.
-    """
-    dirs = [np.array([0.0, 1.0, 0.0])]
-    for polar in (30.0, 60.0, 90.0):
-        th = math.radians(polar)
-        for k in range(8):
-            az = math.radians(45.0 * k)
-            dirs.append(np.array([math.sin(th) * math.cos(az), math.cos(th),
-                                  math.sin(th) * math.sin(az)]))
-    out = np.array(dirs)
-    out[np.abs(out) < 1e-15] = 0.0
-    return out
-
-
-#: (25, 3) ray directions in the tip frame (see :func:`_ray_directions`).
-RAY_DIRECTIONS = _ray_directions()
-N_RAYS = len(RAY_DIRECTIONS)
-
-
-class ObsField(NamedTuple):
-    """One block of the observation vector."""
-
-    name: str
-    start: int
-    stop: int
-    description: str
-
-
-#: Observation layout (stored by the ONNX export); see :class:`CatheterNavEnv`.
-OBS_LAYOUT: tuple[ObsField, ...] = (
-    ObsField("tip_position", 0, 3, "(p_t - origin) / position_scale, phantom frame"),
-    ObsField("tip_x_axis", 3, 6, "x_A: first column of the tip rotation R"),
-    ObsField("tip_heading", 6, 9, "y_A: second column of R (insertion direction)"),
-    ObsField("tip_z_axis", 9, 12, "z_A: third column of R"),
-    ObsField("target_distance", 12, 13, "u = ||p_g - p_t|| / d_max"),
-    ObsField("target_vector", 13, 16, "v = (p_g - p_t) / d_max, phantom frame"),
-    ObsField("rays", 16, 16 + N_RAYS,
-             "hit distance / ray_length in [0, 1] along RAY_DIRECTIONS (1 = no wall)"),
-)
-OBS_DIM = OBS_LAYOUT[-1].stop
 #: Bound of the unbounded-looking entries (positions, u, v) of the observation space.
 OBS_BOUND = 5.0
 
 
+def observation_spec(config: EnvConfig) -> ObservationSpec:
+    """The observation spec of an env configuration (its anatomy's origin and d_max)."""
+    sc = load_world(config.anatomy, config.n_waypoints, config.scenario_seed).scenarios
+    return ObservationSpec.for_world(sc, config.observation)
+
+
 def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
-    """JSON-able description of the observation (for model metadata).
+    """JSON-able description of the observation (layout and ray set).
 
     Args:
-        config: when given, the numbers needed to rebuild observations outside the simulator
-            (e.g. on the rig) are added: ``origin`` (m), ``position_scale`` (m), ``d_max`` (m) and
-            ``ray_length`` (m) of that configuration's anatomy and scenario set.
+        config: when given, the whole :class:`~cgail_planner.sim.ftl_model.ObservationSpec` of
+            that configuration (``origin``, ``position_scale``, ``d_max``, ``ray_length``: the
+            numbers needed to rebuild observations outside the simulator) and its ``anatomy``.
     """
-    out: dict[str, Any] = {
+    if config is not None:
+        return {**observation_spec(config).to_dict(), "anatomy": config.anatomy}
+    return {
         "dim": OBS_DIM,
         "fields": [f._asdict() for f in OBS_LAYOUT],
-        "ray_directions_tip_frame": RAY_DIRECTIONS.round(12).tolist(),
+        "ray_directions_tip_frame": RAY_DIRECTIONS.tolist(),
     }
-    if config is not None:
-        sc = load_world(config.anatomy, config.n_waypoints, config.scenario_seed).scenarios
-        out.update(origin=sc.origin.tolist(), position_scale=config.position_scale,
-                   d_max=sc.d_max, ray_length=config.ray_length, anatomy=config.anatomy)
-    return out
 
 
 def _observation_space() -> spaces.Box:
@@ -218,10 +186,7 @@ class NavEngine:
         self.radius = cat.radius
         self.exit_point = np.asarray(anatomy.exit_point, dtype=np.float64)
         self.exit_normal = np.asarray(anatomy.exit_normal, dtype=np.float64)
-        verts = np.asarray(anatomy.vertices, dtype=np.float64)
-        margin = 0.01
-        self.bbox_low = verts.min(axis=0) - margin
-        self.bbox_high = verts.max(axis=0) + margin
+        self.bbox_low, self.bbox_high = episode_bounds(anatomy)
         self._target_vertex = np.array([t.vertex for t in sc.targets], dtype=np.int64)
         self._target_offset = np.array([t.offset for t in sc.targets])
         self._target_rest = np.array([t.position for t in sc.targets])
@@ -235,7 +200,8 @@ class NavEngine:
         self.steps = np.zeros(n_envs, dtype=np.int64)
         self.time = np.zeros(n_envs)
         self.min_distance = np.zeros(n_envs)
-        self.rays = np.ones((n_envs, N_RAYS))
+        self.spec = ObservationSpec.for_world(sc, config.observation)
+        self.hits = np.full((n_envs, N_RAYS), float(config.ray_length))
         self.contact_force = np.zeros(n_envs)
         self.penetration = np.zeros(n_envs)
         self.in_contact = np.zeros(n_envs, dtype=bool)
@@ -290,13 +256,12 @@ class NavEngine:
         length = float(self.config.ray_length)
         # (the walls' unchecked casts: these rays are finite and well-formed by construction)
         if self._shared_wall:
-            hits = self.walls[0]._cast(origins.reshape(-1, 3), dirs.reshape(-1, 3), length)
-            self.rays[idx] = hits.reshape(len(idx), N_RAYS) / length
+            hits = self.walls[0].cast_unchecked(origins.reshape(-1, 3), dirs.reshape(-1, 3),
+                                                length)
+            self.hits[idx] = hits.reshape(len(idx), N_RAYS)
         else:
             for k, i in enumerate(idx.tolist()):
-                self.rays[i] = self.walls[i]._cast(origins[k], dirs[k], length) / length
-        np.minimum(self.rays, 1.0, out=self.rays)  # hits lie in (0, length]: only the upper
-        np.maximum(self.rays, 0.0, out=self.rays)  # bound can bite (as np.clip, cheaper)
+                self.hits[i] = self.walls[i].cast_unchecked(origins[k], dirs[k], length)
 
     # ------------------------------------------------------------------ stepping
     def step(self, actions: FloatArray) -> tuple[FloatArray, NDArray[np.bool_],
@@ -322,8 +287,8 @@ class NavEngine:
             for i in range(n):
                 wall = cast(DeformableWall, self.walls[i])  # (dynamic mode)
                 # (unchecked step: finite times, a body from the catheter kinematics)
-                wall._advance(float(self.time[i]), float(cfg.dt),
-                              cat.body_points(i, cfg.body_spacing), float(self.radius))
+                wall.step_unchecked(float(self.time[i]), float(cfg.dt),
+                                    cat.body_points(i, cfg.body_spacing), float(self.radius))
                 tid = int(self.target_id[i])
                 self.target[i] = (wall.vertices[int(self._target_vertex[tid])]
                                   + self._target_offset[tid])
@@ -341,7 +306,7 @@ class NavEngine:
         else:
             query = np.arange(n)
         for i in query.tolist():
-            c = self.walls[i]._contact(tips[i], float(self.radius), float(cfg.dt))
+            c = self.walls[i].tip_contact_unchecked(tips[i], float(self.radius), float(cfg.dt))
             self.contact_force[i] = c.force
             self.penetration[i] = c.penetration
             self.in_contact[i] = c.in_contact
@@ -383,19 +348,10 @@ class NavEngine:
         return terms.total, terminated, truncated, info
 
     def observe(self) -> NDArray[np.float32]:
-        """(N, OBS_DIM) float32 observations (layout :data:`OBS_LAYOUT`)."""
-        cfg = self.config
-        sc = self.scenarios
-        tips = self.catheter.tip_position
-        rots = self.catheter.tip_rotation
-        obs = np.empty((self.n_envs, OBS_DIM), dtype=np.float32)
-        obs[:, 0:3] = (tips - sc.origin) / cfg.position_scale
-        obs[:, 3:12] = rots.transpose(0, 2, 1).reshape(self.n_envs, 9)
-        vec = (self.target - tips) / sc.d_max
-        obs[:, 12] = np.linalg.norm(vec, axis=1)
-        obs[:, 13:16] = vec
-        obs[:, 16:] = self.rays
-        return obs
+        """(N, OBS_DIM) float32 observations (:func:`~cgail_planner.sim.ftl_model.observe_batch`,
+        layout :data:`OBS_LAYOUT`)."""
+        return observe_batch(self.spec, self.catheter.tip_position, self.catheter.tip_rotation,
+                             self.target, self.hits)
 
 
 def pursuit_actions(engine: NavEngine, lookahead: float = 0.015,
@@ -405,7 +361,7 @@ def pursuit_actions(engine: NavEngine, lookahead: float = 0.015,
     For every environment of ``engine``: find the waypoint nearest the tip, aim at the waypoint
     ``lookahead`` (15 mm) further along the centerline, or at the target itself once the tip is
     within ``final_approach`` (30 mm) of it or the centerline is used up, and bend as far as the
-    FTL limit allows towards that point (:func:`~cgail_planner.sim.catheter.steer_towards`) while
+    FTL limit allows towards that point (:func:`~cgail_planner.sim.ftl_model.steer_towards`) while
     inserting at full speed. It knows nothing of walls or the heartbeat; it is a baseline and a
     smoke test, not the demonstration expert.
 
@@ -441,7 +397,7 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     wrong shape raise ``ValueError``. With ``theta_max^t = theta_max * |delta_l| / L``:
 
     ===  =========  ====================================================================
-    idx  name       mapping (see :mod:`cgail_planner.sim.catheter`)
+    idx  name       mapping (see :mod:`cgail_planner.sim.ftl_model`)
     ===  =========  ====================================================================
     0    alpha      bend about the tip x_A axis: ``a[0] * theta_max^t`` rad
     1    gamma      bend about the tip z_A axis: ``a[1] * theta_max^t`` rad

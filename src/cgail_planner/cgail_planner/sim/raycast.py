@@ -25,13 +25,14 @@ import hashlib
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from numba import njit
 import numpy as np
 
-__all__ = ["WallBVH", "closest_point_triangle", "closest_segment_triangle", "cpt_scalar",
-           "cst_scalar", "drop_stale_numba_cache", "faces_near_segments_kernel", "refit_tree"]
+__all__ = ["BVHArrays", "WallBVH", "closest_kernel", "closest_point_triangle",
+           "closest_segment_triangle", "cpt_scalar", "cst_scalar", "drop_stale_numba_cache",
+           "faces_near_segments_kernel", "feature_normal_kernel", "raycast_kernel", "refit_tree"]
 
 
 def drop_stale_numba_cache(module_file: str, dependencies: Sequence[str]) -> None:
@@ -215,8 +216,12 @@ def _ray_triangle(ox, oy, oz, dx, dy, dz, vertices, f0, f1, f2):
 
 
 @njit(cache=True)
-def _raycast(vertices, faces, order, node_min, node_max, left, right, start, count,
-             origins, directions, max_dist, out):
+def raycast_kernel(vertices, faces, order, node_min, node_max, left, right, start, count,
+                   origins, directions, max_dist, out):
+    """First wall hit along each ray (the kernel of :meth:`WallBVH.raycast`, for kernels that
+    cast rays themselves): ``out[r]`` is the distance along ``directions[r]`` from
+    ``origins[r]``, ``max_dist`` when nothing is hit. The tree arrays are those of
+    :attr:`WallBVH.query_arrays`."""
     stack = np.empty(_STACK, np.int64)
     for r in range(origins.shape[0]):
         ox, oy, oz = origins[r, 0], origins[r, 1], origins[r, 2]
@@ -429,7 +434,8 @@ def _box_dist2(p, bmin, bmax):
 
 
 @njit(cache=True)
-def _closest(vertices, faces, order, node_min, node_max, left, right, start, count, p, max_dist):
+def closest_kernel(vertices, faces, order, node_min, node_max, left, right, start, count, p,
+                   max_dist):
     """Closest wall triangle to p within max_dist: (dist, face, q, u, v, w); face -1 if none."""
     stack = np.empty(_STACK, np.int64)
     best2 = max_dist * max_dist
@@ -585,8 +591,8 @@ def _face_unit_normal(vertices, faces, f):
 
 
 @njit(cache=True)
-def _feature_normal(vertices, faces, face_edges, vf_ptr, vf_face, ef_ptr, ef_face, face, u, v,
-                    w):
+def feature_normal_kernel(vertices, faces, face_edges, vf_ptr, vf_face, ef_ptr, ef_face, face,
+                          u, v, w):
     """Pseudo-normal (unnormalised) of the closest feature of ``face`` at weights (u, v, w).
 
     The same quantity as the matching entry of :func:`_pseudo_normals` (face normal, edge sum
@@ -643,6 +649,25 @@ def _feature_normal(vertices, faces, face_edges, vf_ptr, vf_face, ef_ptr, ef_fac
     return out
 
 
+class BVHArrays(NamedTuple):
+    """The arrays of a :class:`WallBVH` that its query kernels take, in their argument order."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    order: np.ndarray
+    node_min: np.ndarray
+    node_max: np.ndarray
+    left: np.ndarray
+    right: np.ndarray
+    leaf_start: np.ndarray
+    leaf_count: np.ndarray
+    face_edges: np.ndarray
+    vf_ptr: np.ndarray
+    vf_face: np.ndarray
+    ef_ptr: np.ndarray
+    ef_face: np.ndarray
+
+
 class WallBVH:
     """BVH over the wall triangles of a surface whose vertices may move (topology fixed).
 
@@ -678,7 +703,7 @@ class WallBVH:
         self._face_edges = inv.reshape(-1, 3).astype(np.int64)
         self._n_edges = len(uniq)
         # Incidence (CSR, faces in increasing order) of vertices and edges to wall faces, for
-        # the pseudo-normal of one feature (:func:`_feature_normal`).
+        # the pseudo-normal of one feature (:func:`feature_normal_kernel`).
         self._vf_ptr, self._vf_face = _csr(self.faces.ravel(), self.n_vertices)
         self._ef_ptr, self._ef_face = _csr(self._face_edges.ravel(), self._n_edges)
         self._normals: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -696,6 +721,15 @@ class WallBVH:
         else:
             np.copyto(self._fitted, self.vertices)
         self._normals = None
+
+    @property
+    def query_arrays(self) -> BVHArrays:
+        """The arrays the query kernels (:func:`raycast_kernel`, :func:`closest_kernel`,
+        :func:`feature_normal_kernel`) take, at the last refit (a deformable wall refits lazily:
+        query it once first)."""
+        return BVHArrays(self.vertices, self.faces, self._order, self._nmin, self._nmax,
+                         self._left, self._right, self._start, self._count, self._face_edges,
+                         self._vf_ptr, self._vf_face, self._ef_ptr, self._ef_face)
 
     @property
     def tree(self) -> tuple[Any, ...]:
@@ -746,12 +780,14 @@ class WallBVH:
             raise ValueError(f"max_dist must be a finite number > 0, found {max_dist!r}")
         if not (np.isfinite(origins).all() and np.isfinite(directions).all()):
             raise ValueError("origins and directions must be finite, found NaN or inf")
-        return self._cast(origins, directions, float(max_dist))
+        return self.cast_unchecked(origins, directions, float(max_dist))
 
-    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float) -> np.ndarray:
-        """:meth:`raycast` without the checks: C-contiguous float64 (R, 3) arrays, a float."""
+    def cast_unchecked(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                       ) -> np.ndarray:
+        """:meth:`raycast` without the checks (the hot path of callers whose rays are
+        well-formed by construction): C-contiguous float64 (R, 3) arrays, a float > 0."""
         out = np.empty(origins.shape[0])
-        _raycast(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
+        raycast_kernel(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
                  self._right, self._start, self._count, origins, directions, max_dist, out)
         return out
 
@@ -770,12 +806,12 @@ class WallBVH:
             pseudo-normal of the closest feature (face, edge or vertex), unit length.
         """
         p = np.ascontiguousarray(point, dtype=np.float64).reshape(3)
-        dist, face, q, u, v, w = _closest(
+        dist, face, q, u, v, w = closest_kernel(
             self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
             self._right, self._start, self._count, p, float(max_dist))
         if face < 0:
             return float("inf"), p.copy(), np.zeros(3), -1
-        n = _feature_normal(self.vertices, self.faces, self._face_edges, self._vf_ptr,
+        n = feature_normal_kernel(self.vertices, self.faces, self._face_edges, self._vf_ptr,
                             self._vf_face, self._ef_ptr, self._ef_face, face, u, v, w)
         n = n / max(math.sqrt(float(n @ n)), 1e-300)  # (np.linalg.norm: same value, slower)
         sign = 1.0 if float(np.dot(p - q, n)) > 0.0 else -1.0

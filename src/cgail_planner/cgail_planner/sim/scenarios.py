@@ -32,8 +32,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from cgail_planner.sim.anatomy import Anatomy, build_anatomy
-from cgail_planner.sim.catheter import frame_from_heading
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
+from cgail_planner.sim.ftl_model import frame_from_heading
+from cgail_planner.sim.ftl_model import introducer_tail as ftl_introducer_tail
 
 FloatArray = NDArray[np.float64]
 
@@ -129,17 +130,20 @@ def build_starts(anatomy: Anatomy, centerline: Centerline, *, n_starts: int = 3,
 
 
 def introducer_tail(anatomy: Anatomy, position: FloatArray, rotation: FloatArray) -> FloatArray:
-    """(3,) proximal end of the introducer behind a start pose (module docstring): straight
-    back along ``-y_A`` to 5 mm beyond the exit plane, or straight out of the exit end when the
-    heading does not point away from it."""
-    n = np.asarray(anatomy.exit_normal, dtype=np.float64)
-    p = np.asarray(position, dtype=np.float64)
-    h = np.asarray(rotation, dtype=np.float64)[:, 1]
-    depth = float((p - anatomy.exit_point) @ n)  # < 0 inside
-    cos = float(h @ n)
-    if cos < -0.2:
-        return p - (depth - 0.005) / cos * h
-    return anatomy.exit_point + 0.005 * n
+    """(3,) proximal end of the introducer behind a start pose in ``anatomy``
+    (:func:`cgail_planner.sim.ftl_model.introducer_tail` at the anatomy's exit plane)."""
+    return ftl_introducer_tail(anatomy.exit_point, anatomy.exit_normal, position, rotation)
+
+
+#: Margin of the region an episode (or a planner's rollout) may visit around the anatomy, m.
+BOUNDS_MARGIN = 0.01
+
+
+def episode_bounds(anatomy: Anatomy) -> tuple[FloatArray, FloatArray]:
+    """``(low, high)`` corners of the region the tip may visit: the anatomy's bounding box grown
+    by :data:`BOUNDS_MARGIN`; beyond it the tip has left through an open end."""
+    verts = np.asarray(anatomy.vertices, dtype=np.float64)
+    return verts.min(axis=0) - BOUNDS_MARGIN, verts.max(axis=0) + BOUNDS_MARGIN
 
 
 def build_targets(anatomy: Anatomy, *, n_targets: int = 5, target_radius: float = 0.030,

@@ -114,11 +114,16 @@ class StaticWall:
         """
         return self._bvh.raycast(origins, directions, max_dist)
 
-    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
-              ) -> np.ndarray:
-        """:meth:`raycast` for trusted input (the environment's own rays: C-contiguous float64
-        (R, 3) arrays, a float), without the checks."""
-        return self._bvh._cast(origins, directions, max_dist)
+    def cast_unchecked(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                       ) -> np.ndarray:
+        """:meth:`raycast` for trusted input (the hot path of the environment's own rays:
+        C-contiguous float64 (R, 3) arrays, a float > 0), without the checks."""
+        return self._bvh.cast_unchecked(origins, directions, max_dist)
+
+    @property
+    def penetration_tolerance(self) -> float:
+        """Depth below which :meth:`tip_contact` reports no penetration, m (0: rigid wall)."""
+        return self._tolerance
 
     def _geometric_contact(self, tip: np.ndarray, radius: float
                            ) -> tuple[float, float, np.ndarray]:
@@ -132,27 +137,29 @@ class StaticWall:
         return penetration, clearance, normal
 
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """Tip sphere vs the rigid wall.
+        """Tip sphere vs the wall (checked; :meth:`tip_contact_unchecked` is the query).
 
         A rigid wall has no moving particles, so the Newton's-law force is 0; any crossing of
         the wall is reported as ``penetration`` (> 0), which the environment treats as a
-        non-minor collision.
+        non-minor collision. A :class:`DeformableWall` adds the force on the particles the
+        tip moved.
 
         Args:
-            tip: (3,) tip centre, m.
+            tip: (3,) tip centre, m (on a deformable wall normally the last body point of the
+                last step).
             radius: tip (catheter) radius, m.
-            dt: step length, s (validated; unused by a rigid wall).
+            dt: length of the last step, s (unused by a rigid wall).
         """
         p = _check_points("tip", tip, allow_empty=False)
         if p.shape[0] != 1:
             raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
         r = _check_finite_scalar("radius", radius, positive=True)
         dt = _check_finite_scalar("dt", dt, positive=True)
-        return self._contact(p[0], r, dt)
+        return self.tip_contact_unchecked(p[0], r, dt)
 
-    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """:meth:`tip_contact` for trusted input ((3,) float64 tip, floats), without the
-        checks."""
+    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """:meth:`tip_contact` for trusted input (the environment's hot path: a (3,) float64
+        tip, floats > 0), without the checks."""
         pen, clearance, normal = self._geometric_contact(tip, radius)
         return Contact(penetration=pen, force=0.0, normal=normal,
                        in_contact=bool(pen > 0.0 or clearance == 0.0), clearance=clearance)
@@ -237,11 +244,11 @@ class DeformableWall(StaticWall):
         pts = _check_points("body_points", body_points, allow_empty=True)
         radius = _check_finite_scalar("body_radius", body_radius, positive=pts.shape[0] > 0) \
             if pts.shape[0] else 0.0
-        self._advance(t, dt, pts, radius)
+        self.step_unchecked(t, dt, pts, radius)
 
-    def _advance(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
-        """:meth:`step` for trusted input (floats, C-contiguous float64 (B, 3) body points, a
-        radius > 0 when B > 0), without the checks."""
+    def step_unchecked(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
+        """:meth:`step` for trusted input (the environment's hot path: floats, C-contiguous
+        float64 (B, 3) body points, a radius > 0 when B > 0), without the checks."""
         self._impulse[:] = 0.0
         self._touched[:] = 0
         self._dp[:] = 0.0
@@ -324,31 +331,21 @@ class DeformableWall(StaticWall):
         self._sync()
         return self._bvh.raycast(origins, directions, max_dist)
 
-    def _cast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
-              ) -> np.ndarray:
+    def cast_unchecked(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                       ) -> np.ndarray:
+        """:meth:`raycast` without the checks (see :meth:`StaticWall.cast_unchecked`)."""
         self._sync()
-        return self._bvh._cast(origins, directions, max_dist)
+        return self._bvh.cast_unchecked(origins, directions, max_dist)
 
-    def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
-        """Tip sphere vs the deformed wall, with the force from Newton's second law.
+    def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
+        """Tip sphere vs the deformed wall, with the force from Newton's second law (the
+        checked :meth:`~StaticWall.tip_contact` calls this).
 
         ``force = |sum_{i in S} (dp_i / dt - f_i^elastic)|`` over the particles ``S`` the tip
         sphere (the last body point of the last :meth:`step`) moved, kept when within
-        ``radius + max rest edge`` of ``tip`` (see :mod:`cgail_planner.sim.contact`).
-
-        Args:
-            tip: (3,) tip centre, m (normally the last body point of the last step).
-            radius: tip (catheter) radius, m.
-            dt: length of the last step, s (the impulse is turned into a mean force with it).
+        ``radius + max rest edge`` of ``tip`` (see :mod:`cgail_planner.sim.contact`); ``dt``
+        is the length of the last step (the impulse is turned into a mean force with it).
         """
-        p = _check_points("tip", tip, allow_empty=False)
-        if p.shape[0] != 1:
-            raise ValueError(f"tip must have shape (3,), found {np.shape(tip)}")
-        r = _check_finite_scalar("radius", radius, positive=True)
-        dt = _check_finite_scalar("dt", dt, positive=True)
-        return self._contact(p[0], r, dt)
-
-    def _contact(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
         r = radius
         self._sync()
         pen, clearance, normal = self._geometric_contact(tip, r)

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from cgail_planner.sim.catheter import (
+from cgail_planner.sim.ftl_model import (
     action_to_command,
     bend_limit,
     bend_rotation,

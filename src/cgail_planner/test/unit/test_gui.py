@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cgail_planner.core.rotations import quaternion_to_matrix
 from cgail_planner.gui.config import GuiConfig
 from cgail_planner.gui.errors import ProtocolError
-from cgail_planner.gui.guidance import bend_on_screen, off_heading, quat_to_matrix, ray_directions
+from cgail_planner.gui.guidance import bend_on_screen, off_heading, ray_directions
 from cgail_planner.gui.model import GuiModel, TrialClock
 from cgail_planner.gui.protocol import parse_client_message
 from cgail_planner.gui.state import GuiState
@@ -19,10 +20,10 @@ from cgail_planner.gui.static import build_table, lookup, VENDOR
 
 def test_quaternion_and_bend_geometry() -> None:
     s = math.sqrt(0.5)
-    r = quat_to_matrix([0.0, 0.0, s, s])          # 90 deg about z: heading y -> -x
+    r = quaternion_to_matrix([0.0, 0.0, s, s])          # 90 deg about z: heading y -> -x
     np.testing.assert_allclose(r[:, 1], [-1.0, 0.0, 0.0], atol=1e-12)
-    with pytest.raises(ValueError, match='norm 1'):
-        quat_to_matrix([0.0, 0.0, 0.0, 2.0])
+    with pytest.raises(ValueError, match=r'unit quaternion.*norm 2'):
+        quaternion_to_matrix([0.0, 0.0, 0.0, 2.0])
     assert off_heading(np.array([1.0, 1.0, 0.0])) == pytest.approx((math.pi / 4, 1.0, 0.0))
     assert bend_on_screen(0.0, -0.3) == pytest.approx((0.3, 1.0, 0.0))     # right
     assert bend_on_screen(0.2, 0.0) == pytest.approx((0.2, 0.0, 1.0))      # up

@@ -11,6 +11,7 @@ import warnings
 import numpy as np
 import pytest
 
+from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.learning.demo_bags import (
     DemoEpisode,
     load_demo_bag,
@@ -18,7 +19,6 @@ from cgail_planner.learning.demo_bags import (
     read_demo_bag,
     recorded_start_pose,
     replay_demo_bag,
-    rotation_to_quaternion,
     write_demo_bag,
 )
 from cgail_planner.learning.demos import load_demos
@@ -80,16 +80,6 @@ def test_demo_errors(tmp_path: Path):
         load_demos([tmp_path / 'd.npz'])
 
 
-@pytest.mark.parametrize('angles', [(0.3, -1.2, 2.0), (3.1, 0.1, -0.2), (0.0, 0.0, 0.0),
-                                    (np.pi, 0.0, 0.0)])
-def test_rotation_to_quaternion(angles):
-    from scipy.spatial.transform import Rotation
-
-    R = Rotation.from_euler('xyz', angles).as_matrix()
-    q = rotation_to_quaternion(R)
-    np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), R, atol=1e-12)
-
-
 def test_summary_and_kruskal():
     trials = [Trial(True, False, 100, 5.0), Trial(False, True, 40, 30.0),
               Trial(True, False, 120, 7.0)]
@@ -140,7 +130,7 @@ def _record(env, start: int, target: int, policy, max_steps: int = 2000
         rows['ga'].append(info['bend'][1])
         rows['dl'].append(info['insertion'])
         rows['p'].append(env.catheter.tip_position[0].copy())
-        rows['q'].append(rotation_to_quaternion(env.catheter.tip_rotation[0]))
+        rows['q'].append(matrix_to_quaternion(env.catheter.tip_rotation[0]))
         rows['g'].append(np.asarray(info['target_position'], float))
         if te or tr:
             break

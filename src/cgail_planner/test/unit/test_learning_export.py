@@ -14,9 +14,10 @@ from learning_toy import PointReach
 
 from cgail_planner.learning.config import NetworkConfig
 from cgail_planner.learning.errors import PolicyLoadError
-from cgail_planner.learning.export import export_actor
+from cgail_planner.learning.export import default_contract, export_actor, write_contract
 from cgail_planner.learning.networks import Actor, RunningNormalizer
 from cgail_planner.learning.onnx_policy import OnnxPolicy
+from cgail_planner.sim.ftl_model import CONTRACT_KEY
 
 
 def _actor(obs_dim: int, act_dim: int, seed: int = 0) -> Actor:
@@ -31,9 +32,9 @@ def _actor(obs_dim: int, act_dim: int, seed: int = 0) -> Actor:
 
 def test_parity_and_metadata(tmp_path: Path):
     actor = _actor(41, 3)
+    contract = default_contract('default', 'static', {'preset': 'cgail'})
     path = export_actor(actor, tmp_path / 'p.onnx', {'preset': 'cgail', 'anatomy': 'default',
-                                                      'theta_max_rad': 1.5707963,
-                                                      'observation_layout': {'dim': 41}})
+                                                      CONTRACT_KEY: contract.to_dict()})
     policy = OnnxPolicy(path, expected_obs_dim=41)
     obs = np.random.default_rng(1).normal(2.0, 4.0, (256, 41)).astype(np.float32)
     with torch.no_grad():
@@ -42,8 +43,46 @@ def test_parity_and_metadata(tmp_path: Path):
     np.testing.assert_allclose(policy(obs[0]), ref[0], atol=1e-5)
     assert np.any(np.abs(ref) == 1.0) and np.all(np.abs(ref) <= 1.0)
     assert policy.metadata['preset'] == 'cgail' and policy.metadata['obs_dim'] == 41
-    assert policy.metadata['observation_layout'] == {'dim': 41}
-    assert policy.metadata['theta_max_rad'] == pytest.approx(1.5707963)
+    assert policy.contract is not None
+    assert policy.contract.to_dict() == contract.to_dict()
+    assert policy.contract.observation.same_as(contract.observation)
+
+
+def test_a_contract_is_written_into_an_exported_file_and_the_graph_is_kept(tmp_path: Path):
+    import onnx
+
+    path = export_actor(_actor(41, 3), tmp_path / 'p.onnx', {'theta_max_rad': 1.5707963})
+    assert OnnxPolicy(path).contract is None
+    contract = default_contract('default', 'dynamic', {'note': 'x'})
+    write_contract(path, contract, tmp_path / 'q.onnx')
+    before, after = onnx.load(str(path)), onnx.load(str(tmp_path / 'q.onnx'))
+    assert before.graph == after.graph
+    policy = OnnxPolicy(tmp_path / 'q.onnx')
+    assert policy.contract is not None and policy.contract.mode == 'dynamic'
+    assert policy.contract.training == {'note': 'x'}
+    assert 'theta_max_rad' not in policy.metadata  # the legacy key is gone
+
+
+@pytest.mark.parametrize(('edit', 'match'), [
+    (lambda d: d.update(retraction_rule='stop at the start pose'), 'retraction_rule: expected'),
+    (lambda d: d.update(version=99), 'version: expected 1, found 99'),
+    (lambda d: d['catheter'].update(theta_max=7.0), 'theta_max must be in'),
+    (lambda d: d['observation'].pop('d_max'), "expected the keys of ObservationSpec"),
+    (lambda d: d['observation'].update(dim=40), 'observation layout: expected'),
+])
+def test_a_contract_that_cannot_be_read_refuses_the_policy(tmp_path: Path, edit, match):
+    data = default_contract('default', 'static').to_dict()
+    edit(data)
+    path = export_actor(_actor(41, 3), tmp_path / 'p.onnx', {CONTRACT_KEY: data})
+    with pytest.raises(PolicyLoadError, match=match):
+        OnnxPolicy(path)
+
+
+def test_a_contract_of_another_observation_size_refuses_the_policy(tmp_path: Path):
+    data = default_contract('default', 'static').to_dict()
+    path = export_actor(_actor(40, 3), tmp_path / 'p.onnx', {CONTRACT_KEY: data})
+    with pytest.raises(PolicyLoadError, match="expected the model's 40, found 41"):
+        OnnxPolicy(path)
 
 
 def test_loader_errors(tmp_path: Path):
@@ -117,3 +156,17 @@ def test_onnx_rollout_equals_torch_rollout_in_simulator(tmp_path: Path):
     assert ta.shape == tb.shape
     np.testing.assert_allclose(ta, tb, atol=1e-6)
     assert ia['success'] == ib['success'] and ia['collision'] == ib['collision']
+
+
+def test_training_notes_record_the_curriculum_lesson_of_the_checkpoint():
+    import math
+
+    from cgail_planner.learning.export import training_notes
+
+    ckpt = {'config': {'name': 'cgail', 'curriculum': {'theta_max_deg': [90.0, 75.0, 60.0]}},
+            'step': 491520, 'curriculum_lesson': 1}
+    assert training_notes(ckpt) == {
+        'preset': 'cgail', 'train_steps': 491520, 'curriculum_theta_max_deg': [90.0, 75.0, 60.0],
+        'curriculum_lesson': 1, 'final_theta_max_rad': math.radians(75.0)}
+    no_curriculum = {'config': {'name': 'gail'}, 'step': 5, 'curriculum_lesson': 0}
+    assert training_notes(no_curriculum)['final_theta_max_rad'] is None

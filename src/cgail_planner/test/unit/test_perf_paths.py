@@ -25,7 +25,7 @@ from cgail_planner.sim.pbd import (
     secant_factor,
     solve_vbd,
 )
-from cgail_planner.sim.raycast import _closest, WallBVH
+from cgail_planner.sim.raycast import closest_kernel, WallBVH
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.vec_env import CatheterNavVecEnv
 from cgail_planner.sim.wall import _SECANT_RELAX, DeformableWall
@@ -179,9 +179,7 @@ def test_feature_normal_matches_the_full_pseudo_normals(tube):
     kinds = set()
     queries = np.column_stack([rng.uniform(-0.02, 0.02, (400, 2)), rng.uniform(0.0, 0.12, 400)])
     for p in queries:
-        _, face, _, u, v, w = _closest(bvh.vertices, bvh.faces, bvh._order, bvh._nmin,
-                                       bvh._nmax, bvh._left, bvh._right, bvh._start,
-                                       bvh._count, p, np.inf)
+        _, face, _, u, v, w = closest_kernel(*bvh.query_arrays[:9], p, np.inf)
         zero = [k for k, b in enumerate((u, v, w)) if b <= 1e-12]
         if len(zero) == 2:
             ref = vn[bvh.faces[face, ({0, 1, 2} - set(zero)).pop()]]

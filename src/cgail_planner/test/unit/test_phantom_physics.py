@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics, rotate_onto
+from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
+from cgail_planner.core.rotations import rotate_onto
 
 L = 0.05
 
@@ -102,9 +103,15 @@ def test_rotate_onto() -> None:
     a = np.array([0.0, 1.0, 0.0])
     b = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
     assert rotate_onto(a, b) @ a == pytest.approx(b)
+    assert rotate_onto(a, a) == pytest.approx(np.eye(3))
 
 
-@pytest.mark.parametrize(('field', 'value'), [('segment_length', 0.0), ('em_noise_rms', -1.0),
+def test_config_rejects_a_catheter_that_is_not_a_catheter_config() -> None:
+    with pytest.raises(ValueError, match='catheter must be a CatheterConfig'):
+        PhantomConfig(catheter=0.05)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(('field', 'value'), [('max_jump', -1.0), ('em_noise_rms', -1.0),
                                               ('max_substep', 1.0)])
 def test_config_rejects_bad_values(field, value) -> None:
     with pytest.raises(ValueError, match=field):

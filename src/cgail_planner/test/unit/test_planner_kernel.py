@@ -6,26 +6,26 @@ error messages, in the static wall and in the deformed (beating) wall.
 
 No expected step count is a constant: the built-in mesh differs slightly between CPUs (numpy's
 SIMD ufuncs, :mod:`cgail_planner.sim.disk_cache`), which moves a wall contact or the bounding
-box by a step. Counts are derived in the test from the geometry of this run (the kinematics of
-a constant action and the wall's ray casts) or from a policy whose path does not depend on the
-wall at all.
+box by a step. Counts are derived in the test from the geometry of this run (the catheter
+model's kinematics of a constant action and the wall's contact query) or from a policy whose
+path does not depend on the wall at all.
 """
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.mlp import MlpBuilder, MlpProgram
-from cgail_planner.core.planner import (
-    model_world_from_sim,
-    NoPathError,
-    Planner,
-    PlannerConfig,
-)
+from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.learning.onnx_policy import OnnxPolicy
-from cgail_planner.sim.env import RAY_DIRECTIONS
+from cgail_planner.sim.ftl_model import (
+    action_to_command,
+    advance_pose,
+    CatheterConfig,
+    RAY_DIRECTIONS,
+)
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
@@ -43,7 +43,7 @@ def world():
 def walls(world):
     deformed = DeformableWall(world.anatomy)
     for k in range(1, 4):  # 0.3 s of heartbeat: the root has moved by several mm
-        deformed.step(0.1 * k, 0.1, np.zeros((0, 3)), 0.0035)
+        deformed.step(0.1 * k, 0.1, np.zeros((0, 3)), CatheterConfig().radius)
     assert np.abs(deformed.vertices - world.anatomy.vertices).max() > 0.003
     return {'static': StaticWall(world.anatomy), 'dynamic': deformed}
 
@@ -78,26 +78,21 @@ def const_policy(action) -> MlpProgram:
 
 
 def constant_action_outcome(planner: Planner, p0, r0, action) -> tuple[str, int]:
-    """What a constant forward action must give, from the geometry alone: the tip poses of
-    follow-the-leader kinematics (independent of the wall) checked in the rollout's order, a
-    contact when a ray from the pose after k steps is shorter than the catheter radius
-    ('touched', k), or the tip outside the bounding box after step k ('left', k)."""
-    cfg, world = planner.config, planner.world
-    dl = action[2] * cfg.max_insertion_speed * cfg.dt
-    limit = cfg.theta_max / cfg.segment_length * dl
-    ca, sa = math.cos(action[0] * limit), math.sin(action[0] * limit)
-    cg, sg = math.cos(action[1] * limit), math.sin(action[1] * limit)
-    bend = np.array([[cg, -sg, 0.0], [ca * sg, ca * cg, -sa], [sa * sg, sa * cg, ca]])
+    """What a constant forward action must give, from the catheter model and the wall alone:
+    the tip poses of the model's single-pose step (independent of the wall), each checked as
+    an episode ends: a collision when the tip sphere penetrates the wall after step k
+    ('touched', k), the tip beyond the exit plane or the bounding box after step k ('left', k)."""
+    cfg, world, cat = planner.config, planner.world, planner.config.catheter
+    alpha, gamma, dl = (float(v) for v in action_to_command(
+        np.asarray(action, dtype=np.float64), cat.theta_max, cat.segment_length,
+        cat.max_step_insertion))
     p, r = np.array(p0, dtype=float), np.array(r0, dtype=float)
     for k in range(1, cfg.max_rollout_steps + 1):
-        if k > 1:
-            hits = planner.wall.raycast(np.repeat(p[None], len(planner.rays), axis=0),
-                                        planner.rays @ r.T, cfg.ray_length)
-            if hits.min() < 0.5 * cfg.outer_diameter:
-                return 'touched', k - 1
-        r = r @ bend
-        p = p + dl * r[:, 1]
-        if ((p < world.bbox_low) | (p > world.bbox_high)).any():
+        p, r = advance_pose(p, r, alpha, gamma, dl)
+        if planner.wall.tip_contact(p, cat.radius, cat.dt).penetration > 0.0:
+            return 'touched', k
+        if (p - world.exit_point) @ world.exit_normal > 0.0 \
+                or ((p < world.bbox_low) | (p > world.bbox_high)).any():
             return 'left', k
     return 'step limit', cfg.max_rollout_steps
 
@@ -120,8 +115,8 @@ def test_trained_policy_rollout_equals_the_reference(world, walls, policy, mode,
     # full alpha: the tip curls into the wall of the descending aorta after ~24 mm
     ([1.0, 0.0, 1.0], False, 'touched', (40, 56)),
     ([0.3, -0.5, 1.0], False, 'touched', (54, 70)),
-    # heading flipped: straight down, out of the open end through the bounding box
-    ([0.0, 0.0, 1.0], True, 'left', (53, 69)),
+    # heading flipped: straight down, out of the open end through its exit plane
+    ([0.0, 0.0, 1.0], True, 'left', (32, 48)),
 ])
 def test_failures_equal_the_reference(world, walls, mode, action, flip, event, span) -> None:
     planner = Planner(PlannerConfig(), model_world_from_sim(world), walls[mode],
@@ -133,7 +128,7 @@ def test_failures_equal_the_reference(world, walls, mode, action, flip, event, s
     expected, steps = constant_action_outcome(planner, s.position, r0, action)
     assert (expected, span[0] <= steps <= span[1]) == (event, True)
     what = 'touched the wall' if event == 'touched' else 'left the anatomy'
-    assert kind == 'error' and f'{what} after {steps} steps' in message
+    assert kind == 'error' and f'{what} at step {steps}' in message
     assert len(points) == steps + 1
 
 
@@ -161,7 +156,7 @@ def test_step_limit_and_retraction_equal_the_reference(world, walls) -> None:
     goal = s.position + dist0 * heading
     kind, message, points, _ = assert_same_rollout(planner, s.position, s.rotation, goal)
     # the same rollout along the line: body = distances of the kept points from the start
-    step = cfg.max_insertion_speed * cfg.dt
+    step = cfg.catheter.max_step_insertion
     body = [0.0]
     for _ in range(limit):
         dl = min(max(gain * (dist0 - body[-1] - hold), -1.0), 1.0) * step
@@ -232,7 +227,7 @@ def test_kernel_sees_the_current_shape_of_a_deformable_wall(world, policy) -> No
     s, t = world.scenarios.starts[2], world.scenarios.targets[2]
     before = assert_same_rollout(planner, s.position, s.rotation, t.position)
     for k in range(1, 5):
-        wall.step(0.1 * k, 0.1, np.zeros((0, 3)), 0.0035)
+        wall.step(0.1 * k, 0.1, np.zeros((0, 3)), CatheterConfig().radius)
     after = assert_same_rollout(planner, s.position, s.rotation, t.position)
     assert before[0] != after[0] or before[2].shape != after[2].shape \
         or np.abs(before[2] - after[2]).max() > 1e-6

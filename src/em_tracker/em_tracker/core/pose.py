@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 MM_TO_M = 1e-3
 
@@ -29,34 +30,15 @@ def mm_to_m(values_mm: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def quat_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)``."""
-    x, y, z, w = (float(v) for v in q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
+    """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)`` (scipy ``Rotation``)."""
+    return np.asarray(Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix())
 
 
 def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (Shepperd)."""
-    m = np.asarray(rot, dtype=float)
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    if trace > 0:
-        s = 2.0 * math.sqrt(trace + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [s / 4, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 1] + m[1, 0]) / s, s / 4, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, s / 4, (m[1, 0] - m[0, 1]) / s]
-    quat = np.array(q)
-    quat /= np.linalg.norm(quat)
-    return -quat if quat[3] < 0 else quat
+    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (scipy
+    ``Rotation``; ``rot`` must be a rotation, it is not re-orthogonalised)."""
+    return np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float), assume_valid=True)
+                      .as_quat(canonical=True))
 
 
 @dataclass(frozen=True)

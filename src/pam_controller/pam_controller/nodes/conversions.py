@@ -10,6 +10,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 import numpy as np
 from numpy.typing import NDArray
+from rclpy.clock import ROSClock
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
@@ -40,7 +41,7 @@ def bend_from_joint_state(msg: JointState) -> NDArray[np.float64]:
     return np.array([float(positions[names.index(n)]) for n in BEND_JOINT_NAMES])
 
 
-def bend_to_joint_state(bend: Sequence[float], stamp: Time) -> JointState:
+def bend_to_joint_state(bend: Sequence[float] | np.ndarray, stamp: Time) -> JointState:
     """JointState with ``bend_alpha``, ``bend_gamma`` positions (rad)."""
     msg = JointState()
     msg.header.stamp = stamp
@@ -49,7 +50,7 @@ def bend_to_joint_state(bend: Sequence[float], stamp: Time) -> JointState:
     return msg
 
 
-def pressures_to_multiarray(pressures_pa: Sequence[float]) -> Float64MultiArray:
+def pressures_to_multiarray(pressures_pa: Sequence[float] | np.ndarray) -> Float64MultiArray:
     """Four chamber pressures (Pa) in the documented layout."""
     msg = Float64MultiArray()
     msg.layout.dim = [MultiArrayDimension(label=PRESSURE_LAYOUT_LABEL, size=4, stride=4)]
@@ -76,4 +77,5 @@ def node_seconds(node: Node) -> float:
     """Seconds for watchdogs and timeouts: the node clock when it runs on simulated time (the
     lockstep rig, ``use_sim_time``), else the steady clock (immune to system-time jumps)."""
     clock = node.get_clock()
-    return clock.now().nanoseconds * 1e-9 if clock.ros_time_is_active else time.monotonic()
+    sim = isinstance(clock, ROSClock) and clock.ros_time_is_active
+    return clock.now().nanoseconds * 1e-9 if sim else time.monotonic()

@@ -16,6 +16,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rclpy.service import Service
+from rclpy.subscription import Subscription
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import SetBool
@@ -75,6 +77,45 @@ PARAMETERS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
 }
 
 
+class _Params:
+    """The declared parameter values, read back with the type each configuration field wants
+    (the declaration already enforced it; a mismatch here is a programming error)."""
+
+    def __init__(self, values: dict[str, object]) -> None:
+        self.values = values
+
+    def _wrong(self, name: str, kind: str) -> ValueError:
+        return ValueError(f'{name}: expected {kind}, found {self.values[name]!r}')
+
+    def real(self, name: str) -> float:
+        """A double parameter (an integer default is accepted)."""
+        value = self.values[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self._wrong(name, 'a number')
+        return float(value)
+
+    def integer(self, name: str) -> int:
+        """An integer parameter."""
+        value = self.values[name]
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self._wrong(name, 'an integer')
+        return value
+
+    def text(self, name: str) -> str:
+        """A string parameter."""
+        value = self.values[name]
+        if not isinstance(value, str):
+            raise self._wrong(name, 'a string')
+        return value
+
+    def flag(self, name: str) -> bool:
+        """A bool parameter."""
+        value = self.values[name]
+        if not isinstance(value, bool):
+            raise self._wrong(name, 'a bool')
+        return value
+
+
 class PamNode(LifecycleNode):
     """Node ``pam_controller`` (see the module docstring).
 
@@ -84,29 +125,33 @@ class PamNode(LifecycleNode):
 
     def __init__(self, **kwargs: object) -> None:
         super().__init__('pam_controller', **kwargs)  # type: ignore[arg-type]
-        p = {name: self._declare(name, *spec) for name, spec in PARAMETERS.items()}
+        p = _Params({name: self._declare(name, *spec) for name, spec in PARAMETERS.items()})
         hyst = HysteresisConfig(
-            gain=p['hysteresis_gain_rad_per_pa'], hysteresis_fraction=p['hysteresis_fraction'],
-            play_count=p['hysteresis_play_count'],
-            max_threshold=p['hysteresis_max_threshold_pa'],
-            density_decay=p['hysteresis_density_decay'])
+            gain=p.real('hysteresis_gain_rad_per_pa'),
+            hysteresis_fraction=p.real('hysteresis_fraction'),
+            play_count=p.integer('hysteresis_play_count'),
+            max_threshold=p.real('hysteresis_max_threshold_pa'),
+            density_decay=p.real('hysteresis_density_decay'))
         self.model_config = BendingModelConfig(
-            min_pressure_pa=p['min_pressure_pa'], max_pressure_pa=p['max_pressure_pa'],
-            bias_pressure_pa=p['bias_pressure_pa'], max_bend_rad=p['max_bend_rad'],
+            min_pressure_pa=p.real('min_pressure_pa'), max_pressure_pa=p.real('max_pressure_pa'),
+            bias_pressure_pa=p.real('bias_pressure_pa'), max_bend_rad=p.real('max_bend_rad'),
             hysteresis=hyst)
         self.supervisor_config = SupervisorConfig(
-            command_timeout_s=p['command_timeout_s'],
-            max_pressure_rate_pa_s=p['max_pressure_rate_pa_s'],
-            vent_pressure_pa=p['vent_pressure_pa'])
+            command_timeout_s=p.real('command_timeout_s'),
+            max_pressure_rate_pa_s=p.real('max_pressure_rate_pa_s'),
+            vent_pressure_pa=p.real('vent_pressure_pa'))
         self.link = LinkConfig(
-            interface=p['can_interface'], channel=p['can_channel'], bitrate=p['can_bitrate'],
-            heartbeat_period_s=p['heartbeat_period_s'], device_timeout_s=p['device_timeout_s'],
-            reconnect_initial_s=p['reconnect_initial_s'], reconnect_max_s=p['reconnect_max_s'])
+            interface=p.text('can_interface'), channel=p.text('can_channel'),
+            bitrate=p.integer('can_bitrate'), heartbeat_period_s=p.real('heartbeat_period_s'),
+            device_timeout_s=p.real('device_timeout_s'),
+            reconnect_initial_s=p.real('reconnect_initial_s'),
+            reconnect_max_s=p.real('reconnect_max_s'))
         self.sim_config = SimRegulatorConfig(
             interface=self.link.interface, channel=self.link.channel,
-            time_constant_s=p['sim_time_constant_s']) if p['simulate_regulators'] else None
-        self.control_period_s = 1.0 / p['control_rate_hz']
-        self.diagnostics_period_s = p['diagnostics_period_s']
+            time_constant_s=p.real('sim_time_constant_s')) \
+            if p.flag('simulate_regulators') else None
+        self.control_period_s = 1.0 / p.real('control_rate_hz')
+        self.diagnostics_period_s = p.real('diagnostics_period_s')
         # Checks the vent pressure against the limits now, so a bad one raises here.
         self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
                                         conv.node_seconds(self))
@@ -116,8 +161,8 @@ class PamNode(LifecycleNode):
         self._active = False
         self._timers: list = []
         self._lifecycle_pubs: list = []
-        self._sub_command = None
-        self._srv_estop = None
+        self._sub_command: Subscription | None = None
+        self._srv_estop: Service | None = None
         self._reset_link_state()
 
     def _declare(self, name: str, default: object, description: str,
