@@ -27,12 +27,8 @@ def warm(anatomies: list[str], log: bool = True) -> float:
     Returns:
         Seconds of wall time it took.
     """
-    from cgail_planner.core.planner import (
-        model_world_from_sim,
-        NoPathError,
-        Planner,
-        PlannerConfig,
-    )
+    from cgail_planner.core.errors import NoPathError
+    from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
     from cgail_planner.learning.onnx_policy import OnnxPolicy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv, RAY_DIRECTIONS
