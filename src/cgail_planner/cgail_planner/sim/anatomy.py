@@ -55,7 +55,9 @@ patient: ascending length 50 -> 68 mm, ascending diameter 31 -> 35 mm, sinus dia
 Modelling choices that are NOT from a source (estimates): the ascending length (50 mm from the
 annulus to the arch start), the arch plane rotation (60 deg from coronal), the root tilt
 (25 deg towards right-anterior), the sinus bulge shape, the branch-stub length (25 mm beyond the
-wall), the coronary-stub length (6 mm), the descending length (120 mm below the arch), and
+wall), the coronary-stub length (6 mm), the descending length (120 mm below the arch), the
+optional bend of the descending aorta above its open end (``descending_bend``: off in both
+built-in anatomies; a tortuous descending aorta for tests and populations), and
 the interpretation of the branch take-off angle as the angle from the cranial axis within the
 arch plane (BCT leaning right, LCCA and LSA leaning left).
 """
@@ -144,6 +146,13 @@ class AnatomyParams:
     lies posterior-left of the ascending; estimate). Range 0-90 deg."""
     descending_length: float = 0.120
     """Length of the descending segment below the arch end (model choice). Range 50-300 mm."""
+    descending_bend: float = 0.0
+    """Angle the descending aorta turns through above its open end, towards the patient's
+    right-anterior (towards the aortic hiatus, as an older, tortuous descending aorta does;
+    model choice, 0 = straight, as in both built-in anatomies). Range 0-60 deg."""
+    descending_bend_length: float = 0.060
+    """Arc length of that bend, ending at the open descending end (model choice; used only when
+    ``descending_bend`` > 0). Range 20 mm - ``descending_length``."""
     annulus_to_brachiocephalic: float = 0.090
     """Centreline distance from the annulus to the BCT origin (90 mm; Front Cardiovasc Med
     2022). Range 60-140 mm."""
@@ -201,6 +210,8 @@ class AnatomyParams:
             "arch_height": (20 * mm, 120 * mm),
             "arch_rotation": (0.0, 90 * _DEG),
             "descending_length": (50 * mm, 300 * mm),
+            "descending_bend": (0.0, 60 * _DEG),
+            "descending_bend_length": (20 * mm, 300 * mm),
             "annulus_to_brachiocephalic": (60 * mm, 140 * mm),
             "brachiocephalic_to_carotid": (8 * mm, 35 * mm),
             "carotid_to_subclavian": (8 * mm, 35 * mm),
@@ -246,6 +257,10 @@ class AnatomyParams:
                 raise AnatomyError(
                     f"{name} must leave >= 4 mm of wall between the branch origins, i.e. be >= "
                     f"{0.5 * (d1 + d2) + 4 * mm:.4g} m for these diameters, found {spacing:.4g} m")
+        if self.descending_bend_length > self.descending_length:
+            raise AnatomyError(
+                f"descending_bend_length must be <= descending_length = "
+                f"{self.descending_length:.4g} m, found {self.descending_bend_length:.4g} m")
         if self.annulus_to_brachiocephalic < self.ascending_length:
             raise AnatomyError(
                 "annulus_to_brachiocephalic must be >= ascending_length (the BCT arises from "
@@ -433,7 +448,12 @@ class AortaGeometry:
         pts.append(start + half * (1 - np.cos(th))[:, None] * self.d
                    + p.arch_height * np.sin(th)[:, None] * z)
         end = start + p.arch_width * self.d
-        pts.append(end - np.outer(np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP), z))
+        if p.descending_bend > 0.0:
+            descending, raw_exit = _bent_descending(end, p)
+            pts.append(descending)
+        else:
+            pts.append(end - np.outer(np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP),
+                                      z))
         raw = np.vstack(pts)
         raw = _resample(raw, _STEP)
         smooth = gaussian_filter1d(raw, sigma=0.007 / _STEP, axis=0, mode="nearest")
@@ -445,9 +465,14 @@ class AortaGeometry:
         self.arc = arc
         tang = np.gradient(spine, axis=0)
         self.tangent = tang / np.linalg.norm(tang, axis=1, keepdims=True)
-        # Descending end: the spine point descending_length below the arch end.
-        z_exit = end[2] - p.descending_length
-        i_exit = int(np.argmin(np.abs(spine[:, 2] - z_exit) + 1e3 * (arc < arc[-1] / 2)))
+        # Descending end: the spine point descending_length below the arch end (along the
+        # bend, when there is one).
+        if p.descending_bend > 0.0:
+            i_exit = int(np.argmin(np.linalg.norm(spine - raw_exit, axis=1)
+                                   + 1e3 * (arc < arc[-1] / 2)))
+        else:
+            z_exit = end[2] - p.descending_length
+            i_exit = int(np.argmin(np.abs(spine[:, 2] - z_exit) + 1e3 * (arc < arc[-1] / 2)))
         self.s_exit = float(arc[i_exit])
         self.exit_point = spine[i_exit].copy()
         self.exit_normal = self.tangent[i_exit].copy()
@@ -568,6 +593,42 @@ class AortaGeometry:
         pts = np.atleast_2d(pts)
         near = np.min([np.linalg.norm(pts - o, axis=1) for o in self.ostia.values()], axis=0)
         return np.minimum(self.p.edge_length, 0.0012 + 0.35 * np.maximum(near - 0.003, 0.0))
+
+
+#: Direction the descending aorta bends towards (``AnatomyParams.descending_bend``): the
+#: patient's right-anterior, horizontal.
+_BEND_DIRECTION = np.array([-1.0, -1.0, 0.0]) / math.sqrt(2.0)
+
+
+def _bent_descending(end: np.ndarray, p: AnatomyParams) -> tuple[np.ndarray, np.ndarray]:
+    """Raw spine of a bent descending aorta below the arch end ``end`` and its open end.
+
+    Straight down (-z) for ``descending_length - descending_bend_length``, then a circular arc
+    of ``descending_bend_length`` turning through ``descending_bend`` towards
+    :data:`_BEND_DIRECTION`, then straight on along the final tangent past the open end (as the
+    straight aorta runs on past its end, so the cut crosses a clean cylinder).
+
+    Returns:
+        ``(points (K, 3) every _STEP from the arch end, open end (3,))``.
+    """
+    down = np.array([0.0, 0.0, -1.0])
+    straight = p.descending_length - p.descending_bend_length
+    radius = p.descending_bend_length / p.descending_bend
+    s = np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP)
+    top = end + straight * down
+    theta = p.descending_bend
+    tangent = math.cos(theta) * down + math.sin(theta) * _BEND_DIRECTION
+    bottom = top + radius * (math.sin(theta) * down + (1.0 - math.cos(theta)) * _BEND_DIRECTION)
+    out = np.empty((len(s), 3))
+    upper = s <= straight
+    out[upper] = end + np.outer(s[upper], down)
+    arc = (s > straight) & (s <= p.descending_length)
+    phi = (s[arc] - straight) / radius
+    out[arc] = top + radius * (np.outer(np.sin(phi), down)
+                               + np.outer(1.0 - np.cos(phi), _BEND_DIRECTION))
+    lower = s > p.descending_length
+    out[lower] = bottom + np.outer(s[lower] - p.descending_length, tangent)
+    return out, bottom
 
 
 def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
@@ -976,3 +1037,4 @@ def load_anatomy_mesh(path: str | Path, landmarks: dict[str, Any] | None = None,
         start_point=start,
         start_direction=start_dir,
     )
+
