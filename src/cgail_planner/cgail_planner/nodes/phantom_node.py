@@ -190,7 +190,7 @@ class PhantomNode(Node):
         start = sc.starts[start_id]
         with self._lock:
             self.start_id, self.target_id = start_id, target_id
-            self.physics.reset(start.position, start.rotation, start.introducer_tail)
+            self.physics.reset(start.position, start.rotation, start.introducer)
 
             self._em_cache = None
         if hasattr(self, '_target_pub'):

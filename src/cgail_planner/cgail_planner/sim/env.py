@@ -39,7 +39,7 @@ from cgail_planner.sim.reward import (
     StepEvents,
     update_waypoints,
 )
-from cgail_planner.sim.scenarios import episode_bounds, introducer_tail, load_world, World
+from cgail_planner.sim.scenarios import episode_bounds, load_world, World
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
 FloatArray = NDArray[np.float64]
@@ -214,7 +214,7 @@ class NavEngine:
 
         ``start_pose`` ``(position (3,), rotation (3, 3))`` puts the tip there instead of at
         the start's pose, with the introducer behind it
-        (:func:`~cgail_planner.sim.scenarios.introducer_tail`): a demonstration replayed from
+        (:meth:`~cgail_planner.sim.scenarios.World.introducer`): a demonstration replayed from
         the pose it was recorded from (:mod:`cgail_planner.learning.demo_bags`).
         """
         sc = self.scenarios
@@ -224,10 +224,10 @@ class NavEngine:
             raise ValueError(f"target must be in [0, {len(sc.targets) - 1}], found {target_id}")
         start = sc.starts[start_id]
         if start_pose is None:
-            self.catheter.reset_env(i, start.position, start.rotation, start.introducer_tail)
+            self.catheter.reset_env(i, start.position, start.rotation, start.introducer)
         else:
             p, r = _checked_pose(start_pose)
-            self.catheter.reset_env(i, p, r, introducer_tail(self.world.anatomy, p, r))
+            self.catheter.reset_env(i, p, r, self.world.introducer(p, r))
         if not self._shared_wall:
             self.walls[i].reset()
         self.start_id[i] = start_id

@@ -11,6 +11,8 @@ import functools
 import math
 
 from cgail_planner.sim.anatomy import Anatomy, AnatomyParams, build_anatomy_from_params
+from cgail_planner.sim.centerline import compute_centerlines
+from cgail_planner.sim.scenarios import build_scenarios, World
 
 #: The parameters of the curved anatomy.
 CURVED_PARAMS = AnatomyParams(descending_bend=math.radians(30.0), descending_bend_length=0.060)
@@ -20,3 +22,12 @@ CURVED_PARAMS = AnatomyParams(descending_bend=math.radians(30.0), descending_ben
 def curved_anatomy() -> Anatomy:
     """The curved-descending-aorta anatomy (name ``curved``)."""
     return build_anatomy_from_params(CURVED_PARAMS, "curved")
+
+
+@functools.cache
+def curved_world() -> World:
+    """Its world: centerlines and scenario set (as ``load_world`` builds them)."""
+    anatomy = curved_anatomy()
+    centerlines = compute_centerlines(anatomy)
+    return World(anatomy=anatomy, centerlines=centerlines,
+                 scenarios=build_scenarios(anatomy, centerlines))
