@@ -57,6 +57,7 @@ from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.sim.ftl_model import CatheterConfig
+from cgail_planner.sim.wall import WallError
 
 
 class PhantomNode(Node):
@@ -124,6 +125,8 @@ class PhantomNode(Node):
             else DeformableWall(self.world.anatomy)
         self.wall: StaticWall = wall  # (a DeformableWall in dynamic mode)
         self.physics = PhantomPhysics(self.config, wall)
+        #: Why the physics stopped (a deformable wall beyond its bound), '' while it runs.
+        self.physics_error = ''
         self.rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self.insertion: float | None = None
@@ -243,7 +246,12 @@ class PhantomNode(Node):
         if self.driver is not None:
             self.driver.step(dt)
         with self._lock:
-            self.physics.step(dt, self.insertion, self.bend)
+            if not self.physics_error:
+                try:
+                    self.physics.step(dt, self.insertion, self.bend)
+                except WallError as exc:  # safe state: the catheter and the wall freeze
+                    self.physics_error = f'physics stopped: {exc}'
+                    self.get_logger().error(self.physics_error)
             if self.lockstep:
                 self.sim_time = self.get_clock().now().nanoseconds * 1e-9
             else:
@@ -290,6 +298,8 @@ class PhantomNode(Node):
                   ('insertion_m', self.insertion)]
         level = DiagnosticStatus.OK if self.insertion is not None else DiagnosticStatus.WARN
         message = 'simulating' if self.insertion is not None else 'no insertion state yet'
+        if self.physics_error:
+            level, message = DiagnosticStatus.ERROR, self.physics_error
         return conv.diagnostics(self.now_msg(), 'phantom: simulated rig', 'phantom', level,
                                 message, values)
 
