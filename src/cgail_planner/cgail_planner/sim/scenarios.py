@@ -22,7 +22,10 @@
 * ``origin``: the centre of the anatomy's bounding box (observed positions are relative to it).
 
 The set is a pure function of the anatomy, the centerlines and the seed; :func:`load_world`
-caches it per ``(anatomy name, n_waypoints, seed)`` so many environments share one copy.
+takes an anatomy as a built-in name, a prepared directory, a mesh file or an
+:class:`~cgail_planner.sim.anatomy.Anatomy` (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`)
+and caches the world per ``(anatomy content hash, name, n_waypoints, seed)`` so many
+environments share one copy.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from cgail_planner.sim.anatomy import Anatomy, build_anatomy
+from cgail_planner.sim.anatomy import Anatomy, AnatomyError, AnatomySpec, resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
 from cgail_planner.sim.ftl_model import CatheterConfig, frame_from_heading
 from cgail_planner.sim.ftl_model import introducer_tail as ftl_introducer_tail
@@ -48,8 +51,10 @@ FloatArray = NDArray[np.float64]
 BRANCHES = ("left", "right")
 
 
-class ScenarioError(ValueError):
-    """The anatomy does not admit the requested scenario set (e.g. no valid target found)."""
+class ScenarioError(AnatomyError):
+    """The anatomy does not admit the requested scenario set (e.g. no valid target found, no
+    introducer inside the lumen behind a start); an :class:`AnatomyError`, so every entry
+    point that reports a bad anatomy reports this too."""
 
 
 @dataclass(frozen=True)
@@ -405,12 +410,39 @@ def build_scenarios(anatomy: Anatomy, centerlines: dict[str, Centerline], *, see
                        origin=origin)
 
 
-@functools.lru_cache(maxsize=8)
-def load_world(anatomy_name: str, n_waypoints: int = 100, seed: int = 0) -> World:
-    """Build (once per process) the anatomy, its centerlines and scenarios."""
-    anatomy = build_anatomy(anatomy_name)
-    centerlines = compute_centerlines(anatomy, n_waypoints=n_waypoints)
-    scenarios = build_scenarios(anatomy, centerlines, seed=seed)
-    if not math.isfinite(scenarios.d_max) or scenarios.d_max <= 0.0:
-        raise ScenarioError(f"expected a positive d_max, found {scenarios.d_max}")
-    return World(anatomy=anatomy, centerlines=centerlines, scenarios=scenarios)
+_WORLDS: dict[tuple[str, str, int, int], World] = {}
+_WORLDS_MAX = 8
+
+
+def load_world(anatomy: AnatomySpec, n_waypoints: int = 100, seed: int = 0) -> World:
+    """Build (once per process) the anatomy, its centerlines and scenarios.
+
+    Args:
+        anatomy: a built-in name, a prepared anatomy directory, a mesh file with its
+            ``<stem>.yaml`` landmarks, or an :class:`~cgail_planner.sim.anatomy.Anatomy`
+            (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`).
+        n_waypoints: waypoints per centerline.
+        seed: seed of the target sampling.
+
+    Returns:
+        The world, shared by every caller with the same anatomy content, name and arguments
+        (the centerlines come from the disk cache keyed by the content hash).
+
+    Raises:
+        AnatomyError: an anatomy that cannot be resolved or loaded (the message names it).
+        ScenarioError: an anatomy that does not admit the scenario set (e.g. no introducer
+            inside the lumen behind a start).
+    """
+    resolved = resolve_anatomy(anatomy)
+    key = (resolved.content_hash, resolved.name, int(n_waypoints), int(seed))
+    world = _WORLDS.get(key)
+    if world is None:
+        centerlines = compute_centerlines(resolved, n_waypoints=n_waypoints)
+        scenarios = build_scenarios(resolved, centerlines, seed=seed)
+        if not math.isfinite(scenarios.d_max) or scenarios.d_max <= 0.0:
+            raise ScenarioError(f"expected a positive d_max, found {scenarios.d_max}")
+        world = World(anatomy=resolved, centerlines=centerlines, scenarios=scenarios)
+        if len(_WORLDS) >= _WORLDS_MAX:
+            _WORLDS.pop(next(iter(_WORLDS)))
+        _WORLDS[key] = world
+    return world
