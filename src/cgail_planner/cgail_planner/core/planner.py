@@ -56,6 +56,7 @@ from cgail_planner.sim.ftl_model import (
     advance_pose,
     CatheterConfig,
     command_nb,
+    describe_anatomy,
     introducer_tail,
     ObservationConfig,
     ObservationSpec,
@@ -256,7 +257,7 @@ def _wall_arrays(wall: object) -> Any | None:
 
 def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
                        theta_max: float | None, segment_length: float | None, override: bool,
-                       world_spec: ObservationSpec | None = None
+                       world_spec: ObservationSpec | None = None, anatomy_hash: str = ""
                        ) -> tuple[PolicyContract, list[str]]:
     """The contract a planner runs with, given settings that may repeat some of its entries.
 
@@ -267,13 +268,17 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
 
     Args:
         contract: the policy's contract.
-        anatomy: the anatomy the planner plans in.
+        anatomy: the anatomy the planner plans in: a built-in name, or a path anatomy's label.
         mode: ``static`` or ``dynamic``: the world the planner plans in.
         theta_max: the maximal bending angle setting, rad, or None.
         segment_length: the steerable segment length setting, m, or None.
         override: let disagreeing settings win (with a warning).
         world_spec: this anatomy's own observation spec (origin, d_max), used in place of the
             policy's when an overridden anatomy disagrees.
+        anatomy_hash: the content hash of a path anatomy, ``""`` for a built-in one
+            (:func:`cgail_planner.sim.anatomy.anatomy_identity`). What identifies the anatomy
+            is compared: the hashes when either side has one (a path anatomy: its label may
+            differ), else the built-in names.
 
     Returns:
         ``(contract, notes)``: the contract to run with and the lines to log (warnings for
@@ -293,13 +298,17 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         notes.append(f"override_policy_contract: {name} {value:.6g} instead of the policy's "
                      f"{want:.6g}")
     observation = contract.observation
-    if anatomy != contract.anatomy:
+    same = (anatomy_hash == contract.anatomy_hash if anatomy_hash or contract.anatomy_hash
+            else anatomy == contract.anatomy)
+    if not same:
+        ours, theirs = describe_anatomy(anatomy, anatomy_hash), contract.describe_anatomy()
+        if not (anatomy_hash or contract.anatomy_hash):  # two built-in names: just the names
+            ours, theirs = repr(anatomy), repr(contract.anatomy)
         if not override:
-            raise ContractError(f"anatomy: expected the policy's {contract.anatomy!r}, found "
-                                f"parameter {anatomy!r} (set override_policy_contract to run "
-                                "anyway)")
-        notes.append(f"override_policy_contract: anatomy {anatomy!r} instead of the policy's "
-                     f"{contract.anatomy!r} (observed in this anatomy's frame)")
+            raise ContractError(f"anatomy: expected the policy's {theirs}, found parameter "
+                                f"{ours} (set override_policy_contract to run anyway)")
+        notes.append(f"override_policy_contract: anatomy {ours} instead of the policy's "
+                     f"{theirs} (observed in this anatomy's frame)")
         if world_spec is not None:
             observation = ObservationSpec(origin=world_spec.origin, d_max=world_spec.d_max,
                                           config=observation.config,
@@ -310,7 +319,7 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         return contract, notes
     return PolicyContract(catheter=CatheterConfig(**{**asdict(cat), **changes}),
                           observation=observation, anatomy=anatomy, mode=contract.mode,
-                          training=contract.training), notes
+                          training=contract.training, anatomy_hash=anatomy_hash), notes
 
 
 class Planner:

@@ -92,6 +92,7 @@ __all__ = [
     "AnatomySpec",
     "AortaGeometry",
     "MeshLoadError",
+    "anatomy_identity",
     "anatomy_label",
     "anatomy_params",
     "build_anatomy",
@@ -1133,6 +1134,23 @@ def check_anatomy_spec(spec: AnatomySpec) -> None:
     if not isinstance(spec, (str, os.PathLike)) or (isinstance(spec, str) and not spec.strip()):
         raise AnatomyError(_usage(spec))
     _mesh_of(spec)
+
+
+def anatomy_identity(spec: AnatomySpec) -> tuple[str, str]:
+    """``(label, content_hash)``: what identifies an anatomy in a policy contract or a report.
+
+    A built-in anatomy is identified by its name, with no hash (``""``): its mesh differs in
+    the last bits between CPUs (:mod:`cgail_planner.sim.disk_cache`), so a policy trained on
+    ``default`` runs on every machine's ``default``. Any other anatomy (a path, an
+    :class:`Anatomy` built from parameters) is identified by its content hash, with
+    :func:`anatomy_label` as its readable name.
+    """
+    if is_builtin(spec):
+        return str(spec), ""
+    anatomy = resolve_anatomy(spec)
+    if anatomy.name in ANATOMY_NAMES and anatomy is build_anatomy(anatomy.name):
+        return anatomy.name, ""
+    return anatomy_label(spec), anatomy.content_hash
 
 
 def is_builtin(spec: AnatomySpec) -> bool:

@@ -876,6 +876,13 @@ CONTRACT_KEY = "catheter_contract"
 CONTRACT_VERSION = 1
 
 
+def describe_anatomy(label: str, content_hash: str) -> str:
+    """An anatomy identity (:func:`cgail_planner.sim.anatomy.anatomy_identity`) in words."""
+    if not content_hash:
+        return f"built-in {label!r}"
+    return f"{label!r} (content hash {content_hash})"
+
+
 @dataclass(frozen=True, eq=False)
 class PolicyContract:
     """The model a policy was trained and evaluated with; the planner builds itself from it.
@@ -891,17 +898,32 @@ class PolicyContract:
     observation: ObservationSpec
     """Observation normalisers, anatomy frame and ray set."""
     anatomy: str
-    """Anatomy the policy was trained on (``origin`` and ``d_max`` are that anatomy's)."""
+    """Anatomy the policy was trained on (``origin`` and ``d_max`` are that anatomy's): a
+    built-in name, or the label of a path anatomy (its directory name)."""
     mode: str
     """``static`` or ``dynamic``: the world it was trained in."""
     training: Mapping[str, Any] = field(default_factory=dict)
     """Notes on the training run (preset, steps, curriculum); informational."""
+    anatomy_hash: str = ""
+    """Content hash of a path anatomy (:attr:`cgail_planner.sim.anatomy.Anatomy.content_hash`,
+    what identifies it; :func:`cgail_planner.sim.anatomy.anatomy_identity`); ``""`` for a
+    built-in anatomy, which its name identifies."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("static", "dynamic"):
             raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
         if not isinstance(self.anatomy, str) or not self.anatomy:
             raise ValueError(f"anatomy must be a non-empty name, found {self.anatomy!r}")
+        if not isinstance(self.anatomy_hash, str) or not (
+                self.anatomy_hash == "" or (len(self.anatomy_hash) == 16 and all(
+                    c in "0123456789abcdef" for c in self.anatomy_hash))):
+            raise ValueError(f"anatomy_hash must be '' or 16 hex digits, found "
+                             f"{self.anatomy_hash!r}")
+
+    def describe_anatomy(self) -> str:
+        """The policy's anatomy in words, e.g. ``built-in 'default'`` or ``'p07' (content
+        hash 606110321e2766a5)``."""
+        return describe_anatomy(self.anatomy, self.anatomy_hash)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (what the ONNX metadata stores under :data:`CONTRACT_KEY`)."""
@@ -917,6 +939,7 @@ class PolicyContract:
             },
             "observation": self.observation.to_dict(),
             "anatomy": self.anatomy,
+            **({"anatomy_hash": self.anatomy_hash} if self.anatomy_hash else {}),
             "mode": self.mode,
             "training": dict(self.training),
         }
@@ -943,7 +966,8 @@ class PolicyContract:
             catheter = CatheterConfig(**data["catheter"])
             observation = ObservationSpec.from_dict(data["observation"])
             return cls(catheter=catheter, observation=observation, anatomy=data["anatomy"],
-                       mode=data["mode"], training=dict(data.get("training", {})))
+                       mode=data["mode"], training=dict(data.get("training", {})),
+                       anatomy_hash=data.get("anatomy_hash", ""))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"contract: expected the keys of PolicyContract.to_dict, found "
                              f"{sorted(data)} ({exc})") from None
