@@ -68,6 +68,8 @@ _START_SPAN_MM = 53.0
 _EDGE_FACTOR = 0.93
 """Remeshing target edge / ideal edge for ``target_vertices`` (measured on the synthetic aortas:
 the remesher ends ~13 % short of the ideal vertex count)."""
+_ARCH_CLEARANCE_MM = 40.0
+"""Centreline distance between the last supra-aortic branch and the farthest start, mm."""
 _CATHETER_RADIUS_MM = 3.5
 """Outer radius of the paper's catheter (7 mm diameter, :mod:`cgail_planner.sim.ftl_model`)."""
 
@@ -413,29 +415,37 @@ def _plan_cuts(skel: Skeleton, annulus: tuple[np.ndarray, np.ndarray, float],
     cuts = [Cut("annulus", centre, -axis, r_ann)]
     s_last = max((float(arc[b.junction_index]) for b in skel.branches), default=0.0)
     end_room = float(arc[-1]) - _BEYOND_MM - 2.0
-    need = _START_ABOVE_EXIT_MM + _START_SPAN_MM + 20.0
+    # The farthest start must lie in the descending aorta, clear of the arch's bend.
+    need = _START_ABOVE_EXIT_MM + _START_SPAN_MM + _ARCH_CLEARANCE_MM
     if given_exit is not None:
         s_exit = float(arc[int(np.argmin(np.linalg.norm(trunk - given_exit, axis=1)))])
         notes.append(f"descending cut at the exit point given by the user "
                      f"({s_exit - s_last:.0f} mm below the last branch)")
     else:
-        s_exit = min(s_last + options.descending_mm, end_room)
-        if s_exit - s_last < need:
+        if end_room - s_last < need:
             raise PatientError(
                 f"expected at least {need:.0f} mm of descending aorta below the last "
                 f"supra-aortic branch (room for the starts), found {end_room - s_last:.0f} mm: "
                 "the segmentation ends too early")
-        while True:
-            exit_point = _at(trunk, arc, s_exit)
-            exit_normal = _tangent(trunk, arc, s_exit)
-            clear = _introducer_clearance(trunk, radii, arc, s_exit, exit_normal, exit_point)
-            if clear >= _CATHETER_RADIUS_MM + 1.0 or s_exit - 10.0 - s_last < need:
+        # The longest descending aorta (up to descending_mm) whose straight introducers keep
+        # clear of the wall; shorter ones are tried in 10 mm steps.
+        first = min(s_last + options.descending_mm, end_room)
+        candidates = np.arange(first, s_last + need - 1e-9, -10.0)
+        best = (-math.inf, first)
+        for cand in candidates:
+            clear = _introducer_clearance(trunk, radii, arc, float(cand),
+                                          _tangent(trunk, arc, float(cand)),
+                                          _at(trunk, arc, float(cand)))
+            if clear > best[0]:
+                best = (clear, float(cand))
+            if clear >= _CATHETER_RADIUS_MM + 1.0:
+                best = (clear, float(cand))
                 break
-            s_exit -= 10.0
+        clear, s_exit = best
         if clear < _CATHETER_RADIUS_MM + 1.0:
             warnings.append(
-                f"the descending aorta bends: a straight introducer keeps only "
-                f"{clear:.1f} mm from the centreline's wall distance (catheter radius "
+                f"the descending aorta bends: at best a straight introducer passes "
+                f"{clear:.1f} mm inside the centreline's inscribed radius (catheter radius "
                 f"{_CATHETER_RADIUS_MM} mm); see the introducer check")
         notes.append(f"descending cut {s_exit - s_last:.0f} mm of centreline below the last "
                      f"supra-aortic branch (asked {options.descending_mm:.0f} mm; the label "
