@@ -199,8 +199,8 @@ def _largest_component(vol: LabelVolume, options: PrepareOptions,
                 f"second has {frac:.0%} of the largest's volume): a gap in the segmentation? "
                 "Join them or remove one")
         h3 = vol.spacing ** 3
-        notes.append(f"dropped {n - 1} small island(s) of the label ({(sizes.sum() - sizes[order[0]]) * h3:.0f} mm^3 "
-                     "in all)")
+        dropped = float(sizes.sum() - sizes[order[0]]) * h3
+        notes.append(f"dropped {n - 1} small island(s) of the label ({dropped:.0f} mm^3 in all)")
     return np.asarray(labels == best)
 
 
@@ -258,9 +258,9 @@ def _orient(skel: Skeleton, lv_points: np.ndarray | None, notes: list[str],
         if max(from_a, from_b) > 1.3 * min(from_a, from_b):
             root_is_a = from_a < from_b
             notes.append(
-                f"root end: the trunk end nearer the supra-aortic branches ({min(from_a, from_b):.0f} "
-                f"mm of centreline to the first branch; {max(from_a, from_b):.0f} mm from the other "
-                "end to the last branch)")
+                "root end: the trunk end nearer the supra-aortic branches "
+                f"({min(from_a, from_b):.0f} mm of centreline to the first branch; "
+                f"{max(from_a, from_b):.0f} mm from the other end to the last branch)")
             return (skel if root_is_a else skel.reversed()), True
     root_is_a = a[1] < b[1]
     warnings.append("the root end was taken as the more anterior trunk end (no LV label and the "
@@ -688,7 +688,8 @@ def _ostia_from_labels(coronary: np.ndarray, mask: np.ndarray, field_: _Field
                        ) -> dict[str, np.ndarray]:
     """Ostia (LPS mm): the centres of the contacts of the two largest coronary components with
     the aorta; left is the one further to the patient's left (+x)."""
-    from scipy.ndimage import binary_dilation, label as cc_label
+    from scipy.ndimage import binary_dilation
+    from scipy.ndimage import label as cc_label
 
     labels, n = cc_label(coronary, structure=np.ones((3, 3, 3)))
     if n < 2:
@@ -699,9 +700,9 @@ def _ostia_from_labels(coronary: np.ndarray, mask: np.ndarray, field_: _Field
     for lab in np.argsort(-sizes)[:2] + 1:
         contact = binary_dilation(labels == lab, iterations=1) & mask
         if contact.sum() < 3:
+            gap = float(np.min(np.abs(field_(field_.grid_points(labels == lab)))))
             raise PatientError("expected each coronary artery to touch the aorta, found one "
-                               f"{float(np.min(np.abs(field_(field_.grid_points(labels == lab))))):.0f} mm "
-                               "away")
+                               f"{gap:.0f} mm away")
         centres.append(field_.grid_points(contact).mean(axis=0))
     left, right = sorted(centres, key=lambda c: -float(c[0]))
     return {"left": left, "right": right}

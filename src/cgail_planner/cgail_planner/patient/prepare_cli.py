@@ -37,11 +37,11 @@ import numpy as np
 from cgail_planner.patient import PatientError
 from cgail_planner.patient.prepare import (
     LandmarkOverrides,
-    PrepareOptions,
-    PreparedAnatomy,
     prepare_volume,
+    PreparedAnatomy,
+    PrepareOptions,
 )
-from cgail_planner.patient.validate import Validation, validate_anatomy
+from cgail_planner.patient.validate import validate_anatomy, Validation
 from cgail_planner.patient.volume import (
     FRAMES,
     LabelVolume,
@@ -197,7 +197,8 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
     def lps(point: Sequence[float] | None) -> np.ndarray | None:
         return None if point is None else to_lps @ np.asarray(point, dtype=float)
 
-    overrides = LandmarkOverrides(annulus_center=lps(args.annulus), exit_point=lps(args.exit_point),
+    overrides = LandmarkOverrides(annulus_center=lps(args.annulus),
+                                  exit_point=lps(args.exit_point),
                                   left_ostium=lps(args.left_ostium),
                                   right_ostium=lps(args.right_ostium))
     hint = ("check --frame" if in_record["kind"] == "surface mesh"
@@ -221,7 +222,7 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
     to_input = np.linalg.inv(to_lps)
     record = {
         "name": name,
-        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": [_PROG, *(sys.argv[1:] if argv is None else list(argv))],
         "input": in_record,
         "lv": None if args.lv is None else {"path": str(Path(args.lv).resolve()),

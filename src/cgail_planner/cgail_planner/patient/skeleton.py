@@ -17,6 +17,7 @@ the finished wall (:func:`cgail_planner.sim.centerline.compute_centerlines`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+import itertools
 
 import numpy as np
 
@@ -122,7 +123,7 @@ def skeleton_of(volume: LabelVolume, spur_mm: float = 8.0) -> Skeleton:
                 path.append(cur)
             if tree.degree(cur) < 3:  # the whole tree is one path: keep it
                 continue
-            plen = sum(float(tree[a][b]["weight"]) for a, b in zip(path, path[1:], strict=False))
+            plen = sum(float(tree[a][b]["weight"]) for a, b in itertools.pairwise(path))
             if plen < float(radius[cur]) + spur_mm:
                 tree.remove_nodes_from(path[:-1])
                 n_spurs += 1

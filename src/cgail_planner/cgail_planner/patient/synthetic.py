@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -299,7 +300,7 @@ def make_synthetic_ct(config: SyntheticCTConfig | None = None) -> SyntheticCT:
     if cfg.coronaries:
         coronary = np.zeros(grid, dtype=np.uint8)
         for value, side in ((1, "left"), (2, "right")):
-            vals = _sample_field(lambda p, side=side: _coronary_field(g, p, side), grid,
+            vals = _sample_field(functools.partial(_coronary_field, g, side=side), grid,
                                  to_phantom, step)
             coronary[(vals < threshold) & (aorta == 0)] = value
     if not aorta.any():

@@ -271,7 +271,7 @@ def _wall_check(anatomy: Anatomy, cat: CatheterConfig, v: Validation,
     rest = np.asarray(anatomy.vertices)
     period = 60.0 / float(wall.heartbeat.config.heart_rate)
     dt = 0.1
-    steps = int(math.ceil(beats * period / dt))
+    steps = math.ceil(beats * period / dt)
     worst = 0.0
     when = 0.0
     for k in range(1, steps + 1):

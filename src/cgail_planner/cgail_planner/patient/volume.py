@@ -27,10 +27,10 @@ from cgail_planner.patient import PatientError
 
 __all__ = [
     "FRAMES",
-    "LabelVolume",
     "LPS_FROM_RAS",
-    "SurfaceMesh",
     "UNITS",
+    "LabelVolume",
+    "SurfaceMesh",
     "read_label_map",
     "read_surface",
     "voxelize_surface",

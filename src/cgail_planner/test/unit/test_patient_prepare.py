@@ -21,9 +21,9 @@ from cgail_planner.patient.prepare_cli import main, prepare_anatomy, PrepareResu
 from cgail_planner.patient.synthetic import (
     LPS_FROM_RAS,
     make_synthetic_ct,
+    synthetic_surface,
     SyntheticCTConfig,
     SyntheticTruth,
-    synthetic_surface,
 )
 from cgail_planner.sim.anatomy import load_anatomy_mesh
 from cgail_planner.sim.centerline import compute_centerlines
@@ -68,7 +68,7 @@ def hausdorff95_mm(case: Case) -> tuple[float, float]:
     wall = trimesh.Trimesh(a.vertices, a.faces[a.wall_face_mask], process=False)
     pts = np.vstack([wall.sample(4000, seed=0), a.vertices])
     d_ab = case.truth.wall_distance_mm(_ras(case.result, pts))
-    v, _, truth = synthetic_surface(case.anatomy, frame="RAS", spacing_mm=1.0,
+    v, _, _ = synthetic_surface(case.anatomy, frame="RAS", spacing_mm=1.0,
                                     branch_length_mm=case.branch_length_mm,
                                     descending_length_mm=case.descending_length_mm,
                                     annulus_mm=tuple(case.truth.annulus_ras_mm))
@@ -138,8 +138,8 @@ def test_coarse_label_map_landmarks_near_the_truth(coarse: Case) -> None:
 
 def test_prepared_anatomy_runs_in_the_static_env(coarse: Case,
                                                  monkeypatch: pytest.MonkeyPatch) -> None:
-    import cgail_planner.sim.env as env_mod
     from cgail_planner.sim.config import EnvConfig
+    import cgail_planner.sim.env as env_mod
 
     anatomy = load_anatomy_mesh(coarse.result.out / "lumen.stl")
     lines = compute_centerlines(anatomy)

@@ -6,7 +6,6 @@ import dataclasses
 import math
 
 import numpy as np
-import pytest
 
 from cgail_planner.patient.validate import bend_radii, validate_anatomy
 from cgail_planner.sim.anatomy import Anatomy, build_anatomy
