@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
-import cgail_planner.sim.env as env_mod
 from cgail_planner.patient.prepare_cli import prepare_anatomy
 from cgail_planner.patient.synthetic import make_synthetic_ct, SyntheticCTConfig
 from cgail_planner.sim.anatomy import load_anatomy_mesh
 from cgail_planner.sim.centerline import compute_centerlines
 from cgail_planner.sim.config import EnvConfig
+import cgail_planner.sim.env as env_mod
 from cgail_planner.sim.scenarios import build_scenarios, World
 
 
