@@ -146,3 +146,29 @@ def test_voxelised_surface_keeps_the_volume(tmp_path: Path) -> None:
     assert vol.mask.sum() == pytest.approx(sphere.volume, rel=0.01)
     centre = vol.points(np.argwhere(vol.mask)).mean(axis=0)
     assert np.abs(centre).max() < 0.2
+
+
+@pytest.mark.slow
+def test_synthetic_ct_console_script_writes_label_maps_and_meshes(tmp_path) -> None:
+    import nibabel as nib
+    import yaml
+
+    from cgail_planner.patient.synthetic import main
+
+    assert main(['--out', str(tmp_path / 'ct'), '--coronaries']) == 0
+    names = sorted(p.name for p in (tmp_path / 'ct').iterdir())
+    assert names == ['synthetic_aorta.nii.gz', 'synthetic_coronary.nii.gz',
+                     'synthetic_lv.nii.gz', 'truth.yaml']
+    img = nib.load(tmp_path / 'ct' / 'synthetic_aorta.nii.gz')
+    assert img.header.get_zooms() == pytest.approx((0.84, 0.84, 1.0), abs=1e-6)
+    truth = yaml.safe_load((tmp_path / 'ct' / 'truth.yaml').read_text())
+    assert set(truth) >= {'annulus_center', 'left_ostium', 'right_ostium', 'root_axis'}
+    assert main(['--out', str(tmp_path / 'mesh'), '--mesh', 'LPS', '--noise-mm', '0.3']) == 0
+    assert (tmp_path / 'mesh' / 'synthetic_lumen.stl').stat().st_size > 1e6
+
+
+def test_synthetic_ct_console_script_refuses_bad_options(tmp_path, capsys) -> None:
+    from cgail_planner.patient.synthetic import main
+
+    assert main(['--out', str(tmp_path), '--spacing-mm', '0.1', '0.84', '1.0']) == 2
+    assert 'spacing_mm must be 3 values in [0.3, 2.5] mm' in capsys.readouterr().err
