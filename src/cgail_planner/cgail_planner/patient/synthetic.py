@@ -375,7 +375,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import yaml
 
-    p = argparse.ArgumentParser(prog="synthetic_ct", description=main.__doc__.split("\n")[0])
+    summary = (main.__doc__ or "").split("\n")[0]
+    p = argparse.ArgumentParser(prog="synthetic_ct", description=summary)
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--anatomy", default="default", help="built-in anatomy to voxelise")
     p.add_argument("--voxel-order", choices=_VOXEL_ORDERS, default="LPS")
