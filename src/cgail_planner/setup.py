@@ -50,6 +50,8 @@ setup(
             'bag_metrics = cgail_planner.bags.metrics_cli:main',
             'bag_recover = cgail_planner.bags.recover:main',
             'sim_render = cgail_planner.sim.render:main',
+            'prepare_anatomy = cgail_planner.patient.prepare_cli:main',
+            'synthetic_ct = cgail_planner.patient.synthetic:main',
             'make_demos = cgail_planner.learning.demos_cli:main',
             'train = cgail_planner.learning.train:main',
             'evaluate = cgail_planner.learning.evaluate:main',

@@ -18,7 +18,7 @@ overlaid as wireframes at N phases of one heartbeat.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 import importlib
 from pathlib import Path
 import sys
@@ -100,7 +100,8 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
                    rollout: np.ndarray | None = None, phases: Sequence[np.ndarray] = (),
                    scenarios: bool = True,
                    views: Sequence[str] = ("anterior", "left-lateral", "root"),
-                   dpi: int = 110, title: str | None = None) -> Path:
+                   dpi: int = 110, title: str | None = None,
+                   markers: Mapping[str, np.ndarray] | None = None) -> Path:
     """Draw the anatomy and overlays to a PNG.
 
     Args:
@@ -113,6 +114,7 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
         views: names from :data:`VIEWS`.
         dpi: output resolution.
         title: figure title (default: the anatomy name).
+        markers: further labelled points (m) to mark, e.g. ``{"annulus centre": p}``.
 
     Returns:
         The written path.
@@ -201,6 +203,11 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
             s = clip(anatomy.start_point[None] * mm)[0]
             ax.scatter([s[0]], [s[1]], [s[2]], s=40, marker="^", color="k", label="start",
                        depthshade=False)
+        for m_idx, (label, point) in enumerate((markers or {}).items()):
+            q = clip(np.asarray(point, dtype=float).reshape(1, 3) * mm)[0]
+            ax.scatter([q[0]], [q[1]], [q[2]], s=55, marker="X",
+                       color=("#ff7f0e", "#17becf", "#8c564b", "#7f7f7f")[m_idx % 4],
+                       edgecolors="k", label=label, depthshade=False)
         if rollout is not None and len(rollout):
             r = clip(np.asarray(rollout, dtype=float).reshape(-1, 3) * mm)
             ax.plot(r[:, 0], r[:, 1], r[:, 2], color="m", lw=1.6, label="catheter tip")

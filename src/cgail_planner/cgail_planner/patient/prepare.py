@@ -1,0 +1,829 @@
+"""The ``prepare_anatomy`` pipeline: a lumen volume in, a simulator :class:`Anatomy` out.
+
+All steps run without a manual step, in patient LPS millimetres, and end in the ``phantom``
+frame (LPS axes, annulus centre at the origin, metres):
+
+1. **Lumen.** The largest connected component of the label (others are refused when they are
+   large, dropped with a note when they are small islands), a signed distance field from the
+   Euclidean distance transform, smoothed by a Gaussian (``smoothing_mm``).
+2. **Skeleton** (:mod:`~cgail_planner.patient.skeleton`): trunk, its two ends, the branches.
+3. **Which end is the root**: the end touching the left ventricle when an LV label map is given;
+   otherwise the end nearer the supra-aortic branches along the trunk (annulus -> brachiocephalic
+   ~90 mm, left subclavian -> diaphragm ~200 mm) when that is clear; otherwise the more
+   anterior end (with a warning that the frame could not be checked).
+4. **Frame check**: with the root known, the descending aorta must lie posterior (and left) of
+   the ascending aorta and the branches must point cranially; a mesh given in LPS but declared
+   RAS (or the reverse), or a flipped cranial axis, is refused with one line saying so.
+5. **Cut planes**: the annulus plane (fitted to the contact with the LV label, or to the flat
+   end of the root), the descending end (``descending_mm`` of centreline below the last
+   supra-aortic branch, shortened until every start's straight introducer keeps clear of the
+   wall) and each branch ``branch_mm`` beyond the aortic wall. Beyond each cut the lumen is
+   removed (a tube stub of ``_BEYOND_MM`` is kept for a clean cut); below the annulus the root's
+   cross-section is extruded so that the valve plane cuts a full circle.
+6. **Surface**: marching cubes (scikit-image) on the field, the largest component, quadric
+   decimation (fast-simplification), then isotropic remeshing onto the field
+   (:class:`~cgail_planner.sim.mesh_io.Remesher`, the built-in anatomies' method) with the
+   edge length that gives ``target_vertices``; the cuts with
+   :func:`~cgail_planner.sim.mesh_io.clip_and_cap` (flat ring-meshed caps, the valve plane
+   counted as wall), a light relaxation next to them.
+7. **Landmarks**: annulus centre and root axis (valve plane), exit point and normal (descending
+   cap), start point (20 mm above the exit on the centreline), coronary ostia from a coronary
+   label map, from points given by the user, or estimated in the left and right coronary sinuses
+   at the usual heights above the annulus (14.4 / 17.2 mm, Tops 2008) with a warning.
+
+Every refusal is a :class:`~cgail_planner.patient.PatientError` with one line that says what was
+expected and what was found.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+from typing import Any
+
+import numpy as np
+
+from cgail_planner.patient import PatientError
+from cgail_planner.patient.skeleton import Skeleton, skeleton_of
+from cgail_planner.patient.volume import LabelVolume
+from cgail_planner.sim import mesh_io
+from cgail_planner.sim.anatomy import Anatomy
+
+__all__ = [
+    "Cut",
+    "LandmarkOverrides",
+    "PrepareOptions",
+    "PreparedAnatomy",
+    "prepare_volume",
+]
+
+_BEYOND_MM = 8.0
+"""Length of lumen kept beyond each cut plane so that the clip crosses a clean tube, mm."""
+_OSTIUM_HEIGHT_MM = {"left": 14.4, "right": 17.2}
+"""Usual ostium heights above the annulus (Tops 2008; ANATOMY.md)."""
+_START_ABOVE_EXIT_MM = 20.0
+"""Centreline distance of the first start above the exit cap (as the built-in anatomies)."""
+_START_SPAN_MM = 53.0
+"""Arc length spanned by the starts (:func:`cgail_planner.sim.scenarios.build_starts`)."""
+_EDGE_FACTOR = 0.93
+"""Remeshing target edge / ideal edge for ``target_vertices`` (measured on the synthetic aortas:
+the remesher ends ~13 % short of the ideal vertex count)."""
+_ARCH_CLEARANCE_MM = 40.0
+"""Centreline distance between the last supra-aortic branch and the farthest start, mm."""
+_CATHETER_RADIUS_MM = 3.5
+"""Outer radius of the paper's catheter (7 mm diameter, :mod:`cgail_planner.sim.ftl_model`)."""
+
+
+@dataclass(frozen=True)
+class PrepareOptions:
+    """Options of the pipeline (validated in ``__post_init__``)."""
+
+    target_vertices: int = 2500
+    """Vertex count of the prepared lumen. 2,500 (the built-in anatomies have 2,450-2,800):
+    the deformable wall runs at >= 500 steps/s at this size (``bench/bench_prepare.py``);
+    in [500, 20000]."""
+    branch_mm: float = 25.0
+    """Length of each supra-aortic branch kept beyond the aortic wall, mm (as the built-in
+    stubs); in [5, 80]."""
+    descending_mm: float = 150.0
+    """Centreline length kept below the last supra-aortic branch, mm; in [90, 400]. Shortened
+    when the field of view ends earlier, or when a straight introducer would touch the wall."""
+    smoothing_mm: float = 1.0
+    """Standard deviation of the Gaussian smoothing of the lumen field, mm; in [0, 3]."""
+    island_fraction: float = 0.05
+    """Components of the label larger than this fraction of the largest are refused (two
+    disconnected lumens); smaller ones are dropped with a note; in (0, 1]."""
+
+    def __post_init__(self) -> None:
+        checks: dict[str, tuple[float, float]] = {
+            "target_vertices": (500, 20000), "branch_mm": (5.0, 80.0),
+            "descending_mm": (90.0, 400.0), "smoothing_mm": (0.0, 3.0),
+            "island_fraction": (1e-6, 1.0)}
+        for name, (lo, hi) in checks.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not lo <= value <= hi:
+                raise ValueError(f"{name} must be in [{lo:g}, {hi:g}], found {value!r}")
+
+
+@dataclass(frozen=True)
+class LandmarkOverrides:
+    """Landmarks given by the user, in patient LPS mm (None: estimated)."""
+
+    annulus_center: np.ndarray | None = None
+    exit_point: np.ndarray | None = None
+    left_ostium: np.ndarray | None = None
+    right_ostium: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Cut:
+    """A flat cut of the lumen (patient LPS mm)."""
+
+    name: str
+    """``annulus``, ``descending`` or ``branch <k>``."""
+    point: np.ndarray
+    """(3,) centre of the cut."""
+    normal: np.ndarray
+    """(3,) unit, out of the kept lumen."""
+    radius: float
+    """Inscribed radius of the lumen at the cut, mm."""
+
+
+@dataclass
+class PreparedAnatomy:
+    """What :func:`prepare_volume` made, with everything the report needs."""
+
+    anatomy: Anatomy
+    """The lumen in the phantom frame (m)."""
+    annulus_lps_mm: np.ndarray
+    """(3,) patient LPS mm of the phantom origin: phantom = (LPS - this) / 1000."""
+    cuts: list[Cut]
+    skeleton: Skeleton
+    """Trunk from the root end to the descending end (LPS mm)."""
+    notes: list[str] = field(default_factory=list)
+    """Facts worth a line in the report (what was decided and why)."""
+    warnings: list[str] = field(default_factory=list)
+    """Things the user must check (estimated ostia, an unchecked frame ...)."""
+    sources: dict[str, str] = field(default_factory=dict)
+    """Where each landmark came from (``estimated``, ``coronary label``, ``given`` ...)."""
+    timings: dict[str, float] = field(default_factory=dict)
+    """Seconds per step."""
+
+    def to_phantom(self, points_lps_mm: np.ndarray) -> np.ndarray:
+        """Patient LPS mm -> phantom m."""
+        return (np.asarray(points_lps_mm, dtype=float) - self.annulus_lps_mm) * 1e-3
+
+    def to_lps(self, points_phantom_m: np.ndarray) -> np.ndarray:
+        """Phantom m -> patient LPS mm."""
+        return np.asarray(points_phantom_m, dtype=float) * 1e3 + self.annulus_lps_mm
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, dtype=float)
+    n = float(np.linalg.norm(v))
+    return v / n if n > 0 else v
+
+
+def _arc(points: np.ndarray) -> np.ndarray:
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+
+
+def _at(points: np.ndarray, arc: np.ndarray, s: float) -> np.ndarray:
+    return np.array([np.interp(s, arc, points[:, k]) for k in range(3)])
+
+
+def _tangent(points: np.ndarray, arc: np.ndarray, s: float, half: float = 6.0) -> np.ndarray:
+    return _unit(_at(points, arc, min(s + half, arc[-1])) - _at(points, arc, max(s - half, 0.0)))
+
+
+# ------------------------------------------------------------------------------------------
+# 1. Lumen and signed distance
+# ------------------------------------------------------------------------------------------
+def _largest_component(vol: LabelVolume, options: PrepareOptions,
+                       notes: list[str]) -> np.ndarray:
+    from scipy.ndimage import label as cc_label
+
+    labels, n = cc_label(vol.mask, structure=np.ones((3, 3, 3)))
+    if n == 0:
+        raise PatientError(f"expected a lumen in {vol.source}, found no voxel")
+    sizes = np.bincount(labels.ravel())[1:]
+    order = np.argsort(-sizes)
+    best = int(order[0]) + 1
+    if n > 1:
+        second = int(sizes[order[1]])
+        frac = second / float(sizes[order[0]])
+        if frac > options.island_fraction:
+            raise PatientError(
+                f"expected one connected lumen in {vol.source}, found {n} components (the "
+                f"second has {frac:.0%} of the largest's volume): a gap in the segmentation? "
+                "Join them or remove one")
+        h3 = vol.spacing ** 3
+        dropped = float(sizes.sum() - sizes[order[0]]) * h3
+        notes.append(f"dropped {n - 1} small island(s) of the label ({dropped:.0f} mm^3 in all)")
+    return np.asarray(labels == best)
+
+
+def _signed_distance(mask: np.ndarray, spacing: float, sigma_mm: float) -> np.ndarray:
+    """Signed distance to the lumen boundary (mm, < 0 inside), Gaussian-smoothed."""
+    from scipy.ndimage import distance_transform_edt, gaussian_filter
+
+    d_in = distance_transform_edt(mask, sampling=spacing)
+    d_out = distance_transform_edt(~mask, sampling=spacing)
+    sdf = np.where(mask, -(d_in - 0.5 * spacing), d_out - 0.5 * spacing).astype(np.float32)
+    if sigma_mm > 0:
+        sdf = gaussian_filter(sdf, sigma_mm / spacing)
+    return np.asarray(sdf)
+
+
+class _Field:
+    """Trilinear interpolation of the signed distance grid, in LPS mm."""
+
+    def __init__(self, sdf: np.ndarray, origin: np.ndarray, spacing: float) -> None:
+        self.sdf = sdf
+        self.origin = np.asarray(origin, dtype=float)
+        self.spacing = float(spacing)
+
+    def __call__(self, points_mm: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import map_coordinates
+
+        idx = (np.asarray(points_mm, dtype=float).reshape(-1, 3) - self.origin) / self.spacing
+        return np.asarray(map_coordinates(self.sdf, idx.T, order=1, mode="nearest"))
+
+    def grid_points(self, sel: np.ndarray) -> np.ndarray:
+        return np.asarray(self.origin + self.spacing * np.argwhere(sel))
+
+
+# ------------------------------------------------------------------------------------------
+# 3-4. Orientation and frame
+# ------------------------------------------------------------------------------------------
+def _orient(skel: Skeleton, lv_points: np.ndarray | None, notes: list[str],
+            warnings: list[str]) -> tuple[Skeleton, bool]:
+    """The skeleton with its trunk running root -> descending end; True when the decision did
+    not use the frame (so the frame can be checked)."""
+    a, b = skel.trunk[0], skel.trunk[-1]
+    if lv_points is not None and len(lv_points):
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(lv_points)
+        da, db = float(tree.query(a)[0]), float(tree.query(b)[0])
+        notes.append(f"root end: the trunk end next to the left ventricle ({min(da, db):.0f} mm "
+                     f"from it; the other end {max(da, db):.0f} mm)")
+        return (skel if da <= db else skel.reversed()), True
+    arc = skel.trunk_arc
+    if skel.branches:
+        junctions = np.array([arc[br.junction_index] for br in skel.branches])
+        from_a = float(junctions.min())
+        from_b = float(arc[-1] - junctions.max())
+        if max(from_a, from_b) > 1.3 * min(from_a, from_b):
+            root_is_a = from_a < from_b
+            notes.append(
+                "root end: the trunk end nearer the supra-aortic branches "
+                f"({min(from_a, from_b):.0f} mm of centreline to the first branch; "
+                f"{max(from_a, from_b):.0f} mm from the other end to the last branch)")
+            return (skel if root_is_a else skel.reversed()), True
+    root_is_a = a[1] < b[1]
+    warnings.append("the root end was taken as the more anterior trunk end (no LV label and the "
+                    "branches do not tell): the axis convention could not be checked; pass --lv "
+                    "or check the render")
+    return (skel if root_is_a else skel.reversed()), False
+
+
+def _check_frame(skel: Skeleton, source: str, frame_hint: str, warnings: list[str]) -> None:
+    """Refuse flipped axes: the descending aorta lies posterior-left of the ascending aorta and
+    the supra-aortic branches point cranially (patient LPS)."""
+    arc = skel.trunk_arc
+    pts = skel.trunk
+    asc = _at(pts, arc, min(30.0, 0.2 * arc[-1]))
+    s_last = max((arc[b.junction_index] for b in skel.branches), default=0.5 * arc[-1])
+    desc = _at(pts, arc, min(s_last + 60.0, 0.5 * (s_last + arc[-1])))
+    d = desc - asc
+    if skel.branches:
+        up = np.array([_unit(b.points[-1] - b.points[0])[2] for b in skel.branches])
+        if np.median(up) < -0.3:
+            raise PatientError(
+                f"expected the supra-aortic branches to point cranially (+S) in {source}, found "
+                f"them pointing caudally (median S component {np.median(up):.2f}): the S axis "
+                f"is flipped; {frame_hint}")
+    if d[0] < -10.0 and d[1] < -10.0:
+        raise PatientError(
+            f"expected the descending aorta posterior-left of the ascending aorta in {source}, "
+            f"found it anterior-right ({-d[1]:.0f} mm anterior, {-d[0]:.0f} mm right): the "
+            f"x and y axes are flipped (LPS read as RAS, or RAS as LPS); {frame_hint}")
+    if d[1] < -10.0:
+        warnings.append(f"the descending aorta lies {-d[1]:.0f} mm ANTERIOR of the ascending "
+                        "aorta: an anterior-posterior flip? Check the frame in the render")
+    if d[0] < -10.0:
+        warnings.append(f"the descending aorta lies {-d[0]:.0f} mm to the RIGHT of the ascending "
+                        "aorta: a right-sided arch or a left-right flip? Check the render")
+
+
+# ------------------------------------------------------------------------------------------
+# 5. Cuts
+# ------------------------------------------------------------------------------------------
+def _fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    c = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
+    return c, vt[2]
+
+
+def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
+                   lv_mask: np.ndarray | None, given: np.ndarray | None,
+                   notes: list[str]) -> tuple[np.ndarray, np.ndarray, float]:
+    """(centre, root axis into the aorta, radius) of the annulus (LPS mm)."""
+    from scipy.ndimage import binary_dilation
+
+    arc = skel.trunk_arc
+    root_end = skel.trunk[0]
+    # Direction out of the aorta at the root end (along the trunk, towards the valve).
+    out_dir = _unit(skel.trunk[0] - _at(skel.trunk, arc, min(20.0, arc[-1])))
+    if lv_mask is not None:
+        contact = mask & binary_dilation(lv_mask, iterations=1)
+        pts = field_.grid_points(contact)
+        if len(pts) < 20:
+            raise PatientError(
+                f"expected the left-ventricle label to touch the aorta at the root, found "
+                f"{len(pts)} contact voxels: wrong LV label or map?")
+        # Keep the contact next to the root end (not, e.g., along the ascending wall).
+        near = np.linalg.norm(pts - root_end, axis=1) < 40.0
+        if near.sum() < 20:
+            raise PatientError(
+                "expected the left-ventricle contact at the root end of the aorta, found it "
+                f"{np.linalg.norm(pts - root_end, axis=1).min():.0f} mm away")
+        q, n = _fit_plane(pts[near])
+        how = f"fitted to {int(near.sum())} voxels of contact with the left ventricle"
+    else:
+        # The flat end of the root: boundary samples near the root end facing out of it.
+        shell = field_.grid_points(mask & ~_erode(mask))
+        rel = shell - root_end
+        cand = shell[(np.linalg.norm(rel, axis=1) < 30.0) & (rel @ out_dir > -3.0)]
+        if len(cand) < 20:
+            raise PatientError("expected a closed root end (the valve plane), found an open "
+                               "or empty root in the label")
+        eps = 0.5
+        grad = np.stack([(field_(cand + eps * e) - field_(cand - eps * e)) / (2 * eps)
+                         for e in np.eye(3)], axis=1)
+        grad /= np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
+        facing = cand[grad @ out_dir > 0.85]
+        if len(facing) < 20:
+            raise PatientError("expected the root to end in a flat valve plane, found no flat "
+                               "end facing out of it: give the annulus (--annulus) or an LV "
+                               "label (--lv)")
+        q, n = _fit_plane(facing)
+        how = f"fitted to the flat end of the root ({len(facing)} boundary voxels)"
+    axis = -_unit(n) if n @ out_dir > 0 else _unit(n)
+    if given is not None:
+        q = np.asarray(given, dtype=float)
+        how += "; centre given by the user"
+    # Centre: centroid of the cross-section 1 mm above the plane, near the axis.
+    above = field_.grid_points(mask)
+    rel = above - q
+    h = rel @ axis
+    rho = np.linalg.norm(rel - np.outer(h, axis), axis=1)
+    section = above[(h > 0.5) & (h < 0.5 + 2 * field_.spacing) & (rho < 25.0)]
+    if len(section) < 10:
+        raise PatientError("expected lumen just above the annulus plane, found none: the "
+                           "annulus estimate left the root")
+    centre = section.mean(axis=0)
+    centre = centre - ((centre - q) @ axis) * axis
+    if given is not None:
+        centre = q
+    radius = float(np.sqrt(len(section) * field_.spacing ** 3 / (2 * field_.spacing) / math.pi))
+    notes.append(f"annulus plane {how}")
+    return centre, axis, radius
+
+
+def _erode(mask: np.ndarray) -> np.ndarray:
+    from scipy.ndimage import binary_erosion
+
+    return np.asarray(binary_erosion(mask))
+
+
+def _introducer_clearance(trunk: np.ndarray, radii: np.ndarray, arc: np.ndarray,
+                          s_exit: float, exit_normal: np.ndarray, exit_point: np.ndarray
+                          ) -> float:
+    """Smallest (lumen radius - distance from the trunk) along the straight introducers of
+    the three starts, mm (< catheter radius: the introducer would touch the wall)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(trunk)
+    worst = math.inf
+    for off in (0.0, 0.5 * _START_SPAN_MM, _START_SPAN_MM):
+        s = s_exit - _START_ABOVE_EXIT_MM - off
+        p = _at(trunk, arc, s)
+        heading = -_tangent(trunk, arc, s)  # cranial: towards the root (decreasing s)
+        depth = float((p - exit_point) @ exit_normal)
+        cos = float(heading @ exit_normal)
+        if cos >= -0.2:
+            return -math.inf
+        length = (depth - 0.0) / cos
+        for t in np.linspace(0.0, length, 40):
+            q = p - t * heading
+            d, i = tree.query(q)
+            worst = min(worst, float(radii[i]) - float(d))
+    return worst
+
+
+def _plan_cuts(skel: Skeleton, annulus: tuple[np.ndarray, np.ndarray, float],
+               options: PrepareOptions, given_exit: np.ndarray | None, notes: list[str],
+               warnings: list[str]) -> tuple[list[Cut], float]:
+    """The cut planes and the arc length of the exit along the trunk (mm)."""
+    centre, axis, r_ann = annulus
+    arc = skel.trunk_arc
+    trunk = skel.trunk
+    radii = skel.trunk_radii
+    cuts = [Cut("annulus", centre, -axis, r_ann)]
+    s_last = max((float(arc[b.junction_index]) for b in skel.branches), default=0.0)
+    end_room = float(arc[-1]) - _BEYOND_MM - 2.0
+    # The farthest start must lie in the descending aorta, clear of the arch's bend.
+    need = _START_ABOVE_EXIT_MM + _START_SPAN_MM + _ARCH_CLEARANCE_MM
+    if given_exit is not None:
+        s_exit = float(arc[int(np.argmin(np.linalg.norm(trunk - given_exit, axis=1)))])
+        notes.append(f"descending cut at the exit point given by the user "
+                     f"({s_exit - s_last:.0f} mm below the last branch)")
+    else:
+        if end_room - s_last < need:
+            raise PatientError(
+                f"expected at least {need:.0f} mm of descending aorta below the last "
+                f"supra-aortic branch (room for the starts), found {end_room - s_last:.0f} mm: "
+                "the segmentation ends too early")
+        # The longest descending aorta (up to descending_mm) whose straight introducers keep
+        # clear of the wall; shorter ones are tried in 10 mm steps.
+        first = min(s_last + options.descending_mm, end_room)
+        candidates = np.arange(first, s_last + need - 1e-9, -10.0)
+        best = (-math.inf, first)
+        for cand in candidates:
+            clear = _introducer_clearance(trunk, radii, arc, float(cand),
+                                          _tangent(trunk, arc, float(cand)),
+                                          _at(trunk, arc, float(cand)))
+            if clear > best[0]:
+                best = (clear, float(cand))
+            if clear >= _CATHETER_RADIUS_MM + 1.0:
+                best = (clear, float(cand))
+                break
+        clear, s_exit = best
+        if clear < _CATHETER_RADIUS_MM + 1.0:
+            warnings.append(
+                f"the descending aorta bends: at best a straight introducer passes "
+                f"{clear:.1f} mm inside the centreline's inscribed radius (catheter radius "
+                f"{_CATHETER_RADIUS_MM} mm); see the introducer check")
+        notes.append(f"descending cut {s_exit - s_last:.0f} mm of centreline below the last "
+                     f"supra-aortic branch (asked {options.descending_mm:.0f} mm; the label "
+                     f"continues {arc[-1] - s_exit:.0f} mm beyond)")
+    exit_point = _at(trunk, arc, s_exit)
+    exit_normal = _tangent(trunk, arc, s_exit)
+    r_exit = float(np.interp(s_exit, arc, radii))
+    cuts.append(Cut("descending", exit_point, exit_normal, r_exit))
+    k = 0
+    for br in skel.branches:
+        s_j = float(arc[br.junction_index])
+        if s_j > s_exit:
+            continue  # removed with the descending end
+        barc = _arc(br.points)
+        r_j = float(radii[br.junction_index])
+        u = r_j + options.branch_mm
+        if barc[-1] - _BEYOND_MM - 2.0 < u:
+            u = float(barc[-1]) - _BEYOND_MM - 2.0
+            if u < r_j + 3.0:
+                notes.append(f"a {barc[-1]:.0f} mm side branch at {s_j:.0f} mm is too short to "
+                             "cut; left closed")
+                continue
+        k += 1
+        p = _at(br.points, barc, u)
+        n = _tangent(br.points, barc, u, half=4.0)
+        cuts.append(Cut(f"branch {k}", p, n, float(np.interp(u, barc, br.radii))))
+    notes.append(f"{k} side branch(es) cut {options.branch_mm:.0f} mm beyond the aortic wall "
+                 "(or 10 mm before their end when shorter)")
+    return cuts, s_exit
+
+
+def _carve(sdf: np.ndarray, field_: _Field, cuts: list[Cut]) -> np.ndarray:
+    """The field with the lumen removed beyond each cut (but a _BEYOND_MM stub) and the root
+    cross-section extruded below the annulus plane."""
+    from scipy.ndimage import label as cc_label
+
+    out = sdf.copy()
+    h = field_.spacing
+    pad = 10.0
+    for cut in cuts:
+        r = cut.radius + pad
+        lo = np.floor((cut.point - field_.origin - (r + 60.0)) / h).astype(int)
+        hi = np.ceil((cut.point - field_.origin + (r + 60.0)) / h).astype(int)
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, np.array(sdf.shape) - 1)
+        sl = tuple(slice(int(a), int(b) + 1) for a, b in zip(lo, hi, strict=True))
+        ii = np.stack(np.meshgrid(*(np.arange(s.start, s.stop) for s in sl), indexing="ij"),
+                      axis=-1)
+        pts = field_.origin + h * ii
+        rel = pts - cut.point
+        ax = rel @ cut.normal
+        rho = np.linalg.norm(rel - ax[..., None] * cut.normal, axis=-1)
+        sub = out[sl]
+        if cut.name == "annulus":
+            below = (ax > 0.0) & (rho < r) & (ax < _BEYOND_MM + 2.0)
+            src = pts[below] - (ax[below] + 1.0)[:, None] * cut.normal
+            sub[below] = field_(src)
+            sub[(ax >= _BEYOND_MM + 2.0) & (rho < r) & (ax < _BEYOND_MM + 40.0)] = h
+            sub[below & (ax > _BEYOND_MM)] = np.maximum(sub[below & (ax > _BEYOND_MM)], h)
+        else:
+            beyond = (ax > 0.0) & (rho < r) & (sub < 0.0)
+            labels, _ = cc_label(beyond)
+            # The tube beyond the plane: components crossing the cut disc.
+            disc = beyond & (ax < 2 * h) & (rho < cut.radius + 2.0)
+            keep = np.unique(labels[disc])
+            tube = np.isin(labels, keep[keep > 0])
+            sub[tube & (ax > _BEYOND_MM)] = h
+        out[sl] = sub
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# 6. Surface
+# ------------------------------------------------------------------------------------------
+def _surface(sdf: np.ndarray, field_: _Field, target_vertices: int,
+             cuts: list[Cut], annulus_lps: np.ndarray, timings: dict[str, float]
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray,
+                        np.ndarray]:
+    """(vertices m, faces, wall mask, cap vertex ids per cut, annulus vertex ids, valve-plane
+    face mask)."""
+    import time
+
+    import fast_simplification
+    from skimage.measure import marching_cubes
+    import trimesh
+
+    t0 = time.perf_counter()
+    padded = np.pad(sdf, 1, constant_values=float(field_.spacing))
+    v, f, _, _ = marching_cubes(padded, 0.0)
+    v = (v - 1.0) * field_.spacing + field_.origin
+    v, f = mesh_io.largest_component(v, np.asarray(f, dtype=np.int64))
+    mesh = trimesh.Trimesh(v, f, process=False)
+    if mesh.volume < 0:
+        f = f[:, ::-1]
+    area = float(mesh.area)
+    timings["marching cubes"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    # Vertex count of an isotropic mesh of this area; the remesher's edges come out ~7 % long.
+    edge_mm = _EDGE_FACTOR * math.sqrt(2.0 * area / (math.sqrt(3.0) * target_vertices))
+    n_faces = int(min(len(f), 6 * target_vertices * 2))
+    if n_faces < len(f):
+        v, f = fast_simplification.simplify(v, f, target_count=n_faces)
+    v, f = mesh_io.largest_component(np.asarray(v, dtype=float), np.asarray(f, dtype=np.int64))
+    timings["decimation"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+
+    def field_m(p: np.ndarray) -> np.ndarray:
+        return field_(np.asarray(p) * 1e3 + annulus_lps) * 1e-3
+
+    edge = edge_mm * 1e-3
+    vm = (v - annulus_lps) * 1e-3
+    remesher = mesh_io.Remesher(vm, f, field_m, lambda p: np.full(len(p), edge))
+    vm, f = remesher.run(iterations=5)
+    timings["remeshing"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cap_mask = np.zeros(len(f), dtype=bool)
+    valve_mask = np.zeros(len(f), dtype=bool)
+    cap_ids: list[np.ndarray] = []
+    annulus_ids = np.zeros(0, dtype=np.int64)
+    for cut in cuts:
+        is_wall = cut.name == "annulus"
+        point = (cut.point - annulus_lps) * 1e-3
+        r = cut.radius * 1e-3
+        try:
+            vm, new_f, kept, ids = mesh_io.clip_and_cap(
+                vm, f, point, cut.normal, r + 0.004, _BEYOND_MM * 1e-3 + r + 0.004, edge,
+                field_m)
+        except mesh_io.MeshError as err:
+            raise PatientError(f"expected a clean tube to cut at the {cut.name} cut, found: "
+                               f"{err}") from err
+        n_new = len(new_f) - len(kept)
+        cap_mask = np.concatenate([cap_mask[kept], np.full(n_new, not is_wall)])
+        valve_mask = np.concatenate([valve_mask[kept], np.full(n_new, is_wall)])
+        f = new_f
+        if is_wall:
+            annulus_ids = ids
+        else:
+            cap_ids.append(ids)
+    vm, f, remap = mesh_io.compact_with_map(vm, f)
+    cap_ids = [remap[c] for c in cap_ids]
+    annulus_ids = remap[annulus_ids]
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]),
+                              axis=1), axis=0)
+    euler = len(vm) - len(edges) + len(f)
+    if euler != 2:
+        raise PatientError(f"expected a sphere-like lumen surface after the cuts (Euler "
+                           f"characteristic 2), found {euler}: a handle or a hole in the lumen")
+    hold = np.zeros(len(vm), dtype=bool)
+    for c in cap_ids:
+        hold[c] = True
+    hold[annulus_ids] = True
+    vm = mesh_io.relax(vm, f, field_m, hold, iterations=3)
+    timings["cuts and caps"] = time.perf_counter() - t0
+    return vm, f, ~cap_mask, cap_ids, annulus_ids, valve_mask
+
+
+def _disc_centroid(v: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, float]:
+    """(area-weighted centroid, area) of a set of (flat cap) triangles."""
+    tri = v[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return (tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum(), float(area.sum())
+
+
+# ------------------------------------------------------------------------------------------
+# 7. Landmarks
+# ------------------------------------------------------------------------------------------
+def _wall_rays(mesh: Any, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Distance from ``origin`` to the first wall hit along each direction (inf: none)."""
+    locs, idx, _ = mesh.ray.intersects_location(np.repeat(origin[None], len(dirs), axis=0),
+                                                dirs, multiple_hits=False)
+    out = np.full(len(dirs), np.inf)
+    out[idx] = np.linalg.norm(locs - origin, axis=1)
+    return out
+
+
+def estimate_ostia(anatomy_mesh: Any, axis: np.ndarray,
+                   warnings: list[str]) -> dict[str, np.ndarray]:
+    """Ostia (phantom m) in the left and right coronary sinuses at the usual heights.
+
+    The sinus lobes are the three peaks of the root's wall distance around the axis, 6-14 mm
+    above the annulus; the right coronary sinus is the most anterior one, the left coronary
+    sinus the more leftward of the other two. The ostium is the wall point in the middle of
+    its sinus at 14.4 mm (left) / 17.2 mm (right) above the annulus (Tops 2008), at most
+    2 mm below the sinotubular junction (the narrowest level 10-35 mm above the annulus).
+    """
+    ant = np.array([0.0, -1.0, 0.0])
+    e1 = _unit(ant - (ant @ axis) * axis)
+    e2 = np.cross(axis, e1)
+    phi = np.linspace(0.0, 2 * np.pi, 144, endpoint=False)
+    dirs = np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+
+    def radius_at(h_mm: float) -> np.ndarray:
+        return _wall_rays(anatomy_mesh, h_mm * 1e-3 * axis, dirs) * 1e3
+
+    heights = np.arange(10.0, 35.5, 1.0)
+    mean_r = np.array([np.median(radius_at(float(h))) for h in heights])
+    h_stj = float(heights[int(np.argmin(mean_r))])
+    prof = np.mean([radius_at(h) for h in (6.0, 8.0, 10.0, 12.0, 14.0)], axis=0)
+    prof = np.where(np.isfinite(prof), prof, np.nanmedian(prof[np.isfinite(prof)]))
+    k = np.exp(-0.5 * (np.arange(-6, 7) / 3.0) ** 2)
+    smooth = np.convolve(np.concatenate([prof[-6:], prof, prof[:6]]), k / k.sum(), "valid")
+    peaks = [i for i in range(len(smooth))
+             if smooth[i] >= smooth[i - 1] and smooth[i] > smooth[(i + 1) % len(smooth)]]
+    peaks = sorted(peaks, key=lambda i: -smooth[i])
+    lobes: list[int] = []
+    for i in peaks:
+        if all(min(abs(i - j), len(phi) - abs(i - j)) >= len(phi) // 6 for j in lobes):
+            lobes.append(i)
+    lobes = lobes[:3]
+    depth = float(smooth.max() - smooth.min())
+    if len(lobes) == 3 and depth > 1.0:
+        right = min(lobes, key=lambda i: float(dirs[i] @ ant) * -1.0)
+        rest = [i for i in lobes if i != right]
+        left = max(rest, key=lambda i: float(dirs[i][0]))
+        phis = {"left": phi[left], "right": phi[right]}
+        how = "in the middle of the left and right coronary sinuses"
+    else:
+        phis = {"left": 123.0 * math.pi / 180.0, "right": 0.0}
+        if (math.cos(phis["left"]) * e1 + math.sin(phis["left"]) * e2)[0] < 0:
+            phis["left"] = -phis["left"]
+        how = ("right anterior and left 123 deg around the root (no three sinus lobes found, "
+               f"wall depth {depth:.1f} mm)")
+    ostia = {}
+    for side in ("left", "right"):
+        h = min(_OSTIUM_HEIGHT_MM[side], h_stj - 2.0)
+        d = math.cos(phis[side]) * e1 + math.sin(phis[side]) * e2
+        dist = _wall_rays(anatomy_mesh, h * 1e-3 * axis, d[None])[0]
+        if not np.isfinite(dist):
+            raise PatientError(f"expected the {side} coronary sinus wall {h:.0f} mm above the "
+                               "annulus, found no wall there")
+        ostia[side] = h * 1e-3 * axis + dist * d
+    warnings.append(
+        f"coronary ostia ESTIMATED {how}, at {min(_OSTIUM_HEIGHT_MM['left'], h_stj - 2):.1f} / "
+        f"{min(_OSTIUM_HEIGHT_MM['right'], h_stj - 2):.1f} mm above the annulus (left / right; "
+        "Tops 2008): give --coronary or --left-ostium/--right-ostium for this patient's ostia")
+    return ostia
+
+
+def _ostia_from_labels(coronary: np.ndarray, mask: np.ndarray, field_: _Field
+                       ) -> dict[str, np.ndarray]:
+    """Ostia (LPS mm): the centres of the contacts of the two largest coronary components with
+    the aorta; left is the one further to the patient's left (+x)."""
+    from scipy.ndimage import binary_dilation
+    from scipy.ndimage import label as cc_label
+
+    labels, n = cc_label(coronary, structure=np.ones((3, 3, 3)))
+    if n < 2:
+        raise PatientError(f"expected two coronary arteries (left and right) in the coronary "
+                           f"label map, found {n}")
+    sizes = np.bincount(labels.ravel())[1:]
+    centres = []
+    for lab in np.argsort(-sizes)[:2] + 1:
+        contact = binary_dilation(labels == lab, iterations=1) & mask
+        if contact.sum() < 3:
+            gap = float(np.min(np.abs(field_(field_.grid_points(labels == lab)))))
+            raise PatientError("expected each coronary artery to touch the aorta, found one "
+                               f"{gap:.0f} mm away")
+        centres.append(field_.grid_points(contact).mean(axis=0))
+    left, right = sorted(centres, key=lambda c: -float(c[0]))
+    return {"left": left, "right": right}
+
+
+# ------------------------------------------------------------------------------------------
+# Pipeline
+# ------------------------------------------------------------------------------------------
+def prepare_volume(vol: LabelVolume, *, name: str, options: PrepareOptions | None = None,
+                   lv: LabelVolume | None = None, coronary: LabelVolume | None = None,
+                   overrides: LandmarkOverrides | None = None,
+                   frame_hint: str = "check the input's axis convention") -> PreparedAnatomy:
+    """Make a simulator anatomy from a lumen volume (see the module doc).
+
+    Args:
+        vol: the aortic lumen (patient LPS mm grid).
+        name: anatomy name.
+        options: pipeline options.
+        lv: left-ventricle mask on the same grid, or None.
+        coronary: coronary mask on the same grid, or None.
+        overrides: landmarks given by the user (LPS mm).
+        frame_hint: what to tell the user when the axes look flipped.
+
+    Raises:
+        PatientError: the input cannot be made into a usable anatomy (one line why).
+    """
+    import time
+
+    import trimesh
+
+    opts = options or PrepareOptions()
+    ov = overrides or LandmarkOverrides()
+    notes: list[str] = []
+    warnings: list[str] = []
+    timings: dict[str, float] = {}
+    sources: dict[str, str] = {}
+    t0 = time.perf_counter()
+    mask = _largest_component(vol, opts, notes)
+    sdf = _signed_distance(mask, vol.spacing, opts.smoothing_mm)
+    field_ = _Field(sdf, vol.origin, vol.spacing)
+    mask = sdf < 0.0
+    timings["lumen field"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    skel = skeleton_of(LabelVolume(mask, vol.origin, vol.spacing, vol.source))
+    lv_mask = None
+    lv_points = None
+    if lv is not None:
+        lv_mask = lv.mask & ~mask
+        if not lv_mask.any():
+            raise PatientError(f"expected left-ventricle voxels in {lv.source}, found none "
+                               "outside the aorta")
+        lv_points = field_.grid_points(lv_mask & ~_erode(lv_mask))
+    skel, frame_checkable = _orient(skel, lv_points, notes, warnings)
+    if frame_checkable:
+        _check_frame(skel, vol.source, frame_hint, warnings)
+    timings["skeleton"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    centre, axis, r_ann = _annulus_plane(field_, mask, skel, lv_mask, ov.annulus_center, notes)
+    sources["annulus_center"] = "given" if ov.annulus_center is not None else (
+        "LV contact" if lv is not None else "root end")
+    cuts, s_exit = _plan_cuts(skel, (centre, axis, r_ann), opts, ov.exit_point, notes,
+                              warnings)
+    sources["exit_point"] = "given" if ov.exit_point is not None else "descending cut"
+    carved = _carve(sdf, field_, cuts)
+    carved_field = _Field(carved, vol.origin, vol.spacing)
+    timings["cuts planned"] = time.perf_counter() - t0
+    vm, faces, wall, cap_ids, annulus_ids, valve = _surface(
+        carved, carved_field, opts.target_vertices, cuts, centre, timings)
+    t0 = time.perf_counter()
+    # The phantom origin is the centroid of the valve plane (the annulus cross-section).
+    shift, valve_area = _disc_centroid(vm, faces[valve])
+    vm = vm - shift
+    annulus_lps = centre + shift * 1e3
+    notes.append(f"annulus: equivalent diameter {2e3 * math.sqrt(valve_area / math.pi):.1f} mm "
+                 "(valve-plane area)")
+    exit_ids = set(cap_ids[0].tolist())
+    exit_faces = faces[~wall][np.all(np.isin(faces[~wall], list(exit_ids)), axis=1)]
+    exit_point, _ = _disc_centroid(vm, exit_faces)
+    arc = skel.trunk_arc
+    start_lps = _at(skel.trunk, arc, s_exit - _START_ABOVE_EXIT_MM)
+    start_dir = -_tangent(skel.trunk, arc, s_exit - _START_ABOVE_EXIT_MM)
+    mesh = trimesh.Trimesh(vm, faces[wall], process=False)
+    if coronary is not None:
+        ostia_lps = _ostia_from_labels(coronary.mask & ~mask, mask, field_)
+        ostia = {k: (p - annulus_lps) * 1e-3 for k, p in ostia_lps.items()}
+        sources["left_ostium"] = sources["right_ostium"] = "coronary label"
+    else:
+        ostia = {}
+    for side, given in (("left", ov.left_ostium), ("right", ov.right_ostium)):
+        if given is not None:
+            ostia[side] = (np.asarray(given, dtype=float) - annulus_lps) * 1e-3
+            sources[f"{side}_ostium"] = "given"
+    if len(ostia) < 2:
+        estimated = estimate_ostia(mesh, axis, warnings)
+        for side in ("left", "right"):
+            if side not in ostia:
+                ostia[side] = estimated[side]
+                sources[f"{side}_ostium"] = "estimated"
+    # Ostia lie on the wall: project them, refusing points far from it.
+    for side in ("left", "right"):
+        closest, dist, _ = trimesh.proximity.closest_point(mesh, ostia[side][None])
+        if dist[0] > 0.005:
+            raise PatientError(
+                f"expected the {side} ostium on the aortic wall (within 5 mm), found it "
+                f"{dist[0] * 1e3:.0f} mm away ({sources[f'{side}_ostium']})")
+        ostia[side] = closest[0]
+    from scipy.spatial import cKDTree
+
+    wall_vertices = np.unique(faces[wall])
+    tree = cKDTree(vm[wall_vertices])
+    fixed = np.unique(np.concatenate(cap_ids))
+    anatomy = Anatomy(
+        name=name, vertices=vm, faces=faces, wall_face_mask=wall,
+        exit_point=exit_point, exit_normal=cuts[1].normal,
+        fixed_vertices=fixed, annulus_vertices=np.unique(annulus_ids),
+        annulus_center=np.zeros(3), root_axis=axis, ostia=ostia,
+        ostium_vertices={k: int(wall_vertices[tree.query(o)[1]]) for k, o in ostia.items()},
+        start_point=(start_lps - annulus_lps) * 1e-3, start_direction=start_dir)
+    timings["landmarks"] = time.perf_counter() - t0
+    notes.append(f"lumen: {len(vm)} vertices, {int(wall.sum())} wall faces, "
+                 f"{len(cap_ids)} caps and the valve plane")
+    return PreparedAnatomy(anatomy=anatomy, annulus_lps_mm=annulus_lps, cuts=cuts,
+                           skeleton=skel, notes=notes, warnings=warnings, sources=sources,
+                           timings=timings)
