@@ -14,36 +14,14 @@ from cgail_planner.learning import demos_cli, evaluate, export, train
 from cgail_planner.learning.demos import load_demos
 from cgail_planner.learning.errors import DemoError
 from cgail_planner.sim import render
-from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy, save_anatomy_mesh
+from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
 FIXTURES = Path(__file__).resolve().parents[1] / 'fixtures'
 
 
-@pytest.fixture(scope='module')
-def prepared(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A prepared anatomy directory ``p07`` holding the elongated aorta."""
-    d = tmp_path_factory.mktemp('patients') / 'p07'
-    d.mkdir()
-    save_anatomy_mesh(build_anatomy('elongated'), d / 'lumen.stl')
-    return d
-
-
-def _bad(tmp_path: Path, kind: str) -> tuple[Path, str]:
-    """A bad anatomy argument and the text its one-line error must hold."""
-    if kind == 'missing':
-        return tmp_path / 'nowhere', f"found '{tmp_path / 'nowhere'}': no such file or directory"
-    if kind == 'not prepared':
-        d = tmp_path / 'empty'
-        d.mkdir()
-        return d, (f'anatomy {d}: expected a prepared anatomy directory holding lumen.stl and '
-                   'lumen.yaml (prepare_anatomy makes one), found no lumen.stl and no lumen.yaml')
-    d = tmp_path / 'junk'
-    d.mkdir()
-    (d / 'lumen.stl').write_text('solid junk\nendsolid junk\n')
-    (d / 'lumen.yaml').write_text('units: mm\n')
-    return d, f'expected a triangle mesh in {d / "lumen.stl"}, found a Trimesh with 0 faces'
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
 
 
 def _commands(tmp_path: Path) -> dict[str, tuple]:
@@ -58,11 +36,11 @@ def _commands(tmp_path: Path) -> dict[str, tuple]:
     }
 
 
-@pytest.mark.parametrize('kind', ['missing', 'not prepared', 'mesh fails to load'])
 @pytest.mark.parametrize('prog', ['make_demos', 'train', 'evaluate', 'export_onnx',
                                   'sim_render'])
-def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, prog, kind) -> None:
-    spec, text = _bad(tmp_path, kind)
+def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, bad_anatomy,
+                                                     prog) -> None:
+    spec, text = bad_anatomy
     main, argv = _commands(tmp_path)[prog]
     assert main([*argv, '--anatomy', str(spec)]) == 2
     err = capsys.readouterr().err

@@ -37,13 +37,7 @@ USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a prepar
          r"with its <stem>.yaml landmarks\), found ")
 
 
-@pytest.fixture(scope='module')
-def prepared(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A prepared anatomy directory ``p07`` holding the elongated aorta (lumen.stl + yaml)."""
-    d = tmp_path_factory.mktemp('patients') / 'p07'
-    d.mkdir()
-    save_anatomy_mesh(build_anatomy('elongated'), d / 'lumen.stl')
-    return d
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
 
 
 def test_a_name_is_the_cached_built_in_anatomy() -> None:
@@ -133,16 +127,18 @@ def test_an_anatomy_shows_as_one_short_line() -> None:
 
 
 def test_the_simulator_takes_a_path_everywhere(prepared) -> None:
+    # (worlds are cached by content: another test's copy of this mesh may have built it first)
     anatomy = resolve_anatomy(prepared)
+    same = (anatomy.name, anatomy.content_hash)
     world = load_world(prepared)
-    assert world.anatomy is anatomy and load_world(str(prepared)) is world
-    assert load_world(anatomy) is world
+    assert (world.anatomy.name, world.anatomy.content_hash) == same
+    assert load_world(str(prepared)) is world and load_world(anatomy) is world
     env = CatheterNavEnv(EnvConfig(anatomy=prepared))
-    assert env.anatomy is anatomy
+    assert env.anatomy is world.anatomy
     for make in (lambda: gym.make('CatheterNav-v0', anatomy=str(prepared)),
                  lambda: gym.make('CatheterNavDynamic-v0', anatomy=prepared)):
         made = make().unwrapped
-        assert made.anatomy is anatomy
+        assert made.anatomy is world.anatomy
         obs, _ = made.reset(seed=0, options={'start': 0, 'target': 0})
         assert obs.shape == (41,) and np.isfinite(obs).all()
         made.step(np.array([0.0, 0.0, 1.0], dtype=np.float32))
