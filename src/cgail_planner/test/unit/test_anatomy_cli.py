@@ -1,5 +1,6 @@
-"""Every in-silico command line takes an anatomy as a name or a path (issue 12): make_demos,
-train, evaluate, export_onnx and sim_render; a bad one is one line and exit status 2."""
+"""Every command line takes an anatomy as a name or a path (issue 12): make_demos, train,
+evaluate, export_onnx, sim_render and invitro_session; a bad one is one line and exit status 2
+(the nodes: test/node/test_anatomy_nodes.py)."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from cgail_planner.sim import render
 from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
+from cgail_planner.system import session
 
 FIXTURES = Path(__file__).resolve().parents[1] / 'fixtures'
 
@@ -33,11 +35,12 @@ def _commands(tmp_path: Path) -> dict[str, tuple]:
         'export_onnx': (export.main, [str(FIXTURES / 'straight_policy.onnx'), '--add-contract',
                                       '--out', str(tmp_path / 'p.onnx')]),
         'sim_render': (render.main, ['--out', str(tmp_path / 'a.png')]),
+        'invitro_session': (session.main, ['--trials', '1', '--out', str(out)]),
     }
 
 
 @pytest.mark.parametrize('prog', ['make_demos', 'train', 'evaluate', 'export_onnx',
-                                  'sim_render'])
+                                  'sim_render', 'invitro_session'])
 def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, bad_anatomy,
                                                      prog) -> None:
     spec, text = bad_anatomy
@@ -127,3 +130,11 @@ def test_evaluate_and_sim_render_take_a_prepared_directory(prepared, tmp_path, c
     assert render.main(['--anatomy', str(prepared), '--dpi', '30', '--no-centerlines']) == 0
     assert (tmp_path / 'anatomy_p07.png').is_file()
     capsys.readouterr()
+
+
+def test_invitro_session_in_a_path_anatomy_needs_a_policy(prepared, tmp_path, capsys) -> None:
+    assert session.main(['--out', str(tmp_path / 's'), '--anatomy', str(prepared)]) == 2
+    assert capsys.readouterr().err == (
+        f'invitro_session: the cgail condition needs --policy <model.onnx> for anatomy '
+        f'{prepared.resolve()}: expected a policy trained on it (there is a committed one only '
+        'for the built-in anatomies), found no --policy\n')
