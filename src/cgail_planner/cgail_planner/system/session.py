@@ -201,7 +201,12 @@ class TrialRig:
         self._tmp = tempfile.mkdtemp(prefix='cgail_trial_')
         self.executor = LockstepExecutor(period_s=1.0 / settings.physics_rate)
         try:
-            launch = load_launch_file(Path(settings.launch_file or default_launch_file()))
+            path = Path(settings.launch_file or default_launch_file())
+            launch = load_launch_file(path)
+            given = {'anatomy': settings.anatomy, 'policy_path': settings.policy}
+            if any(k in launch.arguments for k in given):  # (and the overrides below)
+                launch = load_launch_file(path, {k: v for k, v in given.items()
+                                                 if k in launch.arguments})
             overrides = self._overrides(Path(self._tmp) / 'aurora')
             for spec_node in launch.nodes:
                 if spec_node.name == 'gui' and not settings.gui:
