@@ -88,6 +88,9 @@ def test_a_mesh_file_with_its_sidecar_is_labelled_by_its_stem(tmp_path) -> None:
                                 r"or a prepared anatomy directory, found a .txt file$"),
     (lambda d: d / 'bare.stl', r"^anatomy .*/bare.stl: expected its landmarks in "
                                r".*/bare.yaml, found no such file$"),
+    (lambda d: d / 'refused', r"^anatomy .*/refused: expected a usable prepared anatomy "
+                              r"\(lumen.stl\), found one prepare_anatomy refused "
+                              r"\(lumen.rejected.stl; the reasons are in .*/refused/report.md\)$"),
     (lambda d: '', USAGE + "''$"),
     (lambda d: 3, USAGE + 'an object of type int$'),
 ])
@@ -97,6 +100,9 @@ def test_bad_anatomy_arguments_say_what_was_wrong_in_one_line(tmp_path, make, ma
     (d / 'lumen.stl').write_text('solid x\nendsolid x\n')
     (d / 'notes.txt').write_text('not a mesh')
     (d / 'bare.stl').write_text('solid x\nendsolid x\n')
+    (d / 'refused').mkdir()
+    for name in ('lumen.rejected.stl', 'lumen.rejected.yaml', 'report.md'):
+        (d / 'refused' / name).write_text('x\n')
     spec = make(d)
     for call in (resolve_anatomy, check_anatomy_spec, lambda s: EnvConfig(anatomy=s)):
         with pytest.raises(AnatomyError, match=match) as info:
