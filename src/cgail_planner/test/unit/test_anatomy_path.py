@@ -132,6 +132,27 @@ def test_an_anatomy_shows_as_one_short_line() -> None:
     assert len(repr(EnvConfig(anatomy=a))) < 1000
 
 
+@pytest.mark.parametrize('make', [
+    lambda a: EnvConfig(anatomy=a, mode='beating'),
+    lambda a: EnvConfig(anatomy=a, theta_max=9.0),
+    lambda a: EnvConfig(anatomy=a, reward=None),
+    lambda a: EnvConfig(anatomy=a.vertices),
+    lambda a: EnvConfig(anatomy={'vertices': a.vertices}),
+    lambda a: gym.make('CatheterNav-v0', anatomy=a, max_steps=0),
+    lambda a: gym.make('CatheterNav-v0', anatomy=a.vertices),
+], ids=['mode', 'theta_max', 'reward', 'vertex array', 'dict of arrays', 'gym.make kwargs',
+        'gym.make array'])
+def test_errors_around_an_anatomy_never_print_its_arrays(make) -> None:
+    """An error that involves an Anatomy (or arrays passed as one) is one short line: no
+    vertex coordinates, whatever the field."""
+    a = build_anatomy('default')
+    with pytest.raises((ValueError, TypeError)) as info:
+        make(a)
+    text = str(info.value)
+    assert '\n' not in text and len(text) < 400, text
+    assert 'array(' not in text and '[[' not in text, text  # (numpy prints rows as [[...
+
+
 def test_the_simulator_takes_a_path_everywhere(prepared) -> None:
     # (worlds are cached by content: another test's copy of this mesh may have built it first)
     anatomy = resolve_anatomy(prepared)
