@@ -102,11 +102,19 @@ class PhantomPhysics:
         self._wall_pending = 0.0
 
     def reset(self, position: FloatArray, rotation: FloatArray,
-              introducer_tail: FloatArray) -> None:
-        """Put the tip at a start pose with a straight introducer behind it; wall at rest."""
+              introducer: FloatArray) -> None:
+        """Put the tip at a start pose with its introducer behind it; wall at rest.
+
+        Args:
+            position: (3,) start position, m.
+            rotation: (3, 3) start rotation.
+            introducer: (3,) the proximal end of a straight introducer, or (K, 3) the nodes
+                of a bent one (``StartConfig.introducer``,
+                :func:`cgail_planner.sim.ftl_model.seed_body`).
+        """
         self.catheter.reset_env(0, np.asarray(position, dtype=np.float64),
                                 np.asarray(rotation, dtype=np.float64),
-                                np.asarray(introducer_tail, dtype=np.float64))
+                                np.asarray(introducer, dtype=np.float64))
         if self.wall is not None:
             self.wall.reset()
         self.time = 0.0

@@ -8,8 +8,10 @@ rclpy and no torch. Used by :mod:`cgail_planner.nodes.planner_node` with
 is rolled out exactly as the simulator runs an episode, with the catheter model of
 :mod:`cgail_planner.sim.ftl_model`: its observation (:func:`~cgail_planner.sim.ftl_model.
 observe_pose`), its action scaling and follow-the-leader step, and its retraction rule (the body
-behind the tip pose is a straight introducer to :func:`~cgail_planner.sim.ftl_model.
-introducer_tail`, as behind an episode's start pose). After every step the rollout ends as an
+behind the tip pose is the introducer an episode's start pose gets,
+:meth:`cgail_planner.sim.scenarios.World.introducer`: straight back to the exit plane when that
+lies inside the lumen, else along the centerline; straight where neither does).
+After every step the rollout ends as an
 episode does, by the same priority: a **collision** (the tip sphere penetrates the wall:
 ``wall.tip_contact(...).penetration > 0``; the frozen model wall exerts no force), an **exit**
 (the tip crossed the exit plane of the open descending end, or left the anatomy's bounding box
@@ -54,6 +56,7 @@ from cgail_planner.sim.ftl_model import (
     advance_pose,
     CatheterConfig,
     command_nb,
+    describe_anatomy,
     introducer_tail,
     ObservationConfig,
     ObservationSpec,
@@ -178,6 +181,25 @@ class ModelWorld:
     """(3,) centre of the open descending end, m (the rollout's exit plane)."""
     exit_normal: FloatArray
     """(3,) unit normal of the exit plane, out of the lumen."""
+    introducer: Callable[[FloatArray, FloatArray], FloatArray] | None = None
+    """``(position, rotation) -> (K, 3)`` introducer nodes behind a tip pose (proximal end
+    first, :func:`cgail_planner.sim.ftl_model.seed_body`); None: straight to
+    :func:`~cgail_planner.sim.ftl_model.introducer_tail`."""
+
+
+def _sim_introducer(world: Any) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """The simulator's introducer behind a tip pose, or the straight one where it has none."""
+    from cgail_planner.sim.scenarios import ScenarioError
+
+    anatomy = world.anatomy
+
+    def introducer(p: FloatArray, r: FloatArray) -> FloatArray:
+        try:
+            return np.asarray(world.introducer(p, r), dtype=np.float64)
+        except ScenarioError:
+            return introducer_tail(anatomy.exit_point, anatomy.exit_normal, p, r)[None]
+
+    return introducer
 
 
 def model_world_from_sim(world: Any, observation: ObservationSpec | None = None) -> ModelWorld:
@@ -214,7 +236,8 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
         ostia={b: np.asarray(p, dtype=np.float64) for b, p in anatomy.ostia.items()},
         contains=anatomy.contains,
         exit_point=np.asarray(anatomy.exit_point, dtype=np.float64),
-        exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64))
+        exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64),
+        introducer=_sim_introducer(world))
 
 
 def _wall_arrays(wall: object) -> Any | None:
@@ -234,7 +257,7 @@ def _wall_arrays(wall: object) -> Any | None:
 
 def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
                        theta_max: float | None, segment_length: float | None, override: bool,
-                       world_spec: ObservationSpec | None = None
+                       world_spec: ObservationSpec | None = None, anatomy_hash: str = ""
                        ) -> tuple[PolicyContract, list[str]]:
     """The contract a planner runs with, given settings that may repeat some of its entries.
 
@@ -245,13 +268,17 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
 
     Args:
         contract: the policy's contract.
-        anatomy: the anatomy the planner plans in.
+        anatomy: the anatomy the planner plans in: a built-in name, or a path anatomy's label.
         mode: ``static`` or ``dynamic``: the world the planner plans in.
         theta_max: the maximal bending angle setting, rad, or None.
         segment_length: the steerable segment length setting, m, or None.
         override: let disagreeing settings win (with a warning).
         world_spec: this anatomy's own observation spec (origin, d_max), used in place of the
             policy's when an overridden anatomy disagrees.
+        anatomy_hash: the content hash of a path anatomy, ``""`` for a built-in one
+            (:func:`cgail_planner.sim.anatomy.anatomy_identity`). What identifies the anatomy
+            is compared: the hashes when either side has one (a path anatomy: its label may
+            differ), else the built-in names.
 
     Returns:
         ``(contract, notes)``: the contract to run with and the lines to log (warnings for
@@ -271,13 +298,17 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         notes.append(f"override_policy_contract: {name} {value:.6g} instead of the policy's "
                      f"{want:.6g}")
     observation = contract.observation
-    if anatomy != contract.anatomy:
+    same = (anatomy_hash == contract.anatomy_hash if anatomy_hash or contract.anatomy_hash
+            else anatomy == contract.anatomy)
+    if not same:
+        ours, theirs = describe_anatomy(anatomy, anatomy_hash), contract.describe_anatomy()
+        if not (anatomy_hash or contract.anatomy_hash):  # two built-in names: just the names
+            ours, theirs = repr(anatomy), repr(contract.anatomy)
         if not override:
-            raise ContractError(f"anatomy: expected the policy's {contract.anatomy!r}, found "
-                                f"parameter {anatomy!r} (set override_policy_contract to run "
-                                "anyway)")
-        notes.append(f"override_policy_contract: anatomy {anatomy!r} instead of the policy's "
-                     f"{contract.anatomy!r} (observed in this anatomy's frame)")
+            raise ContractError(f"anatomy: expected the policy's {theirs}, found parameter "
+                                f"{ours} (set override_policy_contract to run anyway)")
+        notes.append(f"override_policy_contract: anatomy {ours} instead of the policy's "
+                     f"{theirs} (observed in this anatomy's frame)")
         if world_spec is not None:
             observation = ObservationSpec(origin=world_spec.origin, d_max=world_spec.d_max,
                                           config=observation.config,
@@ -288,7 +319,7 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         return contract, notes
     return PolicyContract(catheter=CatheterConfig(**{**asdict(cat), **changes}),
                           observation=observation, anatomy=anatomy, mode=contract.mode,
-                          training=contract.training), notes
+                          training=contract.training, anatomy_hash=anatomy_hash), notes
 
 
 class Planner:
@@ -414,16 +445,20 @@ class Planner:
         observation size and 3 actions, and the wall is a simulator wall with a numba BVH."""
         return self._program is not None and _wall_arrays(self.wall) is not None
 
-    def _seed(self, p0: FloatArray, r0: FloatArray, capacity: int
-              ) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """A body of ``capacity`` nodes seeded with the introducer behind ``[r0 | p0]``."""
+    def _seed(self, p0: FloatArray, r0: FloatArray, steps: int
+              ) -> tuple[FloatArray, FloatArray, FloatArray, int]:
+        """A body seeded with the introducer behind ``[r0 | p0]``, room for ``steps`` more
+        nodes: ``(positions, rotations, arc, n0)`` with ``n0`` seeded nodes, the last the
+        start pose."""
+        w = self.world
+        intro = (w.introducer(p0, r0) if w.introducer is not None
+                 else introducer_tail(w.exit_point, w.exit_normal, p0, r0))
+        capacity = steps + np.asarray(intro).reshape(-1, 3).shape[0] + 1
         positions = np.empty((capacity, 3))
         rotations = np.empty((capacity, 3, 3))
         arc = np.empty(capacity)
-        w = self.world
-        seed_body(positions, rotations, arc,
-                  introducer_tail(w.exit_point, w.exit_normal, p0, r0), p0, r0)
-        return positions, rotations, arc
+        n0 = seed_body(positions, rotations, arc, intro, p0, r0)
+        return positions, rotations, arc, n0
 
     def rollout(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                 ) -> tuple[FloatArray, int]:
@@ -482,12 +517,12 @@ class Planner:
         cfg, cat, spec, w = self.config, self.config.catheter, self.spec, self.world
         p0 = np.ascontiguousarray(p0, dtype=np.float64)
         r0 = np.ascontiguousarray(r0, dtype=np.float64)
-        positions, rotations, arc = self._seed(p0, r0, max_steps + 2)
+        positions, rotations, arc, n0 = self._seed(p0, r0, max_steps)
         action = np.zeros(3)
         kernel: Callable[..., tuple[int, int, int]] = rk.rollout_kernel
         # every scalar as a Python float/int: one compiled signature whatever the config types
         status, steps, n = kernel(
-            positions, rotations, arc, 2, np.ascontiguousarray(goal, dtype=np.float64),
+            positions, rotations, arc, n0, np.ascontiguousarray(goal, dtype=np.float64),
             spec.ray_directions, spec.origin, float(spec.position_scale), float(spec.d_max),
             float(spec.ray_length), float(cat.theta_max), float(cat.segment_length),
             float(cat.max_step_insertion), float(cat.radius), float(cat.dt),
@@ -496,7 +531,7 @@ class Planner:
             np.ascontiguousarray(w.bbox_high, dtype=np.float64), int(max_steps), arrays,
             program.ops, program.consts, program.widths, program.scratch(), program.out_reg,
             action)
-        return int(status), int(steps), _points(positions, int(n)), action
+        return int(status), int(steps), _points(positions, int(n), n0), action
 
     @property
     def wall_tolerance(self) -> float:
@@ -516,8 +551,8 @@ class Planner:
         p = np.array(p0, dtype=np.float64)
         r = np.array(r0, dtype=np.float64)
         goal = np.asarray(goal, dtype=np.float64)
-        positions, rotations, arc = self._seed(p, r, cfg.max_rollout_steps + 2)
-        n = 2
+        positions, rotations, arc, n0 = self._seed(p, r, cfg.max_rollout_steps)
+        n = n0
         origins = np.empty((len(self.rays), 3))
         ex, ey, ez = w.exit_point.tolist()
         nx, ny, nz = w.exit_normal.tolist()
@@ -532,7 +567,7 @@ class Planner:
             out = out.astype(np.float32).reshape(-1)
             if out.shape != (3,) or not np.isfinite(out).all():
                 raise NoPathError(f"policy must return 3 finite actions, found {out.tolist()}",
-                                  _points(positions, n), "bad_action", step)
+                                  _points(positions, n, n0), "bad_action", step)
             a0, a1, a2 = out.tolist()
             alpha, gamma, dl = command_nb(a0, a1, a2, cat.theta_max, cat.segment_length,
                                           cat.max_step_insertion)
@@ -552,16 +587,16 @@ class Planner:
             if clearance <= 1e-9:
                 contact = self.wall.tip_contact(p, cat.radius, cat.dt)
                 if contact.penetration > 0.0:
-                    raise self._failure("collided", step, _points(positions, n), goal)
+                    raise self._failure("collided", step, _points(positions, n, n0), goal)
                 clearance = contact.clearance if math.isfinite(contact.clearance) else -math.inf
             x, y, z = p.tolist()
             if (x - ex) * nx + (y - ey) * ny + (z - ez) * nz > 0.0 \
                     or not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
                             and low[2] <= z <= high[2]):
-                raise self._failure("left", step, _points(positions, n), goal)
+                raise self._failure("left", step, _points(positions, n, n0), goal)
             if math.sqrt((gx - x) ** 2 + (gy - y) ** 2 + (gz - z) ** 2) < cfg.goal_tolerance:
-                return np.vstack([_points(positions, n), goal]), step
-        raise self._failure("limit", cfg.max_rollout_steps, _points(positions, n), goal)
+                return np.vstack([_points(positions, n, n0), goal]), step
+        raise self._failure("limit", cfg.max_rollout_steps, _points(positions, n, n0), goal)
 
     def branch_for(self, goal: FloatArray) -> str:
         """The branch whose coronary ostium is nearest ``goal``."""
@@ -619,7 +654,8 @@ def replan_reason(config: ReplanConfig, *, cross_track: float, planned_goal: Flo
     return None
 
 
-def _points(positions: FloatArray, n: int) -> FloatArray:
-    """The planned body of a rollout: nodes 1..n-1 (from the start pose on; node 0 is the
-    introducer tail), or just the tip when it retracted onto the tail."""
-    return positions[1:n].copy() if n >= 2 else positions[:1].copy()
+def _points(positions: FloatArray, n: int, n0: int) -> FloatArray:
+    """The planned body of a rollout: nodes ``n0 - 1 .. n - 1`` (from the start pose on; the
+    nodes before it are the introducer), or from the tip when it retracted into the
+    introducer."""
+    return positions[min(n0, n) - 1:n].copy()

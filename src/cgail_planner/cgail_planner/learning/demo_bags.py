@@ -17,10 +17,12 @@ topic                        type                            content
 ===========================  ==============================  ==================================
 
 Episode ``e`` step ``t`` is stamped ``e * 1000 s + t * dt``. The bag's rosbag2 custom data
-(``metadata.yaml``, key ``cgail_planner.demos``) holds JSON with the anatomy name, mode, dt,
-episode count and, in bags written since it was added, ``anatomy_hash``: the
-:attr:`~cgail_planner.sim.anatomy.Anatomy.content_hash` of the mesh the episodes were recorded
-in, and ``numpy_simd``, the numpy SIMD targets of the recording process.
+(``metadata.yaml``, key ``cgail_planner.demos``) holds JSON with the anatomy name (a built-in
+name, or a path anatomy's label), mode, dt, episode count and, in bags written since it was
+added, ``anatomy_hash``: the :attr:`~cgail_planner.sim.anatomy.Anatomy.content_hash` of the
+mesh the episodes were recorded in, and ``numpy_simd``, the numpy SIMD targets of the
+recording process; a bag recorded in a path anatomy also holds ``anatomy_path``, the absolute
+path it was loaded from, which :func:`replay_demo_bag` re-simulates in unless told otherwise.
 
 The bags hold no observation vectors (that keeps them small): :func:`load_demo_bag` re-simulates
 each episode with the recorded commands (normalised back with
@@ -171,13 +173,14 @@ class Replay(NamedTuple):
 
 def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mode: str,
                    dt: float, compress: bool | None = None,
-                   anatomy_hash: str | None = None) -> Path:
+                   anatomy_hash: str | None = None, anatomy_path: str | None = None) -> Path:
     """Write ``episodes`` to a new MCAP bag directory ``path`` (must not exist).
 
     ``compress`` (default: when ``zstandard`` is installed) zstd-compresses the MCAP chunks,
     about 5x smaller. ``anatomy_hash`` (the recording anatomy's
     :attr:`~cgail_planner.sim.anatomy.Anatomy.content_hash`) is stored in the custom data with
-    the numpy SIMD targets of this process.
+    the numpy SIMD targets of this process, and ``anatomy_path`` (the absolute path of a path
+    anatomy; ``anatomy`` is then its label) too.
     """
     if compress is None:
         compress = zstd_available()
@@ -196,6 +199,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
 
         info['anatomy_hash'] = anatomy_hash
         info['numpy_simd'] = ','.join(numpy_simd_targets())
+    if anatomy_path is not None:
+        info['anatomy_path'] = anatomy_path
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
         c_ep = writer.add_connection('demo/episode', 'std_msgs/msg/String', typestore=TYPESTORE)
@@ -239,8 +244,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     """Episodes of a demo bag (no simulation).
 
     Returns:
-        ``(meta, episodes)``: ``meta`` has ``anatomy`` and ``mode``, and ``anatomy_hash`` and
-        ``numpy_simd`` when the bag records them.
+        ``(meta, episodes)``: ``meta`` has ``anatomy`` and ``mode``, and ``anatomy_hash``,
+        ``numpy_simd`` and ``anatomy_path`` when the bag records them.
     """
     if not path.exists():
         raise DemoError(f'demo bag not found: {path}')
@@ -276,7 +281,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     if not heads:
         raise DemoError(f'{path}: expected demo/episode messages, found none')
     meta = {'anatomy': heads[0]['anatomy'], 'mode': heads[0]['mode']}
-    meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd') if k in custom})
+    meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd', 'anatomy_path')
+                 if k in custom})
     episodes = []
     for h in heads:
         r = h.pop('_rows')
@@ -422,15 +428,24 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
 
 
 def replay_demo_bag(path: Path, only_successful: bool = True, *,
-                    tolerance_m: float = POSE_TOLERANCE_M) -> Replay:
+                    tolerance_m: float = POSE_TOLERANCE_M, anatomy: Any = None) -> Replay:
     """Re-simulate a demo bag in the static simulator of its anatomy (module docstring).
 
     Logs :meth:`ReplayReport.summary` and warns (:class:`DemoAnatomyWarning`) when the bag
     was recorded in an anatomy with another content hash.
 
+    Args:
+        path: the bag.
+        only_successful: replay only the episodes that reached their target.
+        tolerance_m: the replay tolerance, m.
+        anatomy: the anatomy to re-simulate in (a name, a path or an ``Anatomy``); None: the
+            bag's own, its recorded ``anatomy_path`` or its built-in anatomy name.
+
     Raises:
-        DemoError: unreadable bag, no successful episode, or a replay beyond ``tolerance_m``.
+        DemoError: unreadable bag, no successful episode, a replay beyond ``tolerance_m``, or
+            a bag recorded in a path anatomy that is no longer there (pass ``anatomy``).
     """
+    from cgail_planner.sim.anatomy import is_builtin
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -441,7 +456,14 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         episodes = [e for e in episodes if e.success]
     if not episodes:
         raise DemoError(f'{path}: no successful demonstrations')
-    env = CatheterNavEnv(EnvConfig(mode='static', anatomy=meta.get('anatomy', 'default')))
+    if anatomy is None:
+        anatomy = meta.get('anatomy_path') or meta.get('anatomy', 'default')
+        if not is_builtin(anatomy) and not Path(anatomy).exists():
+            raise DemoError(
+                f'{path}: expected the anatomy it was recorded in, {meta.get("anatomy")!r} '
+                f'(content hash {meta.get("anatomy_hash")}) at {anatomy}, found no such path: '
+                'give its prepared directory (train --anatomy DIR)')
+    env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy))
     current = env.anatomy.content_hash
     recorded = meta.get('anatomy_hash')
     note = ''

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from cgail_planner.learning.errors import DemoError
 
 
-def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None
-               ) -> tuple[np.ndarray, np.ndarray]:
+def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None,
+               anatomy: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
 
     A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays, or a demo bag directory
@@ -22,6 +23,8 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
         paths: the sources.
         report: called with one line per demo bag: its re-simulated tip drift (max / mean)
             and anatomy hashes (:meth:`~cgail_planner.learning.demo_bags.ReplayReport.summary`).
+        anatomy: the anatomy to re-simulate demo bags in (a name, a path or an ``Anatomy``);
+            None: each bag's own (:func:`~cgail_planner.learning.demo_bags.replay_demo_bag`).
 
     Raises:
         DemoError: no path given, a path missing, or no samples.
@@ -40,7 +43,7 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
         else:
             from cgail_planner.learning.demo_bags import replay_demo_bag
 
-            obs, act, replay = replay_demo_bag(path)
+            obs, act, replay = replay_demo_bag(path, anatomy=anatomy)
             if report is not None:
                 report(replay.summary())
         obs_l.append(np.asarray(obs, np.float32))

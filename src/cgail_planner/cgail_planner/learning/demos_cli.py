@@ -61,7 +61,9 @@ def record_episodes(env, n: int, seed: int = 0) -> tuple[list[DemoEpisode], dict
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``make_demos``."""
     p = argparse.ArgumentParser(prog='make_demos', description=__doc__.split('\n')[0])
-    p.add_argument('--anatomy', default='default')
+    p.add_argument('--anatomy', default='default',
+                   help='built-in anatomy name (default, elongated), prepared anatomy directory '
+                        'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--episodes', type=int, default=70)
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
@@ -70,21 +72,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f'make_demos: error: --episodes must be >= 1, found {args.episodes}',
               file=sys.stderr)
         return 2
+    from cgail_planner.sim.anatomy import anatomy_label, is_builtin
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
     try:
         env = CatheterNavEnv(EnvConfig(mode='static', anatomy=args.anatomy))
+        label = anatomy_label(args.anatomy)
         t0 = time.monotonic()
         episodes, stats = record_episodes(env, args.episodes, args.seed)
         stats['wall_s'] = time.monotonic() - t0
-        write_demo_bag(args.out, episodes, anatomy=args.anatomy, mode='static',
-                       dt=env.config.dt,
-                       anatomy_hash=env.anatomy.content_hash)
+        write_demo_bag(args.out, episodes, anatomy=label, mode='static',
+                       dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
+                       anatomy_path=None if is_builtin(args.anatomy)
+                       else str(Path(args.anatomy).expanduser().resolve()))
     except (LearningError, ValueError) as exc:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2
-    print(json.dumps({'anatomy': args.anatomy, **stats}))
+    print(json.dumps({'anatomy': label, **stats}))
     return 0
 
 

@@ -288,7 +288,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--baselines', nargs='*', default=['centerline', 'expert'],
                    choices=('centerline', 'expert'))
     p.add_argument('--modes', nargs='+', default=['static'], choices=('static', 'dynamic'))
-    p.add_argument('--anatomy', default='default')
+    p.add_argument('--anatomy', default='default',
+                   help='built-in anatomy name (default, elongated), prepared anatomy directory '
+                        'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--trials', type=int, default=100)
     p.add_argument('--seed', type=int, default=1000)
     p.add_argument('--position-noise-mm', type=float, default=TrackingNoise.position_mm,
@@ -298,10 +300,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--out', type=Path, default=Path('reports/insilico'))
     args = p.parse_args(argv)
     from cgail_planner.learning.expert import ScriptedExpert
+    from cgail_planner.sim.anatomy import anatomy_identity, check_anatomy_spec
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.ftl_model import describe_anatomy
 
     try:
+        check_anatomy_spec(args.anatomy)  # (before the policies are loaded)
         noise = TrackingNoise(args.position_noise_mm, args.orientation_noise_deg)
         policies: dict[str, Any] = {}
         for spec in args.policy:
@@ -329,7 +334,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{mode} {name}: success {100 * s['success_rate']:.0f}% "
                       f"({time.monotonic() - t0:.0f} s)", flush=True)
             all_results[mode] = results
-        notes = (f'Anatomy `{args.anatomy}`, {args.trials} trials per method, epsilon 10 mm, '
+        label, content_hash = anatomy_identity(args.anatomy)
+        named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
+        notes = (f'Anatomy {named}, {args.trials} trials per method, epsilon 10 mm, '
                  f'seed {args.seed}. Trial k: start k % 3, target (k // 3) % 5. ')
         if noise.enabled:
             notes += (f'The methods perceive the tip through a simulated EM tracker '

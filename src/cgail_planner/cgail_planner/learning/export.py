@@ -89,15 +89,21 @@ def export_checkpoint(ckpt_path: Path, out: Path) -> Path:
 LEGACY_KEYS = ('observation_layout', 'action_scaling', 'theta_max_rad')
 
 
-def default_contract(anatomy: str, mode: str,
+def default_contract(anatomy: Any, mode: str,
                      training: dict[str, Any] | None = None) -> PolicyContract:
-    """The contract of the simulator's default configuration in ``anatomy`` and ``mode``."""
+    """The contract of the simulator's default configuration in ``anatomy`` (a built-in name,
+    a prepared anatomy directory, a mesh file or an ``Anatomy``) and ``mode``; a path anatomy
+    is recorded by its label and content hash
+    (:func:`cgail_planner.sim.anatomy.anatomy_identity`)."""
+    from cgail_planner.sim.anatomy import anatomy_identity
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import observation_spec
 
     cfg = EnvConfig(anatomy=anatomy, mode=mode)
+    label, content_hash = anatomy_identity(anatomy)
     return PolicyContract(catheter=cfg.catheter, observation=observation_spec(cfg),
-                          anatomy=anatomy, mode=mode, training=dict(training or {}))
+                          anatomy=label, mode=mode, training=dict(training or {}),
+                          anatomy_hash=content_hash)
 
 
 def write_contract(model_path: Path, contract: PolicyContract, out: Path | None = None) -> Path:
@@ -133,17 +139,32 @@ def main(argv: list[str] | None = None) -> int:
                         'mode of its metadata into an exported .onnx (graph unchanged)')
     p.add_argument('--training-json', default='{}',
                    help="with --add-contract: the contract's training notes, a JSON object")
+    p.add_argument('--anatomy', default=None,
+                   help="with --add-contract: the anatomy the policy was trained on, a built-in "
+                        "name, prepared anatomy directory or mesh file (default: the model's "
+                        "metadata, which names a built-in anatomy or a path anatomy's label)")
     args = p.parse_args(argv)
     try:
+        if args.anatomy is not None and not args.add_contract:
+            raise LearningError('--anatomy: expected with --add-contract (a checkpoint carries '
+                                'its contract), found it alone')
         if args.add_contract:
+            from cgail_planner.sim.anatomy import check_anatomy_spec, is_builtin
+
+            if args.anatomy is not None:
+                check_anatomy_spec(args.anatomy)  # (before the model is read)
             meta = {p.key: json.loads(p.value) for p in onnx.load(str(args.checkpoint))
                     .metadata_props}
+            anatomy = args.anatomy or str(meta.get('anatomy', 'default'))
+            if not is_builtin(anatomy) and args.anatomy is None:
+                raise LearningError(f'--add-contract: the metadata of {args.checkpoint} names '
+                                    f'anatomy {anatomy!r}, not a built-in one: give its '
+                                    'prepared directory with --anatomy')
             training = json.loads(args.training_json)
             if not isinstance(training, dict):
                 raise LearningError(f'--training-json: expected a JSON object, found '
                                     f'{args.training_json!r}')
-            contract = default_contract(str(meta.get('anatomy', 'default')),
-                                        str(meta.get('mode', 'static')), training)
+            contract = default_contract(anatomy, str(meta.get('mode', 'static')), training)
             out = write_contract(args.checkpoint, contract, args.out)
         else:
             out = export_checkpoint(args.checkpoint,

@@ -40,15 +40,20 @@ def sim_metadata(env_cfg: Any) -> dict[str, Any]:
     training envs. :func:`cgail_planner.learning.export.export_checkpoint` adds the curriculum
     lesson the exported checkpoint was trained at.
     """
+    from cgail_planner.sim.anatomy import anatomy_identity
     from cgail_planner.sim.env import observation_spec
     from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
+    label, content_hash = anatomy_identity(env_cfg.anatomy)
     contract = PolicyContract(catheter=env_cfg.catheter, observation=observation_spec(env_cfg),
-                              anatomy=env_cfg.anatomy, mode=env_cfg.mode)
-    return {CONTRACT_KEY: contract.to_dict(), 'anatomy': env_cfg.anatomy, 'mode': env_cfg.mode}
+                              anatomy=label, mode=env_cfg.mode, anatomy_hash=content_hash)
+    meta = {CONTRACT_KEY: contract.to_dict(), 'anatomy': label, 'mode': env_cfg.mode}
+    if content_hash:
+        meta['anatomy_hash'] = content_hash
+    return meta
 
 
-def make_envs(mode: str, anatomy: str, num_envs: int) -> tuple[Any, Any, dict[str, Any]]:
+def make_envs(mode: str, anatomy: Any, num_envs: int) -> tuple[Any, Any, dict[str, Any]]:
     """Batched training env, single evaluation env and metadata for the simulator."""
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
@@ -111,9 +116,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--preset', default='cgail',
                    help='preset name (cgail, gail, mu0, lambda0, nu0, smoke) or a YAML path')
     p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
-    p.add_argument('--anatomy', default='default', help='built-in anatomy name')
+    p.add_argument('--anatomy', default='default',
+                   help='built-in anatomy name (default, elongated), prepared anatomy directory '
+                        'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--demos', nargs='*', default=[],
-                   help='demonstration bag directories / .mcap files / .npz (GAIL, BC)')
+                   help='demonstration bag directories / .mcap files / .npz (GAIL, BC); with '
+                        'a path --anatomy, demo bags are re-simulated in that anatomy')
     p.add_argument('--init-from', type=Path, default=None,
                    help='checkpoint to start from (pre-train static, re-train dynamic)')
     p.add_argument('--seed', type=int, default=0, help='seed; the same seed reproduces the run')
@@ -131,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
     try:
+        from cgail_planner.sim.anatomy import is_builtin, resolve_anatomy
+
+        resolve_anatomy(args.anatomy)  # a bad anatomy fails before the demonstrations load
         cfg = load_config(args.preset)
         if args.max_steps is not None or args.num_envs is not None:
             d = config_to_dict(cfg)
@@ -143,7 +154,8 @@ def main(argv: list[str] | None = None) -> int:
         if cfg.needs_demos:
             demo_obs, demo_act = load_demos(
                 [Path(d) for d in args.demos],
-                report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr))
+                report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
+                anatomy=None if is_builtin(args.anatomy) else args.anatomy)
         env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,

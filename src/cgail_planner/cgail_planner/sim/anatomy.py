@@ -55,7 +55,9 @@ patient: ascending length 50 -> 68 mm, ascending diameter 31 -> 35 mm, sinus dia
 Modelling choices that are NOT from a source (estimates): the ascending length (50 mm from the
 annulus to the arch start), the arch plane rotation (60 deg from coronal), the root tilt
 (25 deg towards right-anterior), the sinus bulge shape, the branch-stub length (25 mm beyond the
-wall), the coronary-stub length (6 mm), the descending length (120 mm below the arch), and
+wall), the coronary-stub length (6 mm), the descending length (120 mm below the arch), the
+optional bend of the descending aorta above its open end (``descending_bend``: off in both
+built-in anatomies; a tortuous descending aorta for tests and populations), and
 the interpretation of the branch take-off angle as the angle from the cranial axis within the
 arch plane (BCT leaning right, LCCA and LSA leaning left).
 """
@@ -82,15 +84,23 @@ from cgail_planner.sim.mesh_io import AnatomyError, MeshLoadError
 
 __all__ = [
     "ANATOMY_NAMES",
+    "MESH_SUFFIXES",
+    "PREPARED_MESH",
     "Anatomy",
     "AnatomyError",
     "AnatomyParams",
+    "AnatomySpec",
     "AortaGeometry",
     "MeshLoadError",
+    "anatomy_identity",
+    "anatomy_label",
     "anatomy_params",
     "build_anatomy",
     "build_anatomy_from_params",
+    "check_anatomy_spec",
+    "is_builtin",
     "load_anatomy_mesh",
+    "resolve_anatomy",
     "save_anatomy_mesh",
 ]
 
@@ -144,6 +154,13 @@ class AnatomyParams:
     lies posterior-left of the ascending; estimate). Range 0-90 deg."""
     descending_length: float = 0.120
     """Length of the descending segment below the arch end (model choice). Range 50-300 mm."""
+    descending_bend: float = 0.0
+    """Angle the descending aorta turns through above its open end, towards the patient's
+    right-anterior (towards the aortic hiatus, as an older, tortuous descending aorta does;
+    model choice, 0 = straight, as in both built-in anatomies). Range 0-60 deg."""
+    descending_bend_length: float = 0.060
+    """Arc length of that bend, ending at the open descending end (model choice; used only when
+    ``descending_bend`` > 0). Range 20 mm - ``descending_length``."""
     annulus_to_brachiocephalic: float = 0.090
     """Centreline distance from the annulus to the BCT origin (90 mm; Front Cardiovasc Med
     2022). Range 60-140 mm."""
@@ -201,6 +218,8 @@ class AnatomyParams:
             "arch_height": (20 * mm, 120 * mm),
             "arch_rotation": (0.0, 90 * _DEG),
             "descending_length": (50 * mm, 300 * mm),
+            "descending_bend": (0.0, 60 * _DEG),
+            "descending_bend_length": (20 * mm, 300 * mm),
             "annulus_to_brachiocephalic": (60 * mm, 140 * mm),
             "brachiocephalic_to_carotid": (8 * mm, 35 * mm),
             "carotid_to_subclavian": (8 * mm, 35 * mm),
@@ -246,6 +265,10 @@ class AnatomyParams:
                 raise AnatomyError(
                     f"{name} must leave >= 4 mm of wall between the branch origins, i.e. be >= "
                     f"{0.5 * (d1 + d2) + 4 * mm:.4g} m for these diameters, found {spacing:.4g} m")
+        if self.descending_bend_length > self.descending_length:
+            raise AnatomyError(
+                f"descending_bend_length must be <= descending_length = "
+                f"{self.descending_length:.4g} m, found {self.descending_bend_length:.4g} m")
         if self.annulus_to_brachiocephalic < self.ascending_length:
             raise AnatomyError(
                 "annulus_to_brachiocephalic must be >= ascending_length (the BCT arises from "
@@ -350,6 +373,11 @@ class Anatomy:
         mesh = trimesh.Trimesh(self.vertices, self.faces, process=False)
         object.__setattr__(self, "_mesh", mesh)
 
+    def __repr__(self) -> str:
+        # (the dataclass repr would print every vertex: errors that show an anatomy use this)
+        return (f"Anatomy(name={self.name!r}, {len(self.vertices)} vertices, "
+                f"{len(self.faces)} faces, content_hash={self.content_hash!r})")
+
     @functools.cached_property
     def content_hash(self) -> str:
         """SHA-256 (16 hex digits) of the mesh and landmarks: every array attribute, the
@@ -433,7 +461,12 @@ class AortaGeometry:
         pts.append(start + half * (1 - np.cos(th))[:, None] * self.d
                    + p.arch_height * np.sin(th)[:, None] * z)
         end = start + p.arch_width * self.d
-        pts.append(end - np.outer(np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP), z))
+        if p.descending_bend > 0.0:
+            descending, raw_exit = _bent_descending(end, p)
+            pts.append(descending)
+        else:
+            pts.append(end - np.outer(np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP),
+                                      z))
         raw = np.vstack(pts)
         raw = _resample(raw, _STEP)
         smooth = gaussian_filter1d(raw, sigma=0.007 / _STEP, axis=0, mode="nearest")
@@ -445,9 +478,14 @@ class AortaGeometry:
         self.arc = arc
         tang = np.gradient(spine, axis=0)
         self.tangent = tang / np.linalg.norm(tang, axis=1, keepdims=True)
-        # Descending end: the spine point descending_length below the arch end.
-        z_exit = end[2] - p.descending_length
-        i_exit = int(np.argmin(np.abs(spine[:, 2] - z_exit) + 1e3 * (arc < arc[-1] / 2)))
+        # Descending end: the spine point descending_length below the arch end (along the
+        # bend, when there is one).
+        if p.descending_bend > 0.0:
+            i_exit = int(np.argmin(np.linalg.norm(spine - raw_exit, axis=1)
+                                   + 1e3 * (arc < arc[-1] / 2)))
+        else:
+            z_exit = end[2] - p.descending_length
+            i_exit = int(np.argmin(np.abs(spine[:, 2] - z_exit) + 1e3 * (arc < arc[-1] / 2)))
         self.s_exit = float(arc[i_exit])
         self.exit_point = spine[i_exit].copy()
         self.exit_normal = self.tangent[i_exit].copy()
@@ -568,6 +606,42 @@ class AortaGeometry:
         pts = np.atleast_2d(pts)
         near = np.min([np.linalg.norm(pts - o, axis=1) for o in self.ostia.values()], axis=0)
         return np.minimum(self.p.edge_length, 0.0012 + 0.35 * np.maximum(near - 0.003, 0.0))
+
+
+#: Direction the descending aorta bends towards (``AnatomyParams.descending_bend``): the
+#: patient's right-anterior, horizontal.
+_BEND_DIRECTION = np.array([-1.0, -1.0, 0.0]) / math.sqrt(2.0)
+
+
+def _bent_descending(end: np.ndarray, p: AnatomyParams) -> tuple[np.ndarray, np.ndarray]:
+    """Raw spine of a bent descending aorta below the arch end ``end`` and its open end.
+
+    Straight down (-z) for ``descending_length - descending_bend_length``, then a circular arc
+    of ``descending_bend_length`` turning through ``descending_bend`` towards
+    :data:`_BEND_DIRECTION`, then straight on along the final tangent past the open end (as the
+    straight aorta runs on past its end, so the cut crosses a clean cylinder).
+
+    Returns:
+        ``(points (K, 3) every _STEP from the arch end, open end (3,))``.
+    """
+    down = np.array([0.0, 0.0, -1.0])
+    straight = p.descending_length - p.descending_bend_length
+    radius = p.descending_bend_length / p.descending_bend
+    s = np.arange(_STEP, p.descending_length + _EXT + 0.02, _STEP)
+    top = end + straight * down
+    theta = p.descending_bend
+    tangent = math.cos(theta) * down + math.sin(theta) * _BEND_DIRECTION
+    bottom = top + radius * (math.sin(theta) * down + (1.0 - math.cos(theta)) * _BEND_DIRECTION)
+    out = np.empty((len(s), 3))
+    upper = s <= straight
+    out[upper] = end + np.outer(s[upper], down)
+    arc = (s > straight) & (s <= p.descending_length)
+    phi = (s[arc] - straight) / radius
+    out[arc] = top + radius * (np.outer(np.sin(phi), down)
+                               + np.outer(1.0 - np.cos(phi), _BEND_DIRECTION))
+    lower = s > p.descending_length
+    out[lower] = bottom + np.outer(s[lower] - p.descending_length, tangent)
+    return out, bottom
 
 
 def _smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
@@ -976,3 +1050,163 @@ def load_anatomy_mesh(path: str | Path, landmarks: dict[str, Any] | None = None,
         start_point=start,
         start_direction=start_dir,
     )
+
+
+# ------------------------------------------------------------------------------------------
+# An anatomy is a name or a path
+# ------------------------------------------------------------------------------------------
+#: What every CLI, node and config accepts as an anatomy: a built-in name
+#: (:data:`ANATOMY_NAMES`), a prepared anatomy directory, a mesh file, or an :class:`Anatomy`.
+AnatomySpec = str | os.PathLike[str] | Anatomy
+#: The lumen mesh of a prepared anatomy directory (its landmarks: ``lumen.yaml`` beside it).
+PREPARED_MESH = "lumen.stl"
+#: What ``prepare_anatomy`` renames the mesh of an anatomy that fails its validation to.
+REJECTED_MESH = "lumen.rejected.stl"
+#: File types :func:`load_anatomy_mesh` reads.
+MESH_SUFFIXES = (".stl", ".obj", ".ply")
+
+_PATH_CACHE: dict[tuple[str, tuple[int, int], tuple[int, int]], Anatomy] = {}
+_PATH_CACHE_MAX = 8
+
+
+def _usage(spec: object) -> str:
+    found = repr(spec) if isinstance(spec, (str, os.PathLike)) else \
+        f"an object of type {type(spec).__name__}"  # (never an arbitrary repr: no array dumps)
+    return (f"expected a built-in anatomy name {list(ANATOMY_NAMES)}, a prepared anatomy "
+            f"directory (holding {PREPARED_MESH} and lumen.yaml) or a mesh file "
+            f"({'/'.join(MESH_SUFFIXES)} in mm, with its <stem>.yaml landmarks), found {found}")
+
+
+def _mesh_of(spec: str | os.PathLike[str]) -> Path:
+    """The mesh file an anatomy path stands for (checked to exist, with its sidecar)."""
+    path = Path(spec).expanduser()
+    if not path.exists():
+        raise AnatomyError(f"{_usage(str(spec))}: no such file or directory")
+    if path.is_dir():
+        mesh = path / PREPARED_MESH
+        missing = [f.name for f in (mesh, mesh.with_suffix(".yaml")) if not f.is_file()]
+        if missing and (path / REJECTED_MESH).is_file():
+            raise AnatomyError(
+                f"anatomy {path}: expected a usable prepared anatomy ({PREPARED_MESH}), found "
+                f"one prepare_anatomy refused ({REJECTED_MESH}; the reasons are in "
+                f"{path / 'report.md'})")
+        if missing:
+            raise AnatomyError(
+                f"anatomy {path}: expected a prepared anatomy directory holding {PREPARED_MESH} "
+                f"and lumen.yaml (prepare_anatomy makes one), found no {' and no '.join(missing)}")
+        return mesh
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise AnatomyError(f"anatomy {path}: expected a mesh file ({'/'.join(MESH_SUFFIXES)}) "
+                           f"or a prepared anatomy directory, found a {path.suffix or 'bare'} "
+                           "file")
+    if not path.with_suffix(".yaml").is_file():
+        raise AnatomyError(f"anatomy {path}: expected its landmarks in "
+                           f"{path.with_suffix('.yaml')}, found no such file")
+    return path
+
+
+def anatomy_label(spec: AnatomySpec) -> str:
+    """A short, stable label of an anatomy, for file names, reports and contracts.
+
+    A built-in name is its own label; a prepared directory's label is its name
+    (``runs/patients/p07`` -> ``p07``), a mesh file's its stem (``lumen.stl`` inside a
+    directory: the directory's name); an :class:`Anatomy`'s, its name. Only the characters
+    ``[A-Za-z0-9._-]`` are kept. The label does not identify the mesh: two directories may
+    share a name; :attr:`Anatomy.content_hash` tells them apart.
+    """
+    if isinstance(spec, Anatomy):
+        raw = spec.name
+    elif isinstance(spec, str) and spec in ANATOMY_NAMES:
+        raw = spec
+    else:
+        path = Path(spec).expanduser().resolve()
+        if path.is_dir() or path.suffix.lower() not in MESH_SUFFIXES:
+            raw = path.name
+        else:
+            raw = path.parent.name if path.name == PREPARED_MESH else path.stem
+    label = "".join(ch if ch.isalnum() or ch in "._-" else "_" for ch in raw).strip("._")
+    return label or "anatomy"
+
+
+def check_anatomy_spec(spec: AnatomySpec) -> None:
+    """Check an anatomy argument without loading it: a built-in name, an :class:`Anatomy`, or
+    a path to a prepared directory or a mesh file with its landmarks (configs call this, so a
+    bad argument fails where it is given; :func:`resolve_anatomy` loads it).
+
+    Raises:
+        AnatomyError: what :func:`resolve_anatomy` raises before it reads a mesh.
+    """
+    if isinstance(spec, Anatomy) or is_builtin(spec):
+        return
+    if not isinstance(spec, (str, os.PathLike)) or (isinstance(spec, str) and not spec.strip()):
+        raise AnatomyError(_usage(spec))
+    _mesh_of(spec)
+
+
+def anatomy_identity(spec: AnatomySpec) -> tuple[str, str]:
+    """``(label, content_hash)``: what identifies an anatomy in a policy contract or a report.
+
+    A built-in anatomy is identified by its name, with no hash (``""``): its mesh differs in
+    the last bits between CPUs (:mod:`cgail_planner.sim.disk_cache`), so a policy trained on
+    ``default`` runs on every machine's ``default``. Any other anatomy (a path, an
+    :class:`Anatomy` built from parameters) is identified by its content hash, with
+    :func:`anatomy_label` as its readable name.
+    """
+    if is_builtin(spec):
+        return str(spec), ""
+    anatomy = resolve_anatomy(spec)
+    if anatomy.name in ANATOMY_NAMES and anatomy is build_anatomy(anatomy.name):
+        return anatomy.name, ""
+    return anatomy_label(spec), anatomy.content_hash
+
+
+def is_builtin(spec: AnatomySpec) -> bool:
+    """True when ``spec`` names a built-in anatomy (a string in :data:`ANATOMY_NAMES`)."""
+    return isinstance(spec, str) and spec in ANATOMY_NAMES
+
+
+def resolve_anatomy(spec: AnatomySpec) -> Anatomy:
+    """The anatomy an argument stands for: the one resolver every CLI, node and config uses.
+
+    Args:
+        spec: a built-in name (:data:`ANATOMY_NAMES`; a name wins over a directory of the same
+            name: write ``./default`` for that), a prepared anatomy directory (``DIR/lumen.stl``
+            plus ``DIR/lumen.yaml``, as ``prepare_anatomy`` writes), a mesh file
+            (:data:`MESH_SUFFIXES`, millimetres) with its ``<stem>.yaml`` landmarks, or an
+            :class:`Anatomy` (returned as is).
+
+    Returns:
+        The anatomy, named :func:`anatomy_label`. Built-in anatomies are cached as
+        :func:`build_anatomy` caches them; a path is loaded once per process and file state
+        (its resolved path and the modification time and size of the mesh and the landmarks),
+        so an edited file is read again.
+
+    Raises:
+        AnatomyError: one line naming the argument or the path and what was wrong: not a name
+            and no such path, a directory that is not a prepared anatomy, a file of another
+            type, missing landmarks, or a mesh that fails to load
+            (:class:`~cgail_planner.sim.mesh_io.MeshLoadError`).
+    """
+    if isinstance(spec, Anatomy):
+        return spec
+    if is_builtin(spec):
+        return build_anatomy(str(spec))
+    check_anatomy_spec(spec)
+    mesh = _mesh_of(spec).resolve()
+    sidecar = mesh.with_suffix(".yaml")
+    stats = [f.stat() for f in (mesh, sidecar)]
+    key = (str(mesh), (stats[0].st_mtime_ns, stats[0].st_size),
+           (stats[1].st_mtime_ns, stats[1].st_size))
+    anatomy = _PATH_CACHE.get(key)
+    if anatomy is None:
+        try:
+            anatomy = load_anatomy_mesh(mesh, name=anatomy_label(spec))
+        except AnatomyError as exc:
+            text = str(exc)
+            if str(mesh) not in text and str(sidecar) not in text:
+                text = f"anatomy {mesh}: {text}"
+            raise type(exc)(text) from None
+        if len(_PATH_CACHE) >= _PATH_CACHE_MAX:
+            _PATH_CACHE.pop(next(iter(_PATH_CACHE)))
+        _PATH_CACHE[key] = anatomy
+    return anatomy

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import math
 
+from cgail_planner.sim.anatomy import AnatomySpec, check_anatomy_spec
 from cgail_planner.sim.ftl_model import CatheterConfig, ObservationConfig
 from cgail_planner.sim.reward import RewardConfig
 
@@ -25,8 +26,11 @@ class EnvConfig:
 
     mode: str = "static"
     """``static`` (rigid wall) or ``dynamic`` (deformable wall, heartbeat, moving target)."""
-    anatomy: str = "default"
-    """Name of a built-in anatomy (``cgail_planner.sim.anatomy.build_anatomy``)."""
+    anatomy: AnatomySpec = "default"
+    """The anatomy: a built-in name (``default``, ``elongated``), a prepared anatomy directory
+    (``lumen.stl`` + ``lumen.yaml``), a mesh file with its ``<stem>.yaml`` landmarks, or an
+    :class:`~cgail_planner.sim.anatomy.Anatomy` (:func:`~cgail_planner.sim.anatomy.
+    resolve_anatomy`). A path is checked here and loaded when an env is built."""
     dt: float = _MODEL.dt
     """Control time step, s (0.1 s: 0.5 mm insertion per step at 5 mm/s); in [1 ms, 2 s]."""
     max_steps: int = 2000
@@ -53,10 +57,16 @@ class EnvConfig:
     """Reward values and thresholds (paper Table I)."""
 
     def __post_init__(self) -> None:
+        """Validate every field.
+
+        Raises:
+            ValueError: a field out of its range, naming it; an anatomy that is not a name or a
+                path to an anatomy (:class:`~cgail_planner.sim.anatomy.AnatomyError`, naming
+                the path and what was wrong).
+        """
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, found {self.mode!r}")
-        if not isinstance(self.anatomy, str) or not self.anatomy:
-            raise ValueError(f"anatomy must be a non-empty anatomy name, found {self.anatomy!r}")
+        check_anatomy_spec(self.anatomy)  # (an AnatomyError is a ValueError)
         if not isinstance(self.max_steps, int) or not 1 <= self.max_steps <= 1_000_000:
             raise ValueError(f"max_steps must be an int in [1, 1000000], found {self.max_steps!r}")
         if not isinstance(self.scenario_seed, int) or self.scenario_seed < 0:

@@ -8,6 +8,7 @@ observations and reward, one batched raycast per step in static mode);
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any, cast
 
@@ -16,6 +17,7 @@ from gymnasium import spaces
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_planner.sim.anatomy import anatomy_label, AnatomySpec
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.ftl_model import (
     action_to_command,
@@ -39,7 +41,7 @@ from cgail_planner.sim.reward import (
     StepEvents,
     update_waypoints,
 )
-from cgail_planner.sim.scenarios import episode_bounds, introducer_tail, load_world, World
+from cgail_planner.sim.scenarios import episode_bounds, load_world, World
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
 FloatArray = NDArray[np.float64]
@@ -61,10 +63,11 @@ def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
     Args:
         config: when given, the whole :class:`~cgail_planner.sim.ftl_model.ObservationSpec` of
             that configuration (``origin``, ``position_scale``, ``d_max``, ``ray_length``: the
-            numbers needed to rebuild observations outside the simulator) and its ``anatomy``.
+            numbers needed to rebuild observations outside the simulator) and its ``anatomy``
+            (:func:`~cgail_planner.sim.anatomy.anatomy_label`).
     """
     if config is not None:
-        return {**observation_spec(config).to_dict(), "anatomy": config.anatomy}
+        return {**observation_spec(config).to_dict(), "anatomy": anatomy_label(config.anatomy)}
     return {
         "dim": OBS_DIM,
         "fields": [f._asdict() for f in OBS_LAYOUT],
@@ -214,7 +217,7 @@ class NavEngine:
 
         ``start_pose`` ``(position (3,), rotation (3, 3))`` puts the tip there instead of at
         the start's pose, with the introducer behind it
-        (:func:`~cgail_planner.sim.scenarios.introducer_tail`): a demonstration replayed from
+        (:meth:`~cgail_planner.sim.scenarios.World.introducer`): a demonstration replayed from
         the pose it was recorded from (:mod:`cgail_planner.learning.demo_bags`).
         """
         sc = self.scenarios
@@ -224,10 +227,10 @@ class NavEngine:
             raise ValueError(f"target must be in [0, {len(sc.targets) - 1}], found {target_id}")
         start = sc.starts[start_id]
         if start_pose is None:
-            self.catheter.reset_env(i, start.position, start.rotation, start.introducer_tail)
+            self.catheter.reset_env(i, start.position, start.rotation, start.introducer)
         else:
             p, r = _checked_pose(start_pose)
-            self.catheter.reset_env(i, p, r, introducer_tail(self.world.anatomy, p, r))
+            self.catheter.reset_env(i, p, r, self.world.introducer(p, r))
         if not self._shared_wall:
             self.walls[i].reset()
         self.start_id[i] = start_id
@@ -456,6 +459,10 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     instead of the start's (replaying a demonstration from the pose it was recorded from).
     ``set_theta_max(rad)`` changes theta_max (curriculum).
 
+    **Anatomy**: ``EnvConfig.anatomy``, or the ``anatomy`` keyword (``gym.make("CatheterNav-v0",
+    anatomy="runs/patients/p07")``): a built-in name, a prepared anatomy directory, a mesh file
+    with its landmarks, or an :class:`~cgail_planner.sim.anatomy.Anatomy`.
+
     **Wall solver** (dynamic mode): ``pbd_config``, default :data:`DYNAMIC_PBD_CONFIG` (the
     calibrated wall with 5 Chebyshev-accelerated Gauss-Seidel sweeps per step, ~35 % cheaper
     than the 10 plain sweeps of ``PBDConfig()`` and as close to a converged solve). Pass
@@ -466,12 +473,15 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 10}  # noqa: RUF012
 
     def __init__(self, config: EnvConfig | None = None, render_mode: str | None = None,
-                 pbd_config: PBDConfig | None = None) -> None:
+                 pbd_config: PBDConfig | None = None, *,
+                 anatomy: AnatomySpec | None = None) -> None:
         if config is not None and not isinstance(config, EnvConfig):
             raise ValueError(f"config must be an EnvConfig, found {type(config).__name__}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', found {render_mode!r}")
         self.config = config or EnvConfig()
+        if anatomy is not None:  # gym.make("CatheterNav-v0", anatomy=...)
+            self.config = dataclasses.replace(self.config, anatomy=anatomy)
         self.engine = NavEngine(self.config, 1, pbd_config)
         self.observation_space = _observation_space()  # type: ignore[assignment]
         self.action_space = spaces.Box(  # type: ignore[assignment]

@@ -37,12 +37,15 @@ section III-A):
 
 * **Body and retraction rule** (:data:`RETRACTION_RULE`). The body is the chain of tip poses
   (nodes) with their arc lengths; every inserting step appends the new tip pose. A body starts as
-  a straight *introducer* from its proximal end (:func:`introducer_tail`: just outside the open
-  descending end of the aorta) to the start pose. Retraction (``delta_l < 0``) slides the tip back
-  along its own body by ``|delta_l|``: nodes passed are dropped, the tip is interpolated on the
-  segment it stops on and keeps the orientation of that segment's distal node; bends are ignored
-  while retracting. The tip stops at the proximal end of the introducer. The planner's rollout
-  starts its body the same way from the tip pose it plans from.
+  an *introducer* from its proximal end (just outside the open descending end of the aorta) to
+  the start pose (:func:`seed_body`): straight (:func:`introducer_tail`), or, where a straight
+  one would leave the lumen, a bent tube along the centerline
+  (:func:`cgail_planner.sim.scenarios.introducer_path`). Retraction (``delta_l < 0``) slides
+  the tip back along its own body by ``|delta_l|``: nodes passed are dropped, the tip is
+  interpolated on the segment it stops on and keeps the orientation of that segment's distal
+  node; bends are ignored while retracting. The tip stops at the proximal end of the
+  introducer. The planner's rollout starts its body the same way from the tip pose it plans
+  from.
 * **Time step.** ``dt = 0.1 s`` with the maximal insertion speed ``5 mm/s``: ``|delta_l| <= 0.5
   mm`` and ``|alpha|, |gamma| <= 0.9 deg`` per step.
 
@@ -576,18 +579,81 @@ def introducer_tail(exit_point: FloatArray, exit_normal: FloatArray, position: F
     return np.asarray(exit_point, dtype=np.float64) + 0.005 * n
 
 
-def seed_body(positions: FloatArray, rotations: FloatArray, arc: FloatArray, tail: FloatArray,
-              p0: FloatArray, r0: FloatArray) -> None:
-    """Write a new body into one chain: the introducer node at ``tail`` and the tip at
-    ``[r0 | p0]`` (both with rotation ``r0``), arc lengths 0 and ``|p0 - tail|``; 2 nodes."""
-    tail = np.asarray(tail, dtype=np.float64)
+def _minimal_rotation(a: FloatArray, b: FloatArray) -> FloatArray:
+    """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b``."""
+    v = np.cross(a, b)
+    c = float(a @ b)
+    if c < -1.0 + 1e-12:
+        raise ValueError(f"introducer must not turn back on itself, found directions "
+                         f"{a.round(3).tolist()} and {b.round(3).tolist()}")
+    vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    return np.eye(3) + vx + vx @ vx / (1.0 + c)
+
+
+def introducer_rotations(introducer: FloatArray, p0: FloatArray, r0: FloatArray) -> FloatArray:
+    """(K, 3, 3) rotations of the introducer nodes ``introducer`` (K, 3) behind ``[r0 | p0]``.
+
+    A straight introducer (K = 1) carries the start's rotation ``r0``. On a bent one, node ``j``
+    carries ``r0`` turned by the smallest rotation from the start heading to the direction the
+    tip travels when it reaches that node (node 0: the direction to node 1), so a tip retracted
+    into the introducer faces along it, with no twist about its axis.
+    """
+    intro = np.asarray(introducer, dtype=np.float64).reshape(-1, 3)
+    r0 = np.asarray(r0, dtype=np.float64)
+    k = len(intro)
+    out = np.empty((k, 3, 3))
+    if k == 1:
+        out[0] = r0
+        return out
+    nodes = np.vstack([intro, np.asarray(p0, dtype=np.float64)[None]])
+    seg = np.diff(nodes, axis=0)
+    length = np.linalg.norm(seg, axis=1)
+    if not np.all(length > 1e-9):
+        raise ValueError(f"introducer nodes must be distinct, found a segment of "
+                         f"{float(length.min()):.3g} m")
+    heading = seg / length[:, None]
+    h0 = r0[:, 1]
+    for j in range(k):
+        d = heading[max(j - 1, 0)]
+        out[j] = _minimal_rotation(h0, d) @ r0
+    return out
+
+
+def seed_body(positions: FloatArray, rotations: FloatArray, arc: FloatArray,
+              introducer: FloatArray, p0: FloatArray, r0: FloatArray) -> int:
+    """Write a new body into one chain: the introducer, then the tip at ``[r0 | p0]``.
+
+    Args:
+        positions: (C, 3) node positions of the chain (C > K).
+        rotations: (C, 3, 3) node rotations.
+        arc: (C,) node arc lengths from the proximal end.
+        introducer: (3,) the proximal end of a straight introducer (:func:`introducer_tail`),
+            or (K, 3) the nodes of a bent one, proximal end first, the start pose excluded.
+        p0: (3,) start position.
+        r0: (3, 3) start rotation.
+
+    Returns:
+        The number of nodes written, K + 1 (2 for a straight introducer; rotations from
+        :func:`introducer_rotations`, arc lengths along the nodes).
+    """
+    intro = np.asarray(introducer, dtype=np.float64).reshape(-1, 3)
     p0 = np.asarray(p0, dtype=np.float64)
-    positions[0] = tail
-    positions[1] = p0
-    rotations[0] = r0
-    rotations[1] = r0
+    k = len(intro)
+    if k == 1:  # (the straight introducer, as it always was)
+        positions[0] = intro[0]
+        positions[1] = p0
+        rotations[0] = r0
+        rotations[1] = r0
+        arc[0] = 0.0
+        arc[1] = float(np.linalg.norm(p0 - intro[0]))
+        return 2
+    positions[:k] = intro
+    positions[k] = p0
+    rotations[:k] = introducer_rotations(intro, p0, r0)
+    rotations[k] = r0
     arc[0] = 0.0
-    arc[1] = float(np.linalg.norm(p0 - tail))
+    arc[1:k + 1] = np.cumsum(np.linalg.norm(np.diff(positions[:k + 1], axis=0), axis=1))
+    return k + 1
 
 
 @njit(cache=True)
@@ -700,19 +766,22 @@ class CatheterBatch:
         self.theta_max = float(theta_max)
 
     def reset_env(self, i: int, start_position: FloatArray, start_rotation: FloatArray,
-                  introducer_tail: FloatArray) -> None:
-        """Put catheter ``i`` at its start pose with a straight introducer behind it.
+                  introducer: FloatArray) -> None:
+        """Put catheter ``i`` at its start pose with its introducer behind it.
 
         Args:
             i: environment index.
             start_position: (3,) tip position, m.
             start_rotation: (3, 3) tip rotation.
-            introducer_tail: (3,) position of the proximal end of the introducer (outside the
-                lumen, behind the start pose along ``-y_A``).
+            introducer: (3,) the proximal end of a straight introducer (outside the lumen,
+                behind the start pose along ``-y_A``), or (K, 3) the nodes of a bent one,
+                proximal end first (:func:`seed_body`).
         """
-        seed_body(self.positions[i], self.rotations[i], self.arc[i], introducer_tail,
-                  start_position, start_rotation)
-        self.n_nodes[i] = 2
+        k = np.asarray(introducer).reshape(-1, 3).shape[0]
+        while k + 1 >= self.capacity:
+            self._grow()
+        self.n_nodes[i] = seed_body(self.positions[i], self.rotations[i], self.arc[i],
+                                    introducer, start_position, start_rotation)
 
     def _grow(self) -> None:
         cap = self.capacity
@@ -807,6 +876,13 @@ CONTRACT_KEY = "catheter_contract"
 CONTRACT_VERSION = 1
 
 
+def describe_anatomy(label: str, content_hash: str) -> str:
+    """An anatomy identity (:func:`cgail_planner.sim.anatomy.anatomy_identity`) in words."""
+    if not content_hash:
+        return f"built-in {label!r}"
+    return f"{label!r} (content hash {content_hash})"
+
+
 @dataclass(frozen=True, eq=False)
 class PolicyContract:
     """The model a policy was trained and evaluated with; the planner builds itself from it.
@@ -822,17 +898,32 @@ class PolicyContract:
     observation: ObservationSpec
     """Observation normalisers, anatomy frame and ray set."""
     anatomy: str
-    """Anatomy the policy was trained on (``origin`` and ``d_max`` are that anatomy's)."""
+    """Anatomy the policy was trained on (``origin`` and ``d_max`` are that anatomy's): a
+    built-in name, or the label of a path anatomy (its directory name)."""
     mode: str
     """``static`` or ``dynamic``: the world it was trained in."""
     training: Mapping[str, Any] = field(default_factory=dict)
     """Notes on the training run (preset, steps, curriculum); informational."""
+    anatomy_hash: str = ""
+    """Content hash of a path anatomy (:attr:`cgail_planner.sim.anatomy.Anatomy.content_hash`,
+    what identifies it; :func:`cgail_planner.sim.anatomy.anatomy_identity`); ``""`` for a
+    built-in anatomy, which its name identifies."""
 
     def __post_init__(self) -> None:
         if self.mode not in ("static", "dynamic"):
             raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
         if not isinstance(self.anatomy, str) or not self.anatomy:
             raise ValueError(f"anatomy must be a non-empty name, found {self.anatomy!r}")
+        if not isinstance(self.anatomy_hash, str) or not (
+                self.anatomy_hash == "" or (len(self.anatomy_hash) == 16 and all(
+                    c in "0123456789abcdef" for c in self.anatomy_hash))):
+            raise ValueError(f"anatomy_hash must be '' or 16 hex digits, found "
+                             f"{self.anatomy_hash!r}")
+
+    def describe_anatomy(self) -> str:
+        """The policy's anatomy in words, e.g. ``built-in 'default'`` or ``'p07' (content
+        hash 606110321e2766a5)``."""
+        return describe_anatomy(self.anatomy, self.anatomy_hash)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (what the ONNX metadata stores under :data:`CONTRACT_KEY`)."""
@@ -848,6 +939,7 @@ class PolicyContract:
             },
             "observation": self.observation.to_dict(),
             "anatomy": self.anatomy,
+            **({"anatomy_hash": self.anatomy_hash} if self.anatomy_hash else {}),
             "mode": self.mode,
             "training": dict(self.training),
         }
@@ -874,7 +966,8 @@ class PolicyContract:
             catheter = CatheterConfig(**data["catheter"])
             observation = ObservationSpec.from_dict(data["observation"])
             return cls(catheter=catheter, observation=observation, anatomy=data["anatomy"],
-                       mode=data["mode"], training=dict(data.get("training", {})))
+                       mode=data["mode"], training=dict(data.get("training", {})),
+                       anatomy_hash=data.get("anatomy_hash", ""))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"contract: expected the keys of PolicyContract.to_dict, found "
                              f"{sorted(data)} ({exc})") from None

@@ -742,7 +742,8 @@ def read_mesh_mm(path: str | Path) -> trimesh.Trimesh:
     except (ValueError, OSError, KeyError, IndexError) as err:
         raise MeshLoadError(f"expected a readable triangle mesh in {p}, found: {err}") from err
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise MeshLoadError(f"expected a triangle mesh in {p}, found {type(loaded).__name__}")
+        raise MeshLoadError(f"expected a triangle mesh in {p}, found a {type(loaded).__name__} "
+                            f"with {len(getattr(loaded, 'faces', ()))} faces")
     mesh = loaded
     mesh.merge_vertices()
     if not mesh.is_watertight:

@@ -87,6 +87,7 @@ __all__ = [
     "build_topology",
     "contact_neighbourhood",
     "internal_forces",
+    "largest_displacement",
     "padded_springs",
     "particle_forces",
     "predict",
@@ -153,6 +154,13 @@ class PBDConfig:
     penetration_tolerance: float = 5e-5
     """Geometric penetration below this depth is reported as 0, m (the residual of the
     iterative contact projection); in [0, 1 mm]."""
+    max_displacement: float = 0.04
+    """Bound on any particle's distance from its rest position, m; a step that exceeds it
+    raises :class:`cgail_planner.sim.wall.WallError` instead of going on with a wall that has
+    blown up (e.g. pushed by a catheter body lying outside the lumen). 40 mm is three times the
+    largest displacement of normal episodes in the built-in anatomies (12-13 mm: the 11 mm
+    heartbeat excursion of the root plus catheter contact) and more than the widest lumen
+    (35 mm): a particle that far has crossed the vessel. In [5 mm, 1 m]."""
 
     def __post_init__(self) -> None:
         for name, low, high in (
@@ -161,6 +169,7 @@ class PBDConfig:
             ("tether_stiffness", 0.0, 1e9), ("bending_ratio", 0.0, 1.0),
             ("damping", 0.0, 1e4), ("contact_margin", 0.0, 0.05),
             ("penetration_tolerance", 0.0, 1e-3), ("chebyshev_rho", 0.0, 0.999),
+            ("max_displacement", 0.005, 1.0),
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float))
@@ -396,6 +405,24 @@ def secant_factor(x, edges, edge_rest, b, out, relax=1.0):
             z = min(z, _Z_MAX)
             g = np.expm1(z) / z
         out[e] += relax * (g - out[e])
+
+
+@njit(cache=True)
+def largest_displacement(x, rest):
+    """``(index, distance)`` of the particle furthest from its rest position (a NaN position
+    counts as infinitely far), m."""
+    worst = -1.0
+    k = 0
+    for i in range(x.shape[0]):
+        d2 = 0.0
+        for a in range(3):
+            d2 += (x[i, a] - rest[i, a]) ** 2
+        if not d2 <= 1e300:  # NaN or inf
+            return i, np.inf
+        if d2 > worst:
+            worst = d2
+            k = i
+    return k, math.sqrt(max(worst, 0.0))
 
 
 @njit(cache=True)

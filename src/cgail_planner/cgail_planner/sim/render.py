@@ -4,6 +4,7 @@ Command line (console script ``sim_render``)::
 
     sim_render --anatomy default --out docs/img/anatomy_default.png
     sim_render --anatomy elongated --rollout tip_points.npy --phases 4 --out /tmp/a.png
+    sim_render --anatomy runs/patients/p07          # a prepared anatomy: anatomy_p07.png
 
 Two views side by side: anterior (coronal; viewer looking at the patient's front, the
 patient's left on the right of the image) and left-lateral (viewer at the patient's left,
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError, build_anatomy
+from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError, resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
 
 __all__ = ["VIEWS", "heartbeat_phases", "main", "render_anatomy"]
@@ -235,9 +236,11 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="sim_render", description=__doc__.split("\n")[0])
     ap.add_argument("--anatomy", default="default",
-                    help=f"built-in anatomy {list(ANATOMY_NAMES)} or a mesh file (mm) with a "
-                         "<stem>.yaml landmark sidecar")
-    ap.add_argument("--out", default=None, help="PNG path (default anatomy_<name>.png)")
+                    help=f"built-in anatomy {list(ANATOMY_NAMES)}, a prepared anatomy directory "
+                         "or a mesh file (mm) with a <stem>.yaml landmark sidecar")
+    ap.add_argument("--out", default=None,
+                    help="PNG path (default anatomy_<label>.png: the name, the directory name "
+                         "or the mesh stem)")
     ap.add_argument("--rollout", default=None, help=".npy file of (T, 3) tip points in m")
     ap.add_argument("--phases", type=int, default=0,
                     help="overlay the root at N heartbeat phases (needs sim.wall)")
@@ -251,12 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``sim_render``; returns the exit status."""
     args = _parse(argv)
     try:
-        if args.anatomy in ANATOMY_NAMES:
-            anatomy = build_anatomy(args.anatomy)
-        else:
-            from cgail_planner.sim.anatomy import load_anatomy_mesh
-
-            anatomy = load_anatomy_mesh(args.anatomy)
+        anatomy = resolve_anatomy(args.anatomy)
         centerlines = None if args.no_centerlines else compute_centerlines(anatomy)
         rollout = None
         if args.rollout:

@@ -4,8 +4,12 @@
   centerline point nearest ``Anatomy.start_point`` and the others evenly spaced cranially along the
   centerline, the last ``start_span`` = 53 mm (arc length) above the first. The tip heading is the
   local centerline tangent (central difference over +-5 mm) and the tip x axis is perpendicular to
-  the world x axis (deterministic). Behind each start an introducer runs straight back along
-  ``-y_A`` to 5 mm beyond the exit plane, so retraction can pull the tip out (``r_exit``).
+  the world x axis (deterministic). Behind each start an introducer runs back to 5 mm beyond the
+  exit plane, so retraction can pull the tip out (``r_exit``): straight back along ``-y_A``
+  when that tube (the catheter's radius, :data:`INTRODUCER_RADIUS`) lies inside the lumen, as
+  in both built-in anatomies; otherwise bent along the centerline (a descending aorta that
+  curves near its open end); a start where neither fits is refused with the reason
+  (:func:`introducer_path`).
 * **Targets** (5 by default): seeded rejection sampling, uniform in the ``target_radius`` = 30 mm
   sphere centred at the midpoint of the two coronary ostia; a candidate is kept when it lies inside
   the lumen (``Anatomy.contains``), at least ``target_clearance`` = 4.5 mm (tip radius + 1 mm)
@@ -18,22 +22,27 @@
 * ``origin``: the centre of the anatomy's bounding box (observed positions are relative to it).
 
 The set is a pure function of the anatomy, the centerlines and the seed; :func:`load_world`
-caches it per ``(anatomy name, n_waypoints, seed)`` so many environments share one copy.
+takes an anatomy as a built-in name, a prepared directory, a mesh file or an
+:class:`~cgail_planner.sim.anatomy.Anatomy` (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`)
+and caches the world per ``(anatomy content hash, name, n_waypoints, seed)`` so many
+environments share one copy.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import functools
+import itertools
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from cgail_planner.sim.anatomy import Anatomy, build_anatomy
+from cgail_planner.sim.anatomy import Anatomy, AnatomyError, AnatomySpec, resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
-from cgail_planner.sim.ftl_model import frame_from_heading
+from cgail_planner.sim.ftl_model import CatheterConfig, frame_from_heading
 from cgail_planner.sim.ftl_model import introducer_tail as ftl_introducer_tail
 
 FloatArray = NDArray[np.float64]
@@ -42,8 +51,10 @@ FloatArray = NDArray[np.float64]
 BRANCHES = ("left", "right")
 
 
-class ScenarioError(ValueError):
-    """The anatomy does not admit the requested scenario set (e.g. no valid target found)."""
+class ScenarioError(AnatomyError):
+    """The anatomy does not admit the requested scenario set (e.g. no valid target found, no
+    introducer inside the lumen behind a start); an :class:`AnatomyError`, so every entry
+    point that reports a bad anatomy reports this too."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +69,21 @@ class StartConfig:
     """(3,) proximal end of the introducer, 5 mm outside the exit plane."""
     arc_offset: float
     """Arc length along the centerline above the first start, m."""
+    introducer: FloatArray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(K, 3) nodes of the introducer, proximal end first, the start excluded: ``[tail]`` for
+    a straight one (the default, when none is given), more along a bent one
+    (:func:`introducer_path`)."""
+
+    def __post_init__(self) -> None:
+        intro = np.asarray(self.introducer, dtype=np.float64).reshape(-1, 3)
+        if len(intro) == 0:
+            intro = np.asarray(self.introducer_tail, dtype=np.float64)[None]
+        object.__setattr__(self, "introducer", intro)
+
+    @property
+    def bent(self) -> bool:
+        """True when the introducer follows the centerline rather than a straight line."""
+        return len(self.introducer) > 1
 
 
 @dataclass(frozen=True)
@@ -96,6 +122,28 @@ class World:
     centerlines: dict[str, Centerline]
     scenarios: ScenarioSet
 
+    def introducer(self, position: FloatArray, rotation: FloatArray) -> FloatArray:
+        """(K, 3) the introducer behind the tip pose ``[rotation | position]``
+        (:func:`introducer_path` on the left centerline, as behind the starts).
+
+        Raises:
+            ScenarioError: neither a straight introducer nor one along the centerline lies
+                inside the lumen behind this pose.
+        """
+        return introducer_path(self.anatomy, self.centerlines["left"].points, position,
+                               rotation)
+
+
+#: Radius of the introducer tube that must lie inside the rest lumen, m: the catheter's.
+INTRODUCER_RADIUS = CatheterConfig().radius
+#: How far the proximal end of the introducer lies beyond the exit plane, m (as
+#: :func:`cgail_planner.sim.ftl_model.introducer_tail`).
+INTRODUCER_OVERHANG = 0.005
+#: Sampling step of :func:`tube_clearance` along an introducer, m.
+_INTRODUCER_SAMPLE = 0.001
+#: Smallest step of the introducer check (:func:`_tube_problem`), m.
+_TRACE_STEP = 2.5e-4
+
 
 def _arc(points: FloatArray) -> FloatArray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
@@ -106,8 +154,15 @@ def _interp(points: FloatArray, arc: FloatArray, s: float) -> FloatArray:
 
 
 def build_starts(anatomy: Anatomy, centerline: Centerline, *, n_starts: int = 3,
-                 start_span: float = 0.053) -> tuple[StartConfig, ...]:
-    """Start configurations along the descending-aorta part of ``centerline`` (module doc)."""
+                 start_span: float = 0.053, introducer_radius: float = INTRODUCER_RADIUS
+                 ) -> tuple[StartConfig, ...]:
+    """Start configurations along the descending-aorta part of ``centerline`` (module doc).
+
+    Raises:
+        ScenarioError: a centerline too short for ``start_span``, or a start with no
+            introducer of ``introducer_radius`` inside the lumen (:func:`introducer_path`;
+            the message names the anatomy and the start).
+    """
     pts = np.asarray(centerline.points, dtype=np.float64)
     arc = _arc(pts)
     i0 = int(np.argmin(np.linalg.norm(pts - anatomy.start_point, axis=1)))
@@ -118,21 +173,164 @@ def build_starts(anatomy: Anatomy, centerline: Centerline, *, n_starts: int = 3,
             f"found {arc[-1] - s0:.3f} m")
     offsets = np.linspace(0.0, start_span, n_starts) if n_starts > 1 else np.zeros(1)
     starts = []
-    for off in offsets:
+    for k, off in enumerate(offsets):
         s = s0 + float(off)
         p = _interp(pts, arc, s)
         tangent = _interp(pts, arc, s + 0.005) - _interp(pts, arc, max(s - 0.005, 0.0))
         rot = frame_from_heading(tangent)
-        starts.append(StartConfig(position=p, rotation=rot,
-                                  introducer_tail=introducer_tail(anatomy, p, rot),
-                                  arc_offset=float(off)))
+        try:
+            intro = introducer_path(anatomy, pts, p, rot, radius=introducer_radius)
+        except ScenarioError as exc:
+            raise ScenarioError(f"anatomy {anatomy.name!r}, start {k} ({off * 1e3:.0f} mm above "
+                                f"start 0): {exc}") from None
+        starts.append(StartConfig(position=p, rotation=rot, introducer_tail=intro[0],
+                                  arc_offset=float(off), introducer=intro))
     return tuple(starts)
 
 
 def introducer_tail(anatomy: Anatomy, position: FloatArray, rotation: FloatArray) -> FloatArray:
-    """(3,) proximal end of the introducer behind a start pose in ``anatomy``
+    """(3,) proximal end of the straight introducer behind a tip pose in ``anatomy``
     (:func:`cgail_planner.sim.ftl_model.introducer_tail` at the anatomy's exit plane)."""
     return ftl_introducer_tail(anatomy.exit_point, anatomy.exit_normal, position, rotation)
+
+
+@functools.lru_cache(maxsize=16)
+def _rest_wall(anatomy: Anatomy) -> Any:
+    """The rest-shape wall BVH of ``anatomy`` (caps transparent), for clearance queries."""
+    from cgail_planner.sim.raycast import WallBVH
+
+    return WallBVH(np.asarray(anatomy.vertices, dtype=np.float64), anatomy.faces,
+                   anatomy.wall_face_mask)
+
+
+def _clearance_fn(anatomy: Anatomy) -> Any:
+    """``q -> clearance``: on the lumen side of the exit plane, the distance from ``q`` to the
+    rest wall (negative beyond it); inf beyond the exit plane (outside the anatomy)."""
+    bvh = _rest_wall(anatomy)
+    n = np.asarray(anatomy.exit_normal, dtype=np.float64)
+    e = np.asarray(anatomy.exit_point, dtype=np.float64)
+
+    def clearance(q: FloatArray) -> float:
+        return -bvh.closest_point(q)[0] if float((q - e) @ n) < 0.0 else math.inf
+
+    return clearance
+
+
+def tube_clearance(anatomy: Anatomy, nodes: FloatArray,
+                   step: float = _INTRODUCER_SAMPLE) -> tuple[float, FloatArray]:
+    """The smallest clearance of the polyline ``nodes`` (proximal end first) from the rest wall
+    of ``anatomy``, sampled every ``step``, and where it occurs.
+
+    Returns:
+        ``(clearance, point)``: m, negative where the axis runs beyond the wall; points beyond
+        the exit plane are not counted (inf when none is on the lumen side).
+    """
+    clearance = _clearance_fn(anatomy)
+    pts = np.asarray(nodes, dtype=np.float64)
+    worst, where = math.inf, pts[-1]
+    for a, b in itertools.pairwise(pts):
+        m = max(math.ceil(float(np.linalg.norm(b - a)) / step), 1)
+        for t in np.linspace(0.0, 1.0, m + 1):
+            q = a + t * (b - a)
+            c = clearance(q)
+            if c < worst:
+                worst, where = c, q
+    return worst, where
+
+
+def _tube_problem(anatomy: Anatomy, nodes: FloatArray, radius: float) -> str | None:
+    """Why the tube of ``radius`` around the polyline ``nodes`` (proximal end first) does not
+    lie inside the rest lumen of ``anatomy``, or None when it does.
+
+    Only the part on the lumen side of the exit plane is checked (the proximal end lies
+    beyond it). The clearance is the exact distance to the wall faces (caps are open).
+    """
+    bvh = _rest_wall(anatomy)
+    n = np.asarray(anatomy.exit_normal, dtype=np.float64)
+    e = np.asarray(anatomy.exit_point, dtype=np.float64)
+    # Cheap and conservative (sphere tracing): the clearance and the depth below the exit
+    # plane are 1-Lipschitz along the axis, so after a sample with clearance c >= radius none
+    # of the next c - radius can dip below radius, and a sample beyond the plane by d cannot
+    # reach the plane within d. Steps are at least _TRACE_STEP, so a tube that passes clears
+    # the wall by radius - _TRACE_STEP everywhere.
+    ok = True
+    for a, b in itertools.pairwise(nodes):
+        length = float(np.linalg.norm(b - a))
+        t = 0.0
+        while ok:
+            q = a + (t / length) * (b - a) if length > 0.0 else a
+            depth = float((q - e) @ n)
+            if depth >= 0.0:
+                free = depth
+            else:
+                free = -bvh.closest_point(q)[0] - radius
+                ok = free >= 0.0
+            if t >= length:
+                break
+            t = min(t + max(free, _TRACE_STEP), length)
+        if not ok:
+            break
+    if ok:
+        return None
+    worst, where = tube_clearance(anatomy, nodes)
+    back = float(np.linalg.norm(where - nodes[-1])) * 1e3
+    if worst < 0.0:
+        return f"its axis runs {-worst * 1e3:.1f} mm outside the wall {back:.0f} mm behind the tip"
+    return (f"its axis comes within {worst * 1e3:.1f} mm of the wall {back:.0f} mm behind the "
+            f"tip (the tube needs {radius * 1e3:.1f} mm)")
+
+
+def introducer_path(anatomy: Anatomy, centerline: FloatArray, position: FloatArray,
+                    rotation: FloatArray, *, radius: float = INTRODUCER_RADIUS) -> FloatArray:
+    """The introducer behind the tip pose ``[rotation | position]``: (K, 3) nodes from its
+    proximal end (:data:`INTRODUCER_OVERHANG` beyond the exit plane) towards the tip, the tip
+    excluded.
+
+    1. **Straight** (K = 1, ``[tail]``): back along ``-y_A``
+       (:func:`cgail_planner.sim.ftl_model.introducer_tail`), when its tube of ``radius``
+       lies inside the rest lumen; so the built-in anatomies' starts keep theirs.
+    2. Else **along the centerline**: from the proximal end (the exit point moved
+       :data:`INTRODUCER_OVERHANG` out along the exit normal) to the centerline's first
+       waypoint, then along the waypoints up to the tip's projection on the centerline, when
+       that tube lies inside the lumen.
+
+    Args:
+        anatomy: the anatomy (rest shape, exit plane).
+        centerline: (W, 3) waypoints from the descending aorta (``Centerline.points``).
+        position: (3,) tip position, m.
+        rotation: (3, 3) tip rotation.
+        radius: radius of the tube that must clear the wall, m (the catheter's).
+
+    Raises:
+        ScenarioError: neither introducer lies inside the lumen; the message gives both
+            reasons ("expected ..., found ...").
+    """
+    p = np.asarray(position, dtype=np.float64)
+    r = np.asarray(rotation, dtype=np.float64)
+    tail = introducer_tail(anatomy, p, r)
+    straight = _tube_problem(anatomy, np.stack([tail, p]), radius)
+    if straight is None:
+        return tail[None]
+    pts = np.asarray(centerline, dtype=np.float64)
+    seg = np.diff(pts, axis=0)
+    l2 = np.einsum("ij,ij->i", seg, seg)
+    t = np.clip(np.einsum("ij,ij->i", p - pts[:-1], seg) / np.where(l2 > 0.0, l2, 1.0), 0.0, 1.0)
+    foot = pts[:-1] + t[:, None] * seg
+    j = int(np.argmin(np.linalg.norm(foot - p, axis=1)))
+    proximal = np.asarray(anatomy.exit_point, dtype=np.float64) \
+        + INTRODUCER_OVERHANG * np.asarray(anatomy.exit_normal, dtype=np.float64)
+    nodes = [proximal, *pts[:j + 1]]
+    if t[j] > 0.0:
+        nodes.append(foot[j])
+    # drop nodes that coincide with the tip (a start on a waypoint)
+    bent = np.array([q for q in nodes if float(np.linalg.norm(q - p)) > 1e-6])
+    along = _tube_problem(anatomy, np.vstack([bent, p[None]]), radius)
+    if along is None:
+        return bent
+    raise ScenarioError(
+        f"expected an introducer inside the lumen (a {2 * radius * 1e3:.1f} mm tube from "
+        f"{INTRODUCER_OVERHANG * 1e3:.0f} mm beyond the exit plane to the tip), found the "
+        f"straight one: {straight}; the one along the centerline: {along}")
 
 
 #: Margin of the region an episode (or a planner's rollout) may visit around the anatomy, m.
@@ -212,12 +410,39 @@ def build_scenarios(anatomy: Anatomy, centerlines: dict[str, Centerline], *, see
                        origin=origin)
 
 
-@functools.lru_cache(maxsize=8)
-def load_world(anatomy_name: str, n_waypoints: int = 100, seed: int = 0) -> World:
-    """Build (once per process) the anatomy, its centerlines and scenarios."""
-    anatomy = build_anatomy(anatomy_name)
-    centerlines = compute_centerlines(anatomy, n_waypoints=n_waypoints)
-    scenarios = build_scenarios(anatomy, centerlines, seed=seed)
-    if not math.isfinite(scenarios.d_max) or scenarios.d_max <= 0.0:
-        raise ScenarioError(f"expected a positive d_max, found {scenarios.d_max}")
-    return World(anatomy=anatomy, centerlines=centerlines, scenarios=scenarios)
+_WORLDS: dict[tuple[str, str, int, int], World] = {}
+_WORLDS_MAX = 8
+
+
+def load_world(anatomy: AnatomySpec, n_waypoints: int = 100, seed: int = 0) -> World:
+    """Build (once per process) the anatomy, its centerlines and scenarios.
+
+    Args:
+        anatomy: a built-in name, a prepared anatomy directory, a mesh file with its
+            ``<stem>.yaml`` landmarks, or an :class:`~cgail_planner.sim.anatomy.Anatomy`
+            (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`).
+        n_waypoints: waypoints per centerline.
+        seed: seed of the target sampling.
+
+    Returns:
+        The world, shared by every caller with the same anatomy content, name and arguments
+        (the centerlines come from the disk cache keyed by the content hash).
+
+    Raises:
+        AnatomyError: an anatomy that cannot be resolved or loaded (the message names it).
+        ScenarioError: an anatomy that does not admit the scenario set (e.g. no introducer
+            inside the lumen behind a start).
+    """
+    resolved = resolve_anatomy(anatomy)
+    key = (resolved.content_hash, resolved.name, int(n_waypoints), int(seed))
+    world = _WORLDS.get(key)
+    if world is None:
+        centerlines = compute_centerlines(resolved, n_waypoints=n_waypoints)
+        scenarios = build_scenarios(resolved, centerlines, seed=seed)
+        if not math.isfinite(scenarios.d_max) or scenarios.d_max <= 0.0:
+            raise ScenarioError(f"expected a positive d_max, found {scenarios.d_max}")
+        world = World(anatomy=resolved, centerlines=centerlines, scenarios=scenarios)
+        if len(_WORLDS) >= _WORLDS_MAX:
+            _WORLDS.pop(next(iter(_WORLDS)))
+        _WORLDS[key] = world
+    return world

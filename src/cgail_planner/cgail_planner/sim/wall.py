@@ -22,6 +22,7 @@ Typical use by the environment::
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import TYPE_CHECKING
 
@@ -29,8 +30,10 @@ import numpy as np
 
 from cgail_planner.sim.contact import Contact, narrow_pairs
 from cgail_planner.sim.heartbeat import Heartbeat, HeartbeatConfig
+from cgail_planner.sim.mesh_io import AnatomyError
 from cgail_planner.sim.pbd import (
     build_topology,
+    largest_displacement,
     particle_forces,
     PBDConfig,
     predict,
@@ -46,7 +49,14 @@ if TYPE_CHECKING:
 #: Under-relaxation of the lagged secant stiffening update (see ``pbd.secant_factor``).
 _SECANT_RELAX = 0.5
 
-__all__ = ["Contact", "DeformableWall", "StaticWall"]
+__all__ = ["Contact", "DeformableWall", "StaticWall", "WallError"]
+
+
+class WallError(AnatomyError):
+    """The deformable wall left its physical range (a particle beyond
+    ``PBDConfig.max_displacement`` from rest): the simulation stops rather than go on with a
+    blown-up wall. The usual cause is a catheter body outside the lumen (an anatomy whose
+    introducer leaves it)."""
 
 
 def _check_finite_scalar(name: str, value: float, positive: bool = False) -> float:
@@ -223,6 +233,11 @@ class DeformableWall(StaticWall):
         self.vertices = self._rest.copy()
         self.velocities = np.zeros_like(self._rest)
         self.t = 0.0
+        #: Steps since :meth:`reset`.
+        self.steps = 0
+        #: Largest particle distance from rest after the last step, m (checked against
+        #: ``PBDConfig.max_displacement``).
+        self.max_displacement = 0.0
         self._impulse[:] = 0.0
         self._touched[:] = 0
         self._dp[:] = 0.0
@@ -238,6 +253,11 @@ class DeformableWall(StaticWall):
             dt: step length, s (> 0).
             body_points: (B, 3) catheter body, proximal end first, tip last (B may be 0).
             body_radius: catheter radius, m (> 0 when B > 0).
+
+        Raises:
+            WallError: a particle ended the step further than ``PBDConfig.max_displacement``
+                from its rest position (the message names the step, the particle, the
+                distance and, when the body lies outside the rest wall, where).
         """
         t = _check_finite_scalar("t", t)
         dt = _check_finite_scalar("dt", dt, positive=True)
@@ -260,6 +280,40 @@ class DeformableWall(StaticWall):
             self._dirty = True
         self.t = t
         self._last_dt = dt
+        self.steps += 1
+        self._check_displacement(pts)
+
+    def _check_displacement(self, pts: np.ndarray) -> None:
+        """Raise :class:`WallError` when a particle is beyond ``max_displacement`` from rest."""
+        i, d = largest_displacement(self.vertices, self._rest)
+        self.max_displacement = float(d)
+        bound = self.pbd_config.max_displacement
+        if d <= bound:
+            return
+        where = self._rest[int(i)] * 1e3
+        body = ""
+        if pts.shape[0]:  # (the error path: a rest-shape tree just for the message)
+            rest = WallBVH(self._rest, self.anatomy.faces, self.anatomy.wall_face_mask)
+            # the body's capsule axes, every millimetre, on the lumen side of the exit plane
+            axis = [pts[:1]]
+            for a, b in itertools.pairwise(pts):
+                m = max(int(np.linalg.norm(b - a) / 1e-3), 1)
+                axis.append(a + np.linspace(0.0, 1.0, m + 1)[1:, None] * (b - a))
+            samples = np.vstack(axis)
+            exit_point = getattr(self.anatomy, "exit_point", None)
+            if exit_point is not None:
+                samples = samples[(samples - exit_point) @ self.anatomy.exit_normal < 0.0]
+            sd = np.array([rest.closest_point(q)[0] for q in samples])
+            if sd.size and sd.max() > 0.0:
+                q = samples[int(np.argmax(sd))]
+                body = (f"; the catheter body runs {sd.max() * 1e3:.1f} mm outside the rest "
+                        f"wall at ({', '.join(f'{v * 1e3:.1f}' for v in q)}) mm: an "
+                        "introducer outside the lumen?")
+        raise WallError(
+            f"deformable wall: expected every particle within {bound * 1e3:.0f} mm of its rest "
+            f"position (PBDConfig.max_displacement), found particle {int(i)} (rest "
+            f"({where[0]:.1f}, {where[1]:.1f}, {where[2]:.1f}) mm) {d * 1e3:.1f} mm away at "
+            f"step {self.steps} (t = {self.t:.2f} s){body}")
 
     def _step_vbd(self, t: float, dt: float, pts: np.ndarray, radius: float) -> None:
         """All substeps of the VBD solver in one numba call (:func:`~.pbd.step_vbd`)."""

@@ -124,3 +124,32 @@ def test_bad_parameters_raise_at_construction(ros, tmp_path, name, value) -> Non
     with pytest.raises(Exception, match=name):
         PhantomNode(parameter_overrides=[Parameter(name, value=value),
                                          Parameter('simulate_aurora', value=False)])
+
+
+def test_a_wall_error_freezes_the_physics_and_is_reported(ros, tmp_path) -> None:
+    """A deformable wall beyond its bound (WallError) stops the physics, not the node: the
+    catheter and the wall freeze, the error is logged once and /diagnostics says ERROR."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from cgail_planner.sim.wall import WallError
+
+    node, probe, ex = make(tmp_path, mode='dynamic')
+    try:
+        calls = []
+
+        def blown_up(*args) -> None:
+            calls.append(args)
+            raise WallError('deformable wall: expected every particle within 40 mm ...')
+
+        node.physics.step = blown_up
+        node.advance(0.01)
+        node.advance(0.01)
+        assert len(calls) == 1
+        assert node.physics_error.startswith('physics stopped: deformable wall: expected')
+        status = node.diagnostics().status[0]
+        assert status.level == DiagnosticStatus.ERROR
+        assert status.message == node.physics_error
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        probe.destroy_node()

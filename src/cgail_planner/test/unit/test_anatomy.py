@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
+import sys
 
 import numpy as np
 import pytest
 import trimesh
+
+sys.path.insert(0, str(Path(__file__).parent))
+from curved_aorta import curved_anatomy, CURVED_PARAMS
 
 from cgail_planner.sim.anatomy import (
     Anatomy,
@@ -238,6 +243,8 @@ def test_unknown_anatomy_name() -> None:
     ("carotid_angle", 2.0),
     ("edge_length", 0.0),
     ("descending_length", float("nan")),
+    ("descending_bend", math.radians(70.0)),
+    ("descending_bend_length", 0.01),
 ])
 def test_params_validation_names_the_field(field: str, value: float) -> None:
     with pytest.raises(AnatomyError, match=f"^{field} must be in"):
@@ -252,6 +259,37 @@ def test_params_cross_checks() -> None:
     with pytest.raises(AnatomyError, match="sinus_diameter must exceed"):
         AnatomyParams(sinus_diameter=0.026)
     assert dataclasses.replace(AnatomyParams(), arch_height=0.05).arch_height == 0.05
+    with pytest.raises(AnatomyError, match="descending_bend_length must be <= descending_length"):
+        AnatomyParams(descending_length=0.08, descending_bend_length=0.09)
+
+
+def test_descending_bend_turns_the_open_end_towards_right_anterior() -> None:
+    straight = AortaGeometry(AnatomyParams())
+    bent = AortaGeometry(CURVED_PARAMS)
+    assert straight.exit_normal @ np.array([0.0, 0.0, -1.0]) > 0.9999
+    down, towards = np.array([0.0, 0.0, -1.0]), np.array([-1.0, -1.0, 0.0]) / math.sqrt(2.0)
+    expected = math.cos(math.radians(30.0)) * down + math.sin(math.radians(30.0)) * towards
+    assert math.degrees(math.acos(min(1.0, float(bent.exit_normal @ expected)))) < 2.0
+    # the same arc length of descending aorta, and the same aorta above the bend
+    assert bent.s_exit == pytest.approx(straight.s_exit, abs=1.5 * MM)
+    above = straight.arc < straight.s_exit - 0.09  # (the bend, plus the 28 mm smoothing)
+    np.testing.assert_allclose(bent.spine[:above.sum()], straight.spine[above], atol=1e-9)
+
+
+def test_curved_descending_aorta_meshes_with_consistent_landmarks() -> None:
+    anatomy = curved_anatomy()
+    mesh = anatomy.mesh
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.euler_number == 2
+    cap = anatomy.faces[~anatomy.wall_face_mask]
+    exit_cap = cap[np.linalg.norm(anatomy.vertices[cap].mean(axis=1) - anatomy.exit_point,
+                                  axis=1) < 0.015]
+    normals = mesh.face_normals[np.flatnonzero(~anatomy.wall_face_mask)][
+        np.linalg.norm(anatomy.vertices[cap].mean(axis=1) - anatomy.exit_point, axis=1) < 0.015]
+    assert len(exit_cap) > 5
+    assert np.all(normals @ anatomy.exit_normal > 0.999)
+    assert anatomy.contains(anatomy.start_point[None])[0]
+    assert float((anatomy.start_point - anatomy.exit_point) @ -anatomy.exit_normal) == \
+        pytest.approx(0.020, abs=1 * MM)
 
 
 _VARIANTS = {

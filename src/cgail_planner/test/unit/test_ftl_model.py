@@ -223,3 +223,42 @@ def test_the_ray_set_is_unit_vectors_in_rings() -> None:
     polar = np.degrees(np.arccos(RAY_DIRECTIONS[:, 1]))
     assert polar == pytest.approx([0] + [30] * 8 + [60] * 8 + [90] * 8, abs=1e-9)
     assert ObservationConfig() == ObservationConfig(position_scale=0.15, ray_length=0.04)
+
+
+def test_a_bent_introducer_seeds_its_nodes_with_rotations_along_it() -> None:
+    """A body seeded with a bent introducer: its nodes, arc lengths along them, rotations that
+    face along each segment (no twist), and the start pose last."""
+    intro = np.array([[0.0, -0.03, 0.0], [0.0, -0.02, 0.0], [0.005, -0.01, 0.0]])
+    positions, rotations, arc = np.zeros((6, 3)), np.zeros((6, 3, 3)), np.zeros(6)
+    n = seed_body(positions, rotations, arc, intro, np.zeros(3), np.eye(3))
+    assert n == 4
+    assert np.array_equal(positions[:4], np.vstack([intro, np.zeros(3)]))
+    seg = np.linalg.norm(np.diff(positions[:4], axis=0), axis=1)
+    assert arc[:4] == pytest.approx(np.concatenate([[0.0], np.cumsum(seg)]), abs=1e-15)
+    assert np.array_equal(rotations[3], np.eye(3))
+    headings = [np.array([0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0]),
+                np.array([0.5, 1.0, 0.0]) / math.sqrt(1.25)]
+    for j, h in enumerate(headings):
+        r = rotations[j]
+        np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(r[:, 1], h, atol=1e-12)
+        np.testing.assert_allclose(r[:, 2], [0.0, 0.0, 1.0], atol=1e-12)  # turned about z only
+    # retraction slides the tip back along the bent introducer to its proximal end
+    before = arc.copy()
+    k, moved = retract_chain(positions, arc, n, 0.012)
+    assert (k, moved) == (3, pytest.approx(0.012, abs=1e-15))  # on the bent segment 1-2
+    assert positions[k - 1] == pytest.approx(
+        intro[1] + (before[3] - 0.012 - before[1]) * headings[2], abs=1e-12)
+    k, moved = retract_chain(positions, arc, k, 1.0)
+    assert k == 1 and positions[0] == pytest.approx(intro[0], abs=0)
+
+
+def test_the_batch_grows_to_hold_a_long_introducer() -> None:
+    intro = np.column_stack([np.zeros(12), np.linspace(-0.06, -0.005, 12), np.zeros(12)])
+    batch = CatheterBatch(1, MODEL, capacity=4)
+    batch.reset_env(0, np.zeros(3), np.eye(3), intro)
+    assert batch.n_nodes[0] == 13 and batch.capacity >= 14
+    assert np.array_equal(batch.body(0), np.vstack([intro, np.zeros(3)]))
+    with pytest.raises(ValueError, match='introducer must not turn back on itself'):
+        batch.reset_env(0, np.zeros(3), np.eye(3), np.array([[0.0, 0.03, 0.0],
+                                                              [0.0, 0.02, 0.0]]))

@@ -56,6 +56,20 @@ def test_no_insertion_no_turn_and_retraction_slides_back() -> None:
     assert ph.tip_rotation[:, 1] == pytest.approx([0.0, 1.0, 0.0])
 
 
+def test_retraction_slides_back_along_a_bent_introducer() -> None:
+    """The phantom's body starts with the introducer it is given (a start's bent one) and
+    retraction follows it to its proximal end."""
+    intro = np.array([[0.01, -0.03, 0.0], [0.005, -0.02, 0.0], [0.0, -0.01, 0.0]])
+    ph = PhantomPhysics(PhantomConfig(), None)
+    ph.reset(np.zeros(3), np.eye(3), intro)
+    assert np.array_equal(ph.catheter.body(0), np.vstack([intro, np.zeros(3)]))
+    ph.move(-0.015, (0.0, 0.0))  # 10 mm back to intro[2], then 5 mm towards intro[1]
+    seg = (intro[1] - intro[2]) / np.linalg.norm(intro[1] - intro[2])
+    assert ph.tip_position == pytest.approx(intro[2] + 0.005 * seg, abs=1e-12)
+    ph.move(-0.1, (0.0, 0.0))
+    assert ph.tip_position == pytest.approx(intro[0], abs=1e-12)
+
+
 class FlatWall:
     """Wall plane z = 0.002 with the lumen below (outward normal +z)."""
 

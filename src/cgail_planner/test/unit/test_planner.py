@@ -6,6 +6,7 @@ the bend limit and the catheter radius are read from :class:`CatheterConfig`, no
 The rollout's parity with the simulator is ``test_model_parity.py``.
 """
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -294,6 +295,47 @@ def test_a_setting_that_disagrees_with_the_contract_is_refused(kwargs, match) ->
                 override=False) | kwargs
     with pytest.raises(ContractError, match=match):
         reconcile_contract(contract(), **args)
+
+
+H1, H2 = '606110321e2766a5', '0123456789abcdef'
+
+
+def test_a_path_anatomy_is_identified_by_its_content_hash() -> None:
+    """A path-trained policy records its anatomy's label and content hash: the planner's
+    anatomy must have that hash (whatever its directory is called); built-in names compare as
+    names (their meshes differ between CPUs)."""
+    c = dataclasses.replace(contract(), anatomy='p07', anatomy_hash=H1)
+    args = dict(mode='static', theta_max=None, segment_length=None, override=False)
+    same, notes = reconcile_contract(c, anatomy='p07_copy', anatomy_hash=H1, **args)
+    assert same is c and notes == []
+    for anatomy, anatomy_hash, found in (
+            ('p08', H2, f"'p08' \\(content hash {H2}\\)"),
+            ('default', '', "built-in 'default'")):
+        with pytest.raises(ContractError, match=(
+                rf"^anatomy: expected the policy's 'p07' \(content hash {H1}\), found parameter "
+                rf"{found} \(set override_policy_contract to run anyway\)$")):
+            reconcile_contract(c, anatomy=anatomy, anatomy_hash=anatomy_hash, **args)
+    with pytest.raises(ContractError, match=(
+            rf"^anatomy: expected the policy's built-in 'default', found parameter 'p07' "
+            rf"\(content hash {H1}\) ")):
+        reconcile_contract(contract(), anatomy='p07', anatomy_hash=H1, **args)
+    got, notes = reconcile_contract(c, anatomy='p08', anatomy_hash=H2,
+                                    world_spec=ObservationSpec(origin=np.ones(3), d_max=0.25),
+                                    **(args | dict(override=True)))
+    assert (got.anatomy, got.anatomy_hash) == ('p08', H2)
+    assert notes == [f"override_policy_contract: anatomy 'p08' (content hash {H2}) instead of "
+                     f"the policy's 'p07' (content hash {H1}) (observed in this anatomy's "
+                     "frame)"]
+
+
+def test_a_contract_round_trips_its_anatomy_hash() -> None:
+    c = dataclasses.replace(contract(), anatomy='p07', anatomy_hash=H1)
+    back = PolicyContract.from_json(c.to_json())
+    assert (back.anatomy, back.anatomy_hash) == ('p07', H1)
+    assert 'anatomy_hash' not in contract().to_dict()  # (built-in: as before)
+    assert PolicyContract.from_dict(contract().to_dict()).anatomy_hash == ''
+    with pytest.raises(ValueError, match="anatomy_hash must be '' or 16 hex digits, found 'xyz'"):
+        dataclasses.replace(contract(), anatomy_hash='xyz')
 
 
 def test_an_override_applies_the_setting_and_warns() -> None:

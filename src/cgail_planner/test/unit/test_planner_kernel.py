@@ -231,3 +231,39 @@ def test_kernel_sees_the_current_shape_of_a_deformable_wall(world, policy) -> No
     after = assert_same_rollout(planner, s.position, s.rotation, t.position)
     assert before[0] != after[0] or before[2].shape != after[2].shape \
         or np.abs(before[2] - after[2]).max() > 1e-6
+
+
+def test_retraction_follows_a_bent_introducer_out_of_the_exit() -> None:
+    """In the aorta whose descending part curves near its open end, start 2's body behind it
+    is the bent introducer: retracting all the way, the tip slides along it and leaves through
+    the exit plane (as the env's episode does), where a straight introducer would have taken
+    it through the wall."""
+    import dataclasses
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from curved_aorta import curved_world
+
+    world = curved_world()
+    model = model_world_from_sim(world)
+    wall = StaticWall(world.anatomy)
+    s = world.scenarios.starts[2]
+    assert s.bent
+    planner = Planner(PlannerConfig(), model, wall, const_policy([0.0, 0.0, -1.0]),
+                      RAY_DIRECTIONS)
+    kind, message, points, _ = assert_same_rollout(planner, s.position, s.rotation,
+                                                   world.scenarios.targets[0].position)
+    nodes = np.vstack([s.introducer, s.position])
+    depth = (nodes - world.anatomy.exit_point) @ world.anatomy.exit_normal
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))])
+    j = int(np.flatnonzero(depth < 0.0)[0])  # the first node inside the lumen
+    at_plane = arc[j - 1] + depth[j - 1] / (depth[j - 1] - depth[j]) * (arc[j] - arc[j - 1])
+    steps = int((arc[-1] - at_plane) // CatheterConfig().max_step_insertion) + 1
+    assert kind == 'error' and message == f'cgail rollout left the anatomy at step {steps}'
+    assert len(points) == 1
+    assert world.anatomy.contains(points - 0.002 * world.anatomy.exit_normal).all()
+    straight = Planner(PlannerConfig(), dataclasses.replace(model, introducer=None), wall,
+                       const_policy([0.0, 0.0, -1.0]), RAY_DIRECTIONS)
+    kind, message, _, _ = assert_same_rollout(straight, s.position, s.rotation,
+                                              world.scenarios.targets[0].position)
+    assert kind == 'error' and 'touched the wall' in message

@@ -51,7 +51,7 @@ def test_cli_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--out", str(tmp_path / "b.png"), "--rollout", str(bad), "--dpi", "30"]) == 2
     assert "rollout must be a (T, 3) array" in capsys.readouterr().err
     assert main(["--anatomy", str(tmp_path / "nope.stl"), "--out", str(tmp_path / "c.png")]) == 2
-    assert "no file" in capsys.readouterr().err
+    assert "nope.stl': no such file or directory" in capsys.readouterr().err
 
 
 def test_heartbeat_phases_move_the_root() -> None:

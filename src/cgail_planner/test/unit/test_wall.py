@@ -1,15 +1,16 @@
 """The wall facade: static vs deformable, heartbeat on the simulated particles, contacts."""
 
 import math
+import re
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from cgail_planner.sim.heartbeat import HeartbeatConfig
-from cgail_planner.sim.pbd import PBDConfig
+from cgail_planner.sim.pbd import largest_displacement, PBDConfig
 from cgail_planner.sim.raycast import closest_segment_triangle
-from cgail_planner.sim.wall import Contact, DeformableWall, StaticWall
+from cgail_planner.sim.wall import Contact, DeformableWall, StaticWall, WallError
 
 R = 0.012
 LENGTH = 0.12
@@ -303,3 +304,76 @@ def test_local_settling_tames_the_force_spike_after_a_sudden_push(tube):
     assert settled == pytest.approx(raw_settled, rel=0.5)  # same equilibrium, roughly
     assert first < 5 * settled
     assert raw_first > 2 * first  # without the local sweeps the first reading is far off
+
+
+def test_a_wall_beyond_its_displacement_bound_stops_with_the_step_and_particle(tube):
+    """The heartbeat moves the annulus 11.2 mm; with an 8 mm bound the wall stops at the first
+    step the annulus passes 8 mm, with a WallError (never a silent collision)."""
+    wall = DeformableWall(tube, PBDConfig(max_displacement=0.008))
+    beat = wall.heartbeat
+    with pytest.raises(WallError) as info:
+        for k in range(1, 100):
+            wall.step(k * DT, DT, np.zeros((0, 3)), CATHETER_R)
+            assert wall.max_displacement <= 0.008
+    k = wall.steps
+    assert np.linalg.norm(beat.displacement(k * DT)) > 0.008 >= \
+        np.linalg.norm(beat.displacement((k - 1) * DT))
+    assert re.fullmatch(
+        r"deformable wall: expected every particle within 8 mm of its rest position "
+        r"\(PBDConfig.max_displacement\), found particle (\d+) \(rest \(.*\) mm\) "
+        rf"(\d+\.\d) mm away at step {k} \(t = {k * DT:.2f} s\)", str(info.value))
+    assert int(re.search(r"particle (\d+)", str(info.value)).group(1)) in tube.annulus_vertices
+    wall.reset()
+    assert wall.steps == 0 and wall.max_displacement == 0.0
+    with pytest.raises(ValueError, match="max_displacement must be in"):
+        PBDConfig(max_displacement=0.001)
+
+
+def test_a_catheter_body_outside_the_lumen_is_a_wall_error_not_a_collision():
+    """Issue 12 reproduced and stopped: start 2 of the curved descending aorta with the
+    straight introducer of before (running outside the wall) blows the deformable wall up at
+    the first step (tens of mm: it reached 915 mm by step 2); the bound stops it with the
+    reason. With its introducer along the centerline the wall stays within the bound."""
+    from pathlib import Path
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from curved_aorta import curved_world
+
+    from cgail_planner.sim.env import DYNAMIC_PBD_CONFIG
+    from cgail_planner.sim.ftl_model import CatheterBatch, CatheterConfig
+    from cgail_planner.sim.scenarios import introducer_tail
+
+    world = curved_world()
+    anatomy, model = world.anatomy, CatheterConfig()
+
+    def run(start, introducer, steps):
+        wall = DeformableWall(anatomy, DYNAMIC_PBD_CONFIG)
+        cat = CatheterBatch(1, model)
+        cat.reset_env(0, start.position, start.rotation, introducer)
+        worst = 0.0
+        for k in range(1, steps + 1):
+            cat.step(np.zeros(1), np.zeros(1), np.full(1, model.max_step_insertion))
+            wall.step(k * DT, DT, cat.body_points(0, 0.005), model.radius)
+            worst = max(worst, wall.max_displacement)
+        return worst
+
+    s2 = world.scenarios.starts[2]
+    with pytest.raises(WallError, match=(
+            r"^deformable wall: expected every particle within 40 mm of its rest position "
+            r"\(PBDConfig.max_displacement\), found particle \d+ \(rest .*\) \d+\.\d mm away "
+            r"at step 1 \(t = 0.10 s\); the catheter body runs \d+\.\d mm outside the rest "
+            r"wall at \(.*\) mm: an introducer outside the lumen\?$")):
+        run(s2, introducer_tail(anatomy, s2.position, s2.rotation), 1)
+    for s in world.scenarios.starts:
+        worst = run(s, s.introducer, 20)
+        assert 0.005 < worst <= DYNAMIC_PBD_CONFIG.max_displacement
+
+
+def test_largest_displacement_counts_nan_as_infinitely_far():
+    rest = np.zeros((4, 3))
+    x = rest.copy()
+    x[2] = [0.0, 0.003, 0.004]
+    assert largest_displacement(x, rest) == (2, pytest.approx(0.005, abs=1e-15))
+    x[1, 0] = np.nan
+    assert largest_displacement(x, rest) == (1, np.inf)
