@@ -18,7 +18,10 @@ from cgail_planner.system.launch_spec import (
     load_launch_file,
     parse_launch,
 )
-from cgail_planner.system.launcher import main, node_command, ProcessLauncher
+from cgail_planner.system.launcher import build_node, main, node_command, ProcessLauncher
+
+SIM_RIG = Path(__file__).resolve().parents[1] / 'src' / 'cgail_planner' / 'config' / 'launch' \
+    / 'sim_rig.yaml'
 
 # A child that records the signal it got, then exits 0 on SIGINT (like an rclpy node).
 GOOD_CHILD = textwrap.dedent('''
@@ -218,3 +221,111 @@ def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_co
     finally:
         for node in built:
             node.destroy_node()
+
+
+def test_launch_arguments_replace_var_with_their_default_or_given_value(tmp_path):
+    data = {'name': 'args', 'arguments': {'anatomy': 'default', 'rate': 40},
+            'nodes': [{'name': 'a', 'package': 'p', 'executable': 'e',
+                       'parameters': {'anatomy': '$(var anatomy)', 'rate_hz': 10.0,
+                                      'names': ['$(var anatomy)/x', 'y']},
+                       'args': ['--rate=$(var rate)'], 'env': {'ANATOMY': '$(var anatomy)'}}]}
+    spec = parse_launch(data, tmp_path)
+    assert spec.arguments == {'anatomy': 'default', 'rate': '40'}
+    node = spec.nodes[0]
+    assert node.parameters == {'anatomy': 'default', 'rate_hz': 10.0,
+                               'names': ['default/x', 'y']}
+    assert (node.args, node.env) == (('--rate=40',), {'ANATOMY': 'default'})
+    node = parse_launch(data, tmp_path, {'anatomy': '/data/p 07'}).nodes[0]
+    assert node.parameters['anatomy'] == '/data/p 07' and node.env['ANATOMY'] == '/data/p 07'
+
+
+@pytest.mark.parametrize('arguments, given, match', [
+    ({'anatomy': 'default'}, {'anatomy2': 'x'},
+     r"^launch 'args' has no argument\(s\) \['anatomy2'\]; expected some of \['anatomy'\]$"),
+    ({}, None, r"^launch 'args': nodes\[0\]\.parameters\.anatomy: \$\(var anatomy\) names no "
+               r"launch argument; expected one of \[\]$"),
+    (['anatomy'], None, r'"arguments" must be a mapping of names to defaults, found list'),
+    ({'anatomy': {'default': 'x'}}, None, r"argument 'anatomy' must have a string default"),
+    ({'my-anatomy': 'x'}, None, r"argument names must be identifiers, found 'my-anatomy'"),
+])
+def test_bad_launch_arguments_name_the_problem(tmp_path, arguments, given, match):
+    data = {'name': 'args', 'arguments': arguments,
+            'nodes': [{'name': 'a', 'package': 'p', 'executable': 'e',
+                       'parameters': {'anatomy': '$(var anatomy)'}}]}
+    with pytest.raises(LaunchSpecError, match=match):
+        parse_launch(data, tmp_path, given)
+
+
+ANATOMY_NODES = ('phantom', 'planner', 'gui')
+
+
+def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_and_gui(tmp_path):
+    """In process mode each node gets it in its own params file, in-process as an override;
+    both come from ``parameters`` over ``parameters_file``."""
+    from cgail_planner.system.launch_spec import load_params_file
+
+    assert {n.name: n.parameters.get('anatomy') for n in load_launch_file(SIM_RIG).nodes
+            if n.name in ANATOMY_NODES} == dict.fromkeys(ANATOMY_NODES, 'default')
+    spec = load_launch_file(SIM_RIG, {'anatomy': 'runs/patients/p07',
+                                      'policy_path': '/m/p07.onnx'})
+    for node in spec.nodes:
+        params = load_params_file(node.parameters_file, node.name) \
+            if node.parameters_file else {}
+        params.update(node.parameters)
+        expected = 'runs/patients/p07' if node.name in ANATOMY_NODES else None
+        assert params.get('anatomy') == expected, node.name
+        if node.name in ANATOMY_NODES:
+            cmd = node_command(node, tmp_path)
+            assert cmd[-2] == '--params-file'
+            assert yaml.safe_load(Path(cmd[-1]).read_text())[node.name]['ros__parameters'][
+                'anatomy'] == expected
+        if node.name == 'planner':
+            assert params['policy_path'] == '/m/p07.onnx'
+
+
+def test_sim_rig_in_process_runs_phantom_planner_and_gui_in_a_prepared_anatomy(
+        rclpy_context, prepared_anatomy, tmp_path):
+    """``anatomy:=DIR policy_path:=...`` reaches the nodes: each resolves the same anatomy and
+    the planner accepts a policy contracted for it."""
+    from cgail_planner.learning.export import default_contract, write_contract
+    from cgail_planner.sim.anatomy import resolve_anatomy
+
+    models = SIM_RIG.parents[2] / 'cgail_planner' / 'learning' / 'models'
+    policy = write_contract(models / 'cgail_default_static.onnx',
+                            default_contract(prepared_anatomy, 'static'), tmp_path / 'p07.onnx')
+    spec = load_launch_file(SIM_RIG, {'anatomy': str(prepared_anatomy),
+                                      'policy_path': str(policy)}).select(list(ANATOMY_NODES))
+    extra = {'phantom': {'aurora_link': str(tmp_path / 'aurora')}, 'gui': {'port': 0}}
+    nodes = {}
+    try:
+        for spec_node in spec.nodes:
+            nodes[spec_node.name] = build_node(spec_node, extra.get(spec_node.name))
+        assert {name: node.get_parameter('anatomy').value for name, node in nodes.items()} == \
+            dict.fromkeys(ANATOMY_NODES, str(prepared_anatomy))
+        h = resolve_anatomy(prepared_anatomy).content_hash
+        assert nodes['phantom'].world.anatomy.content_hash == h
+        assert nodes['phantom'].anatomy_label == 'p07'
+        assert nodes['planner'].wall.anatomy.content_hash == h
+        assert nodes['planner'].planner is not None and nodes['planner'].contract_notes == []
+    finally:
+        for node in nodes.values():
+            node.destroy_node()
+
+
+def test_rig_launch_refuses_a_bad_anatomy_in_one_line(tmp_path, capsys):
+    missing = tmp_path / 'nowhere'
+    assert main([str(SIM_RIG), '--in-process', '--only', 'planner', f'anatomy:={missing}']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("rig_launch: node 'planner': ") and err.count('\n') == 1, err
+    assert f"found '{missing}': no such file or directory" in err
+
+
+@pytest.mark.parametrize('words, text', [
+    (['anatomy=x'], "launch arguments must read NAME:=VALUE, found ['anatomy=x']"),
+    ([':=x'], "launch arguments must read NAME:=VALUE, found [':=x']"),
+    (['anatomyy:=x'], "launch 'sim_rig' has no argument(s) ['anatomyy']; expected some of "
+                      "['anatomy', 'policy_path']"),
+])
+def test_rig_launch_refuses_bad_launch_arguments(capsys, words, text):
+    assert main([str(SIM_RIG), *words]) == 2
+    assert capsys.readouterr().err == f'rig_launch: {text}\n'

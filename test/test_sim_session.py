@@ -57,11 +57,9 @@ def test_report_on_recorded_trials(tmp_path) -> None:
     assert (tmp_path / 'metrics.csv').is_file() and (tmp_path / 'metrics_boxplot.png').is_file()
 
 
-@pytest.mark.slow
-def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
-    out = tmp_path / 'session'
-    code = main(['--trials', '1', '--out', str(out), '--time-limit', '150'])
-    assert code == 0
+def _assert_both_trials_reached(out: Path) -> None:
+    """The session's report: no callback error, trial 1 of each condition reached its target
+    within epsilon in time, with a tracking error under 10 mm."""
     text = (out / 'metrics.md').read_text()
     assert 'callback errors: 0.' in text
     rows = [line for line in text.splitlines()
@@ -71,5 +69,30 @@ def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
         cells = [c.strip() for c in row.strip('|').split('|')]
         assert cells[8] == 'yes', row                  # reached within epsilon in time
         assert float(cells[6]) < 10.0, row             # T_a (mm)
+
+
+@pytest.mark.slow
+def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
+    out = tmp_path / 'session'
+    code = main(['--trials', '1', '--out', str(out), '--time-limit', '150'])
+    assert code == 0
+    _assert_both_trials_reached(out)
     assert (out / 'metrics_boxplot.png').is_file()
     assert sorted(p.name for p in (out / 'bags').iterdir()) == ['centerline', 'cgail']
+
+
+@pytest.mark.slow
+def test_one_trial_per_condition_in_a_prepared_anatomy(prepared_anatomy, tmp_path) -> None:
+    """The session in a prepared directory with a policy contracted for it: every node
+    resolves the same anatomy, the planner accepts the contract, both trials reach the
+    target."""
+    from cgail_planner.learning.export import default_contract, write_contract
+
+    policy = write_contract(
+        ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'learning' / 'models'
+        / 'cgail_default_static.onnx', default_contract(prepared_anatomy, 'static'),
+        tmp_path / 'cgail_p07_static.onnx')
+    out = tmp_path / 'session'
+    assert main(['--trials', '1', '--out', str(out), '--time-limit', '150', '--anatomy',
+                 str(prepared_anatomy), '--policy', str(policy), '--jobs', '1']) == 0
+    _assert_both_trials_reached(out)

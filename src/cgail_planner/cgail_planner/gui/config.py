@@ -23,7 +23,8 @@ class GuiConfig:
     mesh_rate_hz: float = 10.0
     """Rate of the deformed-mesh vertex frames in dynamic mode, Hz, in (0, 60]."""
     anatomy: str = 'default'
-    """Built-in anatomy shown (:func:`cgail_planner.sim.anatomy.build_anatomy`); '' = none."""
+    """Anatomy shown: a built-in name, a prepared anatomy directory or a mesh file with its
+    ``<stem>.yaml`` landmarks (:func:`cgail_planner.sim.anatomy.resolve_anatomy`); '' = none."""
     dynamic: bool = False
     """Dynamic mode: the wall deforms with the heartbeat (PBD) and its vertices are streamed."""
     max_bend_rad: float = CatheterConfig().theta_max
@@ -66,8 +67,12 @@ class GuiConfig:
         if not (math.isfinite(self.ray_cone_rad) and 0.0 <= self.ray_cone_rad <= math.pi / 2):
             raise ValueError(f'ray_cone_rad must be in [0, pi/2], found {self.ray_cone_rad}')
         if self.dynamic and not self.anatomy:
-            raise ValueError('anatomy must name a built-in anatomy when dynamic is true, '
-                             'found an empty name')
+            raise ValueError('anatomy must name an anatomy when dynamic is true, found an '
+                             'empty name')
+        if self.anatomy:
+            from cgail_planner.sim.anatomy import check_anatomy_spec
+
+            check_anatomy_spec(self.anatomy)  # (an AnatomyError is a ValueError)
 
     @property
     def url(self) -> str:

@@ -15,6 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 import math
 from pathlib import Path
+import sys
 import threading
 import time
 from typing import Any
@@ -41,6 +42,7 @@ from cgail_planner.gui.protocol import ClientCommand
 from cgail_planner.gui.server import GuiServer
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import build_table, find_web_root, missing_vendor
+from cgail_planner.sim.mesh_io import AnatomyError
 
 _D = GuiConfig()
 # name -> (default, description, range or None)
@@ -50,7 +52,8 @@ _PARAMS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     'max_rate_hz': (_D.max_rate_hz, 'highest update rate per page, Hz', (1.0, 240.0)),
     'mesh_rate_hz': (_D.mesh_rate_hz, 'deformed-mesh frame rate in dynamic mode, Hz',
                      (0.5, 60.0)),
-    'anatomy': (_D.anatomy, "built-in anatomy drawn and raycast ('' = none)", None),
+    'anatomy': (_D.anatomy, "anatomy drawn and raycast: a built-in name, a prepared anatomy "
+                            "directory or a mesh file ('' = none)", None),
     'dynamic': (_D.dynamic, 'beating, deforming wall (PBD heartbeat) streamed to the page', None),
     'max_bend_rad': (_D.max_bend_rad, 'reachable tip bend theta_max, rad', (0.01, math.pi / 2)),
     'trial_limit_s': (_D.trial_limit_s, 'trial time limit, s', (1.0, 3600.0)),
@@ -182,7 +185,13 @@ class GuiNode(Node):
         for name, (default, description, bounds) in _PARAMS.items():
             self.declare_parameter(name, default, _descriptor(description, bounds, default))
         values = {name: self.get_parameter(name).value for name in _PARAMS}
-        self.config = GuiConfig(**values)
+        try:
+            self.config = GuiConfig(**values)
+            # a path is read here (a bad mesh ends the node); the wall is built in a thread
+            self._anatomy_source = self._resolve_anatomy()
+        except AnatomyError:
+            super().destroy_node()
+            raise
         self._web_root = find_web_root()
         files = build_table(self._web_root)
         self._missing = missing_vendor(files)
@@ -265,13 +274,23 @@ class GuiNode(Node):
                                f'{self.config.anatomy or "none"}, '
                                f'{"dynamic" if self.config.dynamic else "static"})')
 
+    def _resolve_anatomy(self) -> Any:
+        """The configured anatomy (None: none). A built-in one is built (or read from the disk
+        cache) in the loading thread; a path is read now, so a bad mesh fails construction."""
+        from cgail_planner.sim.anatomy import is_builtin, resolve_anatomy
+
+        spec = self.config.anatomy
+        if not spec or is_builtin(spec):
+            return spec or None
+        return resolve_anatomy(spec)
+
     def _load_anatomy(self) -> None:
-        if not self.config.anatomy:
+        if self._anatomy_source is None:
             return
-        from cgail_planner.sim.anatomy import AnatomyError, build_anatomy
+        from cgail_planner.sim.anatomy import resolve_anatomy
         from cgail_planner.sim.wall import DeformableWall, StaticWall
         try:
-            anatomy = build_anatomy(self.config.anatomy)
+            anatomy = resolve_anatomy(self._anatomy_source)
             wall = DeformableWall(anatomy) if self.config.dynamic else StaticWall(anatomy)
             wall.raycast(anatomy.start_point[None, :], anatomy.start_direction[None, :], 0.01)
         except (AnatomyError, ValueError, OSError) as exc:
@@ -427,6 +446,9 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
+        print(f'gui_node: error: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
     finally:
         if node is not None:
             node.destroy_node()

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+import sys
 import tempfile
 import threading
 import time
@@ -57,6 +58,7 @@ from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.sim.ftl_model import CatheterConfig
+from cgail_planner.sim.mesh_io import AnatomyError
 from cgail_planner.sim.wall import WallError
 
 
@@ -77,7 +79,9 @@ class PhantomNode(Node):
                                             lo=0.0, hi=0.1),
             wall_dt=conv.declare(self, 'wall_dt_s', d.wall_dt, 'dynamic mode: step of the '
                                  'deformable wall (PBD + heartbeat), s', lo=1e-3, hi=0.2))
-        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
+        anatomy = conv.declare(self, 'anatomy', 'default', "the phantom's anatomy: a built-in "
+                               "name ('default', 'elongated'), a prepared anatomy directory or a "
+                               'mesh file with its <stem>.yaml landmarks')
         self.mode = conv.declare(self, 'mode', 'static', "'static' (rigid wall) or 'dynamic' "
                                  '(deformable wall, heartbeat, moving target)')
         if self.mode not in ('static', 'dynamic'):
@@ -112,10 +116,16 @@ class PhantomNode(Node):
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
                                    lo=0.05, hi=60.0)
 
+        from cgail_planner.sim.anatomy import anatomy_label
         from cgail_planner.sim.scenarios import load_world
         from cgail_planner.sim.wall import DeformableWall, StaticWall
 
-        self.world = load_world(anatomy)
+        try:
+            self.world = load_world(anatomy)
+        except AnatomyError:
+            super().destroy_node()  # (no devices started yet)
+            raise
+        self.anatomy_label = anatomy_label(anatomy)
         sc = self.world.scenarios
         for name, value, n in (('start_id', self.start_id, len(sc.starts)),
                                ('target_id', self.target_id, len(sc.targets))):
@@ -180,8 +190,8 @@ class PhantomNode(Node):
         timing = 'lockstep' if self.lockstep else (
             f'x{self.time_scale:g} time{" on /clock" if self.publish_clock else ""}')
         self.get_logger().info(
-            f'phantom: {anatomy} ({self.mode}), start {self.start_id}, target {self.target_id}, '
-            f'aurora port {self.aurora_port or "-"}, {timing}')
+            f'phantom: {self.anatomy_label} ({self.mode}), start {self.start_id}, target '
+            f'{self.target_id}, aurora port {self.aurora_port or "-"}, {timing}')
 
     # ------------------------------------------------------------------ trial control
     def reset_trial(self, start_id: int, target_id: int) -> None:
@@ -325,6 +335,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
+        print(f'phantom_node: error: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
     finally:
         if node is not None:
             node.destroy_node()

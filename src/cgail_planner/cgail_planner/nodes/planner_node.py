@@ -8,12 +8,15 @@ workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxrunt
 * ``em_tracker/tip_pose`` (PoseStamped, sensor QoS): on every pose, with a path, publishes
   ``planner/next_waypoint`` and ``planner/suggested_bend`` (:mod:`cgail_planner.core.guidance`);
   in dynamic mode re-plans when the goal moved or the tip left the corridor around the path.
+* ``anatomy`` is a built-in name, a prepared anatomy directory or a mesh file; one that cannot
+  be loaded ends ``planner_node`` with one line and exit status 2.
 * Bad input (missing/corrupt model, goal outside the lumen or in another frame, NaN/inf or
   non-unit poses, stale poses) is logged with the reason, counted and shown on ``/diagnostics``;
   nothing is planned or guided from it.
 * The catheter model (theta_max, L, step, diameter) and the observation (origin, scales, rays)
   are the policy's contract (:class:`cgail_planner.sim.ftl_model.PolicyContract`).
-  ``theta_max``, ``segment_length`` and ``anatomy`` must agree with it (0 = take the policy's):
+  ``theta_max``, ``segment_length`` and ``anatomy`` must agree with it (0 = take the policy's;
+  a path anatomy agrees when its content hash is the contract's):
   a disagreeing one raises :class:`~cgail_planner.core.errors.ContractError` at construction,
   unless ``override_policy_contract`` is set (then it wins, with a warning). A policy without a
   contract is refused unless ``override_policy_contract`` is set.
@@ -47,6 +50,7 @@ from cgail_planner.core.planner import (
 )
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
+from cgail_planner.sim.mesh_io import AnatomyError
 
 
 class PlannerNode(Node):
@@ -79,7 +83,9 @@ class PlannerNode(Node):
         override = conv.declare(self, 'override_policy_contract', False, 'run a policy whose '
                                 'contract disagrees with theta_max, segment_length or anatomy '
                                 '(logged as a warning); otherwise construction fails')
-        anatomy = conv.declare(self, 'anatomy', 'default', 'built-in anatomy name')
+        anatomy = conv.declare(self, 'anatomy', 'default', "the anatomy planned in: a built-in "
+                               "name ('default', 'elongated'), a prepared anatomy directory or a "
+                               'mesh file with its <stem>.yaml landmarks')
         self.mode = conv.declare(self, 'mode', 'static', "'static' or 'dynamic' (deformable "
                                  'beating wall, re-planning)')
         if self.mode not in ('static', 'dynamic'):
@@ -109,10 +115,16 @@ class PlannerNode(Node):
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, 'period of /diagnostics, s',
                                    lo=0.05, hi=60.0)
 
+        from cgail_planner.sim.anatomy import anatomy_identity
         from cgail_planner.sim.scenarios import load_world
         from cgail_planner.sim.wall import DeformableWall, StaticWall
 
-        world = load_world(anatomy)
+        try:
+            world = load_world(anatomy)
+        except AnatomyError:
+            self.destroy_node()
+            raise
+        label, anatomy_hash = anatomy_identity(anatomy)
         self.wall = StaticWall(world.anatomy) if self.mode == 'static' \
             else DeformableWall(world.anatomy)
         self.policy_error = ''
@@ -133,7 +145,7 @@ class PlannerNode(Node):
         elif policy is not None and policy.contract is not None:
             try:
                 contract, self.contract_notes = reconcile_contract(
-                    policy.contract, anatomy=anatomy, mode=self.mode,
+                    policy.contract, anatomy=label, anatomy_hash=anatomy_hash, mode=self.mode,
                     theta_max=theta_max or None, segment_length=segment_length or None,
                     override=override, world_spec=ObservationSpec.for_world(world.scenarios))
                 self.planner = Planner.from_contract(contract, world, self.wall, policy,
@@ -336,7 +348,7 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ContractError as exc:  # the parameters disagree with the policy: say so, exit 2
+    except (ContractError, AnatomyError) as exc:  # a bad anatomy or contract: say so, exit 2
         print(f'planner_node: error: {exc}', file=sys.stderr)
         raise SystemExit(2) from None
     finally:

@@ -1060,6 +1060,8 @@ def load_anatomy_mesh(path: str | Path, landmarks: dict[str, Any] | None = None,
 AnatomySpec = str | os.PathLike[str] | Anatomy
 #: The lumen mesh of a prepared anatomy directory (its landmarks: ``lumen.yaml`` beside it).
 PREPARED_MESH = "lumen.stl"
+#: What ``prepare_anatomy`` renames the mesh of an anatomy that fails its validation to.
+REJECTED_MESH = "lumen.rejected.stl"
 #: File types :func:`load_anatomy_mesh` reads.
 MESH_SUFFIXES = (".stl", ".obj", ".ply")
 
@@ -1083,6 +1085,11 @@ def _mesh_of(spec: str | os.PathLike[str]) -> Path:
     if path.is_dir():
         mesh = path / PREPARED_MESH
         missing = [f.name for f in (mesh, mesh.with_suffix(".yaml")) if not f.is_file()]
+        if missing and (path / REJECTED_MESH).is_file():
+            raise AnatomyError(
+                f"anatomy {path}: expected a usable prepared anatomy ({PREPARED_MESH}), found "
+                f"one prepare_anatomy refused ({REJECTED_MESH}; the reasons are in "
+                f"{path / 'report.md'})")
         if missing:
             raise AnatomyError(
                 f"anatomy {path}: expected a prepared anatomy directory holding {PREPARED_MESH} "

@@ -21,6 +21,19 @@ A launch file is YAML:
         command: [python, -m, em_tracker.hw.sim_aurora]
         ros: false
 
+Launch arguments, as in ROS 2 launch files: ``arguments`` maps each name to its default, and
+``$(var NAME)`` in a string of ``parameters``, ``args``, ``command`` or ``env`` is replaced by
+the argument's value (``rig_launch FILE NAME:=VALUE`` sets one; values are strings):
+
+.. code-block:: yaml
+
+    arguments:
+      anatomy: default
+    nodes:
+      - name: planner
+        ...
+        parameters: {anatomy: $(var anatomy)}
+
 This module is pure python (no rclpy) so specs can be validated without ROS.
 """
 
@@ -29,6 +42,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import os
 from pathlib import Path
+import re
 from typing import Any
 
 import yaml
@@ -102,10 +116,11 @@ class NodeSpec:
 
 @dataclass(frozen=True)
 class LaunchSpec:
-    """A named set of nodes started together."""
+    """A named set of nodes started together, with the launch arguments they were made with."""
 
     name: str
     nodes: tuple[NodeSpec, ...]
+    arguments: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not self.nodes:
@@ -124,7 +139,8 @@ class LaunchSpec:
         if unknown:
             raise LaunchSpecError(f'launch {self.name!r} has no node(s) {unknown}; expected '
                                   f'some of {[n.name for n in self.nodes]}')
-        return LaunchSpec(self.name, tuple(n for n in self.nodes if n.name in names))
+        return LaunchSpec(self.name, tuple(n for n in self.nodes if n.name in names),
+                          self.arguments)
 
 
 def _resolve_file(value: str, base_dir: Path, package: str) -> str:
@@ -145,16 +161,67 @@ def _resolve_file(value: str, base_dir: Path, package: str) -> str:
         f'parameters_file {value!r} not found; looked in {[str(c) for c in candidates]}')
 
 
-def parse_launch(data: dict[str, Any], base_dir: Path | None = None) -> LaunchSpec:
+_VAR = re.compile(r'\$\(var ([^)]*)\)')
+
+
+def _launch_arguments(name: str, declared: Any, given: dict[str, str] | None) -> dict[str, str]:
+    """The values of the launch's arguments: the declared defaults, then the given ones."""
+    if declared is None:
+        declared = {}
+    if not isinstance(declared, dict):
+        raise LaunchSpecError(f'launch {name!r}: "arguments" must be a mapping of names to '
+                              f'defaults, found {type(declared).__name__}')
+    values: dict[str, str] = {}
+    for key, default in declared.items():
+        if not str(key).isidentifier():
+            raise LaunchSpecError(f'launch {name!r}: argument names must be identifiers, found '
+                                  f'{key!r}')
+        if not isinstance(default, (str, int, float)):
+            raise LaunchSpecError(f'launch {name!r}: argument {key!r} must have a string '
+                                  f'default, found {type(default).__name__}')
+        values[str(key)] = str(default)
+    unknown = sorted(set(given or {}) - set(values))
+    if unknown:
+        raise LaunchSpecError(f'launch {name!r} has no argument(s) {unknown}; expected some of '
+                              f'{sorted(values)}')
+    values.update({k: str(v) for k, v in (given or {}).items()})
+    return values
+
+
+def _substitute(value: Any, arguments: dict[str, str], where: str) -> Any:
+    """``value`` with every ``$(var NAME)`` in its strings replaced (lists and mappings too)."""
+    if isinstance(value, str):
+        def one(match: re.Match[str]) -> str:
+            if match.group(1) not in arguments:
+                raise LaunchSpecError(f'{where}: $(var {match.group(1)}) names no launch '
+                                      f'argument; expected one of {sorted(arguments)}')
+            return arguments[match.group(1)]
+        return _VAR.sub(one, value)
+    if isinstance(value, list):
+        return [_substitute(v, arguments, where) for v in value]
+    if isinstance(value, dict):
+        return {k: _substitute(v, arguments, f'{where}.{k}') for k, v in value.items()}
+    return value
+
+
+def parse_launch(data: dict[str, Any], base_dir: Path | None = None,
+                 arguments: dict[str, str] | None = None) -> LaunchSpec:
     """Build a :class:`LaunchSpec` from already-loaded YAML data.
 
+    Args:
+        data: the launch file's YAML.
+        base_dir: where relative ``parameters_file`` entries are looked for first.
+        arguments: launch argument values over the file's ``arguments`` defaults.
+
     Raises:
-        LaunchSpecError: naming the entry and field that is wrong.
+        LaunchSpecError: naming the entry and field that is wrong, an argument the file does
+            not declare, or a ``$(var NAME)`` that names no argument.
     """
     base = base_dir or Path.cwd()
     if not isinstance(data, dict):
         raise LaunchSpecError(f'launch file must be a mapping, found {type(data).__name__}')
     name = str(data.get('name', 'launch'))
+    values = _launch_arguments(name, data.get('arguments'), arguments)
     raw_nodes = data.get('nodes')
     if not isinstance(raw_nodes, list):
         raise LaunchSpecError(f'launch {name!r}: "nodes" must be a list, found '
@@ -167,6 +234,8 @@ def parse_launch(data: dict[str, Any], base_dir: Path | None = None) -> LaunchSp
         if unknown:
             raise LaunchSpecError(f'launch {name!r}: nodes[{i}] has unknown key(s) {unknown}; '
                                   f'expected some of {sorted(_NODE_KEYS)}')
+        raw = {key: _substitute(raw[key], values, f'launch {name!r}: nodes[{i}].{key}')
+               if key in ('parameters', 'args', 'command', 'env') else raw[key] for key in raw}
         params = raw.get('parameters') or {}
         if not isinstance(params, dict):
             raise LaunchSpecError(f'launch {name!r}: nodes[{i}].parameters must be a mapping')
@@ -187,11 +256,11 @@ def parse_launch(data: dict[str, Any], base_dir: Path | None = None) -> LaunchSp
             env={str(k): str(v) for k, v in (raw.get('env') or {}).items()},
             remappings={str(k): str(v) for k, v in (raw.get('remappings') or {}).items()},
         ))
-    return LaunchSpec(name, tuple(nodes))
+    return LaunchSpec(name, tuple(nodes), values)
 
 
-def load_launch_file(path: str | Path) -> LaunchSpec:
-    """Load and validate a launch YAML file."""
+def load_launch_file(path: str | Path, arguments: dict[str, str] | None = None) -> LaunchSpec:
+    """Load and validate a launch YAML file (``arguments``: values over its defaults)."""
     p = Path(path)
     if not p.is_file():
         raise LaunchSpecError(f'launch file {str(p)!r} does not exist')
@@ -199,7 +268,7 @@ def load_launch_file(path: str | Path) -> LaunchSpec:
         data = yaml.safe_load(p.read_text())
     except yaml.YAMLError as exc:
         raise LaunchSpecError(f'launch file {str(p)!r} is not valid YAML: {exc}') from exc
-    return parse_launch(data, p.parent)
+    return parse_launch(data, p.parent, arguments)
 
 
 def ros_params_yaml(node: NodeSpec) -> dict[str, Any]:

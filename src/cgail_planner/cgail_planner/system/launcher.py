@@ -10,6 +10,8 @@ Usage (pip-only workspace; ``ros2 run cgail_planner rig_launch ...`` on a full R
     scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml \
         --in-process
     scripts/ros2run cgail_planner rig_launch my_rig.yaml --only aurora planner
+    scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml \
+        --in-process anatomy:=runs/patients/p07    # a launch argument (NAME:=VALUE)
 
 The launcher refuses to start when ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset (DDS would
 multicast onto the network): run it through ``scripts/ros2run`` / ``scripts/ws`` (which source
@@ -329,7 +331,10 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     code = 0
     try:
         for spec_node in ros_nodes:
-            node = build_node(spec_node)
+            try:
+                node = build_node(spec_node)
+            except ValueError as exc:  # a parameter the node refuses (bad anatomy, range, ...)
+                raise LaunchSpecError(f'node {spec_node.name!r}: {exc}') from exc
             nodes.append(node)
             executor.add_node(node)
         deadline = None if max_duration is None else time.monotonic() + max_duration
@@ -354,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog='rig_launch', description=__doc__.split('\n\n')[0],
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument('launch_file', help='launch YAML (see cgail_planner.system.launch_spec)')
+    parser.add_argument('launch_arguments', nargs='*', metavar='NAME:=VALUE',
+                        help="launch arguments over the file's defaults (e.g. anatomy:=DIR)")
     parser.add_argument('--only', nargs='+', metavar='NODE', help='start only these nodes')
     parser.add_argument('--in-process', action='store_true',
                         help='run all ROS nodes in this process on one executor')
@@ -374,8 +381,17 @@ def main(argv: Sequence[str] | None = None) -> int:
               'the network; run through scripts/ws (sources scripts/env.sh) or pass '
               '--allow-unset-discovery-range', file=sys.stderr)
         return 2
+    # (NAME:=VALUE after --only NODE... lands in --only; a node name never holds ':=')
+    words = [*args.launch_arguments, *[w for w in args.only or () if ':=' in w]]
+    only = [w for w in args.only or () if ':=' not in w]
+    bad = [w for w in words if ':=' not in w or not w.partition(':=')[0]]
+    if bad:
+        print(f'rig_launch: launch arguments must read NAME:=VALUE, found {bad}',
+              file=sys.stderr)
+        return 2
+    arguments = dict(w.split(':=', 1) for w in words)
     try:
-        spec = load_launch_file(args.launch_file).select(args.only)
+        spec = load_launch_file(args.launch_file, arguments).select(only)
         if args.in_process:
             return run_in_process(spec, max_duration=args.max_duration)
         launcher = ProcessLauncher(spec, shutdown_timeout=args.shutdown_timeout)

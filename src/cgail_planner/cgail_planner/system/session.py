@@ -78,9 +78,10 @@ def default_launch_file() -> Path:
 
 
 def default_policy(anatomy: str = 'default', mode: str = 'static') -> Path:
-    """The committed C-GAIL policy for ``anatomy`` in ``mode`` (installed with the package):
-    ``learning/models/cgail_<anatomy>_<mode>.onnx``, or the anatomy's static policy when there is
-    no policy re-trained for that mode. The path may not exist (no policy for that anatomy)."""
+    """The committed C-GAIL policy for the built-in ``anatomy`` in ``mode`` (installed with the
+    package): ``learning/models/cgail_<anatomy>_<mode>.onnx``, or the anatomy's static policy
+    when there is no policy re-trained for that mode. The path may not exist (no policy for
+    that anatomy; a path anatomy never has one)."""
     import cgail_planner.learning
 
     models = Path(cgail_planner.learning.__file__).resolve().parent / 'models'
@@ -93,7 +94,8 @@ class SessionSettings:
     """What every trial of a session shares (picklable: it goes to the worker processes)."""
 
     anatomy: str = 'default'
-    """Built-in anatomy name."""
+    """A built-in anatomy name, or the absolute path of a prepared anatomy directory or mesh
+    file (every node of every trial resolves the same one)."""
     mode: str = 'static'
     """'static' (rigid phantom) or 'dynamic' (deformable beating wall, moving target)."""
     policy: str = ''
@@ -199,7 +201,12 @@ class TrialRig:
         self._tmp = tempfile.mkdtemp(prefix='cgail_trial_')
         self.executor = LockstepExecutor(period_s=1.0 / settings.physics_rate)
         try:
-            launch = load_launch_file(Path(settings.launch_file or default_launch_file()))
+            path = Path(settings.launch_file or default_launch_file())
+            launch = load_launch_file(path)
+            given = {'anatomy': settings.anatomy, 'policy_path': settings.policy}
+            if any(k in launch.arguments for k in given):  # (and the overrides below)
+                launch = load_launch_file(path, {k: v for k, v in given.items()
+                                                 if k in launch.arguments})
             overrides = self._overrides(Path(self._tmp) / 'aurora')
             for spec_node in launch.nodes:
                 if spec_node.name == 'gui' and not settings.gui:
@@ -423,7 +430,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='invitro_session', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--trials', type=int, default=10, help='trials per condition (paper: 10)')
-    p.add_argument('--anatomy', default='default', help='built-in anatomy name')
+    p.add_argument('--anatomy', default='default',
+                   help="built-in anatomy name ('default', 'elongated'), prepared anatomy "
+                        'directory or mesh file with its <stem>.yaml landmarks (a path needs '
+                        '--policy for the cgail condition)')
     p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
                    help='rigid phantom or deformable beating wall')
     p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
@@ -492,7 +502,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'):
         return fail('ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); run through '
                     'scripts/ws')
-    if args.policy is None:
+    from cgail_planner.sim.anatomy import anatomy_label, AnatomyError, is_builtin
+    from cgail_planner.sim.scenarios import load_world
+
+    builtin = is_builtin(args.anatomy)
+    try:  # one line for a bad anatomy, and the caches (centerlines) warm before the workers
+        load_world(args.anatomy)
+    except AnatomyError as exc:
+        return fail(str(exc))
+    anatomy = args.anatomy if builtin else str(Path(args.anatomy).expanduser().resolve())
+    label = anatomy_label(args.anatomy)
+    if args.policy is None and 'cgail' in args.conditions and not builtin:
+        return fail(f'the cgail condition needs --policy <model.onnx> for anatomy {anatomy}: '
+                    f'expected a policy trained on it (there is a committed one only for the '
+                    f'built-in anatomies), found no --policy')
+    if args.policy is None and builtin:
         args.policy = default_policy(args.anatomy, args.mode)
     if 'cgail' in args.conditions and not args.policy.is_file():
         return fail(f'the cgail condition needs --policy <model.onnx> (export_onnx), found no '
@@ -517,7 +541,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                      f'to run trials in parallel on free domains)')
     time_scale = args.time_scale if args.time_scale is not None else (1.0 if args.gui else 0.0)
     settings = SessionSettings(
-        anatomy=args.anatomy, mode=args.mode, policy=str(args.policy),
+        anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
         time_scale=time_scale, gui=args.gui, gui_port=args.gui_port)
@@ -539,7 +563,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f'{jobs} worker processes, each on a free ROS domain of its own'
     t_start = time.monotonic()
     log(f'invitro_session: {len(specs)} trials ({", ".join(args.conditions)}; '
-        f'{args.anatomy}, {args.mode}) on {where}; policy {args.policy}; node logs in '
+        f'{label}, {args.mode}) on {where}; policy {args.policy or "-"}; node logs in '
         f'{log_dir}' + ''.join(f'; {n}' for n in notes))
     if args.gui:
         log(f'invitro_session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '

@@ -1,5 +1,6 @@
-"""Every in-silico command line takes an anatomy as a name or a path (issue 12): make_demos,
-train, evaluate, export_onnx and sim_render; a bad one is one line and exit status 2."""
+"""Every command line takes an anatomy as a name or a path (issue 12): make_demos, train,
+evaluate, export_onnx, sim_render and invitro_session; a bad one is one line and exit status 2
+(the nodes: test/node/test_anatomy_nodes.py)."""
 
 from __future__ import annotations
 
@@ -14,36 +15,15 @@ from cgail_planner.learning import demos_cli, evaluate, export, train
 from cgail_planner.learning.demos import load_demos
 from cgail_planner.learning.errors import DemoError
 from cgail_planner.sim import render
-from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy, save_anatomy_mesh
+from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
+from cgail_planner.system import session
 
 FIXTURES = Path(__file__).resolve().parents[1] / 'fixtures'
 
 
-@pytest.fixture(scope='module')
-def prepared(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A prepared anatomy directory ``p07`` holding the elongated aorta."""
-    d = tmp_path_factory.mktemp('patients') / 'p07'
-    d.mkdir()
-    save_anatomy_mesh(build_anatomy('elongated'), d / 'lumen.stl')
-    return d
-
-
-def _bad(tmp_path: Path, kind: str) -> tuple[Path, str]:
-    """A bad anatomy argument and the text its one-line error must hold."""
-    if kind == 'missing':
-        return tmp_path / 'nowhere', f"found '{tmp_path / 'nowhere'}': no such file or directory"
-    if kind == 'not prepared':
-        d = tmp_path / 'empty'
-        d.mkdir()
-        return d, (f'anatomy {d}: expected a prepared anatomy directory holding lumen.stl and '
-                   'lumen.yaml (prepare_anatomy makes one), found no lumen.stl and no lumen.yaml')
-    d = tmp_path / 'junk'
-    d.mkdir()
-    (d / 'lumen.stl').write_text('solid junk\nendsolid junk\n')
-    (d / 'lumen.yaml').write_text('units: mm\n')
-    return d, f'expected a triangle mesh in {d / "lumen.stl"}, found a Trimesh with 0 faces'
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
 
 
 def _commands(tmp_path: Path) -> dict[str, tuple]:
@@ -55,14 +35,15 @@ def _commands(tmp_path: Path) -> dict[str, tuple]:
         'export_onnx': (export.main, [str(FIXTURES / 'straight_policy.onnx'), '--add-contract',
                                       '--out', str(tmp_path / 'p.onnx')]),
         'sim_render': (render.main, ['--out', str(tmp_path / 'a.png')]),
+        'invitro_session': (session.main, ['--trials', '1', '--out', str(out)]),
     }
 
 
-@pytest.mark.parametrize('kind', ['missing', 'not prepared', 'mesh fails to load'])
 @pytest.mark.parametrize('prog', ['make_demos', 'train', 'evaluate', 'export_onnx',
-                                  'sim_render'])
-def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, prog, kind) -> None:
-    spec, text = _bad(tmp_path, kind)
+                                  'sim_render', 'invitro_session'])
+def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, bad_anatomy,
+                                                     prog) -> None:
+    spec, text = bad_anatomy
     main, argv = _commands(tmp_path)[prog]
     assert main([*argv, '--anatomy', str(spec)]) == 2
     err = capsys.readouterr().err
@@ -149,3 +130,11 @@ def test_evaluate_and_sim_render_take_a_prepared_directory(prepared, tmp_path, c
     assert render.main(['--anatomy', str(prepared), '--dpi', '30', '--no-centerlines']) == 0
     assert (tmp_path / 'anatomy_p07.png').is_file()
     capsys.readouterr()
+
+
+def test_invitro_session_in_a_path_anatomy_needs_a_policy(prepared, tmp_path, capsys) -> None:
+    assert session.main(['--out', str(tmp_path / 's'), '--anatomy', str(prepared)]) == 2
+    assert capsys.readouterr().err == (
+        f'invitro_session: the cgail condition needs --policy <model.onnx> for anatomy '
+        f'{prepared.resolve()}: expected a policy trained on it (there is a committed one only '
+        'for the built-in anatomies), found no --policy\n')

@@ -37,13 +37,7 @@ USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a prepar
          r"with its <stem>.yaml landmarks\), found ")
 
 
-@pytest.fixture(scope='module')
-def prepared(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A prepared anatomy directory ``p07`` holding the elongated aorta (lumen.stl + yaml)."""
-    d = tmp_path_factory.mktemp('patients') / 'p07'
-    d.mkdir()
-    save_anatomy_mesh(build_anatomy('elongated'), d / 'lumen.stl')
-    return d
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
 
 
 def test_a_name_is_the_cached_built_in_anatomy() -> None:
@@ -94,6 +88,9 @@ def test_a_mesh_file_with_its_sidecar_is_labelled_by_its_stem(tmp_path) -> None:
                                 r"or a prepared anatomy directory, found a .txt file$"),
     (lambda d: d / 'bare.stl', r"^anatomy .*/bare.stl: expected its landmarks in "
                                r".*/bare.yaml, found no such file$"),
+    (lambda d: d / 'refused', r"^anatomy .*/refused: expected a usable prepared anatomy "
+                              r"\(lumen.stl\), found one prepare_anatomy refused "
+                              r"\(lumen.rejected.stl; the reasons are in .*/refused/report.md\)$"),
     (lambda d: '', USAGE + "''$"),
     (lambda d: 3, USAGE + 'an object of type int$'),
 ])
@@ -103,6 +100,9 @@ def test_bad_anatomy_arguments_say_what_was_wrong_in_one_line(tmp_path, make, ma
     (d / 'lumen.stl').write_text('solid x\nendsolid x\n')
     (d / 'notes.txt').write_text('not a mesh')
     (d / 'bare.stl').write_text('solid x\nendsolid x\n')
+    (d / 'refused').mkdir()
+    for name in ('lumen.rejected.stl', 'lumen.rejected.yaml', 'report.md'):
+        (d / 'refused' / name).write_text('x\n')
     spec = make(d)
     for call in (resolve_anatomy, check_anatomy_spec, lambda s: EnvConfig(anatomy=s)):
         with pytest.raises(AnatomyError, match=match) as info:
@@ -132,17 +132,40 @@ def test_an_anatomy_shows_as_one_short_line() -> None:
     assert len(repr(EnvConfig(anatomy=a))) < 1000
 
 
+@pytest.mark.parametrize('make', [
+    lambda a: EnvConfig(anatomy=a, mode='beating'),
+    lambda a: EnvConfig(anatomy=a, theta_max=9.0),
+    lambda a: EnvConfig(anatomy=a, reward=None),
+    lambda a: EnvConfig(anatomy=a.vertices),
+    lambda a: EnvConfig(anatomy={'vertices': a.vertices}),
+    lambda a: gym.make('CatheterNav-v0', anatomy=a, max_steps=0),
+    lambda a: gym.make('CatheterNav-v0', anatomy=a.vertices),
+], ids=['mode', 'theta_max', 'reward', 'vertex array', 'dict of arrays', 'gym.make kwargs',
+        'gym.make array'])
+def test_errors_around_an_anatomy_never_print_its_arrays(make) -> None:
+    """An error that involves an Anatomy (or arrays passed as one) is one short line: no
+    vertex coordinates, whatever the field."""
+    a = build_anatomy('default')
+    with pytest.raises((ValueError, TypeError)) as info:
+        make(a)
+    text = str(info.value)
+    assert '\n' not in text and len(text) < 400, text
+    assert 'array(' not in text and '[[' not in text, text  # (numpy prints rows as [[...
+
+
 def test_the_simulator_takes_a_path_everywhere(prepared) -> None:
+    # (worlds are cached by content: another test's copy of this mesh may have built it first)
     anatomy = resolve_anatomy(prepared)
+    same = (anatomy.name, anatomy.content_hash)
     world = load_world(prepared)
-    assert world.anatomy is anatomy and load_world(str(prepared)) is world
-    assert load_world(anatomy) is world
+    assert (world.anatomy.name, world.anatomy.content_hash) == same
+    assert load_world(str(prepared)) is world and load_world(anatomy) is world
     env = CatheterNavEnv(EnvConfig(anatomy=prepared))
-    assert env.anatomy is anatomy
+    assert env.anatomy is world.anatomy
     for make in (lambda: gym.make('CatheterNav-v0', anatomy=str(prepared)),
                  lambda: gym.make('CatheterNavDynamic-v0', anatomy=prepared)):
         made = make().unwrapped
-        assert made.anatomy is anatomy
+        assert made.anatomy is world.anatomy
         obs, _ = made.reset(seed=0, options={'start': 0, 'target': 0})
         assert obs.shape == (41,) and np.isfinite(obs).all()
         made.step(np.array([0.0, 0.0, 1.0], dtype=np.float32))
