@@ -340,9 +340,6 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
 
     anatomy = str(Path(anatomy_dir).expanduser().resolve())
     check_anatomy_spec(anatomy)
-    for s in sorted({*options.train_seeds, *options.demo_seeds, *options.validation_seeds,
-                     *options.test_seeds}):
-        load_world(anatomy, seed=s)  # an anatomy without scenarios fails here, in one line
     from cgail_planner.learning.config import load_config
 
     load_config(options.preset)  # a bad preset fails before the demonstrations
@@ -352,6 +349,9 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
 
         raise PolicyLoadError(f'--base: expected an exported .onnx policy or a train '
                               f'checkpoint, or "scratch", found no file at {base}')
+    for s in sorted({*options.train_seeds, *options.demo_seeds, *options.validation_seeds,
+                     *options.test_seeds}):
+        load_world(anatomy, seed=s)  # an anatomy without scenarios fails here, in one line
     out.mkdir(parents=True, exist_ok=True)
     if (out / 'plan.yaml').exists():
         raise ValueError(f'--out {out}: expected a new run directory, found an earlier run '
