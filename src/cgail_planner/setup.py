@@ -52,6 +52,7 @@ setup(
             'sim_render = cgail_planner.sim.render:main',
             'prepare_anatomy = cgail_planner.patient.prepare_cli:main',
             'synthetic_ct = cgail_planner.patient.synthetic:main',
+            'plan_patient = cgail_planner.patient.plan:main',
             'make_demos = cgail_planner.learning.demos_cli:main',
             'train = cgail_planner.learning.train:main',
             'evaluate = cgail_planner.learning.evaluate:main',

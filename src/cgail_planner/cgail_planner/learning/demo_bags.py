@@ -173,14 +173,16 @@ class Replay(NamedTuple):
 
 def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mode: str,
                    dt: float, compress: bool | None = None,
-                   anatomy_hash: str | None = None, anatomy_path: str | None = None) -> Path:
+                   anatomy_hash: str | None = None, anatomy_path: str | None = None,
+                   scenario_seed: int = 0) -> Path:
     """Write ``episodes`` to a new MCAP bag directory ``path`` (must not exist).
 
     ``compress`` (default: when ``zstandard`` is installed) zstd-compresses the MCAP chunks,
     about 5x smaller. ``anatomy_hash`` (the recording anatomy's
     :attr:`~cgail_planner.sim.anatomy.Anatomy.content_hash`) is stored in the custom data with
     the numpy SIMD targets of this process, and ``anatomy_path`` (the absolute path of a path
-    anatomy; ``anatomy`` is then its label) too.
+    anatomy; ``anatomy`` is then its label) too. ``scenario_seed`` is the target set the
+    episodes' target ids refer to (``EnvConfig.scenario_seed``); stored when it is not 0.
     """
     if compress is None:
         compress = zstd_available()
@@ -201,6 +203,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
         info['numpy_simd'] = ','.join(numpy_simd_targets())
     if anatomy_path is not None:
         info['anatomy_path'] = anatomy_path
+    if scenario_seed:
+        info['scenario_seed'] = int(scenario_seed)
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
         c_ep = writer.add_connection('demo/episode', 'std_msgs/msg/String', typestore=TYPESTORE)
@@ -244,8 +248,9 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     """Episodes of a demo bag (no simulation).
 
     Returns:
-        ``(meta, episodes)``: ``meta`` has ``anatomy`` and ``mode``, and ``anatomy_hash``,
-        ``numpy_simd`` and ``anatomy_path`` when the bag records them.
+        ``(meta, episodes)``: ``meta`` has ``anatomy``, ``mode`` and ``scenario_seed`` (0 when
+        the bag does not record one), and ``anatomy_hash``, ``numpy_simd`` and
+        ``anatomy_path`` when the bag records them.
     """
     if not path.exists():
         raise DemoError(f'demo bag not found: {path}')
@@ -283,6 +288,10 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     meta = {'anatomy': heads[0]['anatomy'], 'mode': heads[0]['mode']}
     meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd', 'anatomy_path')
                  if k in custom})
+    meta['scenario_seed'] = custom.get('scenario_seed', 0)
+    if not isinstance(meta['scenario_seed'], int) or meta['scenario_seed'] < 0:
+        raise DemoError(f'{path}: expected an int scenario_seed >= 0 in its custom data, found '
+                        f'{meta["scenario_seed"]!r}')
     episodes = []
     for h in heads:
         r = h.pop('_rows')
@@ -463,7 +472,8 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
                 f'{path}: expected the anatomy it was recorded in, {meta.get("anatomy")!r} '
                 f'(content hash {meta.get("anatomy_hash")}) at {anatomy}, found no such path: '
                 'give its prepared directory (train --anatomy DIR)')
-    env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy))
+    env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy,
+                                   scenario_seed=meta['scenario_seed']))
     current = env.anatomy.content_hash
     recorded = meta.get('anatomy_hash')
     note = ''

@@ -24,20 +24,38 @@ from cgail_planner.learning.demo_bags import DemoEpisode, write_demo_bag
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.expert import ScriptedExpert
 
+Pairs = list[tuple[np.ndarray, np.ndarray]]
 
-def record_episodes(env, n: int, seed: int = 0) -> tuple[list[DemoEpisode], dict[str, float]]:
-    """Run the expert for ``n`` episodes; returns the episodes and summary statistics."""
+
+def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None
+                    ) -> tuple[list[DemoEpisode], dict[str, float]]:
+    """Run the expert for ``n`` episodes; returns the episodes and summary statistics.
+
+    Args:
+        env: a static :class:`~cgail_planner.sim.env.CatheterNavEnv`.
+        n: episodes; episode k uses start ``k % n_starts``, target ``(k // n_starts) %
+            n_targets`` and seed ``seed + k``.
+        seed: base seed.
+        pairs: when given, the (obs, act) arrays of every *successful* episode are appended to
+            it as they were simulated (what a replay of the bag on this machine gives), so a
+            caller that trains at once needs no replay.
+    """
     expert = ScriptedExpert(env)
     eng = env.unwrapped.engine
     n_s, n_t = len(eng.scenarios.starts), len(eng.scenarios.targets)
     episodes, steps, t_a = [], [], []
     for k in range(n):
-        env.reset(seed=seed + k, options={'start': k % n_s, 'target': (k // n_s) % n_t})
+        obs, _ = env.reset(seed=seed + k,
+                           options={'start': k % n_s, 'target': (k // n_s) % n_t})
         expert.reset(seed + k)
         rows: dict[str, list] = {'al': [], 'ga': [], 'dl': [], 'p': [], 'q': [], 'g': []}
+        seen: list[np.ndarray] = []
+        acts: list[np.ndarray] = []
         while True:
             a = expert.act()
-            _, _, te, tr, info = env.step(a)
+            seen.append(obs)
+            acts.append(np.asarray(a, np.float32))
+            obs, _, te, tr, info = env.step(a)
             rows['al'].append(info['bend'][0])
             rows['ga'].append(info['bend'][1])
             rows['dl'].append(info['insertion'])
@@ -50,6 +68,8 @@ def record_episodes(env, n: int, seed: int = 0) -> tuple[list[DemoEpisode], dict
             k % n_s, (k // n_s) % n_t, np.asarray(rows['al']), np.asarray(rows['ga']),
             np.asarray(rows['dl']), np.asarray(rows['p']), np.asarray(rows['q']),
             np.asarray(rows['g']), bool(info['success'])))
+        if pairs is not None and info['success']:
+            pairs.append((np.asarray(seen, np.float32), np.asarray(acts, np.float32)))
         steps.append(len(rows['al']))
         t_a.append(info['targeting_error'])
     succ = [e.success for e in episodes]
@@ -66,6 +86,9 @@ def main(argv: list[str] | None = None) -> int:
                         'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--episodes', type=int, default=70)
     p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--scenario-seed', type=int, default=0,
+                   help="the anatomy's target set (EnvConfig.scenario_seed; 0: the standard "
+                        'one the rig uses), recorded in the bag for its replay')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
     args = p.parse_args(argv)
     if args.episodes < 1:
@@ -77,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     from cgail_planner.sim.env import CatheterNavEnv
 
     try:
-        env = CatheterNavEnv(EnvConfig(mode='static', anatomy=args.anatomy))
+        env = CatheterNavEnv(EnvConfig(mode='static', anatomy=args.anatomy,
+                                       scenario_seed=args.scenario_seed))
         label = anatomy_label(args.anatomy)
         t0 = time.monotonic()
         episodes, stats = record_episodes(env, args.episodes, args.seed)
@@ -85,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         write_demo_bag(args.out, episodes, anatomy=label, mode='static',
                        dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
                        anatomy_path=None if is_builtin(args.anatomy)
-                       else str(Path(args.anatomy).expanduser().resolve()))
+                       else str(Path(args.anatomy).expanduser().resolve()),
+                       scenario_seed=args.scenario_seed)
     except (LearningError, ValueError) as exc:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2

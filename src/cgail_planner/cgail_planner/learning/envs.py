@@ -92,3 +92,54 @@ class SyncVecEnv:
         """Close every env."""
         for env in self.envs:
             env.close()
+
+
+class ConcatVecEnv:
+    """Several batched envs stepped as one: env ``i`` of the whole is env ``i - offset`` of its
+    part, in order. Used to train over several target sets of one anatomy at once (one
+    :class:`~cgail_planner.sim.vec_env.CatheterNavVecEnv` per scenario seed).
+
+    ``reset(seed)`` seeds the whole's env ``i`` with ``seed + i``, as one batched env would.
+    """
+
+    def __init__(self, parts: Sequence[Any]) -> None:
+        if not parts:
+            raise ValueError('parts must hold at least one batched env, found none')
+        self.parts = list(parts)
+        first = self.parts[0]
+        for p in self.parts[1:]:
+            if (p.single_observation_space.shape != first.single_observation_space.shape
+                    or p.single_action_space.shape != first.single_action_space.shape):
+                raise ValueError('expected parts with equal observation and action spaces, '
+                                 f'found {first.single_observation_space} and '
+                                 f'{p.single_observation_space}')
+        self.single_observation_space = first.single_observation_space
+        self.single_action_space = first.single_action_space
+        self._bounds = np.cumsum([0] + [p.num_envs for p in self.parts])
+        self.num_envs = int(self._bounds[-1])
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Reset every part (the whole's env i gets ``seed + i``)."""
+        return np.concatenate([
+            p.reset(seed=None if seed is None else seed + int(lo))
+            for p, lo in zip(self.parts, self._bounds[:-1], strict=False)]).astype(np.float32)
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Step every part with its slice of ``actions``."""
+        outs = [p.step(actions[lo:hi]) for p, lo, hi in
+                zip(self.parts, self._bounds[:-1], self._bounds[1:], strict=True)]
+        infos: list[dict[str, Any]] = [i for o in outs for i in o[4]]
+        return (np.concatenate([o[0] for o in outs]).astype(np.float32),
+                np.concatenate([o[1] for o in outs]).astype(np.float32),
+                np.concatenate([o[2] for o in outs]), np.concatenate([o[3] for o in outs]),
+                infos)
+
+    def set_theta_max(self, theta_max: float) -> None:
+        """Set theta_max of every part."""
+        for p in self.parts:
+            p.set_theta_max(theta_max)
+
+    def close(self) -> None:
+        """Close every part."""
+        for p in self.parts:
+            getattr(p, 'close', lambda: None)()

@@ -85,6 +85,50 @@ def export_checkpoint(ckpt_path: Path, out: Path) -> Path:
     return export_actor(actor, out, meta)
 
 
+def actor_state_from_onnx(path: Path) -> dict[str, torch.Tensor]:
+    """The actor state of a policy exported by :func:`export_actor`: the inverse of the export,
+    for fine-tuning from a committed ``.onnx`` (no checkpoint is committed).
+
+    The export keeps the actor's parameter names (``actor.body.0.weight``, ``actor.mu.bias``...)
+    as initializers, and bakes the normaliser in as ``(obs - mean) / sqrt(var + 1e-8)``; both are
+    read back (the normaliser's ``count`` is the model's ``train_steps``, so fine-tuning moves
+    its statistics as slowly as further training would have). ``log_std`` is not exported (the
+    deterministic policy has none): the caller's initial value stays.
+
+    Raises:
+        PolicyLoadError: not an ONNX model of :func:`export_actor`'s layout (names what is
+            missing).
+    """
+    from onnx import numpy_helper
+
+    from cgail_planner.learning.errors import PolicyLoadError
+
+    try:
+        model = onnx.load(str(path))
+    except Exception as exc:  # protobuf's DecodeError and friends: no common base class
+        raise PolicyLoadError(f'{path}: not a readable ONNX model ({exc})') from None
+    inits = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    state = {k[len('actor.'):]: torch.as_tensor(v.copy()) for k, v in inits.items()
+             if k.startswith('actor.') and k != 'actor.log_std'}
+    if 'mu.weight' not in state:
+        raise PolicyLoadError(f'{path}: expected the actor initializers of export_onnx '
+                              f'(actor.body.*, actor.mu.*), found {sorted(inits)}')
+    nodes = {n.op_type: n for n in model.graph.node if n.op_type in ('Sub', 'Div')}
+    if 'Sub' in nodes and 'Div' in nodes:  # the baked-in normaliser
+        mean = inits.get(nodes['Sub'].input[1])
+        std = inits.get(nodes['Div'].input[1])
+        if mean is None or std is None:
+            raise PolicyLoadError(f'{path}: expected the normaliser mean and std as '
+                                  'initializers, found computed operands')
+        meta = {p.key: p.value for p in model.metadata_props}
+        count = float(json.loads(meta.get('train_steps', '1')) or 1)
+        state['normalizer.mean'] = torch.as_tensor(mean.astype('float64'))
+        state['normalizer.var'] = torch.as_tensor(
+            (std.astype('float64') ** 2 - 1e-8).clip(min=0.0))
+        state['normalizer.count'] = torch.tensor(count, dtype=torch.float64)
+    return state
+
+
 #: Metadata keys of exports before the contract; the contract holds what they said.
 LEGACY_KEYS = ('observation_layout', 'action_scaling', 'theta_max_rad')
 

@@ -274,8 +274,29 @@ class Trainer:
     def load_weights(self, path: Path) -> None:
         """Initialise from a checkpoint (``--init-from``): networks + normaliser, new step count.
 
-        Value heads and discriminator/ICM are loaded where the signal exists in both runs.
+        Value heads and discriminator/ICM are loaded where the signal exists in both runs. An
+        exported ``.onnx`` policy gives the actor and its normaliser only
+        (:func:`cgail_planner.learning.export.actor_state_from_onnx`): the value heads, the
+        discriminator and the ICM start fresh, and ``log_std`` keeps the preset's initial value.
         """
+        if Path(path).suffix == '.onnx':
+            from cgail_planner.learning.export import actor_state_from_onnx
+
+            state = actor_state_from_onnx(Path(path))
+            state['log_std'] = self.actor.log_std.detach().clone()
+            if (self.normalizer is None) != ('normalizer.mean' not in state):
+                raise PolicyLoadError(f'{path}: expected a policy '
+                                      f'{"without" if self.normalizer is None else "with"} an '
+                                      'observation normaliser (the preset\'s normalize), found '
+                                      'the other')
+            try:
+                self.actor.load_state_dict(state)
+            except RuntimeError as exc:
+                raise PolicyLoadError(f'{path}: network shapes differ from this preset: '
+                                      f'{str(exc).splitlines()[0]} (expected '
+                                      f'{self.cfg.network.num_layers} x '
+                                      f'{self.cfg.network.hidden_units} units)') from None
+            return
         ckpt = load_checkpoint(path)
         if ckpt['obs_dim'] != self.obs_dim or ckpt['act_dim'] != self.act_dim:
             raise PolicyLoadError(f'{path}: expected obs/act dims ({self.obs_dim}, '

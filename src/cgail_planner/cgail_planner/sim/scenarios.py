@@ -411,7 +411,7 @@ def build_scenarios(anatomy: Anatomy, centerlines: dict[str, Centerline], *, see
 
 
 _WORLDS: dict[tuple[str, str, int, int], World] = {}
-_WORLDS_MAX = 8
+_WORLDS_MAX = 64  # (a world is small; plan_patient uses ~25 target sets of one anatomy)
 
 
 def load_world(anatomy: AnatomySpec, n_waypoints: int = 100, seed: int = 0) -> World:

@@ -47,12 +47,12 @@ def test_demo_bag_round_trip(tmp_path: Path, compress: bool, anatomy_hash: str |
     assert list((tmp_path / 'bag').glob('*.mcap'))
     meta, back = read_demo_bag(tmp_path / 'bag')
     if anatomy_hash is None:  # as the bags written before the hash was stored
-        assert meta == {'anatomy': 'default', 'mode': 'static'}
+        assert meta == {'anatomy': 'default', 'mode': 'static', 'scenario_seed': 0}
     else:
         from cgail_planner.sim.disk_cache import numpy_simd_targets
 
         assert meta == {'anatomy': 'default', 'mode': 'static', 'anatomy_hash': anatomy_hash,
-                        'numpy_simd': ','.join(numpy_simd_targets())}
+                        'numpy_simd': ','.join(numpy_simd_targets()), 'scenario_seed': 0}
         assert 'anatomy_hash' in (tmp_path / 'bag' / 'metadata.yaml').read_text()
     assert [len(e.alpha) for e in back] == [5, 7] and [e.success for e in back] == [True, False]
     for a, b in zip(eps, back, strict=True):
@@ -109,6 +109,32 @@ def test_expert_demos_resimulate_in_the_simulator(tmp_path: Path):
     write_demo_bag(tmp_path / 'e', episodes, anatomy='default', mode='static', dt=0.1)
     with pytest.raises(DemoError, match='episode 0 step 10'):
         load_demo_bag(tmp_path / 'e')
+
+
+def test_a_bag_of_another_target_set_replays_in_it(tmp_path: Path):
+    """make_demos --scenario-seed: the bag records its target set and replays in it."""
+    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_planner.learning.demos_cli import record_episodes
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    env = CatheterNavEnv(EnvConfig(mode='static', scenario_seed=3))
+    pairs: list = []
+    episodes, stats = record_episodes(env, 1, seed=0, pairs=pairs)
+    assert stats['success_rate'] == 1.0 and len(pairs) == 1
+    write_demo_bag(tmp_path / 'd', episodes, anatomy='default', mode='static', dt=0.1,
+                   anatomy_hash=env.anatomy.content_hash, scenario_seed=3)
+    assert read_demo_bag(tmp_path / 'd')[0]['scenario_seed'] == 3
+    replay = replay_demo_bag(tmp_path / 'd')
+    assert replay.report.max_drift_m == 0.0
+    # the pairs handed back are what the replay gives
+    np.testing.assert_array_equal(replay.obs, pairs[0][0])
+    np.testing.assert_array_equal(replay.act, pairs[0][1])
+    # the same bag read as target set 0 (an older bag) puts the target elsewhere
+    write_demo_bag(tmp_path / 'e', episodes, anatomy='default', mode='static', dt=0.1)
+    assert read_demo_bag(tmp_path / 'e')[0]['scenario_seed'] == 0
+    with pytest.raises(DemoError, match='target'):
+        replay_demo_bag(tmp_path / 'e')
 
 
 # ----------------------------------------------------------------------------------------------

@@ -170,3 +170,83 @@ def test_training_notes_record_the_curriculum_lesson_of_the_checkpoint():
         'curriculum_lesson': 1, 'final_theta_max_rad': math.radians(75.0)}
     no_curriculum = {'config': {'name': 'gail'}, 'step': 5, 'curriculum_lesson': 0}
     assert training_notes(no_curriculum)['final_theta_max_rad'] is None
+
+
+# ----------------------------------------------------------------------------------------------
+# Fine-tuning from an export: the actor and its normaliser read back
+# ----------------------------------------------------------------------------------------------
+def _trainer(hidden: int = 32, normalize: bool = True):
+    from cgail_planner.learning.config import config_from_dict
+    from cgail_planner.learning.trainer import Trainer
+
+    cfg = config_from_dict({'name': 't', 'max_steps': 1024, 'num_envs': 2, 'normalize': normalize,
+                            'network': {'hidden_units': hidden, 'init_log_std': -1.5},
+                            'ppo': {'batch_size': 64, 'buffer_size': 128}})
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.vec_env import CatheterNavVecEnv
+
+    return Trainer(cfg, CatheterNavVecEnv(EnvConfig(), 2), seed=3)
+
+
+def test_an_exported_policy_is_read_back_as_the_actor_it_was(tmp_path: Path):
+    from cgail_planner.learning.export import actor_state_from_onnx
+
+    actor = _actor(41, 3)
+    path = export_actor(actor, tmp_path / 'p.onnx', {'train_steps': 12345})
+    state = actor_state_from_onnx(path)
+    assert float(state['normalizer.count']) == 12345.0
+    np.testing.assert_allclose(state['normalizer.mean'].numpy(), actor.normalizer.mean.numpy(),
+                               rtol=1e-6)
+    np.testing.assert_allclose(state['normalizer.var'].numpy(), actor.normalizer.var.numpy(),
+                               rtol=1e-5)
+    trainer = _trainer()
+    trainer.load_weights(path)
+    obs = np.random.default_rng(2).normal(2.0, 4.0, (64, 41)).astype(np.float32)
+    np.testing.assert_allclose(trainer.act_deterministic(obs), OnnxPolicy(path)(obs), atol=1e-5)
+    # log_std is not exported: the preset's initial value stays
+    assert torch.allclose(trainer.actor.log_std, torch.full((3,), -1.5))
+
+
+@pytest.mark.parametrize('case', ['shape', 'normaliser', 'not onnx', 'not an actor'])
+def test_an_export_that_does_not_fit_the_preset_is_a_one_line_error(tmp_path: Path, case):
+    path = export_actor(_actor(41, 3), tmp_path / 'p.onnx', {})
+    trainer, match = _trainer(), ''
+    if case == 'shape':
+        trainer, match = _trainer(hidden=16), r'network shapes differ .*expected 2 x 16 units'
+    elif case == 'normaliser':
+        trainer, match = _trainer(normalize=False), 'expected a policy without an observation'
+    elif case == 'not onnx':
+        path.write_bytes(b'not a model')
+        match = 'not a readable ONNX model'
+    else:
+        import onnx
+
+        model = onnx.load(str(path))
+        for t in model.graph.initializer:
+            t.name = t.name.replace('actor.', 'net.')
+        for n in model.graph.node:
+            n.input[:] = [i.replace('actor.', 'net.') for i in n.input]
+        onnx.save(model, str(path))
+        match = 'expected the actor initializers of export_onnx'
+    with pytest.raises(PolicyLoadError, match=match) as info:
+        trainer.load_weights(path)
+    assert '\n' not in str(info.value)
+
+
+def test_the_committed_policy_fine_tunes_from_where_it_stands():
+    """The committed default policy, read back into a cgail trainer, acts as the ONNX does."""
+    from cgail_planner.learning.config import load_config
+    from cgail_planner.learning.trainer import Trainer
+    from cgail_planner.patient.plan import committed_policy
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.vec_env import CatheterNavVecEnv
+
+    env = CatheterNavVecEnv(EnvConfig(), 2)
+    demo = np.zeros((4, 41), np.float32), np.zeros((4, 3), np.float32)
+    trainer = Trainer(load_config('cgail'), env, demo_obs=demo[0], demo_act=demo[1])
+    trainer.load_weights(committed_policy())
+    obs = env.reset(seed=1)
+    for _ in range(30):
+        obs, *_ = env.step(np.tile(np.float32([0.2, -0.1, 1.0]), (2, 1)))
+    np.testing.assert_allclose(trainer.act_deterministic(obs),
+                               OnnxPolicy(committed_policy())(obs), atol=1e-5)

@@ -70,3 +70,37 @@ def test_theta_max_and_bad_input() -> None:
     assert infos[1]["bend"][1] == pytest.approx(-0.5 * 0.0005 / 0.05)
     with pytest.raises(ValueError, match="num_envs must be"):
         CatheterNavVecEnv(EnvConfig(), num_envs=0)
+
+
+def test_concatenated_envs_step_as_their_parts() -> None:
+    """ConcatVecEnv over two target sets: env i of the whole is env i - offset of its part,
+    seeded seed + i, and the parts keep their own target sets."""
+    from cgail_planner.learning.envs import ConcatVecEnv
+
+    cfgs = [EnvConfig(scenario_seed=0), EnvConfig(scenario_seed=3)]
+    whole = ConcatVecEnv([CatheterNavVecEnv(c, 2) for c in cfgs])
+    parts = [CatheterNavVecEnv(c, 2) for c in cfgs]
+    assert whole.num_envs == 4
+    obs = whole.reset(seed=5)
+    np.testing.assert_array_equal(obs, np.concatenate([parts[0].reset(seed=5),
+                                                       parts[1].reset(seed=7)]))
+    rng = np.random.default_rng(1)
+    ended = 0
+    for _ in range(300):
+        act = rng.uniform(-1, 1, (4, 3)).astype(np.float32)
+        act[:, 2] = np.abs(act[:, 2])  # mostly forwards, so episodes end by collision
+        o, r, te, tr, infos = whole.step(act)
+        ref = [parts[0].step(act[:2]), parts[1].step(act[2:])]
+        np.testing.assert_array_equal(o, np.concatenate([ref[0][0], ref[1][0]]))
+        np.testing.assert_array_equal(r, np.concatenate([ref[0][1], ref[1][1]]))
+        np.testing.assert_array_equal(te | tr, np.concatenate([ref[0][2] | ref[0][3],
+                                                               ref[1][2] | ref[1][3]]))
+        assert [i['target'] for i in infos] == [i['target'] for p in ref for i in p[4]]
+        ended += int((te | tr).sum())
+    assert ended > 0
+    targets = [p.engine.scenarios.targets[0].position for p in whole.parts]
+    assert not np.allclose(targets[0], targets[1])
+    whole.set_theta_max(1.0)
+    assert all(np.allclose(p.engine.catheter.theta_max, 1.0) for p in whole.parts)
+    with pytest.raises(ValueError, match='at least one batched env'):
+        ConcatVecEnv([])

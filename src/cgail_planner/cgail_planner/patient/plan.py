@@ -1,0 +1,601 @@
+"""``plan_patient``: from a prepared anatomy to a trained, evaluated planner and the rig command.
+
+Usage::
+
+    plan_patient runs/patient7 --out runs/patient7_plan [--budget-min 15]
+
+One command, in this order (each stage prints one line as it ends, training shows a progress
+bar; everything lands in ``RUN``):
+
+1. **Demonstrations**: the scripted expert (:mod:`cgail_planner.learning.expert`) drives every
+   start x target pair of the training target sets, recorded as demo bags
+   (``RUN/demos/seed_<s>``, replayable with ``train --demos``).
+2. **Training, static**: C-GAIL (the ``cgail`` preset: the paper's mechanics and weights) starts
+   from a committed policy (fine-tuning; ``--base``), with the training envs spread over several
+   target sets of this anatomy (``EnvConfig.scenario_seed``). Every ``eval_every`` steps the
+   deterministic policy is validated on a *validation* target set; the best one is kept.
+3. **Training, dynamic** (only while the static policy misses the dynamic goal on the
+   validation set and the budget lasts): the same, in the beating, deforming aorta, starting
+   from the best static policy.
+4. **Export**: ``RUN/policy_static.onnx`` and ``RUN/policy_dynamic.onnx`` with their catheter
+   contracts (the anatomy identified by its content hash).
+5. **Evaluation** on *unseen* targets (a test target set used neither for training nor for
+   validation), static and dynamic, through the simulated EM tracker, with the centerline
+   follower and the un-tuned base policy beside the planner
+   (:mod:`cgail_planner.learning.evaluate`).
+6. **Report**: ``RUN/report.md`` (figures, tables, plots, the exact commands that start the
+   simulated rig with its GUI, and the planner on a real rig) and ``RUN/plan.yaml``.
+
+``--budget-min`` bounds stages 1-3 (demonstrations and training); training stops as soon as the
+validation reaches both goals. Exit status: 0 the planner reaches both goals on the unseen
+targets; 1 it does not (everything is still written; the report says which goal was missed);
+2 the input could not be used (one line on stderr says why).
+
+Why several target sets: the paper trains on 5 fixed targets. A planner for a patient must
+reach targets it was not trained on (the clinician picks one at the rig), and a policy trained on
+5 points generalises poorly; training over a few sets of 5 costs nothing extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+import math
+from pathlib import Path
+import sys
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = ['PlanOptions', 'PlanResult', 'main', 'plan_patient']
+
+_PROG = 'plan_patient'
+
+
+def committed_policy(name: str = 'cgail_default_static') -> Path:
+    """A policy committed with the package (``learning/models/<name>.onnx``)."""
+    import cgail_planner.learning
+
+    return Path(cgail_planner.learning.__file__).resolve().parent / 'models' / f'{name}.onnx'
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """Settings of one ``plan_patient`` run (every one is a command-line option)."""
+
+    budget_min: float = 15.0
+    """Wall-clock budget of the demonstrations and the training, minutes; in [1, 1440]."""
+    base: str = ''
+    """Policy the training starts from: an exported ``.onnx`` or a ``train`` checkpoint;
+    '' = the committed default static policy; 'scratch' = random initialisation."""
+    preset: str = 'cgail'
+    """Training preset (name or YAML path, :func:`cgail_planner.learning.config.load_config`);
+    its ``max_steps`` is ignored (the budget decides), its other settings hold."""
+    goal_static: float = 0.95
+    """Success rate wanted on unseen targets in the rigid aorta; in (0, 1]."""
+    goal_dynamic: float = 0.80
+    """Success rate wanted on unseen targets in the beating aorta; in (0, 1]."""
+    train_seeds: tuple[int, ...] = tuple(range(3, 19))
+    """Target sets trained on (``EnvConfig.scenario_seed``), one training env each."""
+    demo_seeds: tuple[int, ...] = (0, 3, 4, 5)
+    """Target sets the expert demonstrates every start x target pair of (0 is the set the
+    rig's phantom offers)."""
+    validation_seeds: tuple[int, ...] = (20, 21)
+    """Target sets of the periodic validation (selects the policy, stops the training)."""
+    test_seeds: tuple[int, ...] = (1, 2, 30)
+    """Target sets of the final evaluation: unseen by training and validation."""
+    eval_every: int = 40_960
+    """Training steps between validations."""
+    trials: int = 15
+    """Evaluation trials per test target set, method and mode (trial k: start k % 3, target
+    (k // 3) % 5: 15 covers every pair once)."""
+    seed: int = 0
+    """Seed of the demonstrations, the training and the evaluation."""
+    threads: int = 1
+    """torch CPU threads."""
+    static_share: float = 0.7
+    """Share of the budget (from the start) after which static training hands over to the
+    dynamic phase while the static goal is still missed; in (0, 1]."""
+
+    def __post_init__(self) -> None:
+        def check(ok: bool, name: str, expected: str) -> None:
+            if not ok:
+                raise ValueError(f'{name} must be {expected}, found {getattr(self, name)!r}')
+
+        check(math.isfinite(self.budget_min) and 1.0 <= self.budget_min <= 1440.0,
+              'budget_min', 'in [1, 1440] minutes')
+        for name in ('goal_static', 'goal_dynamic'):
+            check(0.0 < getattr(self, name) <= 1.0, name, 'in (0, 1]')
+        for name in ('train_seeds', 'demo_seeds', 'validation_seeds', 'test_seeds'):
+            seeds = getattr(self, name)
+            check(isinstance(seeds, tuple) and len(seeds) >= 1 and all(
+                isinstance(x, int) and x >= 0 for x in seeds), name, 'one or more ints >= 0')
+        check(len(self.train_seeds) <= 64, 'train_seeds', 'at most 64 target sets')
+        held = set(self.validation_seeds) | set(self.test_seeds)
+        check(not held & (set(self.train_seeds) | set(self.demo_seeds)), 'test_seeds',
+              f'target sets apart from the training ones {self.train_seeds} and '
+              f'{self.demo_seeds} (validation {self.validation_seeds})')
+        check(not set(self.validation_seeds) & set(self.test_seeds), 'test_seeds',
+              f'target sets apart from validation_seeds {self.validation_seeds}')
+        check(self.eval_every >= 1024, 'eval_every', '>= 1024')
+        check(1 <= self.trials <= 1000, 'trials', 'in [1, 1000]')
+        check(1 <= self.threads <= 64, 'threads', 'in [1, 64]')
+        check(0.0 < self.static_share <= 1.0, 'static_share', 'in (0, 1]')
+
+
+@dataclass
+class PlanResult:
+    """What a run produced and measured."""
+
+    out: Path
+    success: dict[str, dict[str, float]] = field(default_factory=dict)
+    """mode -> method -> success rate on the unseen targets."""
+    goals_met: bool = False
+    timings_s: dict[str, float] = field(default_factory=dict)
+    """Wall time of each stage, s."""
+    history: list[dict[str, Any]] = field(default_factory=list)
+    """One row per validation: phase, wall s, steps, static / dynamic success."""
+
+
+class _Clock:
+    """Wall time since the start, and the budget's deadline."""
+
+    def __init__(self, budget_s: float) -> None:
+        self.t0 = time.monotonic()
+        self.budget_s = budget_s
+        self.deadline = self.t0 + budget_s
+
+    def now(self) -> float:
+        return time.monotonic() - self.t0
+
+    def left(self) -> float:
+        return self.deadline - time.monotonic()
+
+    def stamp(self) -> str:
+        s = int(self.now())
+        return f'[{s // 60:2d}:{s % 60:02d}]'
+
+
+def _validate(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Any],
+              seed: int) -> float:
+    """Noise-free success rate of a deterministic policy over every start x target pair of
+    each env's target set."""
+    from cgail_planner.learning.evaluate import run_trials, TrackingNoise
+
+    wins = []
+    for env in envs:
+        sc = env.unwrapped.engine.scenarios
+        static = env.unwrapped.engine.config.mode == 'static'
+        wins += [t.success for t in run_trials(env, policy, len(sc.starts) * len(sc.targets),
+                                               seed, reuse_pairs=static,
+                                               noise=TrackingNoise(0.0, 0.0))]
+    return float(np.mean(wins))
+
+
+def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None]
+                  ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """Expert demonstrations of every start x target pair of each training target set, one
+    bag per set; returns the (obs, act) pairs of the successful episodes."""
+    from cgail_planner.learning.demo_bags import write_demo_bag
+    from cgail_planner.learning.demos_cli import Pairs, record_episodes
+    from cgail_planner.sim.anatomy import anatomy_label
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    pairs: Pairs = []
+    rates = []
+    for s in options.demo_seeds:
+        env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy, scenario_seed=s))
+        sc = env.scenarios
+        n = len(sc.starts) * len(sc.targets)
+        episodes, stats = record_episodes(env, n, options.seed, pairs)
+        write_demo_bag(out / 'demos' / f'seed_{s}', episodes, anatomy=anatomy_label(anatomy),
+                       mode='static', dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
+                       anatomy_path=anatomy, scenario_seed=s)
+        rates.append(stats['success_rate'])
+        log(f'expert, target set {s}: {n} episodes, success {100 * stats["success_rate"]:.0f}%')
+    if not pairs:
+        from cgail_planner.patient import PatientError
+
+        raise PatientError(f'anatomy {anatomy}: expected the scripted expert to reach some '
+                           'targets, found no successful demonstration: check the report of '
+                           'prepare_anatomy (lumen too narrow, bends too tight?)')
+    obs = np.concatenate([o for o, _ in pairs])
+    act = np.concatenate([a for _, a in pairs])
+    return obs, act, {'episodes': float(len(rates) * n), 'expert_success': float(np.mean(rates)),
+                      'samples': float(len(obs))}
+
+
+def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock: _Clock,
+                 demos: tuple[np.ndarray, np.ndarray], init: str, result: PlanResult,
+                 log: Callable[[str], None], progress: bool) -> tuple[Path, float]:
+    """Train in ``mode`` until the validation reaches the goals or the budget ends; returns the
+    best validated checkpoint (the starting policy's when the budget allowed no training) and
+    its dynamic validation success (NaN: not measured)."""
+    import torch
+    from tqdm import tqdm
+
+    from cgail_planner.learning.config import config_from_dict, config_to_dict, load_config
+    from cgail_planner.learning.envs import ConcatVecEnv
+    from cgail_planner.learning.logger import ScalarLogger
+    from cgail_planner.learning.train import sim_metadata
+    from cgail_planner.learning.trainer import Trainer
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.vec_env import CatheterNavVecEnv
+
+    torch.set_num_threads(options.threads)
+    # the beating wall is ~30x slower per env: the dynamic phase trains on the first 4 sets
+    seeds = options.train_seeds if mode == 'static' else options.train_seeds[:4]
+    d = config_to_dict(load_config(options.preset))
+    d['max_steps'] = 50_000_000  # (the budget stops the run; the schedules barely decay)
+    d['num_envs'] = len(seeds)
+    d['checkpoint_every'] = 0
+    cfg = config_from_dict(d)
+    env = ConcatVecEnv([CatheterNavVecEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s),
+                                          1) for s in seeds])
+    trainer = Trainer(cfg, env, demo_obs=demos[0], demo_act=demos[1], seed=options.seed,
+                      metadata={**sim_metadata(EnvConfig(mode=mode, anatomy=anatomy)),
+                                'preset': cfg.name})
+    if init:
+        trainer.load_weights(Path(init))
+    val = {m: [CatheterNavEnv(EnvConfig(mode=m, anatomy=anatomy, scenario_seed=s))
+               for s in options.validation_seeds] for m in ('static', 'dynamic')}
+    goal = {'static': options.goal_static, 'dynamic': options.goal_dynamic}
+    run = out / 'train' / mode
+    logger = ScalarLogger(run)
+    best_key: tuple[float, float] = (-1.0, -1.0)
+    best: Path | None = None
+    best_dyn_measured = False
+    run.mkdir(parents=True, exist_ok=True)
+    next_eval = options.eval_every
+    with tqdm(total=max(1, int(clock.left())), disable=not progress, unit='s',
+              desc=f'{_PROG}: training ({mode})', dynamic_ncols=True,
+              bar_format='{desc}: {percentage:3.0f}%|{bar}| {n}/{total} s budget '
+                         '{postfix}') as bar:
+        while clock.left() > 0:
+            scalars = trainer.train_iteration()
+            bar.n = min(bar.total, int(bar.total - max(clock.left(), 0)))
+            bar.set_postfix_str(f'{trainer.step} steps, best validation '
+                                f'{_fmt_key(best_key)}')
+            if trainer.step < next_eval:
+                logger.log(trainer.step, scalars)
+                continue
+            next_eval += options.eval_every
+            s_rate = _validate(trainer.act_deterministic, val['static'], options.seed)
+            d_rate = math.nan
+            if s_rate >= goal['static'] or mode == 'dynamic':
+                d_rate = _validate(trainer.act_deterministic, val['dynamic'], options.seed)
+            scalars.update({'validation/static_success': s_rate,
+                            'validation/dynamic_success': d_rate})
+            logger.log(trainer.step, scalars)
+            row = {'phase': mode, 'wall_s': clock.now(), 'steps': float(trainer.step),
+                   'static': s_rate, 'dynamic': d_rate}
+            result.history.append(row)
+            key = (s_rate, 0.0 if math.isnan(d_rate) else d_rate)
+            if mode == 'dynamic':
+                key = (key[1], key[0])
+            if key >= best_key:
+                best_key = key
+                best_dyn_measured = not math.isnan(d_rate)
+                best = run / 'best.pt'
+                trainer.save(best)
+            bar.set_postfix_str(f'{trainer.step} steps, best validation {_fmt_key(best_key)}')
+            if s_rate >= goal['static'] and (mode == 'static' or d_rate >= goal['dynamic']):
+                break  # (static: the dynamic phase takes over when the dynamic goal is missed)
+            if mode == 'static' and clock.now() >= options.static_share * clock.budget_s:
+                break  # the dynamic phase gets the rest
+    if best is None:  # the budget ended before the first validation: validate what there is
+        s_rate = _validate(trainer.act_deterministic, val['static'], options.seed)
+        result.history.append({'phase': mode, 'wall_s': clock.now(),
+                               'steps': float(trainer.step), 'static': s_rate,
+                               'dynamic': math.nan})
+        best_key = (s_rate, 0.0) if mode == 'static' else (0.0, s_rate)
+        best = run / 'best.pt'
+        trainer.save(best)
+        log(f'warning: the budget ended after {trainer.step} training steps, before the first '
+            f'validation at {options.eval_every}: a larger --budget-min trains longer')
+    logger.close()
+    key = best_key if mode == 'static' else best_key[::-1]
+    log(f'training ({mode}): {trainer.step} steps, best validation (static, dynamic) '
+        f'{_fmt_key(key)}')
+    return best, key[1] if best_dyn_measured else math.nan
+
+
+def _fmt_key(key: tuple[float, float]) -> str:
+    return '-' if key[0] < 0 else f'{100 * key[0]:.0f}% / {100 * key[1]:.0f}%'
+
+
+def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = None, *,
+                 log: Callable[[str], None] | None = None, progress: bool = True) -> PlanResult:
+    """Run the whole pipeline (module docstring); see :func:`main` for the exit status.
+
+    Raises:
+        AnatomyError: the anatomy cannot be loaded or has no scenarios (one line).
+        LearningError: a preset or base policy that cannot be used (one line).
+        ValueError: bad options (one line).
+    """
+    from cgail_planner.learning.evaluate import (
+        CenterlineFollower,
+        run_trials,
+        summarize,
+        TrackingNoise,
+        write_report,
+    )
+    from cgail_planner.learning.export import export_checkpoint
+    from cgail_planner.learning.onnx_policy import OnnxPolicy
+    from cgail_planner.sim.anatomy import check_anatomy_spec
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.scenarios import load_world
+
+    options = options or PlanOptions()
+    clock = _Clock(60.0 * options.budget_min)
+
+    def say(line: str) -> None:
+        (log or (lambda s: print(f'{_PROG}: {s}', file=sys.stderr, flush=True)))(
+            f'{clock.stamp()} {line}')
+
+    anatomy = str(Path(anatomy_dir).expanduser().resolve())
+    check_anatomy_spec(anatomy)
+    from cgail_planner.learning.config import load_config
+
+    load_config(options.preset)  # a bad preset fails before the demonstrations
+    base = options.base or str(committed_policy())
+    if base != 'scratch' and not Path(base).is_file():
+        from cgail_planner.learning.errors import PolicyLoadError
+
+        raise PolicyLoadError(f'--base: expected an exported .onnx policy or a train '
+                              f'checkpoint, or "scratch", found no file at {base}')
+    for s in sorted({*options.train_seeds, *options.demo_seeds, *options.validation_seeds,
+                     *options.test_seeds}):
+        load_world(anatomy, seed=s)  # an anatomy without scenarios fails here, in one line
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / 'plan.yaml').exists():
+        raise ValueError(f'--out {out}: expected a new run directory, found an earlier run '
+                         '(plan.yaml); choose another --out or remove it')
+    result = PlanResult(out=out)
+    say(f'anatomy {anatomy}, budget {options.budget_min:g} min, base '
+        f'{"random" if base == "scratch" else base}')
+
+    obs, act, demo_stats = _record_demos(anatomy, options, out, say)
+    result.timings_s['demonstrations'] = clock.now()
+    say(f'demonstrations: {int(demo_stats["samples"])} (obs, act) pairs from '
+        f'{int(demo_stats["episodes"])} expert episodes')
+    init = '' if base == 'scratch' else base
+    best_static, dynamic_rate = _train_phase('static', anatomy, options, out, clock, (obs, act),
+                                             init, result, say, progress)
+    best_dynamic = None
+    if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic:  # (NaN: not measured)
+        best_dynamic, _ = _train_phase('dynamic', anatomy, options, out, clock, (obs, act),
+                                       str(best_static), result, say, progress)
+    result.timings_s['training'] = clock.now() - result.timings_s['demonstrations']
+
+    policies = {'static': export_checkpoint(best_static, out / 'policy_static.onnx')}
+    policies['dynamic'] = export_checkpoint(best_dynamic or best_static,
+                                            out / 'policy_dynamic.onnx')
+    t_eval = time.monotonic()
+    noise = TrackingNoise()
+    methods: dict[str, dict[str, Any]] = {m: {'C-GAIL (this run)': OnnxPolicy(policies[m]),
+                                              'centerline': None} for m in policies}
+    if base.endswith('.onnx'):  # the base policy before tuning, beside it (static: cheap)
+        methods['static']['C-GAIL (base, not tuned)'] = OnnxPolicy(base)
+    all_results: dict[str, dict[str, Any]] = {}
+    for mode in ('static', 'dynamic'):
+        res: dict[str, list[Any]] = {name: [] for name in methods[mode]}
+        for s in options.test_seeds:
+            env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s))
+            for name, method in methods[mode].items():
+                res[name] += run_trials(env, method or CenterlineFollower(env), options.trials,
+                                        10_000 + options.seed, noise=noise)
+        for name, trials in res.items():
+            rate = summarize(trials)['success_rate']
+            result.success.setdefault(mode, {})[name] = rate
+            say(f'evaluation, {mode}, unseen targets: {name} {100 * rate:.0f}% '
+                f'({len(trials)} trials)')
+        all_results[mode] = res
+    result.timings_s['evaluation'] = time.monotonic() - t_eval
+    write_report(all_results, out / 'evaluation',
+                 f'Anatomy `{anatomy}`. Unseen targets: target sets '
+                 f'{list(options.test_seeds)}, {options.trials} trials each per method, through '
+                 f'the simulated EM tracker ({noise.position_mm:g} mm / '
+                 f'{noise.orientation_deg:g} deg RMS).')
+    ours = {m: result.success[m]['C-GAIL (this run)'] for m in ('static', 'dynamic')}
+    result.goals_met = ours['static'] >= options.goal_static and \
+        ours['dynamic'] >= options.goal_dynamic
+    result.timings_s['total'] = clock.now()
+    _write_record(result, anatomy, base, options, demo_stats, policies)
+    _plot_history(result, options, out / 'training.png')
+    _write_report(result, anatomy, base, options, demo_stats, policies)
+    say(f'{"goals met" if result.goals_met else "goals NOT met"}: static '
+        f'{100 * ours["static"]:.0f}% (goal {100 * options.goal_static:.0f}%), dynamic '
+        f'{100 * ours["dynamic"]:.0f}% (goal {100 * options.goal_dynamic:.0f}%); report '
+        f'{out / "report.md"}')
+    return result
+
+
+def rig_commands(anatomy: str, policies: dict[str, Path]) -> list[str]:
+    """The commands that run this anatomy and policy: the simulated in-vitro session with the
+    guidance GUI (static, dynamic), the free-running simulated rig (``rig_launch``, GUI
+    included), and the planner and GUI nodes of a real rig."""
+    static, dynamic = (str(Path(policies[m]).resolve()) for m in ('static', 'dynamic'))
+    return [
+        f'scripts/ws invitro_session --anatomy {anatomy} --policy {static} --mode static '
+        f'--trials 1 --gui --out runs/session_static',
+        f'scripts/ws invitro_session --anatomy {anatomy} --policy {dynamic} --mode dynamic '
+        f'--trials 1 --gui --out runs/session_dynamic',
+        f'scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml '
+        f'--in-process anatomy:={anatomy} policy_path:={static}',
+        f'scripts/ros2run cgail_planner planner_node --ros-args -p anatomy:={anatomy} '
+        f'-p policy_path:={static}',
+        f'scripts/ros2run cgail_planner gui_node --ros-args -p anatomy:={anatomy}',
+    ]
+
+
+def _write_record(result: PlanResult, anatomy: str, base: str, options: PlanOptions,
+                  demo_stats: dict[str, float], policies: dict[str, Path]) -> None:
+    import yaml
+
+    from cgail_planner.sim.anatomy import anatomy_identity
+
+    label, content_hash = anatomy_identity(anatomy)
+    record = {
+        'anatomy': anatomy, 'anatomy_label': label, 'anatomy_hash': content_hash,
+        'base': base, 'options': {k: list(v) if isinstance(v, tuple) else v
+                                  for k, v in asdict(options).items()},
+        'demonstrations': demo_stats, 'timings_s': {k: round(v, 1) for k, v in
+                                                    result.timings_s.items()},
+        'success_unseen_targets': result.success, 'goals_met': result.goals_met,
+        'policies': {m: str(p) for m, p in policies.items()},
+        'validation_history': result.history,
+    }
+    (result.out / 'plan.yaml').write_text(yaml.safe_dump(record, sort_keys=False))
+
+
+def _plot_history(result: PlanResult, options: PlanOptions, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    h = result.history
+    t = [r['wall_s'] / 60.0 for r in h]
+    ax.plot(t, [100 * r['static'] for r in h], 'o-', label='static (validation)')
+    td = [(r['wall_s'] / 60.0, 100 * r['dynamic']) for r in h if not math.isnan(r['dynamic'])]
+    if td:
+        ax.plot(*zip(*td, strict=True), 's-', label='dynamic (validation)')
+    for goal, style in ((options.goal_static, ':'), (options.goal_dynamic, '--')):
+        ax.axhline(100 * goal, color='grey', linestyle=style, linewidth=0.8)
+    switch = [r['wall_s'] / 60.0 for r in h if r['phase'] == 'dynamic']
+    if switch:
+        ax.axvline(switch[0], color='k', linewidth=0.6)
+        ax.text(switch[0], 2, ' dynamic phase', fontsize=8)
+    ax.set_xlabel('wall time (min, from the start of the run)')
+    ax.set_ylabel('success on validation targets (%)')
+    ax.set_ylim(-3, 103)
+    ax.set_xlim(0, max(options.budget_min, max(t, default=0.0)))
+    ax.legend(loc='lower right', fontsize=8)
+    ax.set_title('plan_patient: validation during training')
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _write_report(result: PlanResult, anatomy: str, base: str, options: PlanOptions,
+                  demo_stats: dict[str, float], policies: dict[str, Path]) -> None:
+    from cgail_planner.sim.anatomy import anatomy_identity
+
+    label, content_hash = anatomy_identity(anatomy)
+    ts = result.timings_s
+    met = 'met' if result.goals_met else 'NOT met'
+    phases = ' + '.join(dict.fromkeys(r['phase'] for r in result.history))
+    cmds = rig_commands(anatomy, policies)
+    lines = [
+        f'# Planner for `{label}`', '',
+        f'Anatomy `{anatomy}` (content hash `{content_hash}`). Base policy: '
+        f'`{"random initialisation" if base == "scratch" else base}`; preset '
+        f'`{options.preset}`; budget {options.budget_min:g} min; seed {options.seed}.', '',
+        f'**Goals {met}** on unseen targets (target sets {list(options.test_seeds)}, used '
+        f'neither for training, sets {list(options.train_seeds)} and demonstrations '
+        f'{list(options.demo_seeds)}, nor for validation, sets '
+        f'{list(options.validation_seeds)}): static >= {100 * options.goal_static:.0f}%, '
+        f'dynamic >= {100 * options.goal_dynamic:.0f}%.', '',
+        '| mode | ' + ' | '.join(result.success['static']) + ' |',
+        '|---|' + '---|' * len(result.success['static']),
+    ]
+    for mode, rates in result.success.items():
+        cells = [f'{100 * rates[m]:.0f}%' if m in rates else '-' for m in result.success['static']]
+        lines.append(f'| {mode} | ' + ' | '.join(cells) + ' |')
+    lines += [
+        '', f'Success over {options.trials * len(options.test_seeds)} trials per method and '
+        'mode, through the simulated EM tracker. Details, timesteps, targeting errors and box '
+        'plots: [evaluation/report.md](evaluation/report.md).', '',
+        '## Time', '',
+        '| stage | wall time |', '|---|---|',
+        f'| demonstrations ({int(demo_stats["episodes"])} expert episodes, '
+        f'{100 * demo_stats["expert_success"]:.0f}% successful) | '
+        f'{ts["demonstrations"]:.0f} s |',
+        f'| training ({phases}) | {ts["training"]:.0f} s |',
+        f'| export + evaluation | {ts["evaluation"]:.0f} s |',
+        f'| **total** | **{ts["total"]:.0f} s** |', '',
+        '![validation during training](training.png)', '',
+        '| phase | wall (s) | steps | static | dynamic |', '|---|---|---|---|---|',
+    ]
+    for r in result.history:
+        dyn = '-' if math.isnan(r['dynamic']) else f'{100 * r["dynamic"]:.0f}%'
+        lines.append(f'| {r["phase"]} | {r["wall_s"]:.0f} | {int(r["steps"])} | '
+                     f'{100 * r["static"]:.0f}% | {dyn} |')
+    lines += [
+        '', f'(validation: every start x target pair of target sets '
+        f'{list(options.validation_seeds)}, noise-free, deterministic policy; dynamic only once '
+        'the static goal is reached)', '',
+        '## Policies', '',
+        f'- static: `{policies["static"]}`',
+        f'- dynamic: `{policies["dynamic"]}`', '',
+        '## Run it on the rig', '',
+        'The simulated in-vitro session with the guidance GUI (it prints the GUI URL), rigid '
+        'and beating phantom:', '', '```bash', *cmds[:2], '```', '',
+        'The simulated rig running freely, GUI included (drive it with the gamepad or the '
+        'page):', '', '```bash', cmds[2], '```', '',
+        'On a real rig, the planner and the GUI with this anatomy and policy (the rig\'s device '
+        'nodes as usual):', '', '```bash', *cmds[3:], '```', '',
+    ]
+    (result.out / 'report.md').write_text('\n'.join(lines))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Command line of ``plan_patient``."""
+    d = PlanOptions()
+    p = argparse.ArgumentParser(prog=_PROG, description=__doc__.split('\n')[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument('anatomy', type=Path, help='prepared anatomy directory (prepare_anatomy)')
+    p.add_argument('--out', type=Path, required=True, help='run directory to create')
+    p.add_argument('--budget-min', type=float, default=d.budget_min,
+                   help='wall-clock budget of demonstrations + training, minutes')
+    p.add_argument('--base', default=d.base,
+                   help="policy to fine-tune (.onnx or train checkpoint; default: the committed "
+                        "default static policy; 'scratch': random initialisation)")
+    p.add_argument('--preset', default=d.preset, help='training preset (name or YAML)')
+    p.add_argument('--goal-static', type=float, default=d.goal_static)
+    p.add_argument('--goal-dynamic', type=float, default=d.goal_dynamic)
+    p.add_argument('--trials', type=int, default=d.trials,
+                   help='evaluation trials per method and mode')
+    p.add_argument('--seed', type=int, default=d.seed)
+    for name, what in (('train', 'trained on'), ('demo', 'the expert demonstrates'),
+                       ('validation', 'of the periodic validation'),
+                       ('test', 'of the final evaluation (unseen)')):
+        default = getattr(d, f'{name}_seeds')
+        p.add_argument(f'--{name}-seeds', type=int, nargs='+', default=list(default),
+                       metavar='S', help=f'target sets (EnvConfig.scenario_seed) {what}; '
+                                         f'default {" ".join(map(str, default))}')
+    p.add_argument('--threads', type=int, default=d.threads, help='torch CPU threads')
+    p.add_argument('--no-progress', action='store_true', help='no progress bar')
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``plan_patient`` (exit status: module docstring)."""
+    from cgail_planner.learning.errors import LearningError
+    from cgail_planner.sim.anatomy import AnatomyError
+
+    args = build_parser().parse_args(argv)
+    try:
+        options = PlanOptions(budget_min=args.budget_min, base=args.base, preset=args.preset,
+                              goal_static=args.goal_static, goal_dynamic=args.goal_dynamic,
+                              trials=args.trials, seed=args.seed, threads=args.threads,
+                              train_seeds=tuple(args.train_seeds),
+                              demo_seeds=tuple(args.demo_seeds),
+                              validation_seeds=tuple(args.validation_seeds),
+                              test_seeds=tuple(args.test_seeds))
+        result = plan_patient(args.anatomy, args.out, options, progress=not args.no_progress)
+    except (AnatomyError, LearningError, ValueError) as exc:
+        print(f'{_PROG}: error: {exc}', file=sys.stderr)
+        return 2
+    return 0 if result.goals_met else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""plan_patient: bad input is one line and exit 2; a run writes a planner, its evaluation on
+unseen targets, a report and the rig commands (slow: a one-minute budget end to end)."""
+
+from __future__ import annotations
+
+import pytest
+
+from cgail_planner.patient.plan import main, PlanOptions, rig_commands
+
+
+def test_a_bad_anatomy_is_one_line_and_exit_status_2(bad_anatomy, tmp_path, capsys) -> None:
+    spec, text = bad_anatomy
+    assert main([str(spec), '--out', str(tmp_path / 'run'), '--no-progress']) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('plan_patient: error: ') and err.count('\n') == 1, err
+    assert text in err, err
+    assert not (tmp_path / 'run').exists()
+
+
+@pytest.mark.parametrize('args, text', [
+    (['--budget-min', '0.5'], 'budget_min must be in [1, 1440] minutes, found 0.5'),
+    (['--goal-static', '1.5'], 'goal_static must be in (0, 1], found 1.5'),
+    (['--test-seeds', '3'], 'test_seeds must be target sets apart from the training ones'),
+    (['--validation-seeds', '1'], 'test_seeds must be target sets apart from validation_seeds'),
+    (['--train-seeds', '-1'], 'train_seeds must be one or more ints >= 0'),
+    (['--trials', '0'], 'trials must be in [1, 1000], found 0'),
+    (['--base', 'nowhere.onnx'], 'expected an exported .onnx policy or a train checkpoint, or '
+                                 '"scratch", found no file at nowhere.onnx'),
+    (['--preset', 'nopreset'], "expected a preset name in"),
+])
+def test_bad_options_are_one_line_and_exit_status_2(prepared, tmp_path, capsys, args,
+                                                     text) -> None:
+    out = tmp_path / 'run'
+    assert main([str(prepared), '--out', str(out), '--no-progress', *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('plan_patient: error: ') and err.count('\n') == 1, err
+    assert text in err, err
+    assert not (out / 'plan.yaml').exists()
+
+
+def test_an_earlier_run_is_never_overwritten(prepared, tmp_path, capsys) -> None:
+    out = tmp_path / 'run'
+    out.mkdir()
+    (out / 'plan.yaml').write_text('goals_met: true\n')
+    assert main([str(prepared), '--out', str(out), '--no-progress']) == 2
+    assert 'expected a new run directory, found an earlier run' in capsys.readouterr().err
+    assert (out / 'plan.yaml').read_text() == 'goals_met: true\n'
+
+
+def test_the_rig_commands_name_the_anatomy_and_the_policies(tmp_path) -> None:
+    pol = {'static': tmp_path / 's.onnx', 'dynamic': tmp_path / 'd.onnx'}
+    lines = rig_commands('/p/anat', pol)
+    assert any(line.startswith('scripts/ws invitro_session --anatomy /p/anat --policy '
+                               f'{pol["static"]} --mode static') and '--gui' in line
+               for line in lines)
+    assert any(f'--policy {pol["dynamic"]} --mode dynamic' in line for line in lines)
+    assert any('rig_launch' in line and 'anatomy:=/p/anat' in line
+               and f'policy_path:={pol["static"]}' in line for line in lines)
+    assert any('planner_node' in line and '-p anatomy:=/p/anat' in line for line in lines)
+
+
+def test_options_default_to_disjoint_target_sets() -> None:
+    o = PlanOptions()
+    assert not set(o.test_seeds) & (set(o.train_seeds) | set(o.demo_seeds)
+                                    | set(o.validation_seeds))
+    assert 0 in o.demo_seeds  # the rig's own targets are demonstrated
+
+
+@pytest.mark.slow
+def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
+    """The whole pipeline on a prepared anatomy with a one-minute budget and small target sets:
+    demo bags, a policy per mode whose contract names the anatomy by its content hash, the
+    evaluation on the unseen set with the centerline follower and the base policy beside it,
+    the report with its plot and rig commands. The exit status says whether the goals were met
+    (a minute is not meant to meet them; the status must agree with the record)."""
+    import yaml
+
+    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_planner.learning.onnx_policy import OnnxPolicy
+    from cgail_planner.sim.anatomy import resolve_anatomy
+
+    out = tmp_path / 'run'
+    status = main([str(prepared), '--out', str(out), '--budget-min', '1', '--trials', '2',
+                   '--demo-seeds', '0', '--train-seeds', '3', '4', '--validation-seeds', '20',
+                   '--test-seeds', '1', '--no-progress'])
+    err = capsys.readouterr().err
+    assert status in (0, 1), err
+    rec = yaml.safe_load((out / 'plan.yaml').read_text())
+    assert (status == 0) == rec['goals_met']
+    assert 'goals met' in err if status == 0 else 'goals NOT met' in err
+    content_hash = resolve_anatomy(str(prepared)).content_hash
+    assert rec['anatomy_hash'] == content_hash
+    meta, episodes = read_demo_bag(out / 'demos' / 'seed_0')
+    assert len(episodes) == 15 and meta['anatomy_hash'] == content_hash
+    for mode in ('static', 'dynamic'):
+        policy = OnnxPolicy(out / f'policy_{mode}.onnx')
+        assert policy.contract is not None and policy.contract.anatomy_hash == content_hash
+        rates = rec['success_unseen_targets'][mode]
+        assert set(rates) >= {'C-GAIL (this run)', 'centerline'}
+        assert all(0.0 <= r <= 1.0 for r in rates.values())
+    assert 'C-GAIL (base, not tuned)' in rec['success_unseen_targets']['static']
+    assert rec['validation_history'] and rec['timings_s']['total'] > 0
+    report = (out / 'report.md').read_text()
+    assert f'scripts/ws invitro_session --anatomy {prepared.resolve()}' in report
+    assert '| static |' in report and '![validation during training](training.png)' in report
+    for png in ('training.png', 'evaluation/static_T_a.png', 'evaluation/dynamic_T_s.png'):
+        assert (out / png).stat().st_size > 5000, png
+    assert (out / 'evaluation' / 'report.md').is_file()
