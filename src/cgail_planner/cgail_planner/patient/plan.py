@@ -467,16 +467,24 @@ def _plot_history(result: PlanResult, options: PlanOptions, path: Path) -> None:
     td = [(r['wall_s'] / 60.0, 100 * r['dynamic']) for r in h if not math.isnan(r['dynamic'])]
     if td:
         ax.plot(*zip(*td, strict=True), 's-', label='dynamic (validation)')
-    for goal, style in ((options.goal_static, ':'), (options.goal_dynamic, '--')):
+    for goal, style, what in ((options.goal_static, ':', 'static goal'),
+                              (options.goal_dynamic, '--', 'dynamic goal')):
         ax.axhline(100 * goal, color='grey', linestyle=style, linewidth=0.8)
+        ax.text(0.01, 100 * goal + 1, what, fontsize=7, color='grey',
+                transform=ax.get_yaxis_transform())
+    demos = result.timings_s.get('demonstrations', 0.0) / 60.0
+    ax.axvspan(0.0, demos, color='0.92', zorder=0)
+    ax.text(demos / 2, 50, 'expert\ndemos', fontsize=7, ha='center', color='0.4')
     switch = [r['wall_s'] / 60.0 for r in h if r['phase'] == 'dynamic']
+    xmax = max(options.budget_min, max(t, default=0.0))
     if switch:
         ax.axvline(switch[0], color='k', linewidth=0.6)
-        ax.text(switch[0], 2, ' dynamic phase', fontsize=8)
+        ax.text(switch[0], 2, 'dynamic phase ', fontsize=8,
+                ha='right' if switch[0] > 0.8 * xmax else 'left')
     ax.set_xlabel('wall time (min, from the start of the run)')
     ax.set_ylabel('success on validation targets (%)')
     ax.set_ylim(-3, 103)
-    ax.set_xlim(0, max(options.budget_min, max(t, default=0.0)))
+    ax.set_xlim(0, xmax)
     ax.legend(loc='lower right', fontsize=8)
     ax.set_title('plan_patient: validation during training')
     fig.tight_layout()
