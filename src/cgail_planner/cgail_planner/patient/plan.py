@@ -432,10 +432,10 @@ def rig_commands(anatomy: str, policies: dict[str, Path]) -> list[str]:
     included), and the planner and GUI nodes of a real rig."""
     static, dynamic = (str(Path(policies[m]).resolve()) for m in ('static', 'dynamic'))
     return [
-        f'scripts/ws invitro_session --anatomy {anatomy} --policy {static} --mode static '
-        f'--trials 1 --gui --out runs/session_static',
-        f'scripts/ws invitro_session --anatomy {anatomy} --policy {dynamic} --mode dynamic '
-        f'--trials 1 --gui --out runs/session_dynamic',
+        f'scripts/ros2run cgail_planner invitro_session --anatomy {anatomy} --policy {static} '
+        f'--mode static --trials 1 --gui --out runs/session_static',
+        f'scripts/ros2run cgail_planner invitro_session --anatomy {anatomy} --policy {dynamic} '
+        f'--mode dynamic --trials 1 --gui --out runs/session_dynamic',
         f'scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml '
         f'--in-process anatomy:={anatomy} policy_path:={static}',
         f'scripts/ros2run cgail_planner planner_node --ros-args -p anatomy:={anatomy} '

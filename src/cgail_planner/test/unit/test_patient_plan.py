@@ -50,8 +50,9 @@ def test_an_earlier_run_is_never_overwritten(prepared, tmp_path, capsys) -> None
 def test_the_rig_commands_name_the_anatomy_and_the_policies(tmp_path) -> None:
     pol = {'static': tmp_path / 's.onnx', 'dynamic': tmp_path / 'd.onnx'}
     lines = rig_commands('/p/anat', pol)
-    assert any(line.startswith('scripts/ws invitro_session --anatomy /p/anat --policy '
-                               f'{pol["static"]} --mode static') and '--gui' in line
+    assert any(line.startswith('scripts/ros2run cgail_planner invitro_session --anatomy '
+                               f'/p/anat --policy {pol["static"]} --mode static')
+               and '--gui' in line
                for line in lines)
     assert any(f'--policy {pol["dynamic"]} --mode dynamic' in line for line in lines)
     assert any('rig_launch' in line and 'anatomy:=/p/anat' in line
@@ -101,7 +102,8 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
     assert 'C-GAIL (base, not tuned)' in rec['success_unseen_targets']['static']
     assert rec['validation_history'] and rec['timings_s']['total'] > 0
     report = (out / 'report.md').read_text()
-    assert f'scripts/ws invitro_session --anatomy {prepared.resolve()}' in report
+    assert (f'scripts/ros2run cgail_planner invitro_session --anatomy {prepared.resolve()}'
+            in report)
     assert '| static |' in report and '![validation during training](training.png)' in report
     for png in ('training.png', 'evaluation/static_T_a.png', 'evaluation/dynamic_T_s.png'):
         assert (out / png).stat().st_size > 5000, png
