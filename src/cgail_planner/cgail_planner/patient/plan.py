@@ -379,6 +379,7 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
                                              init, result, say, progress)
     best_dynamic = None
     if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic:  # (NaN: not measured)
+        result.timings_s['dynamic_start'] = clock.now()
         best_dynamic, _ = _train_phase('dynamic', anatomy, options, out, clock, (obs, act),
                                        str(best_static), result, say, progress)
     result.timings_s['training'] = clock.now() - result.timings_s['demonstrations']
@@ -485,12 +486,12 @@ def _plot_history(result: PlanResult, options: PlanOptions, path: Path) -> None:
     demos = result.timings_s.get('demonstrations', 0.0) / 60.0
     ax.axvspan(0.0, demos, color='0.92', zorder=0)
     ax.text(demos / 2, 50, 'expert\ndemos', fontsize=7, ha='center', color='0.4')
-    switch = [r['wall_s'] / 60.0 for r in h if r['phase'] == 'dynamic']
     xmax = max(options.budget_min, max(t, default=0.0))
-    if switch:
-        ax.axvline(switch[0], color='k', linewidth=0.6)
-        ax.text(switch[0], 2, 'dynamic phase ', fontsize=8,
-                ha='right' if switch[0] > 0.8 * xmax else 'left')
+    if 'dynamic_start' in result.timings_s:
+        x = result.timings_s['dynamic_start'] / 60.0
+        ax.axvline(x, color='k', linewidth=0.6)
+        ax.text(x, 30, ' dynamic phase ', fontsize=8,
+                ha='right' if x > 0.8 * xmax else 'left')
     ax.set_xlabel('wall time (min, from the start of the run)')
     ax.set_ylabel('success on validation targets (%)')
     ax.set_ylim(-3, 103)
