@@ -219,6 +219,7 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
     its dynamic validation success (NaN: not measured)."""
     import torch
     from tqdm import tqdm
+    import yaml
 
     from cgail_planner.learning.config import config_from_dict, config_to_dict, load_config
     from cgail_planner.learning.envs import ConcatVecEnv
@@ -236,6 +237,12 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
     d['max_steps'] = 50_000_000  # (the budget stops the run; the schedules barely decay)
     d['num_envs'] = len(seeds)
     d['checkpoint_every'] = 0
+    if init:
+        # No theta_max curriculum when fine-tuning: the base policy was trained through it and
+        # runs at the contract's theta_max (the validation env's); with it, success over 0.6
+        # moved the training envs to 75 deg, where every training episode failed (training
+        # success 0.00 for the rest of a 10-minute run on the elongated patient).
+        d['curriculum'] = {}
     cfg = config_from_dict(d)
     env = ConcatVecEnv([CatheterNavVecEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s),
                                           1) for s in seeds])
@@ -251,6 +258,7 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
     goal = {'static': options.goal_static, 'dynamic': options.goal_dynamic}
     run = out / 'train' / mode
     logger = ScalarLogger(run)
+    (run / 'config.yaml').write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
     best_key: tuple[float, float] = (-1.0, -1.0)
     best: Path | None = None
     best_dyn_measured = False

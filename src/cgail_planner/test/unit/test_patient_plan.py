@@ -100,6 +100,9 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
         assert set(rates) >= {'C-GAIL (this run)', 'centerline'}
         assert all(0.0 <= r <= 1.0 for r in rates.values())
     assert 'C-GAIL (base, not tuned)' in rec['success_unseen_targets']['static']
+    # fine-tuning runs at the contract's theta_max: no curriculum (preset cgail has one)
+    config = yaml.safe_load((out / 'train' / 'static' / 'config.yaml').read_text())
+    assert config['curriculum']['theta_max_deg'] == [] and config['name'] == 'cgail'
     assert rec['validation_history'] and rec['timings_s']['total'] > 0
     report = (out / 'report.md').read_text()
     assert (f'scripts/ros2run cgail_planner invitro_session --anatomy {prepared.resolve()}'
