@@ -317,8 +317,8 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
             f'validation at {options.eval_every}: a larger --budget-min trains longer')
     logger.close()
     key = best_key if mode == 'static' else best_key[::-1]
-    log(f'training ({mode}): {trainer.step} steps, best validation (static, dynamic) '
-        f'{_fmt_key(key)}')
+    shown = _fmt_key(key) if best_dyn_measured else f'{_fmt_key(key).split(" / ")[0]} / -'
+    log(f'training ({mode}): {trainer.step} steps, best validation (static, dynamic) {shown}')
     return best, key[1] if best_dyn_measured else math.nan
 
 
