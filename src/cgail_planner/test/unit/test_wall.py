@@ -331,8 +331,8 @@ def test_a_wall_beyond_its_displacement_bound_stops_with_the_step_and_particle(t
 
 def test_a_catheter_body_outside_the_lumen_is_a_wall_error_not_a_collision():
     """Issue 12 reproduced and stopped: start 2 of the curved descending aorta with the
-    straight introducer of before (running outside the wall) blows the deformable wall up at
-    the first step (tens of mm: it reached 915 mm by step 2); the bound stops it with the
+    straight introducer of before (running outside the wall) blows the deformable wall up
+    within the first steps (it reached 915 mm by step 2); the bound stops it with the
     reason. With its introducer along the centerline the wall stays within the bound."""
     from pathlib import Path
     import sys
@@ -362,9 +362,11 @@ def test_a_catheter_body_outside_the_lumen_is_a_wall_error_not_a_collision():
     with pytest.raises(WallError, match=(
             r"^deformable wall: expected every particle within 40 mm of its rest position "
             r"\(PBDConfig.max_displacement\), found particle \d+ \(rest .*\) \d+\.\d mm away "
-            r"at step 1 \(t = 0.10 s\); the catheter body runs \d+\.\d mm outside the rest "
-            r"wall at \(.*\) mm: an introducer outside the lumen\?$")):
-        run(s2, introducer_tail(anatomy, s2.position, s2.rotation), 1)
+            r"at step [1-3] \(t = 0.[1-3]0 s\); the catheter body runs \d+\.\d mm outside the "
+            r"rest wall at \(.*\) mm: an introducer outside the lumen\?$")):
+        # within 3 steps: the mesh, and so the first step's displacement, differs between
+        # numpy's AVX-512 and AVX2 builds (step 1 with AVX-512; below 40 mm at step 1 with AVX2)
+        run(s2, introducer_tail(anatomy, s2.position, s2.rotation), 3)
     for s in world.scenarios.starts:
         worst = run(s, s.introducer, 20)
         assert 0.005 < worst <= DYNAMIC_PBD_CONFIG.max_displacement
