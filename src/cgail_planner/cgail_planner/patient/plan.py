@@ -317,13 +317,17 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
             f'validation at {options.eval_every}: a larger --budget-min trains longer')
     logger.close()
     key = best_key if mode == 'static' else best_key[::-1]
-    shown = _fmt_key(key) if best_dyn_measured else f'{_fmt_key(key).split(" / ")[0]} / -'
-    log(f'training ({mode}): {trainer.step} steps, best validation (static, dynamic) {shown}')
+    log(f'training ({mode}): {trainer.step} steps, best validation (static, dynamic) '
+        f'{_fmt_key(key, best_dyn_measured)}')
     return best, key[1] if best_dyn_measured else math.nan
 
 
-def _fmt_key(key: tuple[float, float]) -> str:
-    return '-' if key[0] < 0 else f'{100 * key[0]:.0f}% / {100 * key[1]:.0f}%'
+def _fmt_key(key: tuple[float, float], second: bool = True) -> str:
+    """'static% / dynamic%' of a validation key; ``second`` False: the second was not
+    measured ('-')."""
+    if key[0] < 0:
+        return '-'
+    return f'{100 * key[0]:.0f}% / ' + (f'{100 * key[1]:.0f}%' if second else '-')
 
 
 def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = None, *,
