@@ -12,7 +12,8 @@ downloaded):
 * ``mesh``: a noisy lumen surface (0.3 mm vertex noise) of the ``default`` aorta in RAS.
 
 Each goes through ``prepare_anatomy`` and then ``plan_patient --budget-min B`` (its whole
-pipeline: expert demonstrations, fine-tuning from the committed policy, export, evaluation on
+pipeline: expert demonstrations, a behavioural-cloning warm start and C-GAIL fine-tuning from the
+committed policy, export, evaluation on
 unseen target sets with the centerline follower). Prints one line per stage and the table the
 README shows; writes ``OUT/bench.md``. The machine, its cores and its load are printed with the
 figures, since training speed is what the budget buys.

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from cgail_planner.learning.bc import BehavioralCloning
+from cgail_planner.learning.bc import bc_loss, BehavioralCloning
 from cgail_planner.learning.buffer import RolloutBuffer
 from cgail_planner.learning.config import config_to_dict, TrainConfig
 from cgail_planner.learning.curiosity import Curiosity
@@ -245,6 +245,59 @@ class Trainer:
             scalars['curriculum/lesson'] = float(self.curriculum.lesson)
             scalars['curriculum/theta_max_deg'] = math.degrees(self.curriculum.theta_max or 0.0)
         return scalars
+
+    def pretrain_bc(self, epochs: int, learning_rate: float = 1e-3, batch_size: int = 512,
+                    refit_normalizer: bool = True) -> dict[str, float]:
+        """Behavioural-cloning warm start: ``epochs`` supervised passes over the demonstrations
+        before any environment step (the actor only; the critic and the discriminator learn
+        from the rollouts that follow).
+
+        The in-loop BC of :meth:`update` runs at ``strength * policy lr`` (4e-5 with the
+        ``cgail`` preset) on one buffer's worth of demos per update: it keeps a policy near the
+        expert but cannot teach a new anatomy quickly. Measured on a patient anatomy
+        (``plan_patient``): fine-tuning the committed policy with C-GAIL from 60 demonstrations
+        reached 64% on unseen targets in 13 min; this warm start on 255 demonstrations reached
+        96% in 20 s, before any RL step.
+
+        Args:
+            epochs: passes over the demonstrations (>= 1).
+            learning_rate: Adam learning rate of the warm start.
+            batch_size: minibatch size.
+            refit_normalizer: set the observation normaliser to the demonstrations' mean and
+                variance first (a base policy's statistics come from another anatomy).
+
+        Returns:
+            ``{'losses/bc_pretrain_loss': last epoch's mean loss, 'bc_pretrain/epochs': n}``.
+        """
+        if self.demo_obs is None or self.demo_act is None:
+            raise DemoError('pretrain_bc: expected demonstrations, found none (the preset '
+                            'uses neither GAIL nor BC)')
+        if epochs < 1 or batch_size < 1 or not learning_rate > 0:
+            raise ValueError(f'pretrain_bc: expected epochs >= 1, batch_size >= 1 and '
+                             f'learning_rate > 0, found {epochs}, {batch_size}, '
+                             f'{learning_rate}')
+        if self.normalizer is not None and refit_normalizer:
+            x = self.demo_obs.double()
+            with torch.no_grad():
+                self.normalizer.mean.copy_(x.mean(0))
+                self.normalizer.var.copy_(x.var(0, unbiased=False))
+                self.normalizer.count.copy_(torch.tensor(float(len(x)), dtype=torch.float64))
+        opt = torch.optim.Adam(self.actor.parameters(), lr=learning_rate)
+        n = len(self.demo_obs)
+        bs = min(batch_size, n)
+        losses: list[float] = []
+        for _ in range(epochs):
+            idx = torch.as_tensor(self.rng.permutation(n))
+            losses = []
+            for start in range(0, n - bs + 1, bs):
+                b = idx[start:start + bs]
+                loss = bc_loss(self.actor, self.demo_obs[b], self.demo_act[b])
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item())
+        return {'losses/bc_pretrain_loss': float(np.mean(losses)),
+                'bc_pretrain/epochs': float(epochs)}
 
     # ---------------------------------------------------------------- evaluation
     @torch.no_grad()

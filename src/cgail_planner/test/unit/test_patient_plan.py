@@ -24,6 +24,7 @@ def test_a_bad_anatomy_is_one_line_and_exit_status_2(bad_anatomy, tmp_path, caps
     (['--validation-seeds', '1'], 'test_seeds must be target sets apart from validation_seeds'),
     (['--train-seeds', '-1'], 'train_seeds must be one or more ints >= 0'),
     (['--trials', '0'], 'trials must be in [1, 1000], found 0'),
+    (['--bc-epochs', '-1'], 'bc_epochs must be an int in [0, 1000], found -1'),
     (['--base', 'nowhere.onnx'], 'expected an exported .onnx policy or a train checkpoint, or '
                                  '"scratch", found no file at nowhere.onnx'),
     (['--preset', 'nopreset'], "expected a preset name in"),
@@ -104,6 +105,10 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
     config = yaml.safe_load((out / 'train' / 'static' / 'config.yaml').read_text())
     assert config['curriculum']['theta_max_deg'] == [] and config['name'] == 'cgail'
     assert rec['validation_history'] and rec['timings_s']['total'] > 0
+    # the warm start is validated first, before any C-GAIL step
+    first = rec['validation_history'][0]
+    assert first['warm_start'] and first['steps'] == 0 and first['phase'] == 'static'
+    assert '| static (BC warm start) | ' in (out / 'report.md').read_text()
     report = (out / 'report.md').read_text()
     assert (f'scripts/ros2run cgail_planner invitro_session --anatomy {prepared.resolve()}'
             in report)
