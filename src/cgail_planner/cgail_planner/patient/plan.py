@@ -20,8 +20,10 @@ bar; everything lands in ``RUN``):
    until it has held the static goal twice in a row (the warm start counts) and both goals are
    held or half the budget is spent, at most until ``static_share`` of the budget.
 3. **Training, dynamic** (only while the static policy misses the dynamic goal on the
-   validation set and the budget lasts): the same, in the beating, deforming aorta, starting
-   from the best static policy.
+   validation set and the budget lasts): the expert first demonstrates the first 4 training
+   sets in the beating, deforming aorta (``RUN/demos/dynamic_seed_<s>``; skipped when under
+   3 min are left), then the same warm start and C-GAIL on those demonstrations, in the beating
+   aorta, starting from the best static policy.
 4. **Export**: ``RUN/policy_static.onnx`` and ``RUN/policy_dynamic.onnx`` with their catheter
    contracts (the anatomy identified by its content hash).
 5. **Evaluation** on *unseen* targets (a test target set used neither for training nor for
@@ -31,10 +33,11 @@ bar; everything lands in ``RUN``):
 6. **Report**: ``RUN/report.md`` (figures, tables, plots, the exact commands that start the
    simulated rig with its GUI, and the planner on a real rig) and ``RUN/plan.yaml``.
 
-``--budget-min`` bounds stages 1-3 (demonstrations and training); training stops as soon as the
-validation reaches both goals. Exit status: 0 the planner reaches both goals on the unseen
-targets; 1 it does not (everything is still written; the report says which goal was missed);
-2 the input could not be used (one line on stderr says why).
+``--budget-min`` bounds the whole run: training stops as soon as the validation reaches both
+goals, or when what is left of the budget is what the final evaluation is expected to take
+(timed from the validations, which run the same trials). Exit status: 0 the planner reaches
+both goals on the unseen targets; 1 it does not (everything is still written; the report says
+which goal was missed); 2 the input could not be used (one line on stderr says why).
 
 Why the warm start: the paper trains C-GAIL for hours. Within minutes, fine-tuning the committed
 policy with C-GAIL alone from 60 demonstrations plateaued at 64-69% static success on unseen
@@ -65,6 +68,9 @@ import numpy as np
 __all__ = ['PlanOptions', 'PlanResult', 'main', 'plan_patient']
 
 _PROG = 'plan_patient'
+_DYNAMIC_DEMOS_MIN_S = 180.0
+"""Budget left (s) under which the dynamic phase reuses the static demonstrations rather than
+record its own (4 target sets in the beating aorta take ~75 s on one core)."""
 
 
 def committed_policy(name: str = 'cgail_default_static') -> Path:
@@ -79,7 +85,8 @@ class PlanOptions:
     """Settings of one ``plan_patient`` run (every one is a command-line option)."""
 
     budget_min: float = 15.0
-    """Wall-clock budget of the demonstrations and the training, minutes; in [1, 1440]."""
+    """Wall-clock budget of the whole run, minutes (training stops early enough for the final
+    evaluation, timed from the validations); in [1, 1440]."""
     base: str = ''
     """Policy the training starts from: an exported ``.onnx`` or a ``train`` checkpoint;
     '' = the committed default static policy; 'scratch' = random initialisation."""
@@ -159,18 +166,28 @@ class PlanResult:
 
 
 class _Clock:
-    """Wall time since the start, and the budget's deadline."""
+    """Wall time since the start, the budget's deadline, and the time the final evaluation
+    will need (kept free of training)."""
 
     def __init__(self, budget_s: float) -> None:
         self.t0 = time.monotonic()
         self.budget_s = budget_s
         self.deadline = self.t0 + budget_s
+        self.eval_trials: dict[str, int] = {}
+        """Trials the final evaluation runs per mode (all methods)."""
+        self.trial_s: dict[str, float] = {}
+        """Seconds per trial per mode, as the latest validation measured them."""
 
     def now(self) -> float:
         return time.monotonic() - self.t0
 
+    def reserve(self) -> float:
+        """Seconds the final evaluation is expected to take (0 until a validation ran)."""
+        return sum(self.trial_s.get(m, 0.0) * n for m, n in self.eval_trials.items())
+
     def left(self) -> float:
-        return self.deadline - time.monotonic()
+        """Seconds of the budget left for demonstrations and training."""
+        return self.deadline - time.monotonic() - self.reserve()
 
     def stamp(self) -> str:
         s = int(self.now())
@@ -192,10 +209,12 @@ def _validate(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Any],
     return float(np.mean(wins))
 
 
-def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None]
+def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None],
+                  mode: str = 'static', seeds: Sequence[int] | None = None
                   ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
-    """Expert demonstrations of every start x target pair of each training target set, one
-    bag per set; returns the (obs, act) pairs of the successful episodes."""
+    """Expert demonstrations of every start x target pair of each target set (default
+    ``options.demo_seeds``) in ``mode``, one bag per set (``demos/seed_<s>``, dynamic:
+    ``demos/dynamic_seed_<s>``); returns the (obs, act) pairs of the successful episodes."""
     from cgail_planner.learning.demo_bags import write_demo_bag
     from cgail_planner.learning.demos_cli import Pairs, record_episodes
     from cgail_planner.sim.anatomy import anatomy_label
@@ -204,16 +223,18 @@ def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[
 
     pairs: Pairs = []
     rates = []
-    for s in options.demo_seeds:
-        env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy, scenario_seed=s))
+    prefix = 'seed' if mode == 'static' else f'{mode}_seed'
+    for s in options.demo_seeds if seeds is None else seeds:
+        env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s))
         sc = env.scenarios
         n = len(sc.starts) * len(sc.targets)
         episodes, stats = record_episodes(env, n, options.seed, pairs)
-        write_demo_bag(out / 'demos' / f'seed_{s}', episodes, anatomy=anatomy_label(anatomy),
-                       mode='static', dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
+        write_demo_bag(out / 'demos' / f'{prefix}_{s}', episodes, anatomy=anatomy_label(anatomy),
+                       mode=mode, dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
                        anatomy_path=anatomy, scenario_seed=s)
         rates.append(stats['success_rate'])
-        log(f'expert, target set {s}: {n} episodes, success {100 * stats["success_rate"]:.0f}%')
+        log(f'expert, {mode}, target set {s}: {n} episodes, success '
+            f'{100 * stats["success_rate"]:.0f}%')
     if not pairs:
         from cgail_planner.patient import PatientError
 
@@ -276,12 +297,19 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
     state: dict[str, Any] = {'streak': 0, 'key': (-1.0, -1.0), 'best': None,
                              'dyn_measured': False}  # streak: validations at the static goal
 
+    def timed_validation(m: str) -> float:
+        t = time.monotonic()
+        rate = _validate(trainer.act_deterministic, val[m], options.seed)
+        n = sum(len(e.scenarios.starts) * len(e.scenarios.targets) for e in val[m])
+        clock.trial_s[m] = (time.monotonic() - t) / n
+        return rate
+
     def validate_and_keep(scalars: dict[str, float]) -> bool:
         """Validate the current policy, keep it if it is the best so far; True: stop."""
-        s_rate = _validate(trainer.act_deterministic, val['static'], options.seed)
+        s_rate = timed_validation('static')
         d_rate = math.nan
         if s_rate >= goal['static'] or mode == 'dynamic':
-            d_rate = _validate(trainer.act_deterministic, val['dynamic'], options.seed)
+            d_rate = timed_validation('dynamic')
         scalars.update({'validation/static_success': s_rate,
                         'validation/dynamic_success': d_rate})
         logger.log(trainer.step, scalars)
@@ -305,7 +333,7 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
         return mode == 'static' and clock.now() >= options.static_share * clock.budget_s
 
     stop = False
-    if mode == 'static' and options.bc_epochs > 0:
+    if options.bc_epochs > 0:
         t_warm = time.monotonic()
         warm = trainer.pretrain_bc(options.bc_epochs)
         result.timings_s['bc_warm_start'] = time.monotonic() - t_warm
@@ -408,6 +436,9 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
         raise ValueError(f'--out {out}: expected a new run directory, found an earlier run '
                          '(plan.yaml); choose another --out or remove it')
     result = PlanResult(out=out)
+    per_method = options.trials * len(options.test_seeds)
+    clock.eval_trials = {'static': per_method * (3 if base.endswith('.onnx') else 2),
+                         'dynamic': per_method * 2}
     say(f'anatomy {anatomy}, budget {options.budget_min:g} min, base '
         f'{"random" if base == "scratch" else base}')
 
@@ -421,7 +452,30 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
     best_dynamic = None
     if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic:  # (NaN: not measured)
         result.timings_s['dynamic_start'] = clock.now()
-        best_dynamic, _ = _train_phase('dynamic', anatomy, options, out, clock, (obs, act),
+        dyn_demos = (obs, act)
+        if clock.left() >= _DYNAMIC_DEMOS_MIN_S:
+            # the beating wall's own demonstrations: BC on static ones leaves the tip to
+            # collide with the moving root (mesh patient: 76% dynamic on unseen targets from the
+            # static policy; 89% after BC on dynamic demonstrations of 4 sets, 82% with the
+            # static ones mixed in)
+            from cgail_planner.patient import PatientError
+
+            try:
+                d_obs, d_act, d_stats = _record_demos(anatomy, options, out, say,
+                                                      mode='dynamic',
+                                                      seeds=options.train_seeds[:4])
+            except PatientError:
+                say('warning: the expert reached no target in the beating aorta; the dynamic '
+                    'phase uses the static demonstrations')
+            else:
+                dyn_demos = (d_obs, d_act)
+                demo_stats.update({f'dynamic_{k}': v for k, v in d_stats.items()})
+                say(f'demonstrations, dynamic: {len(d_obs)} (obs, act) pairs from '
+                    f'{int(d_stats["episodes"])} expert episodes')
+        else:
+            say(f'dynamic phase on the static demonstrations: {clock.left():.0f} s left, under '
+                f'the {_DYNAMIC_DEMOS_MIN_S:.0f} s that recording dynamic ones needs')
+        best_dynamic, _ = _train_phase('dynamic', anatomy, options, out, clock, dyn_demos,
                                        str(best_static), result, say, progress)
     result.timings_s['training'] = clock.now() - result.timings_s['demonstrations']
 
@@ -622,7 +676,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('anatomy', type=Path, help='prepared anatomy directory (prepare_anatomy)')
     p.add_argument('--out', type=Path, required=True, help='run directory to create')
     p.add_argument('--budget-min', type=float, default=d.budget_min,
-                   help='wall-clock budget of demonstrations + training, minutes')
+                   help='wall-clock budget of the whole run, minutes (training leaves time '
+                        'for the final evaluation)')
     p.add_argument('--base', default=d.base,
                    help="policy to fine-tune (.onnx or train checkpoint; default: the committed "
                         "default static policy; 'scratch': random initialisation)")

@@ -116,3 +116,20 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
     for png in ('training.png', 'evaluation/static_T_a.png', 'evaluation/dynamic_T_s.png'):
         assert (out / png).stat().st_size > 5000, png
     assert (out / 'evaluation' / 'report.md').is_file()
+
+
+@pytest.mark.slow
+def test_dynamic_demonstrations_are_recorded_in_the_beating_aorta(prepared, tmp_path) -> None:
+    """The dynamic phase's own demonstrations: one bag per set, in the beating aorta."""
+    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_planner.patient.plan import _record_demos
+
+    lines: list[str] = []
+    obs, act, stats = _record_demos(str(prepared), PlanOptions(), tmp_path, lines.append,
+                                    mode='dynamic', seeds=(3,))
+    meta, episodes = read_demo_bag(tmp_path / 'demos' / 'dynamic_seed_3')
+    assert meta['mode'] == 'dynamic' and meta['scenario_seed'] == 3 and len(episodes) == 15
+    assert stats['episodes'] == 15 and stats['expert_success'] >= 0.8
+    assert len(obs) == len(act) > 1000 and obs.shape[1] == 41
+    assert lines == [f'expert, dynamic, target set 3: 15 episodes, success '
+                     f'{100 * stats["expert_success"]:.0f}%']
