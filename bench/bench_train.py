@@ -35,10 +35,11 @@ def main() -> None:
     cfg = load_config(args.preset)
     t = time.monotonic()
     env, _, _ = make_envs(args.mode, 'default', cfg.num_envs)
-    demo_obs, demo_act = (load_demos([Path(d) for d in args.demos]) if cfg.needs_demos
-                          else (None, None))
+    demo_obs, demo_act, demo_episodes = (load_demos([Path(d) for d in args.demos])
+                                         if cfg.needs_demos else (None, None, None))
     print(f'setup (simulator build + demo load): {time.monotonic() - t:.1f} s')
-    trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=0)
+    trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=0,
+                      demo_episodes=demo_episodes)
     t_roll, t_upd = [], []
     for _ in range(args.iterations):
         t0 = time.monotonic()

@@ -48,6 +48,8 @@ class Batch(NamedTuple):
     advantages: np.ndarray
     returns: dict[str, np.ndarray]
     old_values: dict[str, np.ndarray]
+    terminated: np.ndarray
+    """Whether each transition terminated (its next state is GAIL's absorbing state)."""
 
 
 class RolloutBuffer:
@@ -111,10 +113,11 @@ class RolloutBuffer:
 
         obs, act, nobs, logp = flat(self.obs), flat(self.act), flat(self.next_obs), \
             flat(self.logp)
-        adv = flat(self.advantages)
+        adv, term = flat(self.advantages), flat(self.terminated)
         rets = {s: flat(v) for s, v in self.returns.items()}
         vals = {s: flat(v) for s, v in self.values.items()}
         for start in range(0, n - batch_size + 1, batch_size):
             b = idx[start:start + batch_size]
             yield Batch(obs[b], act[b], nobs[b], logp[b], adv[b],
-                        {s: r[b] for s, r in rets.items()}, {s: v[b] for s, v in vals.items()})
+                        {s: r[b] for s, r in rets.items()}, {s: v[b] for s, v in vals.items()},
+                        term[b])

@@ -14,7 +14,8 @@ the Unity ML-Agents toolkit. ML-Agents has no single weighted loss; each coeffic
   reward is multiplied by it before its own value head and GAE (``RewardSignalConfig.strength``
   of ``extrinsic``). L_PPO is the clipped-surrogate PPO loss driven by the advantages.
 * ``lambda`` = 0.8 is the strength of the **GAIL** reward signal: the discriminator reward
-  ``-log(1 - D(s)) - log 2`` is multiplied by it (own value head, own gamma 0.99). The
+  ``-log(1 - D(s))`` (ML-Agents' form, with a learned absorbing state for episode ends:
+  :mod:`cgail_planner.learning.gail`) is multiplied by it (own value head, own gamma 0.99). The
   discriminator itself is trained with its own loss (binary cross-entropy + gradient penalty)
   and optimiser; lambda scales what it contributes to the policy, i.e. L_GAIL's effect.
 * ``kappa mu`` = 0.14 is the strength of **behavioural cloning**: after each PPO update one

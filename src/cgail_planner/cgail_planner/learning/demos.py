@@ -4,18 +4,31 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from cgail_planner.learning.errors import DemoError
 
 
+class Demos(NamedTuple):
+    """Demonstrations as training consumes them."""
+
+    obs: np.ndarray
+    """(M, obs_dim) float32 observations."""
+    act: np.ndarray
+    """(M, 3) float32 actions in [-1, 1]."""
+    episodes: int | None
+    """How many episodes the pairs come from (GAIL's absorbing state needs it); None when an
+    ``.npz`` source does not say."""
+
+
 def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None,
-               anatomy: Any = None) -> tuple[np.ndarray, np.ndarray]:
+               anatomy: Any = None) -> Demos:
     """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
 
-    A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays, or a demo bag directory
+    A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays (and optionally
+    ``episodes``, the number of episodes they hold), or a demo bag directory
     written by ``make_demos`` (see :mod:`cgail_planner.learning.demo_bags`), re-simulated within
     :data:`~cgail_planner.learning.demo_bags.POSE_TOLERANCE_M` of its recorded poses.
 
@@ -32,6 +45,7 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
     if not paths:
         raise DemoError('expected at least one demonstration path (--demos), found none')
     obs_l, act_l = [], []
+    episodes: int | None = 0
     for path in paths:
         if not path.exists():
             raise DemoError(f'demonstration path not found: {path}')
@@ -40,15 +54,18 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
                 if 'obs' not in data or 'act' not in data:
                     raise DemoError(f'{path}: expected arrays obs and act, found {list(data)}')
                 obs, act = data['obs'], data['act']
+                n_ep = int(data['episodes']) if 'episodes' in data else None
         else:
             from cgail_planner.learning.demo_bags import replay_demo_bag
 
             obs, act, replay = replay_demo_bag(path, anatomy=anatomy)
             if report is not None:
                 report(replay.summary())
+            n_ep = replay.report.episodes
+        episodes = None if episodes is None or n_ep is None else episodes + n_ep
         obs_l.append(np.asarray(obs, np.float32))
         act_l.append(np.asarray(act, np.float32))
     obs_all, act_all = np.concatenate(obs_l), np.concatenate(act_l)
     if len(obs_all) == 0:
         raise DemoError(f'no demonstration samples in {[str(p) for p in paths]}')
-    return obs_all, act_all
+    return Demos(obs_all, act_all, episodes)

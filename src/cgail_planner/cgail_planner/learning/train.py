@@ -150,16 +150,16 @@ def main(argv: list[str] | None = None) -> int:
             cfg = config_from_dict(d)
         from cgail_planner.learning.demos import load_demos
 
-        demo_obs = demo_act = None
+        demo_obs = demo_act = demo_episodes = None
         if cfg.needs_demos:
-            demo_obs, demo_act = load_demos(
+            demo_obs, demo_act, demo_episodes = load_demos(
                 [Path(d) for d in args.demos],
                 report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
                 anatomy=None if is_builtin(args.anatomy) else args.anatomy)
         env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,
-                          metadata=meta)
+                          metadata=meta, demo_episodes=demo_episodes)
         if args.init_from is not None:
             trainer.load_weights(args.init_from)
         out = args.out or Path('runs') / f'{cfg.name}_{args.mode}'

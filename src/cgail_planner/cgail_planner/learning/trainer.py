@@ -60,11 +60,14 @@ class Trainer:
         demo_act: (M, act_dim) demonstration actions in [-1, 1].
         seed: seeds torch, numpy and the envs; the same seed reproduces the run.
         metadata: free-form data stored in checkpoints (observation layout, anatomy...).
+        demo_episodes: how many episodes the demonstrations hold (required with GAIL: each
+            ends in the discriminator's absorbing state, :mod:`cgail_planner.learning.gail`).
     """
 
     def __init__(self, cfg: TrainConfig, env: VecEnv, *, demo_obs: np.ndarray | None = None,
                  demo_act: np.ndarray | None = None, seed: int = 0,
-                 metadata: dict[str, Any] | None = None) -> None:
+                 metadata: dict[str, Any] | None = None,
+                 demo_episodes: int | None = None) -> None:
         self.cfg, self.env, self.seed = cfg, env, seed
         self.rng = seed_everything(seed)
         self.obs_dim = int(env.single_observation_space.shape[0])
@@ -90,6 +93,14 @@ class Trainer:
             self.demo_act = torch.as_tensor(np.clip(demo_act, -1, 1), dtype=torch.float32)
         self.gail = Gail(self.obs_dim, self.act_dim, cfg.gail) if 'gail' in self.signals \
             else None
+        self.demo_episodes = 0
+        if self.gail is not None:
+            assert self.demo_obs is not None
+            if demo_episodes is None or not 1 <= demo_episodes <= len(self.demo_obs):
+                raise DemoError(f'preset {cfg.name!r} uses GAIL: expected the number of '
+                                f'demonstration episodes, in [1, {len(self.demo_obs)}] (each '
+                                f'ends in the absorbing state), found {demo_episodes!r}')
+            self.demo_episodes = int(demo_episodes)
         self.curiosity = Curiosity(self.obs_dim, self.act_dim, cfg.curiosity) \
             if 'curiosity' in self.signals else None
         self.bc = None
@@ -161,9 +172,10 @@ class Trainer:
         for s, sig in self.signals.items():
             if s == 'extrinsic':
                 r = b.env_rewards.reshape(n)
-            elif s == 'gail':
+            elif s == 'gail':  # relative to the absorbing state's reward (gail.py)
                 assert self.gail is not None
-                r = self.gail.reward(obs_n, act)
+                r = self.gail.step_reward(obs_n, act)
+                out['rewards/gail_absorbing'] = self.gail.absorbing_reward()
             else:
                 assert self.curiosity is not None
                 r = self.curiosity.reward(obs_n, act, nobs_n)
@@ -214,10 +226,16 @@ class Trainer:
                     act_c = torch.clamp(act, -1, 1)
                 if self.gail is not None:
                     assert self.demo_obs is not None and self.demo_act is not None
-                    idx = torch.as_tensor(self.rng.integers(0, len(self.demo_obs), len(obs)))
+                    # expert: one absorbing sample per demonstration episode among the samples;
+                    # policy: one per terminated transition of the minibatch
+                    n_demo = len(self.demo_obs)
+                    draw = self.rng.integers(0, n_demo + self.demo_episodes, len(obs))
+                    idx = torch.as_tensor(draw[draw < n_demo])
                     with torch.no_grad():
                         ex_obs = self.actor.norm(self.demo_obs[idx])
-                    add(self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c))
+                    add(self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c,
+                                         expert_absorbing=int((draw >= n_demo).sum()),
+                                         policy_absorbing=int(mb.terminated.sum())))
                 if self.curiosity is not None:
                     with torch.no_grad():
                         nobs_n = self.actor.norm(torch.as_tensor(mb.next_obs))

@@ -64,8 +64,8 @@ def test_make_demos_records_the_label_hash_and_path_and_replays_there(prepared, 
     assert (meta['anatomy'], meta['anatomy_hash'], meta['anatomy_path']) == (
         'p07', anatomy.content_hash, str(prepared.resolve()))
     lines: list[str] = []
-    obs, act = load_demos([bag], report=lines.append)
-    assert len(obs) == len(act) > 0
+    obs, act, episodes = load_demos([bag], report=lines.append)
+    assert len(obs) == len(act) > 0 and episodes is not None and 1 <= episodes <= 15
     assert f'anatomy {anatomy.content_hash}, as recorded' in lines[0]
     moved = tmp_path / 'p07_moved'
     shutil.copytree(prepared, moved)
@@ -76,7 +76,7 @@ def test_make_demos_records_the_label_hash_and_path_and_replays_there(prepared, 
                 rf"{anatomy.content_hash}\) at {prepared.resolve()}, found no such path: give "
                 r"its prepared directory \(train --anatomy DIR\)$")):
             load_demos([bag])
-        obs2, _ = load_demos([bag], anatomy=moved)  # (train passes its path --anatomy)
+        obs2, _, _ = load_demos([bag], anatomy=moved)  # (train passes its path --anatomy)
         assert (obs2 == obs).all()
     finally:
         shutil.move(str(tmp_path / 'gone'), str(prepared))

@@ -243,7 +243,8 @@ def test_the_committed_policy_fine_tunes_from_where_it_stands():
 
     env = CatheterNavVecEnv(EnvConfig(), 2)
     demo = np.zeros((4, 41), np.float32), np.zeros((4, 3), np.float32)
-    trainer = Trainer(load_config('cgail'), env, demo_obs=demo[0], demo_act=demo[1])
+    trainer = Trainer(load_config('cgail'), env, demo_obs=demo[0], demo_act=demo[1],
+                      demo_episodes=1)
     trainer.load_weights(committed_policy())
     obs = env.reset(seed=1)
     for _ in range(30):

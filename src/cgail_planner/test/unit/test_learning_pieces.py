@@ -88,11 +88,11 @@ def test_clipped_value_loss_and_schedule():
     assert linear_schedule(0.2, 0.1, 50, 100, 'constant') == 0.2
 
 
-def test_gail_reward_sign_and_zero_point():
-    r = gail_reward(np.array([0.5, 0.9, 0.1]))
-    assert r[0] == pytest.approx(0.0, abs=1e-7)
-    assert r[1] == pytest.approx(-math.log(0.1) - math.log(2), rel=1e-5)
-    assert r[1] > 0 > r[2]
+def test_gail_reward_is_ml_agents_form_and_never_negative():
+    r = gail_reward(np.array([0.5, 0.9, 0.1, 0.0]))
+    np.testing.assert_allclose(r, [math.log(2), -math.log(0.1), -math.log(0.9), 0.0],
+                               rtol=1e-5, atol=1e-7)
+    assert (r >= 0).all()
 
 
 def test_gradient_penalty_exact_for_linear_discriminator():
@@ -113,7 +113,29 @@ def test_discriminator_learns_expert_vs_policy():
     expert, policy = torch.randn(64, 2) + 2.0, torch.randn(64, 2) - 2.0
     for _ in range(200):
         gail.update(expert, None, policy, None)
-    assert gail.reward(expert, None).mean() > 0 > gail.reward(policy, None).mean()
+    assert gail.reward(expert, None).mean() > math.log(2) > gail.reward(policy, None).mean()
+
+
+@pytest.mark.parametrize(('expert_ends', 'policy_ends', 'keep_going'), [
+    (2, 16, True),    # the policy ends its episodes 8x as often (collisions): ending early
+                      # must not pay, so each further step is paid
+    (16, 2, False),   # the policy ends 8x less often (dawdling): finishing must pay
+])
+def test_ending_is_paid_by_how_often_the_expert_ends(expert_ends, policy_ends, keep_going):
+    """DAC's absorbing state, on states the discriminator cannot tell apart (D(s) = 1/2): the
+    sign of the per-step reward says whether ending or going on pays. The shifted form
+    ``-log(1 - D) - log 2`` pays 0 either way, ML-Agents' ``-log(1 - D)`` log 2 either way."""
+    torch.manual_seed(0)
+    gail = Gail(2, 1, GailConfig(strength=1.0, hidden_units=32, learning_rate=3e-3))
+    states = torch.randn(64, 2)  # the same states on both sides: only the endings differ
+    for _ in range(800):  # (converged by ~500: step 0.47-0.49 / -1.17 to -1.41)
+        gail.update(states, None, states, None, expert_absorbing=expert_ends,
+                    policy_absorbing=policy_ends)
+    assert abs(gail.reward(states, None).mean() - math.log(2)) < 0.15  # D(s) ~ 1/2
+    step = float(gail.step_reward(states, None).mean())
+    # D(absorbing) ~ the ending frequencies' ratio (2/66 vs 16/80): -log(1 - D) 0.14 or 2.0
+    # (measured 0.28 and 2.0)
+    assert (step > 0.3) if keep_going else (step < -0.8), step
 
 
 def test_icm_reward_is_capped_and_zero_before_update():

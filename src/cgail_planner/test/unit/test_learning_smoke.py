@@ -37,7 +37,7 @@ def _trainer(seed: int, **over) -> Trainer:
     cfg = config_from_dict({**SMOKE, **over})
     demo_obs, demo_act = expert_demos(40)
     return Trainer(cfg, SyncVecEnv([PointReach] * cfg.num_envs), demo_obs=demo_obs,
-                   demo_act=demo_act, seed=seed)
+                   demo_act=demo_act, seed=seed, demo_episodes=40)
 
 
 def test_cgail_learns_on_toy_env(tmp_path: Path):
@@ -88,6 +88,11 @@ def test_missing_or_mismatched_demos_are_errors():
     with pytest.raises(DemoError, match=r'expected obs \(M, 4\)'):
         Trainer(cfg, SyncVecEnv([PointReach]), demo_obs=np.zeros((3, 5), np.float32),
                 demo_act=np.zeros((3, 2), np.float32))
+    for episodes in (None, 0, 4):  # GAIL's absorbing state needs the episode count
+        with pytest.raises(DemoError, match=r'expected the number of demonstration episodes, '
+                                            r'in \[1, 3\]'):
+            Trainer(cfg, SyncVecEnv([PointReach]), demo_obs=np.zeros((3, 4), np.float32),
+                    demo_act=np.zeros((3, 2), np.float32), demo_episodes=episodes)
 
 
 def test_bc_warm_start_solves_the_toy_env_before_any_env_step():
