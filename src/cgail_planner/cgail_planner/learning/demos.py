@@ -61,7 +61,7 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
             obs, act, replay = replay_demo_bag(path, anatomy=anatomy)
             if report is not None:
                 report(replay.summary())
-            n_ep = replay.report.episodes
+            n_ep = replay.episodes
         episodes = None if episodes is None or n_ep is None else episodes + n_ep
         obs_l.append(np.asarray(obs, np.float32))
         act_l.append(np.asarray(act, np.float32))

@@ -61,6 +61,7 @@ class Discriminator(nn.Module):
         self.use_actions = cfg.use_actions
         self.obs_dim, self.act_dim = obs_dim, act_dim
         in_dim = obs_dim + (act_dim if cfg.use_actions else 0) + 1
+        self.in_dim = in_dim
         h = cfg.hidden_units
         self.net = nn.Sequential(nn.Linear(in_dim, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
                                  nn.Linear(h, 1))
@@ -80,7 +81,7 @@ class Discriminator(nn.Module):
 
     def absorbing_input(self, n: int = 1, dtype: torch.dtype = torch.float32) -> torch.Tensor:
         """(n, in_dim) rows of the absorbing state."""
-        x = torch.zeros(n, self.net[0].in_features, dtype=dtype)
+        x = torch.zeros(n, self.in_dim, dtype=dtype)
         x[:, -1] = 1.0
         return x
 

@@ -61,9 +61,12 @@ import math
 from pathlib import Path
 import sys
 import time
-from typing import Any
+from typing import Any, TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cgail_planner.learning.demos import Demos
 
 __all__ = ['PlanOptions', 'PlanResult', 'main', 'plan_patient']
 
@@ -211,11 +214,13 @@ def _validate(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Any],
 
 def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None],
                   mode: str = 'static', seeds: Sequence[int] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                  ) -> tuple[Demos, dict[str, float]]:
     """Expert demonstrations of every start x target pair of each target set (default
     ``options.demo_seeds``) in ``mode``, one bag per set (``demos/seed_<s>``, dynamic:
-    ``demos/dynamic_seed_<s>``); returns the (obs, act) pairs of the successful episodes."""
+    ``demos/dynamic_seed_<s>``); returns the successful episodes' (obs, act) pairs and their
+    count, and statistics."""
     from cgail_planner.learning.demo_bags import write_demo_bag
+    from cgail_planner.learning.demos import Demos
     from cgail_planner.learning.demos_cli import Pairs, record_episodes
     from cgail_planner.sim.anatomy import anatomy_label
     from cgail_planner.sim.config import EnvConfig
@@ -243,12 +248,13 @@ def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[
                            'prepare_anatomy (lumen too narrow, bends too tight?)')
     obs = np.concatenate([o for o, _ in pairs])
     act = np.concatenate([a for _, a in pairs])
-    return obs, act, {'episodes': float(len(rates) * n), 'expert_success': float(np.mean(rates)),
-                      'samples': float(len(obs))}
+    return Demos(obs, act, len(pairs)), {'episodes': float(len(rates) * n),
+                                         'expert_success': float(np.mean(rates)),
+                                         'samples': float(len(obs))}
 
 
 def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock: _Clock,
-                 demos: tuple[np.ndarray, np.ndarray], init: str, result: PlanResult,
+                 demos: Demos, init: str, result: PlanResult,
                  log: Callable[[str], None], progress: bool) -> tuple[Path, float]:
     """Train in ``mode`` until the validation reaches the goals or the budget ends; returns the
     best validated checkpoint (the starting policy's when the budget allowed no training) and
@@ -282,7 +288,8 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
     cfg = config_from_dict(d)
     env = ConcatVecEnv([CatheterNavVecEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s),
                                           1) for s in seeds])
-    trainer = Trainer(cfg, env, demo_obs=demos[0], demo_act=demos[1], seed=options.seed,
+    trainer = Trainer(cfg, env, demo_obs=demos.obs, demo_act=demos.act, seed=options.seed,
+                      demo_episodes=demos.episodes,
                       metadata={**sim_metadata(EnvConfig(mode=mode, anatomy=anatomy)),
                                 'preset': cfg.name})
     if init:
@@ -341,7 +348,7 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
         row = result.history[-1]
         row['warm_start'] = True
         log(f'warm start: behavioural cloning, {options.bc_epochs} epochs on '
-            f'{len(demos[0])} demonstration pairs (loss {warm["losses/bc_pretrain_loss"]:.3f}), '
+            f'{len(demos.obs)} demonstration pairs (loss {warm["losses/bc_pretrain_loss"]:.3f}), '
             f'validation (static, dynamic) '
             f'{_fmt_key((row["static"], row["dynamic"]), not math.isnan(row["dynamic"]))}')
     next_eval = options.eval_every
@@ -442,17 +449,17 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
     say(f'anatomy {anatomy}, budget {options.budget_min:g} min, base '
         f'{"random" if base == "scratch" else base}')
 
-    obs, act, demo_stats = _record_demos(anatomy, options, out, say)
+    demos, demo_stats = _record_demos(anatomy, options, out, say)
     result.timings_s['demonstrations'] = clock.now()
     say(f'demonstrations: {int(demo_stats["samples"])} (obs, act) pairs from '
         f'{int(demo_stats["episodes"])} expert episodes')
     init = '' if base == 'scratch' else base
-    best_static, dynamic_rate = _train_phase('static', anatomy, options, out, clock, (obs, act),
+    best_static, dynamic_rate = _train_phase('static', anatomy, options, out, clock, demos,
                                              init, result, say, progress)
     best_dynamic = None
     if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic:  # (NaN: not measured)
         result.timings_s['dynamic_start'] = clock.now()
-        dyn_demos = (obs, act)
+        dyn_demos = demos
         if clock.left() >= _DYNAMIC_DEMOS_MIN_S:
             # the beating wall's own demonstrations: BC on static ones leaves the tip to
             # collide with the moving root (mesh patient: 76% dynamic on unseen targets from the
@@ -461,16 +468,15 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
             from cgail_planner.patient import PatientError
 
             try:
-                d_obs, d_act, d_stats = _record_demos(anatomy, options, out, say,
-                                                      mode='dynamic',
-                                                      seeds=options.train_seeds[:4])
+                d_demos, d_stats = _record_demos(anatomy, options, out, say, mode='dynamic',
+                                                 seeds=options.train_seeds[:4])
             except PatientError:
                 say('warning: the expert reached no target in the beating aorta; the dynamic '
                     'phase uses the static demonstrations')
             else:
-                dyn_demos = (d_obs, d_act)
+                dyn_demos = d_demos
                 demo_stats.update({f'dynamic_{k}': v for k, v in d_stats.items()})
-                say(f'demonstrations, dynamic: {len(d_obs)} (obs, act) pairs from '
+                say(f'demonstrations, dynamic: {len(d_demos.obs)} (obs, act) pairs from '
                     f'{int(d_stats["episodes"])} expert episodes')
         else:
             say(f'dynamic phase on the static demonstrations: {clock.left():.0f} s left, under '

@@ -322,7 +322,7 @@ def test_replay_warns_when_the_anatomy_hash_differs(tmp_path: Path, recording):
     assert old.report.same_anatomy is None and old.report.recorded_anatomy_hash is None
     assert old.report.summary().endswith('(the bag records no anatomy hash)')
     lines: list[str] = []
-    obs, _ = load_demos([tmp_path / 'old'], report=lines.append)
+    obs, _, _ = load_demos([tmp_path / 'old'], report=lines.append)
     assert lines == [old.report.summary()] and len(obs) == 40
 
 

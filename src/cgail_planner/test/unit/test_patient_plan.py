@@ -125,11 +125,12 @@ def test_dynamic_demonstrations_are_recorded_in_the_beating_aorta(prepared, tmp_
     from cgail_planner.patient.plan import _record_demos
 
     lines: list[str] = []
-    obs, act, stats = _record_demos(str(prepared), PlanOptions(), tmp_path, lines.append,
-                                    mode='dynamic', seeds=(3,))
+    (obs, act, n_episodes), stats = _record_demos(str(prepared), PlanOptions(), tmp_path,
+                                                  lines.append, mode='dynamic', seeds=(3,))
     meta, episodes = read_demo_bag(tmp_path / 'demos' / 'dynamic_seed_3')
     assert meta['mode'] == 'dynamic' and meta['scenario_seed'] == 3 and len(episodes) == 15
     assert stats['episodes'] == 15 and stats['expert_success'] >= 0.8
+    assert n_episodes == round(15 * stats['expert_success'])  # the successful ones
     assert len(obs) == len(act) > 1000 and obs.shape[1] == 41
     assert lines == [f'expert, dynamic, target set 3: 15 episodes, success '
                      f'{100 * stats["expert_success"]:.0f}%']
