@@ -134,3 +134,22 @@ def test_dynamic_demonstrations_are_recorded_in_the_beating_aorta(prepared, tmp_
     assert len(obs) == len(act) > 1000 and obs.shape[1] == 41
     assert lines == [f'expert, dynamic, target set 3: 15 episodes, success '
                      f'{100 * stats["expert_success"]:.0f}%']
+
+
+def test_the_dynamic_phase_never_exports_worse_than_the_static_policy(prepared, tmp_path):
+    """With no time left to train, the dynamic phase returns the static incumbent as it was
+    validated, rather than an unvalidated or worse checkpoint."""
+    import numpy as np
+
+    from cgail_planner.learning.demos import Demos
+    from cgail_planner.patient.plan import _Clock, _train_phase, PlanResult
+
+    incumbent = tmp_path / 'static_best.pt'
+    demos = Demos(np.zeros((4, 41), np.float32), np.zeros((4, 3), np.float32), 1)
+    lines: list[str] = []
+    best, s_rate, d_rate = _train_phase(
+        'dynamic', str(prepared), PlanOptions(train_seeds=(3,)), tmp_path, _Clock(0.0), demos,
+        '', PlanResult(out=tmp_path), lines.append, False, warm_start=False,
+        incumbent=(incumbent, 0.97, 0.77))
+    assert (best, s_rate, d_rate) == (incumbent, 0.97, 0.77)
+    assert lines == ['training (dynamic): 0 steps, best validation (static, dynamic) 97% / 77%']
