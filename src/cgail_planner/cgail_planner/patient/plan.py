@@ -74,6 +74,10 @@ if TYPE_CHECKING:
 __all__ = ['PlanOptions', 'PlanResult', 'main', 'plan_patient']
 
 _PROG = 'plan_patient'
+_DYNAMIC_MARGIN = 0.10
+"""How far the static policy's dynamic validation must clear the dynamic goal to skip the
+dynamic phase: it runs 30 trials, and a mesh-patient run that stopped at exactly 80% measured
+67% on the unseen targets."""
 _DYNAMIC_DEMOS_MIN_S = 180.0
 """Budget left (s) under which the dynamic phase reuses the static demonstrations rather than
 record its own (4 target sets in the beating aorta take ~75 s on one core)."""
@@ -111,7 +115,7 @@ class PlanOptions:
     bc_epochs: int = 30
     """Epochs of the behavioural-cloning warm start on the demonstrations, before C-GAIL
     (:meth:`~cgail_planner.learning.trainer.Trainer.pretrain_bc`); 0: none."""
-    validation_seeds: tuple[int, ...] = (20, 21, 22)
+    validation_seeds: tuple[int, ...] = (20, 21, 22, 23, 24)
     """Target sets of the periodic validation (selects the policy, stops the training); the
     beating-aorta validation uses the first two (it costs ~30x more per step)."""
     test_seeds: tuple[int, ...] = (1, 2, 30)
@@ -347,7 +351,8 @@ def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock
             state.update(key=key, dyn_measured=not math.isnan(d_rate), best=run / 'best.pt')
             trainer.save(run / 'best.pt')
         state['streak'] = state['streak'] + 1 if s_rate >= goal['static'] else 0
-        if mode == 'static' and state['streak'] >= 2 and d_rate >= goal['dynamic']:
+        if mode == 'static' and state['streak'] >= 2 and \
+                d_rate >= goal['dynamic'] + _DYNAMIC_MARGIN:
             return True  # both goals: done
         usable = clock.budget_s - clock.reserve()  # (the evaluation's time is not training's)
         if mode == 'static' and state['streak'] >= 2 and clock.now() >= 0.5 * usable:
@@ -475,7 +480,8 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
     best_static, static_rate, dynamic_rate = _train_phase('static', anatomy, options, out, clock,
                                                           demos, init, result, say, progress)
     best_dynamic = None
-    if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic:  # (NaN: not measured)
+    if clock.left() > 0 and not dynamic_rate >= options.goal_dynamic + _DYNAMIC_MARGIN:
+        # (NaN: not measured)
         result.timings_s['dynamic_start'] = clock.now()
         dyn_demos = None
         if clock.left() >= _DYNAMIC_DEMOS_MIN_S:
