@@ -100,7 +100,7 @@ def run(form: str, seed: int, steps: int) -> dict[str, float]:
     assert gail is not None
     if form != 'absorbing':  # the closed forms: a constant in place of the learned r_abs
         shift = np.float32(math.log(2.0) if form == 'shifted' else 0.0)
-        gail.step_reward = lambda o, a: gail.reward(o, a) - shift  # type: ignore[assignment,method-assign]
+        gail.step_reward = lambda o, a, r_abs=None: gail.reward(o, a) - shift  # type: ignore[assignment,method-assign]
     scalars: dict[str, float] = {}
     while trainer.step < steps:
         scalars = trainer.train_iteration()

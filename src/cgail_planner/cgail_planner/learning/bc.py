@@ -18,6 +18,28 @@ def bc_loss(actor: Actor, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
     return ((actor.deterministic(obs) - act) ** 2).sum(-1).mean()
 
 
+def bc_passes(actor: Actor, obs: torch.Tensor, act: torch.Tensor, opt: torch.optim.Optimizer,
+              epochs: int, batch_size: int, rng: np.random.Generator,
+              max_samples: int | None = None) -> list[float]:
+    """``epochs`` shuffled passes of :func:`bc_loss` steps over (at most ``max_samples`` of)
+    the demonstrations; returns each pass's mean loss."""
+    n = obs.shape[0]
+    means = []
+    for _ in range(epochs):
+        idx = rng.permutation(n)[:max_samples]
+        bs = min(batch_size, len(idx))
+        losses = []
+        for start in range(0, len(idx) - bs + 1, bs):
+            b = torch.as_tensor(idx[start:start + bs])
+            loss = bc_loss(actor, obs[b], act[b])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(loss.item())
+        means.append(float(np.mean(losses)))
+    return means
+
+
 class BehavioralCloning:
     """Supervised pass over the demos after each PPO update, lr = strength * policy lr."""
 
@@ -43,16 +65,6 @@ class BehavioralCloning:
             return {}
         for g in self.opt.param_groups:
             g['lr'] = lr
-        n = self.obs.shape[0]
-        losses = []
-        for _ in range(self.cfg.num_epoch):
-            idx = rng.permutation(n)[:max_samples]
-            bs = min(self.cfg.batch_size, len(idx))
-            for start in range(0, len(idx) - bs + 1, bs):
-                b = torch.as_tensor(idx[start:start + bs])
-                loss = bc_loss(self.actor, self.obs[b], self.act[b])
-                self.opt.zero_grad()
-                loss.backward()
-                self.opt.step()
-                losses.append(loss.item())
+        losses = bc_passes(self.actor, self.obs, self.act, self.opt, self.cfg.num_epoch,
+                           self.cfg.batch_size, rng, max_samples)
         return {'losses/bc_loss': float(np.mean(losses)), 'policy/bc_learning_rate': lr}

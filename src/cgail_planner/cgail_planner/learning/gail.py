@@ -165,7 +165,10 @@ class Gail:
         d = torch.sigmoid(self.disc.logits(self.disc.absorbing_input()))
         return float(gail_reward(d)[0])
 
-    def step_reward(self, obs: torch.Tensor, act: torch.Tensor | None) -> np.ndarray:
+    def step_reward(self, obs: torch.Tensor, act: torch.Tensor | None,
+                    r_abs: float | None = None) -> np.ndarray:
         """What the policy is paid per step: :meth:`reward` minus :meth:`absorbing_reward`
-        (module docstring: DAC's absorbing state with its reward moved into every step)."""
-        return self.reward(obs, act) - np.float32(self.absorbing_reward())
+        (``r_abs`` when the caller has it; module docstring: DAC's absorbing state with its
+        reward moved into every step)."""
+        return self.reward(obs, act) - np.float32(
+            self.absorbing_reward() if r_abs is None else r_abs)

@@ -60,6 +60,14 @@ class RunningNormalizer(nn.Module):
         self.var.copy_(m2 / tot)
         self.count.copy_(tot)
 
+    @torch.no_grad()
+    def fit(self, x: np.ndarray | torch.Tensor) -> None:
+        """Replace the statistics by those of a batch (B, dim) of raw observations."""
+        batch = torch.as_tensor(x).to(torch.float64).reshape(-1, self.mean.shape[0])
+        self.mean.copy_(batch.mean(0))
+        self.var.copy_(batch.var(0, unbiased=False))
+        self.count.fill_(float(batch.shape[0]))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         mean = self.mean.to(x.dtype)
         std = torch.sqrt(self.var.to(x.dtype) + 1e-8)

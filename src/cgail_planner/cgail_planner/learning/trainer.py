@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from cgail_planner.learning.bc import bc_loss, BehavioralCloning
+from cgail_planner.learning.bc import bc_passes, BehavioralCloning
 from cgail_planner.learning.buffer import RolloutBuffer
 from cgail_planner.learning.config import config_to_dict, TrainConfig
 from cgail_planner.learning.curiosity import Curiosity
@@ -174,8 +174,9 @@ class Trainer:
                 r = b.env_rewards.reshape(n)
             elif s == 'gail':  # relative to the absorbing state's reward (gail.py)
                 assert self.gail is not None
-                r = self.gail.step_reward(obs_n, act)
-                out['rewards/gail_absorbing'] = self.gail.absorbing_reward()
+                r_abs = self.gail.absorbing_reward()
+                r = self.gail.step_reward(obs_n, act, r_abs)
+                out['rewards/gail_absorbing'] = r_abs
             else:
                 assert self.curiosity is not None
                 r = self.curiosity.reward(obs_n, act, nobs_n)
@@ -295,26 +296,11 @@ class Trainer:
                              f'learning_rate > 0, found {epochs}, {batch_size}, '
                              f'{learning_rate}')
         if self.normalizer is not None and refit_normalizer:
-            x = self.demo_obs.double()
-            with torch.no_grad():
-                self.normalizer.mean.copy_(x.mean(0))
-                self.normalizer.var.copy_(x.var(0, unbiased=False))
-                self.normalizer.count.copy_(torch.tensor(float(len(x)), dtype=torch.float64))
+            self.normalizer.fit(self.demo_obs)
         opt = torch.optim.Adam(self.actor.parameters(), lr=learning_rate)
-        n = len(self.demo_obs)
-        bs = min(batch_size, n)
-        losses: list[float] = []
-        for _ in range(epochs):
-            idx = torch.as_tensor(self.rng.permutation(n))
-            losses = []
-            for start in range(0, n - bs + 1, bs):
-                b = idx[start:start + bs]
-                loss = bc_loss(self.actor, self.demo_obs[b], self.demo_act[b])
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                losses.append(loss.item())
-        return {'losses/bc_pretrain_loss': float(np.mean(losses)),
+        losses = bc_passes(self.actor, self.demo_obs, self.demo_act, opt, epochs, batch_size,
+                           self.rng)
+        return {'losses/bc_pretrain_loss': losses[-1],
                 'bc_pretrain/epochs': float(epochs)}
 
     # ---------------------------------------------------------------- evaluation
