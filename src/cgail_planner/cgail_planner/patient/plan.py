@@ -47,8 +47,8 @@ policy with C-GAIL alone from 60 demonstrations plateaued at 64-69% static succe
 targets of a CT patient: the policy followed the branch centerline and missed targets lying
 ~10 mm off it. In-loop BC runs at ``strength x lr`` (4e-5) on one buffer of demos per update and
 cannot move the policy that far; 30 epochs of BC on the demonstrations of all 17 target sets
-(~20 s) reach them on that patient before the first C-GAIL step. C-GAIL then fine-tunes it, and the best
-validated checkpoint is kept, so the warm start is also the fallback.
+(~20 s) reach the goals on that patient before the first C-GAIL step. C-GAIL then fine-tunes
+it, and the best validated checkpoint is kept, so the warm start is also the fallback.
 
 Why several target sets: the paper trains on 5 fixed targets. A planner for a patient must
 reach targets it was not trained on (the clinician picks one at the rig), and a policy trained on
