@@ -113,9 +113,24 @@ class ScriptedExpert:
         return np.stack(pts, 1), acts
 
     def act(self) -> np.ndarray:
-        """Next normalised action for the env's current state."""
+        """Next normalised action for the env's current state (from the current plan while
+        it lasts: the expert re-plans every ``replan_every`` steps)."""
         if self._plan:
             return self._plan.pop(0)
+        return self._replan()
+
+    def label(self) -> np.ndarray:
+        """The action the expert would take from the env's current state, planned afresh.
+
+        For states the expert did not produce itself (DAgger, :mod:`cgail_planner.learning.
+        dagger`): the plan of an earlier state is dropped, so the answer depends only on the
+        state and the progress made along the centerline this episode (and on the seed's score
+        jitter, if :meth:`reset` was given one).
+        """
+        self._plan = []
+        return self._replan()
+
+    def _replan(self) -> np.ndarray:
         eng = self.env.engine
         p = eng.catheter.tip_position[0].copy()
         R = eng.catheter.tip_rotation[0].copy()

@@ -266,7 +266,8 @@ class Trainer:
         return scalars
 
     def pretrain_bc(self, epochs: int, learning_rate: float = 1e-3, batch_size: int = 512,
-                    refit_normalizer: bool = True) -> dict[str, float]:
+                    refit_normalizer: bool = True,
+                    extra: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, float]:
         """Behavioural-cloning warm start: ``epochs`` supervised passes over the demonstrations
         before any environment step (the actor only; the critic and the discriminator learn
         from the rollouts that follow).
@@ -285,6 +286,11 @@ class Trainer:
             batch_size: minibatch size.
             refit_normalizer: set the observation normaliser to the demonstrations' mean and
                 variance first (a base policy's statistics come from another anatomy).
+            extra: more (obs, act) pairs cloned with the demonstrations, e.g. the expert's
+                labels of the learner's own states (:mod:`cgail_planner.learning.dagger`). They
+                are used by this warm start only; GAIL's expert buffer and the in-loop BC keep
+                the demonstrations alone (a discriminator must not learn the learner's states
+                as expert ones).
 
         Returns:
             ``{'losses/bc_pretrain_loss': last epoch's mean loss, 'bc_pretrain/epochs': n}``.
@@ -296,11 +302,20 @@ class Trainer:
             raise ValueError(f'pretrain_bc: expected epochs >= 1, batch_size >= 1 and '
                              f'learning_rate > 0, found {epochs}, {batch_size}, '
                              f'{learning_rate}')
+        obs, act = self.demo_obs, self.demo_act
+        if extra is not None:
+            e_obs, e_act = (np.asarray(x, np.float32) for x in extra)
+            if e_obs.ndim != 2 or e_obs.shape[1:] != obs.shape[1:] or \
+                    e_act.shape != (len(e_obs), act.shape[1]) or not np.isfinite(e_obs).all():
+                raise DemoError(f'pretrain_bc: expected extra finite (obs, act) pairs shaped '
+                                f'(M, {obs.shape[1]}) and (M, {act.shape[1]}), found '
+                                f'{e_obs.shape} and {e_act.shape}')
+            obs = torch.cat([obs, torch.as_tensor(e_obs)])
+            act = torch.cat([act, torch.as_tensor(np.clip(e_act, -1, 1))])
         if self.normalizer is not None and refit_normalizer:
-            self.normalizer.fit(self.demo_obs)
+            self.normalizer.fit(obs)
         opt = torch.optim.Adam(self.actor.parameters(), lr=learning_rate)
-        losses = bc_passes(self.actor, self.demo_obs, self.demo_act, opt, epochs, batch_size,
-                           self.rng)
+        losses = bc_passes(self.actor, obs, act, opt, epochs, batch_size, self.rng)
         return {'losses/bc_pretrain_loss': losses[-1],
                 'bc_pretrain/epochs': float(epochs)}
 

@@ -153,3 +153,31 @@ def test_the_dynamic_phase_never_exports_worse_than_the_static_policy(prepared, 
         incumbent=(incumbent, 0.97, 0.77))
     assert (best, s_rate, d_rate) == (incumbent, 0.97, 0.77)
     assert lines == ['training (dynamic): 0 steps, best validation (static, dynamic) 97% / 77%']
+
+
+@pytest.mark.slow
+def test_a_dagger_round_follows_a_warm_start_under_the_goal(prepared, tmp_path) -> None:
+    """A warm start validated under the static goal plus 5 points is followed by a DAgger
+    round: validated like any checkpoint, logged, named in the report's table."""
+    from cgail_planner.patient.plan import (
+        _Clock,
+        _record_demos,
+        _row_label,
+        _train_phase,
+        PlanResult,
+    )
+
+    options = PlanOptions(train_seeds=(3,), demo_seeds=(3,), validation_seeds=(20,),
+                          test_seeds=(1,), goal_static=1.0, bc_epochs=3)
+    lines: list[str] = []
+    demos, _ = _record_demos(str(prepared), options, tmp_path, lines.append)
+    result = PlanResult(out=tmp_path)
+    _train_phase('static', str(prepared), options, tmp_path, _Clock(50.0), demos, '', result,
+                 lines.append, False)
+    first, second = result.history[:2]
+    assert first['warm_start'] and not first.get('dagger')
+    assert second['dagger'] == 1 and second['steps'] == 0 and second['phase'] == 'static'
+    assert _row_label(second) == 'static (DAgger round 1)'
+    assert any(line.startswith('DAgger round 1: the policy reached ') and
+               '% of 15 training episodes; ' in line for line in lines), lines
+    assert result.timings_s['dagger'] > 0
