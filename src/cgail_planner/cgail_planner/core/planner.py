@@ -62,9 +62,12 @@ from cgail_planner.sim.ftl_model import (
     ObservationSpec,
     observe_pose,
     PolicyContract,
+    PROBE_OFFSETS,
+    PROBE_RANGE,
     RAY_DIRECTIONS,
     retract_chain,
     seed_body,
+    sensor_points,
 )
 
 FloatArray = NDArray[np.float64]
@@ -82,6 +85,10 @@ class RayWall(Protocol):
     def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
                 ) -> np.ndarray:
         """(R,) hit distances along unit directions, ``max_dist`` when nothing is hit."""
+
+    def distance(self, points: np.ndarray, max_dist: float) -> np.ndarray:
+        """(P,) distance of each point to the nearest wall point, inf beyond ``max_dist``
+        (the ``paper_code`` observation's probes)."""
 
     def tip_contact(self, tip: np.ndarray, radius: float, dt: float) -> Any:
         """The tip sphere vs the wall: an object with ``penetration`` (m, > 0 when the sphere
@@ -312,14 +319,16 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         if world_spec is not None:
             observation = ObservationSpec(origin=world_spec.origin, d_max=world_spec.d_max,
                                           config=observation.config,
-                                          ray_directions=observation.ray_directions)
+                                          ray_directions=observation.ray_directions,
+                                          probe_offsets=observation.probe_offsets)
     if mode != contract.mode:
         notes.append(f"policy trained in the {contract.mode} world runs in the {mode} world")
     if not changes and observation is contract.observation:
         return contract, notes
     return PolicyContract(catheter=CatheterConfig(**{**asdict(cat), **changes}),
                           observation=observation, anatomy=anatomy, mode=contract.mode,
-                          training=contract.training, anatomy_hash=anatomy_hash), notes
+                          training=contract.training, anatomy_hash=anatomy_hash,
+                          env_options=contract.env_options), notes
 
 
 class Planner:
@@ -330,10 +339,13 @@ class Planner:
         world: the anatomy model (observation origin and ``d_max``, exit plane, bounds).
         wall: ray-cast and contact wall (static, or the deformable wall whose current shape is
             used).
-        policy: ``obs (16 + R,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
+        policy: ``obs (dim,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
         ray_directions: (R, 3) ray set in the tip frame (default
             :data:`~cgail_planner.sim.ftl_model.RAY_DIRECTIONS`; a policy's: its contract's).
-        obs_dim: the policy's observation size (checked against ``16 + R``).
+        obs_dim: the policy's observation size (checked against the spec's: ``16 + R``, or
+            ``11 + P`` for the ``paper_code`` observation of ``config.observation.kind``).
+        probe_offsets: (P, 3) ``paper_code`` probe points in the tip frame (default
+            :data:`~cgail_planner.sim.ftl_model.PROBE_OFFSETS`; a policy's: its contract's).
 
     Raises:
         ValueError: ``cgail`` without a policy, or an observation size mismatch.
@@ -341,21 +353,22 @@ class Planner:
 
     def __init__(self, config: PlannerConfig, world: ModelWorld, wall: RayWall,
                  policy: Policy | None, ray_directions: FloatArray | None = None,
-                 obs_dim: int | None = None) -> None:
+                 obs_dim: int | None = None, probe_offsets: FloatArray | None = None) -> None:
         self.config = config
         self.world = world
         self.wall = wall
         self.policy = policy
         self.spec = ObservationSpec(
             origin=world.origin, d_max=world.d_max, config=config.observation,
-            ray_directions=RAY_DIRECTIONS if ray_directions is None else ray_directions)
+            ray_directions=RAY_DIRECTIONS if ray_directions is None else ray_directions,
+            probe_offsets=PROBE_OFFSETS if probe_offsets is None else probe_offsets)
         self.rays = self.spec.ray_directions
         self.obs_dim = self.spec.dim
         if config.planner_type == "cgail" and policy is None:
             raise ValueError("planner_type 'cgail' needs a policy, found None")
         if obs_dim is not None and obs_dim != self.obs_dim:
-            raise ValueError(f"policy observation size must be {self.obs_dim} (16 + "
-                             f"{len(self.rays)} rays), found {obs_dim}")
+            raise ValueError(f"policy observation size must be {self.obs_dim} ({self.spec.kind} "
+                             f"observation, {self.spec.n_rays} sensors), found {obs_dim}")
         self._fit = PathFitConfig(spacing=config.path_spacing)
         program = policy if isinstance(policy, MlpProgram) else getattr(policy, "mlp", None)
         self._program: MlpProgram | None = None
@@ -388,7 +401,8 @@ class Planner:
         config = (settings or PlannerConfig()).with_contract(contract)
         model = model_world_from_sim(world, contract.observation)
         return cls(config, model, wall, policy, contract.observation.ray_directions,
-                   obs_dim=contract.observation.dim)
+                   obs_dim=contract.observation.dim,
+                   probe_offsets=contract.observation.probe_offsets)
 
     # ------------------------------------------------------------------ validation
     def validate_goal(self, goal: FloatArray) -> FloatArray:
@@ -436,6 +450,17 @@ class Planner:
                     hits: FloatArray) -> NDArray[np.float32]:
         """The environment's observation of tip pose ``[r | p]`` (:func:`observe_pose`)."""
         return observe_pose(self.spec, p, r, goal, hits)
+
+    def readings(self, p: FloatArray, r: FloatArray) -> FloatArray:
+        """(S,) sensor readings of tip pose ``[r | p]`` in the wall: ray hit distances, or the
+        ``paper_code`` probes' nearest-wall distances (inf beyond
+        :data:`~cgail_planner.sim.ftl_model.PROBE_RANGE`), m."""
+        spec = self.spec
+        pts = sensor_points(spec, p[None], r[None])[0]
+        if spec.kind == "paper_code":
+            return np.asarray(self.wall.distance(pts, PROBE_RANGE), dtype=np.float64)
+        origins = np.repeat(np.asarray(p, dtype=np.float64)[None], len(pts), axis=0)
+        return np.asarray(self.wall.raycast(origins, pts, spec.ray_length), dtype=np.float64)
 
     @property
     def uses_kernel(self) -> bool:
@@ -523,9 +548,11 @@ class Planner:
         # every scalar as a Python float/int: one compiled signature whatever the config types
         status, steps, n = kernel(
             positions, rotations, arc, n0, np.ascontiguousarray(goal, dtype=np.float64),
-            spec.ray_directions, spec.origin, float(spec.position_scale), float(spec.d_max),
+            spec.ray_directions, spec.probe_offsets, spec.kind == "paper_code", spec.origin,
+            float(spec.position_scale), float(spec.d_max),
             float(spec.ray_length), float(cat.theta_max), float(cat.segment_length),
-            float(cat.max_step_insertion), float(cat.radius), float(cat.dt),
+            float(cat.max_step_insertion), bool(cat.forward_only), float(cat.radius),
+            float(cat.dt),
             float(self.wall_tolerance), float(cfg.goal_tolerance),
             w.exit_point, w.exit_normal, np.ascontiguousarray(w.bbox_low, dtype=np.float64),
             np.ascontiguousarray(w.bbox_high, dtype=np.float64), int(max_steps), arrays,
@@ -553,16 +580,13 @@ class Planner:
         goal = np.asarray(goal, dtype=np.float64)
         positions, rotations, arc, n0 = self._seed(p, r, cfg.max_rollout_steps)
         n = n0
-        origins = np.empty((len(self.rays), 3))
         ex, ey, ez = w.exit_point.tolist()
         nx, ny, nz = w.exit_normal.tolist()
         low, high = w.bbox_low.tolist(), w.bbox_high.tolist()
         gx, gy, gz = goal.tolist()
         clearance = -math.inf  # a lower bound of the exact clearance (as the env's broad phase)
         for step in range(1, cfg.max_rollout_steps + 1):
-            origins[:] = p
-            hits = np.asarray(self.wall.raycast(origins, self.rays @ r.T, spec.ray_length),
-                              dtype=np.float64)
+            hits = self.readings(p, r)
             out = np.asarray(self.policy(observe_pose(spec, p, r, goal, hits)))
             out = out.astype(np.float32).reshape(-1)
             if out.shape != (3,) or not np.isfinite(out).all():
@@ -570,7 +594,7 @@ class Planner:
                                   _points(positions, n, n0), "bad_action", step)
             a0, a1, a2 = out.tolist()
             alpha, gamma, dl = command_nb(a0, a1, a2, cat.theta_max, cat.segment_length,
-                                          cat.max_step_insertion)
+                                          cat.max_step_insertion, cat.forward_only)
             travelled = 0.0
             if dl > 0.0:
                 p, r = advance_pose(p, r, alpha, gamma, dl)

@@ -26,7 +26,14 @@ import numpy as np
 from cgail_planner.core import mlp
 from cgail_planner.core.mlp import mlp_forward
 from cgail_planner.sim import ftl_model, raycast
-from cgail_planner.sim.ftl_model import advance_nb, command_nb, observe_nb, retract_chain
+from cgail_planner.sim.ftl_model import (
+    advance_nb,
+    command_nb,
+    observe_nb,
+    observe_probes_nb,
+    PROBE_RANGE,
+    retract_chain,
+)
 from cgail_planner.sim.raycast import (
     closest_kernel,
     drop_stale_numba_cache,
@@ -70,10 +77,10 @@ def _penetration(bvh, px, py, pz, radius, tolerance):
 
 
 @njit(cache=True)
-def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_scale, d_max,
-                   ray_length, theta_max, segment_length, step_len, radius, dt, tolerance,
-                   goal_tolerance, exit_point, exit_normal, low, high, max_steps, bvh,
-                   ops, consts, widths, regs, out_reg, action):
+def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code, origin,
+                   position_scale, d_max, ray_length, theta_max, segment_length, step_len,
+                   forward_only, radius, dt, tolerance, goal_tolerance, exit_point, exit_normal,
+                   low, high, max_steps, bvh, ops, consts, widths, regs, out_reg, action):
     """Roll the policy out from the tip of a seeded body (Planner.rollout_reference).
 
     Args:
@@ -85,9 +92,12 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_s
         n0: number of seeded nodes; the last one is the start pose.
         goal: (3,) goal, m.
         rays: (R, 3) ray directions in the tip frame.
+        probes: (P, 3) ``paper_code`` probe points in the tip frame, m.
+        paper_code: observe the ``paper_code`` way (probes) instead of ours (rays).
         origin: (3,) observation origin, m.
         position_scale, d_max, ray_length: the observation's normalisers, m.
         theta_max, segment_length, step_len: the catheter model (rad, m, m per step).
+        forward_only: the catheter's insertion rule (``|a[2]|``).
         radius: catheter radius, m.
         dt: step length, s (unused: the frozen wall has no contact force).
         tolerance: the wall's penetration tolerance, m.
@@ -96,7 +106,8 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_s
         low, high: (3,) bounding box, m.
         max_steps: step limit.
         bvh: the wall's :class:`~cgail_planner.sim.raycast.BVHArrays`.
-        ops, consts, widths, regs, out_reg: the policy's MlpProgram (16 + R inputs, 3 outputs).
+        ops, consts, widths, regs, out_reg: the policy's MlpProgram (16 + R inputs, or 11 + P
+            for ``paper_code``; 3 outputs).
         action: (3,) output: the last raw action (float32-rounded).
 
     Returns:
@@ -104,27 +115,42 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_s
         number of valid body nodes (the last one is the final tip).
     """
     n_rays = rays.shape[0]
+    n_probes = probes.shape[0]
     origins = np.empty((n_rays, 3))
     dirs = np.empty((n_rays, 3))
     hits = np.empty(n_rays)
-    obs = np.empty(16 + n_rays)
+    dists = np.empty(n_probes)
+    point = np.empty(3)
+    obs = np.empty(11 + n_probes if paper_code else 16 + n_rays)
     p = positions[n0 - 1].copy()
     r = rotations[n0 - 1].copy()
     n = n0
     gx, gy, gz = goal[0], goal[1], goal[2]
     clearance = -np.inf
     for step in range(1, max_steps + 1):
-        for k in range(n_rays):
-            origins[k, 0] = p[0]
-            origins[k, 1] = p[1]
-            origins[k, 2] = p[2]
-            for a in range(3):
-                dirs[k, a] = rays[k, 0] * r[a, 0] + rays[k, 1] * r[a, 1] + rays[k, 2] * r[a, 2]
-        raycast_kernel(bvh.vertices, bvh.faces, bvh.order, bvh.node_min, bvh.node_max, bvh.left,
-                       bvh.right, bvh.leaf_start, bvh.leaf_count, origins, dirs, ray_length,
-                       hits)
-        observe_nb(obs, p[0], p[1], p[2], r, gx, gy, gz, hits, origin, position_scale, d_max,
-                   ray_length)
+        if paper_code:
+            for k in range(n_probes):
+                for a in range(3):
+                    point[a] = p[a] + (r[a, 0] * probes[k, 0] + r[a, 1] * probes[k, 1]
+                                       + r[a, 2] * probes[k, 2])
+                dist, face, _, _, _, _ = closest_kernel(
+                    bvh.vertices, bvh.faces, bvh.order, bvh.node_min, bvh.node_max, bvh.left,
+                    bvh.right, bvh.leaf_start, bvh.leaf_count, point, PROBE_RANGE)
+                dists[k] = dist if face >= 0 else np.inf
+            observe_probes_nb(obs, p[0], p[1], p[2], r, gx, gy, gz, dists, origin)
+        else:
+            for k in range(n_rays):
+                origins[k, 0] = p[0]
+                origins[k, 1] = p[1]
+                origins[k, 2] = p[2]
+                for a in range(3):
+                    dirs[k, a] = (rays[k, 0] * r[a, 0] + rays[k, 1] * r[a, 1]
+                                  + rays[k, 2] * r[a, 2])
+            raycast_kernel(bvh.vertices, bvh.faces, bvh.order, bvh.node_min, bvh.node_max,
+                           bvh.left, bvh.right, bvh.leaf_start, bvh.leaf_count, origins, dirs,
+                           ray_length, hits)
+            observe_nb(obs, p[0], p[1], p[2], r, gx, gy, gz, hits, origin, position_scale,
+                       d_max, ray_length)
         mlp_forward(ops, consts, widths, regs, obs)
         finite = True
         for a in range(3):
@@ -133,7 +159,7 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, origin, position_s
         if not finite:
             return BAD_ACTION, step, n
         alpha, gamma, dl = command_nb(action[0], action[1], action[2], theta_max,
-                                      segment_length, step_len)
+                                      segment_length, step_len, forward_only)
         travelled = 0.0
         if dl > 0.0:
             advance_nb(p, r, alpha, gamma, dl)

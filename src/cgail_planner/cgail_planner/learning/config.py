@@ -45,7 +45,8 @@ import yaml
 from cgail_planner.learning.errors import ConfigError
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / 'config' / 'presets'
-"""Directory of the YAML presets (cgail, gail, mu0, lambda0, nu0, smoke)."""
+"""Directory of the YAML presets (cgail, gail, mu0, lambda0, nu0, smoke, and the ``paper_code_*``
+presets of the authors' runs, which select the ``paper_code`` env option set)."""
 
 
 def _check(cond: bool, name: str, expected: str, value: object) -> None:
@@ -259,8 +260,16 @@ class TrainConfig:
     """Episodes per periodic evaluation (deterministic policy)."""
     checkpoint_every: int = 51_200
     """Environment steps between checkpoints (0 = only the final one)."""
+    env_options: str = 'ours'
+    """The simulator's option set (:data:`cgail_planner.sim.config.OPTION_SETS`): ``ours``
+    (the default) or ``paper_code`` (the authors' observation, insertion, reward and heartbeat);
+    the training, evaluation and demonstration-replay envs all use it."""
 
     def __post_init__(self) -> None:
+        from cgail_planner.sim.config import OPTION_SETS  # (the simulator owns the names)
+
+        _check(self.env_options in OPTION_SETS, 'env_options', f'one of {sorted(OPTION_SETS)}',
+               self.env_options)
         _check(self.max_steps >= 1, 'max_steps', '>= 1', self.max_steps)
         _check(1 <= self.num_envs <= 256, 'num_envs', 'in [1, 256]', self.num_envs)
         _check(self.extrinsic.strength + self.gail.strength + self.curiosity.strength > 0,

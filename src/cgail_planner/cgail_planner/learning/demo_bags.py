@@ -174,7 +174,7 @@ class Replay(NamedTuple):
 def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mode: str,
                    dt: float, compress: bool | None = None,
                    anatomy_hash: str | None = None, anatomy_path: str | None = None,
-                   scenario_seed: int = 0) -> Path:
+                   scenario_seed: int = 0, env_options: str = 'ours') -> Path:
     """Write ``episodes`` to a new MCAP bag directory ``path`` (must not exist).
 
     ``compress`` (default: when ``zstandard`` is installed) zstd-compresses the MCAP chunks,
@@ -183,6 +183,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     the numpy SIMD targets of this process, and ``anatomy_path`` (the absolute path of a path
     anatomy; ``anatomy`` is then its label) too. ``scenario_seed`` is the target set the
     episodes' target ids refer to (``EnvConfig.scenario_seed``); stored when it is not 0.
+    ``env_options`` is the env option set the episodes were recorded in (informational: a
+    replay uses its caller's); stored when it is not ``ours``.
     """
     if compress is None:
         compress = zstd_available()
@@ -205,6 +207,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
         info['anatomy_path'] = anatomy_path
     if scenario_seed:
         info['scenario_seed'] = int(scenario_seed)
+    if env_options != 'ours':
+        info['env_options'] = env_options
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
         c_ep = writer.add_connection('demo/episode', 'std_msgs/msg/String', typestore=TYPESTORE)
@@ -248,7 +252,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     """Episodes of a demo bag (no simulation).
 
     Returns:
-        ``(meta, episodes)``: ``meta`` has ``anatomy``, ``mode`` and ``scenario_seed`` (0 when
+        ``(meta, episodes)``: ``meta`` has ``anatomy``, ``mode``, ``env_options`` (only when
+        recorded in another option set than ``ours``) and ``scenario_seed`` (0 when
         the bag does not record one), and ``anatomy_hash``, ``numpy_simd`` and
         ``anatomy_path`` when the bag records them.
     """
@@ -286,8 +291,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     if not heads:
         raise DemoError(f'{path}: expected demo/episode messages, found none')
     meta = {'anatomy': heads[0]['anatomy'], 'mode': heads[0]['mode']}
-    meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd', 'anatomy_path')
-                 if k in custom})
+    meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd', 'anatomy_path',
+                                             'env_options') if k in custom})
     meta['scenario_seed'] = custom.get('scenario_seed', 0)
     if not isinstance(meta['scenario_seed'], int) or meta['scenario_seed'] < 0:
         raise DemoError(f'{path}: expected an int scenario_seed >= 0 in its custom data, found '
@@ -408,6 +413,10 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
         target = sc.targets[ep.target].position
         check(float(np.linalg.norm(ep.target_position - target, axis=1).max()),
               f'episode {k}: the recorded target')
+        if cat.forward_only and (np.asarray(ep.delta_l) < 0.0).any():
+            t = int(np.argmax(np.asarray(ep.delta_l) < 0.0))
+            raise DemoError(f'{source}: episode {k}: expected forward insertion only (the env '
+                            f'options insert |a2|), found a retraction at step {t}')
         obs, _ = env.reset(options=options)
         acts = command_to_action(ep.alpha, ep.gamma, ep.delta_l, eng.catheter.theta_max,
                                  cat.segment_length, cat.max_step_insertion).astype(np.float32)
@@ -437,7 +446,8 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
 
 
 def replay_demo_bag(path: Path, only_successful: bool = True, *,
-                    tolerance_m: float = POSE_TOLERANCE_M, anatomy: Any = None) -> Replay:
+                    tolerance_m: float = POSE_TOLERANCE_M, anatomy: Any = None,
+                    env_options: str = 'ours') -> Replay:
     """Re-simulate a demo bag in the static simulator of its anatomy (module docstring).
 
     Logs :meth:`ReplayReport.summary` and warns (:class:`DemoAnatomyWarning`) when the bag
@@ -449,6 +459,10 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         tolerance_m: the replay tolerance, m.
         anatomy: the anatomy to re-simulate in (a name, a path or an ``Anatomy``); None: the
             bag's own, its recorded ``anatomy_path`` or its built-in anatomy name.
+        env_options: the env option set to re-simulate in
+            (:data:`cgail_planner.sim.config.OPTION_SETS`): the observations are that set's.
+            The bag stores no observation, so one recorded in either set replays in either
+            (``paper_code``'s forward-only insertion cannot replay a retraction).
 
     Raises:
         DemoError: unreadable bag, no successful episode, a replay beyond ``tolerance_m``, or
@@ -472,8 +486,8 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
                 f'{path}: expected the anatomy it was recorded in, {meta.get("anatomy")!r} '
                 f'(content hash {meta.get("anatomy_hash")}) at {anatomy}, found no such path: '
                 'give its prepared directory (train --anatomy DIR)')
-    env = CatheterNavEnv(EnvConfig(mode='static', anatomy=anatomy,
-                                   scenario_seed=meta['scenario_seed']))
+    env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=anatomy,
+                                                scenario_seed=meta['scenario_seed']))
     current = env.anatomy.content_hash
     recorded = meta.get('anatomy_hash')
     note = ''

@@ -24,7 +24,7 @@ class Demos(NamedTuple):
 
 
 def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None,
-               anatomy: Any = None) -> Demos:
+               anatomy: Any = None, env_options: str = 'ours') -> Demos:
     """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
 
     A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays (and optionally
@@ -38,6 +38,9 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
             and anatomy hashes (:meth:`~cgail_planner.learning.demo_bags.ReplayReport.summary`).
         anatomy: the anatomy to re-simulate demo bags in (a name, a path or an ``Anatomy``);
             None: each bag's own (:func:`~cgail_planner.learning.demo_bags.replay_demo_bag`).
+        env_options: the env option set demo bags are re-simulated in, so that their
+            observations are the trained policy's (``.npz`` sources are taken as they are and
+            must have its observation size).
 
     Raises:
         DemoError: no path given, a path missing, or no samples.
@@ -58,7 +61,7 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
         else:
             from cgail_planner.learning.demo_bags import replay_demo_bag
 
-            obs, act, replay = replay_demo_bag(path, anatomy=anatomy)
+            obs, act, replay = replay_demo_bag(path, anatomy=anatomy, env_options=env_options)
             if report is not None:
                 report(replay.summary())
             n_ep = replay.episodes

@@ -6,7 +6,10 @@ Example::
 
 Episode k uses start ``k % 3`` and target ``(k // 3) % 5`` (every start x target pair, then
 again), seeded by ``--seed``; the expert's success rate is printed and stored in the bag, with
-the content hash of the anatomy the episodes were recorded in.
+the content hash of the anatomy the episodes were recorded in. ``--env-options paper_code``
+records in the authors' option set (:data:`cgail_planner.sim.config.OPTION_SETS`); the bag holds
+poses and commands, not observations, so ``train`` replays it in its preset's option set
+either way.
 """
 
 from __future__ import annotations
@@ -89,6 +92,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--scenario-seed', type=int, default=0,
                    help="the anatomy's target set (EnvConfig.scenario_seed; 0: the standard "
                         'one the rig uses), recorded in the bag for its replay')
+    p.add_argument('--env-options', default='ours',
+                   help="the simulator's option set: 'ours' (default) or 'paper_code' (the "
+                        "authors' observation, forward-only insertion, reward, heartbeat)")
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
     args = p.parse_args(argv)
     if args.episodes < 1:
@@ -100,8 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     from cgail_planner.sim.env import CatheterNavEnv
 
     try:
-        env = CatheterNavEnv(EnvConfig(mode='static', anatomy=args.anatomy,
-                                       scenario_seed=args.scenario_seed))
+        env = CatheterNavEnv(EnvConfig.from_options(args.env_options, mode='static',
+                                                    anatomy=args.anatomy,
+                                                    scenario_seed=args.scenario_seed))
         label = anatomy_label(args.anatomy)
         t0 = time.monotonic()
         episodes, stats = record_episodes(env, args.episodes, args.seed)
@@ -110,11 +117,11 @@ def main(argv: list[str] | None = None) -> int:
                        dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
                        anatomy_path=None if is_builtin(args.anatomy)
                        else str(Path(args.anatomy).expanduser().resolve()),
-                       scenario_seed=args.scenario_seed)
+                       scenario_seed=args.scenario_seed, env_options=args.env_options)
     except (LearningError, ValueError) as exc:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2
-    print(json.dumps({'anatomy': label, **stats}))
+    print(json.dumps({'anatomy': label, 'env_options': args.env_options, **stats}))
     return 0
 
 

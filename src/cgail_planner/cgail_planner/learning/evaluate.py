@@ -23,6 +23,11 @@ catheter. Each trial is then an independent sample of the planner's behaviour; t
 the number of distinct outcomes. ``--position-noise-mm 0 --orientation-noise-deg 0`` gives the
 noise-free simulator (and then each repeated start x target pair is simulated once in static
 mode). The scripted expert is the demonstrator with the simulator's state (no tracker), seeded.
+
+**Env option set.** The simulator runs in the option set the policies were trained in (their
+contracts' ``env_options``: ``ours`` or ``paper_code``, :data:`cgail_planner.sim.config.
+OPTION_SETS`), so a ``paper_code`` policy sees its 27-float observation; policies of different
+option sets are evaluated separately. ``--env-options`` sets it for a run of baselines only.
 """
 
 from __future__ import annotations
@@ -80,17 +85,36 @@ class TrackingNoise:
         return p + dp, rotvec_to_matrix(w) @ r
 
 
+def evaluation_options(policies: dict[str, Any], requested: str | None = None) -> str:
+    """The env option set an evaluation runs in: the one the policies' contracts name (a policy
+    without a contract counts as ``ours``), else ``requested``, else ``ours``.
+
+    Raises:
+        LearningError: the policies name different option sets, or ``requested`` is not
+            theirs (one line: each policy's set).
+    """
+    from cgail_planner.sim.config import check_options
+
+    found = {name: (p.contract.env_options if getattr(p, 'contract', None) is not None
+                    else 'ours') for name, p in policies.items()}
+    sets = sorted(set(found.values()))
+    if len(sets) > 1:
+        raise LearningError(f'policies: expected one env option set, found {found}: evaluate '
+                            'them separately')
+    if requested is not None and sets and requested != sets[0]:
+        raise LearningError(f'--env-options {requested!r}: expected the policies\' option set, '
+                            f'found {found}')
+    return check_options(sets[0] if sets else (requested or 'ours'))
+
+
 def observation_at(env: Any, p: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The environment's observation (:data:`cgail_planner.sim.env.OBS_LAYOUT`) of env 0 as if
-    its tip were at ``(p, R)``: the rays are cast against the wall's current shape from that
+    """The environment's observation (its spec's layout) of env 0 as if its tip were at
+    ``(p, R)``: the rays (or ``paper_code`` probes) sense the wall's current shape from that
     pose. With the true pose it equals the env's own observation (tested)."""
     from cgail_planner.sim.ftl_model import observe_pose
 
     eng = env.unwrapped.engine
-    spec = eng.spec
-    hits = eng.walls[0].raycast(np.repeat(p[None], spec.n_rays, axis=0),
-                                spec.ray_directions @ r.T, spec.ray_length)
-    return observe_pose(spec, p, r, eng.target[0], hits)
+    return observe_pose(eng.spec, p, r, eng.target[0], eng.readings_at(0, p, r))
 
 
 @dataclass
@@ -297,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
                    help='RMS position error of the simulated EM tracker, mm (0: none)')
     p.add_argument('--orientation-noise-deg', type=float, default=TrackingNoise.orientation_deg,
                    help='RMS orientation error of the simulated EM tracker, deg (0: none)')
+    p.add_argument('--env-options', default=None,
+                   help="the simulator's option set (ours, paper_code); default: the one the "
+                        "policies were trained in (their contracts'), else ours")
     p.add_argument('--out', type=Path, default=Path('reports/insilico'))
     args = p.parse_args(argv)
     from cgail_planner.learning.expert import ScriptedExpert
@@ -314,9 +341,11 @@ def main(argv: list[str] | None = None) -> int:
             if not sep:
                 raise LearningError(f'--policy expects NAME=PATH.onnx, found {spec!r}')
             policies[name] = OnnxPolicy(path)
+        options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
         for mode in args.modes:
-            env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=args.anatomy))
+            env = CatheterNavEnv(EnvConfig.from_options(options, mode=mode,
+                                                        anatomy=args.anatomy))
             methods: dict[str, Any] = dict(policies)
             if 'centerline' in args.baselines:
                 methods['centerline'] = CenterlineFollower(env)
@@ -337,7 +366,8 @@ def main(argv: list[str] | None = None) -> int:
         label, content_hash = anatomy_identity(args.anatomy)
         named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
         notes = (f'Anatomy {named}, {args.trials} trials per method, epsilon 10 mm, '
-                 f'seed {args.seed}. Trial k: start k % 3, target (k // 3) % 5. ')
+                 f'seed {args.seed}, env options `{options}`. Trial k: start k % 3, target '
+                 '(k // 3) % 5. ')
         if noise.enabled:
             notes += (f'The methods perceive the tip through a simulated EM tracker '
                       f'({noise.position_mm:g} mm / {noise.orientation_deg:g} deg RMS, drawn per '

@@ -105,7 +105,7 @@ class ScriptedExpert:
         for t in range(self.cfg.stage1 + self.cfg.stage2):
             a = first if t < self.cfg.stage1 else steer_towards(p, R, carrot, cat_cfg, theta)
             al, ga, dl = action_to_command(a, theta, cat_cfg.segment_length,
-                                           cat_cfg.max_step_insertion)
+                                           cat_cfg.max_step_insertion, cat_cfg.forward_only)
             R = R @ bend_rotation(al, ga)
             p = p + dl[:, None] * R[:, :, 1]
             pts.append(p)

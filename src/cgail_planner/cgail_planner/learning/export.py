@@ -3,7 +3,8 @@
 The graph maps ``obs`` (B, obs_dim) float32 raw observations to ``action`` (B, 3) float32 in
 [-1, 1]. ``metadata_props`` carry JSON strings: ``catheter_contract`` (the whole contract the
 planner builds itself from: catheter model, bend convention, retraction rule, action scaling,
-observation spec with origin, scales and rays, anatomy, mode, and training notes including the
+observation spec with its kind, origin, scales and rays (or probes), anatomy, mode, env option
+set, and training notes including the
 curriculum lesson of the exported checkpoint; :class:`cgail_planner.sim.ftl_model.
 PolicyContract`), ``preset``, ``anatomy``, ``mode``, ``obs_dim``, ``act_dim``, ``train_steps``.
 """

@@ -46,20 +46,23 @@ def sim_metadata(env_cfg: Any) -> dict[str, Any]:
 
     label, content_hash = anatomy_identity(env_cfg.anatomy)
     contract = PolicyContract(catheter=env_cfg.catheter, observation=observation_spec(env_cfg),
-                              anatomy=label, mode=env_cfg.mode, anatomy_hash=content_hash)
+                              anatomy=label, mode=env_cfg.mode, anatomy_hash=content_hash,
+                              env_options=env_cfg.options)
     meta = {CONTRACT_KEY: contract.to_dict(), 'anatomy': label, 'mode': env_cfg.mode}
     if content_hash:
         meta['anatomy_hash'] = content_hash
     return meta
 
 
-def make_envs(mode: str, anatomy: Any, num_envs: int) -> tuple[Any, Any, dict[str, Any]]:
-    """Batched training env, single evaluation env and metadata for the simulator."""
+def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours'
+              ) -> tuple[Any, Any, dict[str, Any]]:
+    """Batched training env, single evaluation env and metadata for the simulator, in the env
+    option set ``env_options`` (:data:`cgail_planner.sim.config.OPTION_SETS`)."""
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.vec_env import CatheterNavVecEnv
 
-    env_cfg = EnvConfig(mode=mode, anatomy=anatomy)
+    env_cfg = EnvConfig.from_options(env_options, mode=mode, anatomy=anatomy)
     return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
             sim_metadata(env_cfg))
 
@@ -114,7 +117,9 @@ def build_parser() -> argparse.ArgumentParser:
     """Command-line interface of ``train``."""
     p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n')[0])
     p.add_argument('--preset', default='cgail',
-                   help='preset name (cgail, gail, mu0, lambda0, nu0, smoke) or a YAML path')
+                   help='preset name (cgail, gail, mu0, lambda0, nu0, smoke, paper_code_cgail, '
+                        '...: config/presets/) or a YAML path; its env_options (ours, '
+                        'paper_code) select the simulator option set')
     p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
@@ -155,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
             demo_obs, demo_act, demo_episodes = load_demos(
                 [Path(d) for d in args.demos],
                 report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
-                anatomy=None if is_builtin(args.anatomy) else args.anatomy)
-        env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs)
+                anatomy=None if is_builtin(args.anatomy) else args.anatomy,
+                env_options=cfg.env_options)
+        env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs, cfg.env_options)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,
                           metadata=meta, demo_episodes=demo_episodes)

@@ -269,7 +269,7 @@ def _wall_check(anatomy: Anatomy, cat: CatheterConfig, v: Validation,
     n_body = max(2, int(np.linalg.norm(p - tail) / 0.005) + 1)
     body = np.ascontiguousarray(tail + np.linspace(0.0, 1.0, n_body)[:, None] * (p - tail))
     rest = np.asarray(anatomy.vertices)
-    period = 60.0 / float(wall.heartbeat.config.heart_rate)
+    period = float(wall.heartbeat.config.period)
     dt = 0.1
     steps = math.ceil(beats * period / dt)
     worst = 0.0

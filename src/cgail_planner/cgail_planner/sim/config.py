@@ -1,13 +1,30 @@
-"""Configuration of the catheter navigation environment (one frozen dataclass, validated)."""
+"""Configuration of the catheter navigation environment (one frozen dataclass, validated).
+
+**Option sets.** :data:`OPTION_SETS` names bundles of :class:`EnvConfig` values that are built
+into their owners (the observation kind of :mod:`~cgail_planner.sim.ftl_model`, its insertion
+rule, the reward of :mod:`~cgail_planner.sim.reward`, the heartbeat of
+:mod:`~cgail_planner.sim.heartbeat`):
+
+* ``ours``: the defaults (what this project judges best; ``docs/fidelity.md``);
+* ``paper_code``: the authors' Unity code where ours differs: the 27-float observation with 16
+  probes in two rings, forward-only insertion, their reward values and their 0.74 s heartbeat.
+
+``EnvConfig.from_options("paper_code", mode="dynamic")`` builds one; :attr:`EnvConfig.options`
+names the set a configuration follows (``custom`` when neither).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+import dataclasses
 from dataclasses import dataclass, field
 import math
+from typing import Any
 
 from cgail_planner.sim.anatomy import AnatomySpec, check_anatomy_spec
-from cgail_planner.sim.ftl_model import CatheterConfig, ObservationConfig
-from cgail_planner.sim.reward import RewardConfig
+from cgail_planner.sim.ftl_model import CatheterConfig, OBS_KINDS, ObservationConfig
+from cgail_planner.sim.heartbeat import HeartbeatConfig, PAPER_CODE_HEARTBEAT
+from cgail_planner.sim.reward import PAPER_CODE_REWARD, RewardConfig
 
 #: The catheter model's defaults (:mod:`cgail_planner.sim.ftl_model`) the fields below start from.
 _MODEL = CatheterConfig()
@@ -55,6 +72,14 @@ class EnvConfig:
     """Waypoints per centerline (paper: ~100); in [10, 1000]."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Reward values and thresholds (paper Table I)."""
+    observation_kind: str = "ours"
+    """Observation layout: ``ours`` (41 floats, rays) or ``paper_code`` (27 floats, probes;
+    :mod:`cgail_planner.sim.ftl_model`)."""
+    forward_only: bool = False
+    """Insertion rule: False retracts on ``a[2] < 0``; True inserts ``|a[2]|`` (the authors'
+    code; :attr:`~cgail_planner.sim.ftl_model.CatheterConfig.forward_only`)."""
+    heartbeat: HeartbeatConfig = field(default_factory=HeartbeatConfig)
+    """Annulus motion of the dynamic mode (:mod:`cgail_planner.sim.heartbeat`)."""
 
     def __post_init__(self) -> None:
         """Validate every field.
@@ -81,6 +106,12 @@ class EnvConfig:
                 raise ValueError(f"{name} must be in [{low}, {high}], found {value!r}")
         if not isinstance(self.reward, RewardConfig):
             raise ValueError(f"reward must be a RewardConfig, found {type(self.reward).__name__}")
+        if not isinstance(self.heartbeat, HeartbeatConfig):
+            raise ValueError(f"heartbeat must be a HeartbeatConfig, found "
+                             f"{type(self.heartbeat).__name__}")
+        if self.observation_kind not in OBS_KINDS:
+            raise ValueError(f"observation_kind must be one of {OBS_KINDS}, found "
+                             f"{self.observation_kind!r}")
         self.catheter  # noqa: B018 - validates dt, theta_max, segment_length, ...
         self.observation  # noqa: B018 - validates ray_length, position_scale
 
@@ -90,10 +121,61 @@ class EnvConfig:
         return CatheterConfig(
             theta_max=self.theta_max, segment_length=self.segment_length,
             outer_diameter=self.outer_diameter, max_insertion_speed=self.max_insertion_speed,
-            dt=self.dt,
+            dt=self.dt, forward_only=self.forward_only,
         )
 
     @property
     def observation(self) -> ObservationConfig:
         """The observation normalisers as an :class:`ObservationConfig`."""
-        return ObservationConfig(position_scale=self.position_scale, ray_length=self.ray_length)
+        return ObservationConfig(position_scale=self.position_scale, ray_length=self.ray_length,
+                                 kind=self.observation_kind)
+
+    @classmethod
+    def from_options(cls, options: str = "ours", **fields: Any) -> EnvConfig:
+        """The configuration of the option set ``options`` (:data:`OPTION_SETS`) with the other
+        ``fields`` given (``mode``, ``anatomy``...).
+
+        Raises:
+            ValueError: an unknown option set, or a field the option set fixes.
+        """
+        check_options(options)
+        bundle = OPTION_SETS[options]
+        fixed = sorted(set(fields) & set(bundle))
+        if fixed:
+            raise ValueError(f"env options {options!r} fix {fixed}: expected the other "
+                             f"EnvConfig fields, found them given too")
+        return cls(**{**bundle, **fields})
+
+    @property
+    def options(self) -> str:
+        """The option set this configuration follows (:data:`OPTION_SETS`), or ``custom``."""
+        for name, bundle in OPTION_SETS.items():
+            if all(getattr(self, k) == v for k, v in bundle.items()):
+                return name
+        return "custom"
+
+    def with_options(self, options: str) -> EnvConfig:
+        """This configuration with the values of option set ``options`` (:data:`OPTION_SETS`).
+
+        Raises:
+            ValueError: an unknown option set.
+        """
+        check_options(options)
+        return dataclasses.replace(self, **OPTION_SETS[options])
+
+
+#: The named env option sets (module docstring): the values of :class:`EnvConfig` each fixes.
+OPTION_SETS: Mapping[str, Mapping[str, Any]] = {
+    "ours": {"observation_kind": "ours", "forward_only": False, "reward": RewardConfig(),
+             "heartbeat": HeartbeatConfig()},
+    "paper_code": {"observation_kind": "paper_code", "forward_only": True,
+                   "reward": PAPER_CODE_REWARD, "heartbeat": PAPER_CODE_HEARTBEAT},
+}
+
+
+def check_options(options: Any) -> str:
+    """``options`` if it names an option set, else ValueError ("expected one of ...")."""
+    if not isinstance(options, str) or options not in OPTION_SETS:
+        raise ValueError(f"env options: expected one of {sorted(OPTION_SETS)}, found "
+                         f"{options!r}")
+    return options

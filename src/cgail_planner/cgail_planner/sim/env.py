@@ -23,14 +23,16 @@ from cgail_planner.sim.ftl_model import (
     action_to_command,
     bend_limit,
     CatheterBatch,
-    N_RAYS,
     OBS_DIM,
     OBS_LAYOUT,
     ObservationSpec,
     observe_batch,
+    PROBE_RANGE,
     RAY_DIRECTIONS,
+    sensor_points,
     steer_towards,
 )
+from cgail_planner.sim.heartbeat import HeartbeatConfig
 from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.reward import (
     bending_event,
@@ -49,6 +51,11 @@ FloatArray = NDArray[np.float64]
 
 #: Bound of the unbounded-looking entries (positions, u, v) of the observation space.
 OBS_BOUND = 5.0
+#: ``paper_code`` observation: bound of the position (mm) and of the distance / 50 mm. The
+#: episode ends 10 mm outside the anatomy's bounding box, so a tip stays well within 1 m of its
+#: centre and 2 m of the target.
+PAPER_CODE_POSITION_BOUND_MM = 1000.0
+PAPER_CODE_DISTANCE_BOUND = 40.0
 
 
 def observation_spec(config: EnvConfig) -> ObservationSpec:
@@ -75,9 +82,16 @@ def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
     }
 
 
-def _observation_space() -> spaces.Box:
+def _observation_space(spec: ObservationSpec | None = None) -> spaces.Box:
     # Bounds hold by construction: the tip never gets further than the anatomy's bounding box
     # + 10 mm (the episode ends there) and the target stays within a few mm of its rest point.
+    if spec is not None and spec.kind == "paper_code":
+        low = np.full(spec.dim, -1.0, dtype=np.float32)  # (quaternion, direction)
+        high = np.full(spec.dim, 1.0, dtype=np.float32)
+        low[0:3], high[0:3] = -PAPER_CODE_POSITION_BOUND_MM, PAPER_CODE_POSITION_BOUND_MM
+        low[10], high[10] = 0.0, PAPER_CODE_DISTANCE_BOUND
+        low[11:] = 0.0  # probes: mm below 0.8, or 1
+        return spaces.Box(low, high, dtype=np.float32)
     low = np.full(OBS_DIM, -OBS_BOUND, dtype=np.float32)
     high = np.full(OBS_DIM, OBS_BOUND, dtype=np.float32)
     low[3:12], high[3:12] = -1.0, 1.0
@@ -100,12 +114,13 @@ def _observation_space() -> spaces.Box:
 DYNAMIC_PBD_CONFIG = PBDConfig(iterations=5, chebyshev_rho=0.85)
 
 
-def _make_wall(world: World, mode: str, pbd_config: PBDConfig | None = None
-               ) -> StaticWall | DeformableWall:
+def _make_wall(world: World, mode: str, pbd_config: PBDConfig | None = None,
+               heartbeat: HeartbeatConfig | None = None) -> StaticWall | DeformableWall:
     if mode == "static":
         return StaticWall(world.anatomy)
     return DeformableWall(world.anatomy,
-                          pbd_config if pbd_config is not None else DYNAMIC_PBD_CONFIG)
+                          pbd_config if pbd_config is not None else DYNAMIC_PBD_CONFIG,
+                          heartbeat)
 
 
 def _checked_pose(pose: Any) -> tuple[FloatArray, FloatArray]:
@@ -181,7 +196,7 @@ class NavEngine:
             self.walls = [wall] * n_envs
             self._shared_wall = True
         else:
-            self.walls = [_make_wall(self.world, "dynamic", self.pbd_config)
+            self.walls = [_make_wall(self.world, "dynamic", self.pbd_config, config.heartbeat)
                           for _ in range(n_envs)]
             self._shared_wall = False
         cat = config.catheter
@@ -204,7 +219,9 @@ class NavEngine:
         self.time = np.zeros(n_envs)
         self.min_distance = np.zeros(n_envs)
         self.spec = ObservationSpec.for_world(sc, config.observation)
-        self.hits = np.full((n_envs, N_RAYS), float(config.ray_length))
+        #: (N, S) sensor readings of the last step (:func:`~cgail_planner.sim.ftl_model.
+        #: observe_batch`): ray hit distances, or ``paper_code`` probe wall distances, m.
+        self.hits = np.full((n_envs, self.spec.n_rays), self.spec.no_reading)
         self.contact_force = np.zeros(n_envs)
         self.penetration = np.zeros(n_envs)
         self.in_contact = np.zeros(n_envs, dtype=bool)
@@ -252,19 +269,43 @@ class NavEngine:
         self._cast_rays(np.array([i]))
 
     def _cast_rays(self, idx: NDArray[np.int64]) -> None:
-        tips = self.catheter.tip_position[idx]
-        rots = self.catheter.tip_rotation[idx]
-        dirs = np.matmul(RAY_DIRECTIONS, rots.transpose(0, 2, 1))  # (n, R, 3): R @ d_local
-        origins = np.repeat(tips[:, None, :], N_RAYS, axis=1)
-        length = float(self.config.ray_length)
-        # (the walls' unchecked casts: these rays are finite and well-formed by construction)
-        if self._shared_wall:
-            hits = self.walls[0].cast_unchecked(origins.reshape(-1, 3), dirs.reshape(-1, 3),
-                                                length)
-            self.hits[idx] = hits.reshape(len(idx), N_RAYS)
+        """Sense (rays, or ``paper_code`` probes) from the tips of environments ``idx``."""
+        self.hits[idx] = self._readings(idx, self.catheter.tip_position[idx],
+                                        self.catheter.tip_rotation[idx])
+
+    def _readings(self, idx: NDArray[np.int64], tips: FloatArray, rots: FloatArray
+                  ) -> FloatArray:
+        """(n, S) sensor readings of poses ``(tips, rots)`` in the walls of environments
+        ``idx``: ray hit distances, or ``paper_code`` probe wall distances (m)."""
+        spec = self.spec
+        n_s = spec.n_rays
+        pts = sensor_points(spec, tips, rots)  # (n, S, 3): ray directions or probe points
+        probes = spec.kind == "paper_code"
+        out = np.empty((len(idx), n_s))
+        # (the walls' unchecked queries: finite and well-formed by construction)
+        if probes:
+            def query(wall: Any, k: slice) -> FloatArray:
+                return wall.distance_unchecked(
+                    np.ascontiguousarray(pts[k].reshape(-1, 3)), PROBE_RANGE)
         else:
-            for k, i in enumerate(idx.tolist()):
-                self.hits[i] = self.walls[i].cast_unchecked(origins[k], dirs[k], length)
+            origins = np.repeat(tips[:, None, :], n_s, axis=1)
+            length = float(self.config.ray_length)
+
+            def query(wall: Any, k: slice) -> FloatArray:
+                return wall.cast_unchecked(np.ascontiguousarray(origins[k].reshape(-1, 3)),
+                                           np.ascontiguousarray(pts[k].reshape(-1, 3)), length)
+        if self._shared_wall:
+            out[:] = query(self.walls[0], slice(None)).reshape(len(idx), n_s)
+        else:
+            for k, i in enumerate(np.asarray(idx).tolist()):
+                out[k] = query(self.walls[i], slice(k, k + 1))
+        return out
+
+    def readings_at(self, i: int, p: FloatArray, r: FloatArray) -> FloatArray:
+        """(S,) sensor readings of environment ``i``'s wall as if its tip were at ``[r | p]``
+        (what ``evaluate`` observes through a simulated tracker)."""
+        return self._readings(np.array([i]), np.asarray(p, dtype=np.float64)[None],
+                              np.asarray(r, dtype=np.float64)[None])[0]
 
     # ------------------------------------------------------------------ stepping
     def step(self, actions: FloatArray) -> tuple[FloatArray, NDArray[np.bool_],
@@ -278,7 +319,7 @@ class NavEngine:
         cfg = self.config
         cat = self.catheter
         alpha, gamma, dl = action_to_command(actions, cat.theta_max, cfg.segment_length,
-                                             cat.config.max_step_insertion)
+                                             cat.config.max_step_insertion, cfg.forward_only)
         al, ga, applied_dl = cat.step(alpha, gamma, dl)
         limit = bend_limit(np.where(applied_dl > 0.0, applied_dl, 0.0), cat.theta_max,
                            cfg.segment_length)
@@ -322,7 +363,7 @@ class NavEngine:
         exited = exited_lumen(tips, self.exit_point, self.exit_normal) | outside_box
         success = reached_target(tips, self.target, rcfg)
         new_wp = update_waypoints(tips, self.waypoints, self.reached, rcfg)
-        bending = bending_event(al, ga, limit, rcfg)
+        bending = bending_event(al, ga, limit, rcfg, actions)
         events = StepEvents(collision=collision, exited=exited, success=success,
                             new_waypoints=new_wp, bending=bending)
         terms, terminated = compute_reward(events, rcfg)
@@ -435,6 +476,14 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     per newly reached centerline waypoint (within 6 mm, the target's branch, once per episode) and
     ``r_bending = +1e-5`` when ``max(|alpha|, |gamma|) > 0.9 theta_max^t``.
 
+    **Option sets** (:data:`cgail_planner.sim.config.OPTION_SETS`): the tables above are
+    ``ours``, the default. ``CatheterNavEnv(EnvConfig.from_options("paper_code"))`` follows the
+    authors' Unity code instead: a 27-float observation (tip position in mm, quaternion
+    ``(x, y, z, w)``, unit direction to the target, distance / 50 mm, 16 probes in two rings
+    reading the nearest-wall distance in mm below 0.8 mm, else 1), forward-only insertion
+    (``|a[2]|``), their reward values (``+0.005`` per waypoint within 4.5 mm, ``r_bending``
+    when ``|a0|`` or ``|a1|`` > 0.5) and their 0.74 s heartbeat (``docs/fidelity.md``).
+
     **Step order**: catheter kinematics -> (dynamic) wall step to ``t + dt`` with the body as
     capsules, target follows its wall particle -> tip contact -> rays -> reward. Centerline
     waypoints are those of the rest shape in both modes.
@@ -483,7 +532,8 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
         if anatomy is not None:  # gym.make("CatheterNav-v0", anatomy=...)
             self.config = dataclasses.replace(self.config, anatomy=anatomy)
         self.engine = NavEngine(self.config, 1, pbd_config)
-        self.observation_space = _observation_space()  # type: ignore[assignment]
+        self.observation_space = _observation_space(  # type: ignore[assignment]
+            self.engine.spec)
         self.action_space = spaces.Box(  # type: ignore[assignment]
             -1.0, 1.0, shape=(3,), dtype=np.float32)
         self.render_mode = render_mode

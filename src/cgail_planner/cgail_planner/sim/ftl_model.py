@@ -31,9 +31,12 @@ section III-A):
   bend is a segment bend in rad (:func:`segment_bend_step`).
 * **Normalised actions.** Policies act in ``a in [-1, 1]^3`` (out-of-range values are clipped)::
 
-      delta_l = a[2] * v_max * dt
+      delta_l = a[2] * v_max * dt          (|a[2]| * v_max * dt when forward_only)
       alpha   = a[0] * theta_max^t(|delta_l|)
       gamma   = a[1] * theta_max^t(|delta_l|)
+
+  ``CatheterConfig.forward_only`` (the ``paper_code`` option set) is the authors' insertion
+  rule: a negative ``a[2]`` also advances the tip, and nothing retracts.
 
 * **Body and retraction rule** (:data:`RETRACTION_RULE`). The body is the chain of tip poses
   (nodes) with their arc lengths; every inserting step appends the new tip pose. A body starts as
@@ -49,12 +52,24 @@ section III-A):
 * **Time step.** ``dt = 0.1 s`` with the maximal insertion speed ``5 mm/s``: ``|delta_l| <= 0.5
   mm`` and ``|alpha|, |gamma| <= 0.9 deg`` per step.
 
-**Observation** (:class:`ObservationSpec`, layout :data:`OBS_LAYOUT`, 41 floats): the tip
-position relative to the anatomy's bounding-box centre over ``position_scale``, the tip axes,
-``u = ||p_g - p_t|| / d_max`` and ``v = (p_g - p_t) / d_max``, and the hit distances of
-:data:`RAY_DIRECTIONS` (25 rays in the tip frame) over ``ray_length``, clipped to [0, 1]. Every
-division is a division (no reciprocal multiplications), in the same order in every form, so the
-forms give the same float32 observation.
+**Observation** (:class:`ObservationSpec`), one of two kinds (``ObservationConfig.kind``):
+
+* ``ours`` (the default; layout :data:`OBS_LAYOUT`, 41 floats): the tip position relative to
+  the anatomy's bounding-box centre over ``position_scale``, the tip axes,
+  ``u = ||p_g - p_t|| / d_max`` and ``v = (p_g - p_t) / d_max``, and the hit distances of
+  :data:`RAY_DIRECTIONS` (25 rays in the tip frame) over ``ray_length``, clipped to [0, 1].
+  Every division is a division (no reciprocal multiplications), in the same order in every
+  form, so the forms give the same float32 observation.
+* ``paper_code`` (the authors' Unity code, ``docs/fidelity.md``; 27 floats): the tip position
+  relative to the bounding-box centre in mm, the tip quaternion ``(x, y, z, w)`` with
+  ``w >= 0``, the unit direction to the target, the distance over 50 mm, and 16 probe values:
+  at each point of :data:`PROBE_OFFSETS` (two rings of 8 in the tip frame) the distance to the
+  nearest wall point in mm where it is below :data:`PROBE_RANGE` (0.8 mm), else 1. One numba
+  function (:func:`observe_probes_nb`) computes it for every form.
+
+A form is handed the *sensor readings* of the pose: the rays' hit distances (``ours``, m,
+``ray_length`` where nothing is hit) or the probes' nearest-wall distances (``paper_code``, m,
+inf where no wall is within :data:`PROBE_RANGE`); :func:`sensor_points` places the sensors.
 
 **Forms**, side by side below:
 
@@ -65,11 +80,13 @@ action -> command    :func:`action_to_command`   :func:`action_to_command`   :fu
 one inserting step   :func:`advance_batch`       :func:`advance_pose`        :func:`advance_nb`
 retraction           :func:`retract_chain` (one numba implementation, called by every form)
 observation          :func:`observe_batch`       :func:`observe_pose`        :func:`observe_nb`
+paper_code obs.      :func:`observe_probes_nb` (one numba implementation, called by every form)
 ===================  ==========================  ==========================  ===================
 
 **Contract.** :class:`PolicyContract` is the model a policy was trained and evaluated with
-(parameters, observation spec, anatomy, mode, training notes); the ONNX export writes it into
-the model's metadata (:data:`CONTRACT_KEY`) and the planner builds itself from it.
+(parameters with the insertion rule, observation spec with its kind, anatomy, mode, env option
+set, training notes); the ONNX export writes it into the model's metadata
+(:data:`CONTRACT_KEY`) and the planner builds itself from it.
 """
 
 from __future__ import annotations
@@ -123,6 +140,10 @@ class CatheterConfig:
     """Maximal insertion/retraction speed v_max, m/s (paper: 5 mm/s); in (0, 0.1]."""
     dt: float = 0.1
     """Control time step, s: ``|delta_l| <= v_max * dt`` (0.5 mm by default); in [1 ms, 2 s]."""
+    forward_only: bool = False
+    """Insertion rule. False (ours): ``a[2] < 0`` retracts along the body (the rig retracts).
+    True (the authors' code, ``moveY = Mathf.Abs(a2)``; the ``paper_code`` option set): the tip
+    inserts ``|a[2]| * v_max * dt``, so a negative ``a[2]`` also advances it."""
 
     def __post_init__(self) -> None:
         _check_range("theta_max", self.theta_max, 0.0, math.pi, low_open=True)
@@ -130,6 +151,8 @@ class CatheterConfig:
         _check_range("outer_diameter", self.outer_diameter, 5e-4, 0.02)
         _check_range("max_insertion_speed", self.max_insertion_speed, 0.0, 0.1, low_open=True)
         _check_range("dt", self.dt, 1e-3, 2.0)
+        if not isinstance(self.forward_only, bool):
+            raise ValueError(f"forward_only must be a bool, found {self.forward_only!r}")
 
     @property
     def radius(self) -> float:
@@ -173,6 +196,43 @@ RAY_DIRECTIONS = _ray_directions()
 RAY_DIRECTIONS.setflags(write=False)
 N_RAYS = len(RAY_DIRECTIONS)
 
+#: Observation kinds (:attr:`ObservationConfig.kind`): ours, and the authors' Unity code.
+OBS_KINDS = ("ours", "paper_code")
+#: ``paper_code`` probe rings ``(radius, distance ahead of the tip)``, m: the authors' code
+#: places 8 probes at radius 7 mm, 1 mm ahead, and 8 at radius 9 mm, 15 mm ahead
+#: (``docs/fidelity.md``, "Numbers the option set needs" 2).
+PROBE_RINGS = ((0.007, 0.001), (0.009, 0.015))
+#: A probe reads the nearest-wall distance where it is below this, m, else 1 (the authors'
+#: 0.8 mm particle search radius).
+PROBE_RANGE = 0.0008
+#: ``paper_code`` target distance normaliser, m (the authors' fixed 50, not ``d_max``).
+PROBE_DISTANCE_SCALE = 0.050
+#: Entries of a ``paper_code`` observation before the probes (position, quaternion, direction,
+#: distance).
+PROBE_POSE_DIM = 11
+
+
+def _probe_offsets() -> FloatArray:
+    """The ``paper_code`` probe points in tip-frame coordinates ``(x_A, y_A, z_A)``, m: (16, 3).
+
+    Probe ``j`` of ring ``k`` (:data:`PROBE_RINGS`) sits at azimuth ``j * 45`` deg, measured
+    from ``x_A`` towards ``z_A`` as for :data:`RAY_DIRECTIONS`:
+    ``(radius cos(az), ahead, radius sin(az))``.
+    """
+    out = []
+    for radius, ahead in PROBE_RINGS:
+        for j in range(RAY_AZIMUTHS):
+            az = math.radians(360.0 / RAY_AZIMUTHS * j)
+            out.append([radius * math.cos(az), ahead, radius * math.sin(az)])
+    arr = np.array(out)
+    arr[np.abs(arr) < 1e-15] = 0.0
+    return arr
+
+
+#: (16, 3) probe points in the tip frame, m (see :func:`_probe_offsets`).
+PROBE_OFFSETS = _probe_offsets()
+PROBE_OFFSETS.setflags(write=False)
+
 
 class ObsField(NamedTuple):
     """One block of the observation vector."""
@@ -183,8 +243,18 @@ class ObsField(NamedTuple):
     description: str
 
 
-def obs_layout(n_rays: int = N_RAYS) -> tuple[ObsField, ...]:
-    """The observation layout with ``n_rays`` rays (:data:`OBS_LAYOUT` for the default set)."""
+def obs_layout(n_rays: int = N_RAYS, kind: str = "ours") -> tuple[ObsField, ...]:
+    """The observation layout with ``n_rays`` rays (:data:`OBS_LAYOUT` for the default set),
+    or with ``n_rays`` probes when ``kind`` is ``paper_code``."""
+    if kind == "paper_code":
+        return (
+            ObsField("tip_position", 0, 3, "(p_t - origin) in mm, phantom frame"),
+            ObsField("tip_quaternion", 3, 7, "rotation R as (x, y, z, w), w >= 0"),
+            ObsField("target_direction", 7, 10, "(p_g - p_t) / ||p_g - p_t||, phantom frame"),
+            ObsField("target_distance", 10, 11, "||p_g - p_t|| / 50 mm"),
+            ObsField("probes", 11, 11 + n_rays,
+                     "nearest-wall distance in mm where < 0.8 mm, else 1, at PROBE_OFFSETS"),
+        )
     return (
         ObsField("tip_position", 0, 3, "(p_t - origin) / position_scale, phantom frame"),
         ObsField("tip_x_axis", 3, 6, "x_A: first column of the tip rotation R"),
@@ -212,61 +282,85 @@ class ObservationConfig:
     """Tip positions are observed as ``(p - origin) / position_scale``, m; in [1 cm, 10 m]."""
     ray_length: float = 0.040
     """Length of every observation ray, m (hits are normalised by it); in [5 mm, 0.2 m]."""
+    kind: str = "ours"
+    """``ours`` (41 floats, rays) or ``paper_code`` (27 floats, probes: the authors' code; it
+    uses neither ``position_scale`` nor ``ray_length``); module docstring."""
 
     def __post_init__(self) -> None:
         _check_range("position_scale", self.position_scale, 0.01, 10.0)
         _check_range("ray_length", self.ray_length, 0.005, 0.2)
+        if self.kind not in OBS_KINDS:
+            raise ValueError(f"observation kind must be one of {OBS_KINDS}, found "
+                             f"{self.kind!r}")
 
 
 @dataclass(frozen=True, eq=False)
 class ObservationSpec:
-    """Everything needed to build an observation: normalisers, anatomy frame and ray set.
+    """Everything needed to build an observation: normalisers, anatomy frame and sensor set.
 
     Built from a scenario set by :meth:`for_world` (the env) or from a policy's contract
-    (:meth:`from_dict`, the planner).
+    (:meth:`from_dict`, the planner). ``config.kind`` selects the layout (module docstring):
+    ``ours`` reads ``ray_directions``, ``paper_code`` reads ``probe_offsets``.
     """
 
     origin: FloatArray
     """(3,) observation origin: the anatomy's bounding-box centre, m."""
     d_max: float
-    """Distance normaliser of ``u`` and ``v``, m (> 0)."""
+    """Distance normaliser of ``u`` and ``v``, m (> 0; ``ours`` only)."""
     config: ObservationConfig = field(default_factory=ObservationConfig)
-    """Position scale and ray length."""
+    """Kind, position scale and ray length."""
     ray_directions: FloatArray = field(default_factory=lambda: RAY_DIRECTIONS)
-    """(R, 3) unit ray directions in the tip frame."""
+    """(R, 3) unit ray directions in the tip frame (``ours``)."""
+    probe_offsets: FloatArray = field(default_factory=lambda: PROBE_OFFSETS)
+    """(P, 3) probe points in the tip frame, m (``paper_code``)."""
 
     def __post_init__(self) -> None:
         origin = np.array(self.origin, dtype=np.float64)
         rays = np.ascontiguousarray(self.ray_directions, dtype=np.float64)
+        probes = np.ascontiguousarray(self.probe_offsets, dtype=np.float64)
         if origin.shape != (3,) or not np.isfinite(origin).all():
             raise ValueError(f"origin must be a finite (3,) position, found {self.origin!r}")
         _check_range("d_max", self.d_max, 0.0, 100.0, low_open=True)
+        if not isinstance(self.config, ObservationConfig):
+            raise ValueError(f"config must be an ObservationConfig, found "
+                             f"{type(self.config).__name__}")
         if rays.ndim != 2 or rays.shape[1] != 3 or len(rays) < 1 or not np.isfinite(rays).all() \
                 or np.abs(np.linalg.norm(rays, axis=1) - 1.0).max() > 1e-9:
             raise ValueError(f"ray_directions must be (R, 3) unit vectors, found shape "
                              f"{rays.shape}")
-        origin.setflags(write=False)
-        rays.setflags(write=False)
+        if probes.ndim != 2 or probes.shape[1] != 3 or len(probes) < 1 \
+                or not np.isfinite(probes).all() or np.abs(probes).max() > 0.2:
+            raise ValueError(f"probe_offsets must be (P, 3) finite points within 0.2 m of the "
+                             f"tip, found shape {probes.shape}")
+        for a in (origin, rays, probes):
+            a.setflags(write=False)
         object.__setattr__(self, "origin", origin)
         object.__setattr__(self, "d_max", float(self.d_max))
         object.__setattr__(self, "ray_directions", rays)
+        object.__setattr__(self, "probe_offsets", probes)
 
     @classmethod
     def for_world(cls, scenarios: Any, config: ObservationConfig | None = None
                   ) -> ObservationSpec:
-        """The spec of a scenario set (``origin``, ``d_max``) with the default ray set."""
+        """The spec of a scenario set (``origin``, ``d_max``) with the default sensor sets."""
         return cls(origin=np.asarray(scenarios.origin), d_max=float(scenarios.d_max),
                    config=config or ObservationConfig())
 
     @property
+    def kind(self) -> str:
+        """``ours`` or ``paper_code`` (:attr:`ObservationConfig.kind`)."""
+        return self.config.kind
+
+    @property
     def n_rays(self) -> int:
-        """Number of rays R."""
-        return int(self.ray_directions.shape[0])
+        """Number of sensors: rays R (``ours``) or probes P (``paper_code``)."""
+        sensors = self.probe_offsets if self.kind == "paper_code" else self.ray_directions
+        return int(sensors.shape[0])
 
     @property
     def dim(self) -> int:
-        """Observation size ``16 + R``."""
-        return OBS_POSE_DIM + self.n_rays
+        """Observation size: ``16 + R`` (``ours``) or ``11 + P`` (``paper_code``)."""
+        return (PROBE_POSE_DIM if self.kind == "paper_code" else OBS_POSE_DIM) + self.n_rays
 
     @property
     def position_scale(self) -> float:
@@ -278,40 +372,63 @@ class ObservationSpec:
         """Ray length, m."""
         return self.config.ray_length
 
+    @property
+    def no_reading(self) -> float:
+        """The sensor reading where no wall is sensed: ``ray_length`` for a ray, inf for a
+        probe."""
+        return math.inf if self.kind == "paper_code" else self.ray_length
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (the contract's ``observation``)."""
-        return {
-            "dim": self.dim,
-            "fields": [f._asdict() for f in obs_layout(self.n_rays)],
+        out = {
+            "kind": self.kind, "dim": self.dim,
+            "fields": [f._asdict() for f in obs_layout(self.n_rays, self.kind)],
             "origin": self.origin.tolist(), "d_max": self.d_max,
             "position_scale": self.position_scale, "ray_length": self.ray_length,
             "ray_directions_tip_frame": self.ray_directions.tolist(),  # (exact in JSON)
         }
+        if self.kind == "paper_code":
+            out["probe_offsets_tip_frame_m"] = self.probe_offsets.tolist()
+            out["probe_range_m"] = PROBE_RANGE
+            out["distance_scale_m"] = PROBE_DISTANCE_SCALE
+        return out
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ObservationSpec:
-        """Inverse of :meth:`to_dict`.
+        """Inverse of :meth:`to_dict` (a dict without ``kind``, written before it existed, is
+        ``ours``).
 
         Raises:
             ValueError: a missing key, a bad value, or a layout other than :func:`obs_layout`
-                (the only one this code can build).
+                (the only ones this code can build).
         """
         try:
+            kind = data.get("kind", "ours")
+            probes = data.get("probe_offsets_tip_frame_m", PROBE_OFFSETS)
             spec = cls(origin=np.asarray(data["origin"], dtype=np.float64),
                        d_max=float(data["d_max"]),
                        config=ObservationConfig(position_scale=float(data["position_scale"]),
-                                                ray_length=float(data["ray_length"])),
+                                                ray_length=float(data["ray_length"]),
+                                                kind=kind),
                        ray_directions=np.asarray(data["ray_directions_tip_frame"],
-                                                 dtype=np.float64))
+                                                 dtype=np.float64),
+                       probe_offsets=np.asarray(probes, dtype=np.float64))
             fields = [ObsField(**f) for f in data["fields"]]
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f"observation spec: expected the keys of ObservationSpec.to_dict, "
                              f"found {sorted(data) if isinstance(data, Mapping) else data!r} "
                              f"({exc})") from None
-        if tuple(fields) != obs_layout(spec.n_rays) or int(data["dim"]) != spec.dim:
-            raise ValueError(f"observation layout: expected {[f.name for f in obs_layout()]} "
+        if tuple(fields) != obs_layout(spec.n_rays, kind) or int(data["dim"]) != spec.dim:
+            raise ValueError(f"observation layout: expected "
+                             f"{[f.name for f in obs_layout(spec.n_rays, kind)]} "
                              f"(dim {spec.dim}), found {[f.name for f in fields]} "
                              f"(dim {data['dim']})")
+        if kind == "paper_code":
+            for key, want in (("probe_range_m", PROBE_RANGE),
+                              ("distance_scale_m", PROBE_DISTANCE_SCALE)):
+                if data.get(key) != want:
+                    raise ValueError(f"observation {key}: expected {want!r}, found "
+                                     f"{data.get(key)!r}")
         return spec
 
     def same_as(self, other: ObservationSpec, *, atol: float = 0.0) -> bool:
@@ -320,8 +437,10 @@ class ObservationSpec:
                 and bool(np.allclose(self.origin, other.origin, rtol=0.0, atol=atol))
                 and abs(self.d_max - other.d_max) <= atol
                 and bool(np.allclose(self.ray_directions, other.ray_directions, rtol=0.0,
+                                     atol=1e-12))
+                and self.probe_offsets.shape == other.probe_offsets.shape
+                and bool(np.allclose(self.probe_offsets, other.probe_offsets, rtol=0.0,
                                      atol=1e-12)))
-
 
 # ------------------------------------------------------------------ observation: the forms
 def observe_batch(spec: ObservationSpec, tips: FloatArray, rotations: FloatArray,
@@ -333,9 +452,20 @@ def observe_batch(spec: ObservationSpec, tips: FloatArray, rotations: FloatArray
         tips: (N, 3) tip positions, m.
         rotations: (N, 3, 3) tip rotations.
         targets: (N, 3) targets, m.
-        hits: (N, R) ray hit distances, m (``ray_length`` where nothing is hit).
+        hits: (N, R) sensor readings, m: ray hit distances (``ray_length`` where nothing is
+            hit), or, for ``paper_code``, probe nearest-wall distances (inf where no wall is
+            within :data:`PROBE_RANGE`).
     """
     n = tips.shape[0]
+    if spec.kind == "paper_code":
+        row = np.empty(spec.dim)
+        out = np.empty((n, spec.dim), dtype=np.float32)
+        for i in range(n):
+            p, g = tips[i], targets[i]
+            observe_probes_nb(row, p[0], p[1], p[2], rotations[i], g[0], g[1], g[2],
+                              np.asarray(hits[i], dtype=np.float64), spec.origin)
+            out[i] = row
+        return out
     obs = np.empty((n, spec.dim), dtype=np.float32)
     obs[:, 0:3] = (tips - spec.origin) / spec.position_scale
     obs[:, 3:12] = rotations.transpose(0, 2, 1).reshape(n, 9)
@@ -350,8 +480,15 @@ def observe_pose(spec: ObservationSpec, p: FloatArray, r: FloatArray, goal: Floa
                  hits: FloatArray) -> NDArray[np.float32]:
     """(dim,) float32 observation of one tip pose ``[r | p]`` towards ``goal`` (single form).
 
-    ``hits`` are the (R,) ray hit distances (m) cast from that pose.
+    ``hits`` are the (R,) sensor readings (m) of that pose (:func:`observe_batch`).
     """
+    if spec.kind == "paper_code":
+        row = np.empty(spec.dim)
+        observe_probes_nb(row, float(p[0]), float(p[1]), float(p[2]),
+                          np.ascontiguousarray(r, dtype=np.float64), float(goal[0]),
+                          float(goal[1]), float(goal[2]), np.asarray(hits, dtype=np.float64),
+                          spec.origin)
+        return row.astype(np.float32)
     obs = np.empty(spec.dim, dtype=np.float32)
     obs[0:3] = (p - spec.origin) / spec.position_scale
     obs[3:12] = r.T.reshape(9)
@@ -393,6 +530,71 @@ def observe_nb(obs, px, py, pz, r, gx, gy, gz, hits, origin, position_scale, d_m
         obs[16 + k] = np.float32(max(min(hits[k] / ray_length, 1.0), 0.0))
 
 
+@njit(cache=True)
+def quaternion_nb(r, q):
+    """Write the unit quaternion ``(x, y, z, w)`` of rotation ``r`` (3, 3) into ``q`` (4,),
+    with the sign that makes ``w >= 0`` (the authors' code does not fix a sign; this one is
+    deterministic). Shepperd's method: the largest of ``w, x, y, z`` is taken from the
+    diagonal, the others from the off-diagonal sums, so no branch divides by a small number.
+    """
+    t = r[0, 0] + r[1, 1] + r[2, 2]
+    if t > 0.0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        w, x = 0.25 * s, (r[2, 1] - r[1, 2]) / s
+        y, z = (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
+        w, x = (r[2, 1] - r[1, 2]) / s, 0.25 * s
+        y, z = (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
+        w, x = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s
+        y, z = 0.25 * s, (r[1, 2] + r[2, 1]) / s
+    else:
+        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
+        w, x = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s
+        y, z = (r[1, 2] + r[2, 1]) / s, 0.25 * s
+    sign = -1.0 if w < 0.0 else 1.0
+    q[0], q[1], q[2], q[3] = sign * x, sign * y, sign * z, sign * w
+
+
+@njit(cache=True)
+def observe_probes_nb(obs, px, py, pz, r, gx, gy, gz, dists, origin):
+    """The ``paper_code`` observation (module docstring) of the tip ``(px, py, pz)`` with
+    rotation ``r`` towards ``(gx, gy, gz)``, written float32-rounded into ``obs`` ((11 + P,)
+    float64); ``dists`` are the (P,) probe nearest-wall distances, m (inf where none is within
+    :data:`PROBE_RANGE`). Every form of the ``paper_code`` observation calls this."""
+    obs[0] = np.float32((px - origin[0]) * 1000.0)
+    obs[1] = np.float32((py - origin[1]) * 1000.0)
+    obs[2] = np.float32((pz - origin[2]) * 1000.0)
+    q = np.empty(4)
+    quaternion_nb(r, q)
+    for k in range(4):
+        obs[3 + k] = np.float32(q[k])
+    dx, dy, dz = gx - px, gy - py, gz - pz
+    d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if d > 0.0:
+        obs[7], obs[8], obs[9] = np.float32(dx / d), np.float32(dy / d), np.float32(dz / d)
+    else:  # (on the target: no direction)
+        obs[7], obs[8], obs[9] = 0.0, 0.0, 0.0
+    obs[10] = np.float32(d / PROBE_DISTANCE_SCALE)
+    for k in range(dists.shape[0]):
+        obs[11 + k] = np.float32(dists[k] * 1000.0) if dists[k] < PROBE_RANGE else 1.0
+
+
+def sensor_points(spec: ObservationSpec, tips: FloatArray, rotations: FloatArray) -> FloatArray:
+    """Where the sensors of N tip poses are, in the world frame: (N, S, 3).
+
+    ``ours``: the ray directions ``R d`` (the rays start at the tip). ``paper_code``: the probe
+    points ``p + R o``, m.
+    """
+    rots = np.asarray(rotations, dtype=np.float64)
+    if spec.kind == "paper_code":
+        return (np.asarray(tips, dtype=np.float64)[:, None, :]
+                + np.matmul(spec.probe_offsets, rots.transpose(0, 2, 1)))
+    return np.matmul(spec.ray_directions, rots.transpose(0, 2, 1))
+
+
 # ======================================================================== one step
 def bend_limit(delta_l: FloatArray | float, theta_max: float, segment_length: float) -> FloatArray:
     """Per-step bend limit ``theta_max^t = theta_max * |delta_l| / L`` (paper eq. 2), rad."""
@@ -400,7 +602,8 @@ def bend_limit(delta_l: FloatArray | float, theta_max: float, segment_length: fl
 
 
 def action_to_command(
-    action: FloatArray, theta_max: float, segment_length: float, max_step_insertion: float
+    action: FloatArray, theta_max: float, segment_length: float, max_step_insertion: float,
+    forward_only: bool = False,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Map normalised actions ``a in [-1, 1]^3`` to ``(alpha, gamma, delta_l)`` (any shape).
 
@@ -409,22 +612,26 @@ def action_to_command(
         theta_max: maximal bending angle, rad.
         segment_length: steerable segment length L, m.
         max_step_insertion: ``v_max * dt``, m.
+        forward_only: insert ``|a[2]|`` (:attr:`CatheterConfig.forward_only`).
 
     Returns:
         ``alpha`` and ``gamma`` (rad) and ``delta_l`` (m), each of shape ``action.shape[:-1]``.
     """
     a = np.minimum(np.maximum(np.asarray(action, dtype=np.float64), -1.0), 1.0)  # (as np.clip)
-    delta_l = a[..., 2] * max_step_insertion
+    a2 = np.abs(a[..., 2]) if forward_only else a[..., 2]
+    delta_l = a2 * max_step_insertion
     limit = bend_limit(delta_l, theta_max, segment_length)
     return a[..., 0] * limit, a[..., 1] * limit, delta_l
 
 
 @njit(cache=True)
-def command_nb(a0, a1, a2, theta_max, segment_length, max_step_insertion):
+def command_nb(a0, a1, a2, theta_max, segment_length, max_step_insertion, forward_only):
     """:func:`action_to_command` of one action in numba: ``(alpha, gamma, delta_l)``."""
     a0 = min(max(a0, -1.0), 1.0)
     a1 = min(max(a1, -1.0), 1.0)
     a2 = min(max(a2, -1.0), 1.0)
+    if forward_only:
+        a2 = abs(a2)
     dl = a2 * max_step_insertion
     limit = theta_max * abs(dl) / segment_length
     return a0 * limit, a1 * limit, dl
@@ -908,8 +1115,16 @@ class PolicyContract:
     """Content hash of a path anatomy (:attr:`cgail_planner.sim.anatomy.Anatomy.content_hash`,
     what identifies it; :func:`cgail_planner.sim.anatomy.anatomy_identity`); ``""`` for a
     built-in anatomy, which its name identifies."""
+    env_options: str = "ours"
+    """The env option set the policy was trained in (:data:`cgail_planner.sim.config.
+    OPTION_SETS`: ``ours``, ``paper_code``, or ``custom`` for a configuration that is neither):
+    what ``evaluate`` rebuilds its env with. Its observation and insertion rule are also in
+    ``observation`` and ``catheter``, which the planner reads."""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.env_options, str) or not self.env_options:
+            raise ValueError(f"env_options must be a non-empty name, found "
+                             f"{self.env_options!r}")
         if self.mode not in ("static", "dynamic"):
             raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
         if not isinstance(self.anatomy, str) or not self.anatomy:
@@ -935,12 +1150,14 @@ class PolicyContract:
             "action_scaling": {
                 "names": ["alpha", "gamma", "delta_l"],
                 "alpha_gamma": "a[0:2] * theta_max * |delta_l| / L (rad)",
-                "delta_l": "a[2] * max_insertion_speed * dt (m)",
+                "delta_l": ("|a[2]|" if self.catheter.forward_only else "a[2]")
+                + " * max_insertion_speed * dt (m)",
             },
             "observation": self.observation.to_dict(),
             "anatomy": self.anatomy,
             **({"anatomy_hash": self.anatomy_hash} if self.anatomy_hash else {}),
             "mode": self.mode,
+            "env_options": self.env_options,
             "training": dict(self.training),
         }
 
@@ -967,7 +1184,8 @@ class PolicyContract:
             observation = ObservationSpec.from_dict(data["observation"])
             return cls(catheter=catheter, observation=observation, anatomy=data["anatomy"],
                        mode=data["mode"], training=dict(data.get("training", {})),
-                       anatomy_hash=data.get("anatomy_hash", ""))
+                       anatomy_hash=data.get("anatomy_hash", ""),
+                       env_options=data.get("env_options", "ours"))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"contract: expected the keys of PolicyContract.to_dict, found "
                              f"{sorted(data)} ({exc})") from None

@@ -28,16 +28,63 @@ phase ``phi = frac(t * rate / 60 + phase_offset)``:
 
 Default fractions 1/3 (systole) and 1/3 (rapid return) of the cycle (a textbook ejection time of
 ~0.3 s at 70 bpm; estimate). ``s`` is C1-continuous, so velocities are continuous.
+
+**The authors' profile** (``profile='paper_code'``, the ``paper_code`` option set;
+``docs/fidelity.md``, "Numbers the option set needs" 5): a 0.74 s cycle of piecewise-constant
+axial speeds over 8 windows (:data:`PAPER_CODE_WINDOWS_S`, :data:`PAPER_CODE_SPEEDS_MM_S`),
+which is a piecewise-linear *position* through :func:`paper_code_breakpoints` (0 at the cycle
+start, +5.24 mm at 0.30 s, -1.40 mm just before 0.74 s, then back to 0). The position is sampled
+at each time asked for (phases of 0.04 s are shorter than a 0.1 s env step, so integrating the
+speeds per step would skip them). It is axial only, along ``-root_axis`` (their ``+y``; the
+peak is the systolic descent, an assumption); ``heart_rate``, the amplitudes and the fractions
+are not used.
 """
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 import math
 
 import numpy as np
 
-__all__ = ["Heartbeat", "HeartbeatConfig", "waveform"]
+__all__ = ["PAPER_CODE_HEARTBEAT", "Heartbeat", "HeartbeatConfig", "paper_code_breakpoints",
+           "paper_code_position", "waveform"]
+
+#: Heartbeat profiles (:attr:`HeartbeatConfig.profile`).
+PROFILES = ("raised_cosine", "paper_code")
+#: The authors' phase windows, s: frame counts 0/5/13/15/21/25/28/35/37 at 0.02 s per frame.
+PAPER_CODE_WINDOWS_S = (0.0, 0.10, 0.26, 0.30, 0.42, 0.50, 0.56, 0.70, 0.74)
+#: The authors' axial speed in each window, mm/s (``HeartBeat.cs``).
+PAPER_CODE_SPEEDS_MM_S = (12.76720774, 12.92516407, 47.33635408, -19.250626, -11.31518658,
+                          -22.83593966, -18.28874613, 12.76720774)
+
+
+def paper_code_breakpoints() -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """``(times s, positions m)`` of the authors' profile: the speeds integrated over their
+    windows, from 0 at ``t = 0`` to the value just before the cycle ends at 0.74 s."""
+    pos = [0.0]
+    for k, v in enumerate(PAPER_CODE_SPEEDS_MM_S):
+        span = PAPER_CODE_WINDOWS_S[k + 1] - PAPER_CODE_WINDOWS_S[k]
+        pos.append(pos[-1] + 1e-3 * v * span)
+    return PAPER_CODE_WINDOWS_S, tuple(pos)
+
+
+_PC_TIMES, _PC_POS = paper_code_breakpoints()
+#: Cycle length of the authors' profile, s.
+PAPER_CODE_PERIOD = _PC_TIMES[-1]
+#: Largest axial position of the authors' profile, m (+5.24 mm at 0.30 s).
+PAPER_CODE_PEAK = max(_PC_POS)
+
+
+def paper_code_position(t: float) -> float:
+    """Axial position (m, along the authors' ``+y``) of the authors' profile at time ``t`` s:
+    linear between :func:`paper_code_breakpoints`, periodic, 0 at every cycle start."""
+    tau = t % PAPER_CODE_PERIOD
+    k = bisect.bisect_right(_PC_TIMES, tau) - 1
+    k = min(max(k, 0), len(_PC_TIMES) - 2)
+    frac = (tau - _PC_TIMES[k]) / (_PC_TIMES[k + 1] - _PC_TIMES[k])
+    return _PC_POS[k] + frac * (_PC_POS[k + 1] - _PC_POS[k])
 
 
 @dataclass(frozen=True)
@@ -71,8 +118,13 @@ class HeartbeatConfig:
     root that moves 11 mm strained the sinus wall by up to 50 %; moving them rigidly with the
     annulus tore the 6 mm stubs instead. The supra-aortic stubs (~85 mm and more away) stay
     fixed. 0 holds every fixed vertex; in [0, 0.2]."""
+    profile: str = "raised_cosine"
+    """``raised_cosine`` (ours, the waveform above with the amplitudes and rate of this
+    config) or ``paper_code`` (the authors' 0.74 s axial profile; module docstring)."""
 
     def __post_init__(self) -> None:
+        if self.profile not in PROFILES:
+            raise ValueError(f"profile must be one of {PROFILES}, found {self.profile!r}")
         for name, low, high in (
             ("axial_amplitude", 0.0, 0.03), ("inplane_amplitude", 0.0, 0.02),
             ("inplane_angle", -math.pi, math.pi), ("heart_rate", 20.0, 240.0),
@@ -97,7 +149,9 @@ class HeartbeatConfig:
 
     @property
     def period(self) -> float:
-        """Cardiac cycle length, s."""
+        """Cardiac cycle length, s (0.74 s for the ``paper_code`` profile)."""
+        if self.profile == "paper_code":
+            return PAPER_CODE_PERIOD
         return 60.0 / self.heart_rate
 
 
@@ -136,8 +190,11 @@ class Heartbeat:
         ang = self.config.inplane_angle
         self.root_axis = axis
         self.inplane_direction = math.cos(ang) * e0 + math.sin(ang) * e1
-        self._peak = (-self.config.axial_amplitude * axis
-                      + self.config.inplane_amplitude * self.inplane_direction)
+        if self.config.profile == "paper_code":  # axial only, their +y = -root_axis
+            self._peak = -PAPER_CODE_PEAK * axis
+        else:
+            self._peak = (-self.config.axial_amplitude * axis
+                          + self.config.inplane_amplitude * self.inplane_direction)
 
     @property
     def peak_displacement(self) -> np.ndarray:
@@ -145,10 +202,13 @@ class Heartbeat:
         return self._peak.copy()
 
     def shape(self, t: float) -> float:
-        """Normalised waveform value s(t) in [0, 1] (0 when the heartbeat is disabled)."""
+        """Normalised waveform value s(t): in [0, 1] for ``raised_cosine``; for ``paper_code``
+        the axial position over its peak, in [-0.37, 1] (0 when the heartbeat is disabled)."""
         c = self.config
         if not c.enabled:
             return 0.0
+        if c.profile == "paper_code":
+            return paper_code_position(t + c.phase_offset * PAPER_CODE_PERIOD) / PAPER_CODE_PEAK
         # :func:`waveform` for one scalar, in plain floats (numpy costs ~10 us per call here)
         phi = (t / c.period + c.phase_offset) % 1.0
         fs = c.systole_fraction
@@ -162,3 +222,7 @@ class Heartbeat:
     def displacement(self, t: float) -> np.ndarray:
         """(3,) annulus displacement from its rest position at time t (s), m."""
         return self.shape(t) * self._peak
+
+
+#: The authors' heartbeat (the ``paper_code`` option set of :mod:`cgail_planner.sim.config`).
+PAPER_CODE_HEARTBEAT = HeartbeatConfig(profile="paper_code")

@@ -483,6 +483,17 @@ def closest_kernel(vertices, faces, order, node_min, node_max, left, right, star
 
 
 @njit(cache=True)
+def distance_kernel(vertices, faces, order, node_min, node_max, left, right, start, count,
+                    points, max_dist, out):
+    """``out[i]``: distance from ``points[i]`` to the nearest wall triangle, inf where none is
+    within ``max_dist`` (:func:`closest_kernel` per point)."""
+    for i in range(points.shape[0]):
+        dist, face, _, _, _, _ = closest_kernel(vertices, faces, order, node_min, node_max,
+                                                left, right, start, count, points[i], max_dist)
+        out[i] = dist if face >= 0 else np.inf
+
+
+@njit(cache=True)
 def faces_near_segments_kernel(node_min, node_max, left, right, start, count, order,
                          points, reach):
     """Broad phase: (face, segment) pairs whose boxes overlap the segment box grown by reach.
@@ -789,6 +800,15 @@ class WallBVH:
         out = np.empty(origins.shape[0])
         raycast_kernel(self.vertices, self.faces, self._order, self._nmin, self._nmax, self._left,
                  self._right, self._start, self._count, origins, directions, max_dist, out)
+        return out
+
+    def distance_unchecked(self, points: np.ndarray, max_dist: float) -> np.ndarray:
+        """(P,) distance from each of the (P, 3) C-contiguous float64 ``points`` to the nearest
+        wall triangle, m; inf where none is within ``max_dist`` (a float > 0). No checks."""
+        out = np.empty(points.shape[0])
+        distance_kernel(self.vertices, self.faces, self._order, self._nmin, self._nmax,
+                        self._left, self._right, self._start, self._count, points, max_dist,
+                        out)
         return out
 
     def closest_point(self, point: np.ndarray, max_dist: float = np.inf

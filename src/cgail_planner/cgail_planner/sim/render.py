@@ -66,7 +66,7 @@ def heartbeat_phases(anatomy: Anatomy, n_phases: int, dt: float = 0.005) -> list
         raise ValueError(f"n_phases must be >= 1, found {n_phases}")
     wall_mod = importlib.import_module("cgail_planner.sim.wall")
     wall = wall_mod.DeformableWall(anatomy)
-    period = 60.0 / float(wall.heartbeat.config.heart_rate)
+    period = float(wall.heartbeat.config.period)
     wall.reset()
     times = [k * period / n_phases for k in range(n_phases)]
     out: list[np.ndarray] = []

@@ -29,6 +29,14 @@ Details (documented choices where the paper is silent):
   exceeds ``bend_threshold`` (0.9) times the current per-step limit ``theta_max^t`` and the
   limit is positive (an inserting step; retraction and zero insertion never bend).
 
+**The authors' code** (:data:`PAPER_CODE_REWARD`, the ``paper_code`` option set of
+:mod:`cgail_planner.sim.config`; ``docs/fidelity.md``): the same table except
+``r_centerline = +0.005`` per waypoint reached within 4.5 mm (their 1 mm waypoint sphere plus our
+3.5 mm tip radius), and ``r_bending`` on the *action*: ``bend_rule='action'`` pays it when
+``|a0|`` or ``|a1|`` (clipped to [-1, 1]) exceeds ``bend_threshold`` 0.5, whatever the
+insertion. Our collision, exit and target triggers stay; where the code's collision
+*replaces* that step's other terms (``SetReward``), ours adds them (at most +0.005).
+
 All functions are pure and batched over a leading environment axis.
 """
 
@@ -66,7 +74,12 @@ class RewardConfig:
     waypoint_radius: float = 0.006
     """Distance within which a centerline waypoint counts as reached, m; in (0, 0.05]."""
     bend_threshold: float = 0.9
-    """Fraction of theta_max^t above which r_bending is paid; in (0, 1]."""
+    """``bend_rule='applied'``: fraction of theta_max^t above which r_bending is paid;
+    ``'action'``: the normalised bend action above which it is paid; in (0, 1]."""
+    bend_rule: str = "applied"
+    """When r_bending is paid: ``applied`` (ours: the applied bend of an inserting step above
+    ``bend_threshold * theta_max^t``) or ``action`` (the authors' code: ``|a0|`` or ``|a1|``
+    above ``bend_threshold``, whatever the insertion)."""
     minor_force: float = 0.8
     """Largest collision force of a minor contact, N (paper: 0.8 N in the aorta); in (0, 100]."""
 
@@ -83,6 +96,17 @@ class RewardConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and 0.0 < value <= high):
                 raise ValueError(f"{name} must be in (0, {high}], found {value!r}")
+        if self.bend_rule not in BEND_RULES:
+            raise ValueError(f"bend_rule must be one of {BEND_RULES}, found {self.bend_rule!r}")
+
+
+#: The r_bending rules of :attr:`RewardConfig.bend_rule`.
+BEND_RULES = ("applied", "action")
+
+#: The authors' reward values and triggers (module docstring; ``docs/fidelity.md``, "Numbers
+#: the option set needs" 4): the ``paper_code`` option set's reward.
+PAPER_CODE_REWARD = RewardConfig(r_centerline=0.005, waypoint_radius=0.0045,
+                                 bend_rule="action", bend_threshold=0.5)
 
 
 class StepEvents(NamedTuple):
@@ -159,8 +183,18 @@ def update_waypoints(tip: FloatArray, waypoints: FloatArray, reached: BoolArray,
 
 
 def bending_event(alpha: FloatArray, gamma: FloatArray, limit: FloatArray,
-                  config: RewardConfig) -> BoolArray:
-    """True where ``max(|alpha|, |gamma|) > bend_threshold * limit`` and ``limit > 0``."""
+                  config: RewardConfig, action: FloatArray | None = None) -> BoolArray:
+    """Where r_bending is paid (:attr:`RewardConfig.bend_rule`).
+
+    ``applied``: ``max(|alpha|, |gamma|) > bend_threshold * limit`` and ``limit > 0``.
+    ``action``: ``max(|a0|, |a1|) > bend_threshold`` of the (N, 3) ``action`` clipped to
+    [-1, 1] (required then).
+    """
+    if config.bend_rule == "action":
+        if action is None:
+            raise ValueError("bend_rule 'action' needs the actions, found None")
+        a = np.minimum(np.abs(np.asarray(action, dtype=np.float64)[..., :2]), 1.0)
+        return np.asarray(a.max(axis=-1) > config.bend_threshold)
     mag = np.maximum(np.abs(alpha), np.abs(gamma))
     lim = np.asarray(limit, dtype=np.float64)
     return np.asarray((lim > 0.0) & (mag > config.bend_threshold * lim))

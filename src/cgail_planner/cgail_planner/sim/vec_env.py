@@ -48,7 +48,7 @@ class CatheterNavVecEnv:
         self.config = config or EnvConfig()
         self.num_envs = num_envs
         self.engine = NavEngine(self.config, num_envs, pbd_config)
-        self.single_observation_space = _observation_space()
+        self.single_observation_space = _observation_space(self.engine.spec)
         self.single_action_space = spaces.Box(-1.0, 1.0, shape=(3,), dtype=np.float32)
         self._rngs = [np.random.default_rng() for _ in range(num_envs)]
         self._started = False

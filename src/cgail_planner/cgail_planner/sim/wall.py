@@ -130,6 +130,24 @@ class StaticWall:
         C-contiguous float64 (R, 3) arrays, a float > 0), without the checks."""
         return self._bvh.cast_unchecked(origins, directions, max_dist)
 
+    def distance(self, points: np.ndarray, max_dist: float) -> np.ndarray:
+        """(P,) distance from each point to the nearest point of the wall, m (unsigned: a point
+        beyond the wall has its distance to the surface too); inf where none is within
+        ``max_dist``. The ``paper_code`` observation's probes read it.
+
+        Args:
+            points: (P, 3) query points, m.
+            max_dist: search radius, m (> 0).
+        """
+        pts = _check_points("points", points, allow_empty=True)
+        _check_finite_scalar("max_dist", max_dist, positive=True)
+        return self.distance_unchecked(pts, float(max_dist))
+
+    def distance_unchecked(self, points: np.ndarray, max_dist: float) -> np.ndarray:
+        """:meth:`distance` for trusted input (C-contiguous float64 (P, 3) points, a float
+        > 0), without the checks."""
+        return self._bvh.distance_unchecked(points, max_dist)
+
     @property
     def penetration_tolerance(self) -> float:
         """Depth below which :meth:`tip_contact` reports no penetration, m (0: rigid wall)."""
@@ -390,6 +408,11 @@ class DeformableWall(StaticWall):
         """:meth:`raycast` without the checks (see :meth:`StaticWall.cast_unchecked`)."""
         self._sync()
         return self._bvh.cast_unchecked(origins, directions, max_dist)
+
+    def distance_unchecked(self, points: np.ndarray, max_dist: float) -> np.ndarray:
+        """:meth:`StaticWall.distance_unchecked` on the current (deformed) wall."""
+        self._sync()
+        return self._bvh.distance_unchecked(points, max_dist)
 
     def tip_contact_unchecked(self, tip: np.ndarray, radius: float, dt: float) -> Contact:
         """Tip sphere vs the deformed wall, with the force from Newton's second law (the

@@ -283,3 +283,50 @@ def test_yaml_defaults_equal_the_declared_defaults(ros, cls_path, yaml_name, ski
             assert declared[key] == pytest.approx(value), key
     finally:
         node.destroy_node()
+
+
+@pytest.fixture
+def paper_code_policy(tmp_path: Path) -> str:
+    """A paper_code policy (27 observations) whose constant action is ``[0, 0, -1]``, exported
+    as ``train`` + ``export_onnx`` write it: with forward-only insertion it goes straight
+    ahead (with ours it would retract out of the anatomy)."""
+    import torch
+
+    from cgail_planner.learning.config import NetworkConfig
+    from cgail_planner.learning.export import export_actor
+    from cgail_planner.learning.networks import Actor
+    from cgail_planner.learning.train import sim_metadata
+    from cgail_planner.sim.config import EnvConfig
+
+    torch.manual_seed(0)
+    actor = Actor(27, 3, NetworkConfig(hidden_units=16), None)
+    with torch.no_grad():
+        actor.mu.weight.zero_()
+        actor.mu.bias.copy_(torch.tensor([0.0, 0.0, -1.0]))
+    meta = sim_metadata(EnvConfig.from_options('paper_code'))
+    return str(export_actor(actor, tmp_path / 'paper_code.onnx', meta))
+
+
+def test_a_paper_code_policy_plans_with_its_observation_and_insertion(
+        ros, world, paper_code_policy) -> None:
+    rig = Rig(policy_path=paper_code_policy)
+    try:
+        planner = rig.node.planner
+        assert planner is not None and planner.spec.kind == 'paper_code'
+        assert planner.obs_dim == 27 and planner.uses_kernel
+        assert rig.node.config.catheter.forward_only
+        assert rig.spin_until(rig.connected)
+        start, goal = goal_ahead(world)
+        rig.send_pose(start.position, start.rotation)
+        rig.send_goal(goal)
+        assert rig.spin_until(lambda: rig.paths)
+        path = conv.path_points(rig.paths[-1])
+        assert path[0] == pytest.approx(start.position, abs=1e-9)
+        assert path[-1] == pytest.approx(goal, abs=1e-9)
+        # straight ahead along the start heading: every point within 0.1 mm of that line
+        rel = path - start.position
+        off = rel - np.outer(rel @ start.rotation[:, 1], start.rotation[:, 1])
+        assert np.linalg.norm(off, axis=1).max() < 1e-4
+        assert rig.node.counts['plans'] == 1 and rig.node.counts['failed_plans'] == 0
+    finally:
+        rig.close()

@@ -92,14 +92,16 @@ def test_observation_follows_the_layout(poses, spec) -> None:
                                rtol=1e-6)
 
 
-def test_command_forms_are_equal(poses) -> None:
+@pytest.mark.parametrize('forward_only', [False, True])
+def test_command_forms_are_equal(poses, forward_only) -> None:
     act = poses[4]
     alpha, gamma, dl = action_to_command(act, MODEL.theta_max, MODEL.segment_length,
-                                         MODEL.max_step_insertion)
+                                         MODEL.max_step_insertion, forward_only)
     for i in range(N):
         got = command_nb(act[i, 0], act[i, 1], act[i, 2], MODEL.theta_max,
-                         MODEL.segment_length, MODEL.max_step_insertion)
+                         MODEL.segment_length, MODEL.max_step_insertion, forward_only)
         assert got == (alpha[i], gamma[i], dl[i])
+    assert (dl >= 0.0).all() if forward_only else (dl < 0.0).any()
     limit = bend_limit(dl, MODEL.theta_max, MODEL.segment_length)
     assert (np.abs(alpha) <= limit).all() and (np.abs(dl) <= MODEL.max_step_insertion).all()
     assert np.abs(alpha).max() == pytest.approx(limit[np.argmax(np.abs(alpha))])

@@ -138,10 +138,10 @@ def test_the_trained_policy_plans_the_episode(env, policy, start, target) -> Non
     assert ep['steps'] > 100
 
 
-def program(weights: dict[tuple[int, int], float], bias) -> MlpProgram:
+def program(weights: dict[tuple[int, int], float], bias, n_in: int = 41) -> MlpProgram:
     """A linear policy ``clip(W obs + b, -1, 1)`` as a numba program (kernel and Python)."""
-    b = MlpBuilder(41)
-    w = np.zeros((3, 41))
+    b = MlpBuilder(n_in)
+    w = np.zeros((3, n_in))
     for (i, j), v in weights.items():
         w[i, j] = v
     return b.build(b.clip(b.gemm(0, w, np.asarray(bias, dtype=float)), -1.0, 1.0))
@@ -179,6 +179,48 @@ def test_failures_and_retraction_agree(env, case) -> None:
     assert ep['ending'] == expected
     if case == 'retracts until the limit':
         assert (ep['actions'][:, 2] < 0).sum() > 10  # it did retract, many times
+
+
+def planner_for_contract(env: CatheterNavEnv, policy, max_steps: int) -> Planner:
+    """:func:`planner_for` through the contract ``train`` writes (``sim_metadata``), as the
+    planner node gets it from the ONNX file."""
+    from cgail_planner.learning.train import sim_metadata
+    from cgail_planner.sim.ftl_model import CONTRACT_KEY
+
+    contract = PolicyContract.from_dict(sim_metadata(env.config)[CONTRACT_KEY])
+    eng = env.engine
+    return Planner.from_contract(contract, eng.world, eng.walls[0], policy,
+                                 PlannerConfig(max_rollout_steps=max_steps,
+                                               goal_tolerance=env.config.reward.epsilon))
+
+
+#: Linear policies on the 27-float paper_code observation. 'steers on its probes': bend
+#: gamma by 0.4 per mm a probe of ring 0 reads below 1 (0 when no probe fires), so the path
+#: depends on the probes; 'retract advances': a2 = -1 inserts.
+PAPER_CASES = {
+    'steers on its probes': ({(1, 11 + k): 0.4 for k in range(8)}, [0.3, -0.5 - 3.2, 1.0]),
+    'retract advances': ({}, [0.0, 0.0, -1.0]),
+}
+
+
+@pytest.mark.parametrize('case', PAPER_CASES)
+def test_a_paper_code_policy_plans_its_episode(case) -> None:
+    """The paper_code observation (probes) and forward-only insertion: the env episode, the
+    reference loop and the kernel agree, the planner built from the contract train writes."""
+    env = CatheterNavEnv(EnvConfig.from_options('paper_code', max_steps=200))
+    weights, bias = PAPER_CASES[case]
+    planner = planner_for_contract(env, program(weights, bias, n_in=27), max_steps=200)
+    assert planner.spec.kind == 'paper_code' and planner.config.catheter.forward_only
+    ep = assert_parity(env, planner, 0, 0)
+    obs = np.array(ep['obs'])
+    assert obs.shape[1] == 27
+    if case == 'steers on its probes':
+        assert ep['ending'] == 'collided'
+        assert (obs[:, 11:19] < 1.0).any()  # a probe fired before the wall
+    else:
+        assert (ep['actions'][:, 2] < 0).all() and ep['steps'] > 20
+        tips = ep['tips']
+        assert (np.linalg.norm(np.diff(tips, axis=0), axis=1) > 4.9e-4).all()  # all inserting
 
 
 @pytest.mark.parametrize(('case', 'target'), [('policy', 0), ('policy', 3),
