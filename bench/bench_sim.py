@@ -32,10 +32,10 @@ from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import (
     CatheterNavEnv,
     DYNAMIC_PBD_CONFIG,
-    N_RAYS,
     pursuit_actions,
     RAY_DIRECTIONS,
 )
+from cgail_planner.sim.ftl_model import N_RAYS
 from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.vec_env import CatheterNavVecEnv
