@@ -289,22 +289,20 @@ def save_json(path: Path, data: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
-def run_gail(args: argparse.Namespace, seed: int, run_dir: Path, demos: Any) -> dict[str, Any]:
-    """Train (or continue) one GAIL run; returns its result."""
+def gail_trainer_class(variant: str) -> Any:
+    """imitation's ``GAIL`` for ``standard``; for ``shifted``, a subclass that pays the policy
+    ``-log(1 - D) - log 2`` through a wrapper around imitation's reward (the discriminator and
+    its loss are unchanged)."""
     import math
 
     from imitation.algorithms.adversarial.gail import GAIL  # type: ignore[import-not-found]
-    from imitation.rewards.reward_nets import (  # type: ignore[import-not-found]
-        BasicRewardNet,
-        RewardNet,
-    )
-    from imitation.util import logger as imit_logger  # type: ignore[import-not-found]
-    from imitation.util.networks import RunningNorm  # type: ignore[import-not-found]
-    from stable_baselines3 import PPO  # type: ignore[import-not-found]
-    import torch
+    from imitation.rewards.reward_nets import RewardNet  # type: ignore[import-not-found]
+
+    if variant == 'standard':
+        return GAIL
 
     class ShiftedReward(RewardNet):  # type: ignore[misc]
-        """``reward - log 2``: the project's GAIL reward until 2026-12 on imitation's."""
+        """``base - log 2``."""
 
         def __init__(self, base: Any) -> None:
             super().__init__(base.observation_space, base.action_space,
@@ -315,15 +313,28 @@ def run_gail(args: argparse.Namespace, seed: int, run_dir: Path, demos: Any) -> 
             return self.base(state, action, next_state, done) - math.log(2.0)
 
     class ShiftedGAIL(GAIL):  # type: ignore[misc]
-        """GAIL whose policy is paid ``-log(1 - D) - log 2`` (the discriminator is unchanged)."""
+        """GAIL whose training reward (the one its reward wrapper pays) is shifted by -log 2."""
 
         _shifted: Any = None
 
         @property
         def reward_train(self) -> Any:
+            # (read once by the trainer's constructor, which binds it into the reward wrapper)
             if self._shifted is None:
                 self._shifted = ShiftedReward(self._processed_reward)
             return self._shifted
+
+    return ShiftedGAIL
+
+def run_gail(args: argparse.Namespace, seed: int, run_dir: Path, demos: Any) -> dict[str, Any]:
+    """Train (or continue) one GAIL run; returns its result."""
+    import math
+
+    from imitation.rewards.reward_nets import BasicRewardNet  # type: ignore[import-not-found]
+    from imitation.util import logger as imit_logger  # type: ignore[import-not-found]
+    from imitation.util.networks import RunningNorm  # type: ignore[import-not-found]
+    from stable_baselines3 import PPO  # type: ignore[import-not-found]
+    import torch
 
     name = f'{args.variant} seed {seed}'
     state_path, ppo_path, disc_path = (run_dir / 'state.json', run_dir / 'ppo.zip',
@@ -349,13 +360,14 @@ def run_gail(args: argparse.Namespace, seed: int, run_dir: Path, demos: Any) -> 
     reward_net = BasicRewardNet(venv.observation_space, venv.action_space,
                                 use_action=g['disc_actions'], hid_sizes=g['disc_hidden'],
                                 normalize_input_layer=RunningNorm)
-    trainer_cls = ShiftedGAIL if args.variant == 'shifted' else GAIL
+    trainer_cls = gail_trainer_class(args.variant)
     trainer = trainer_cls(
         demonstrations=demos, demo_batch_size=g['demo_batch_size'], venv=venv,
         gen_algo=model, reward_net=reward_net,
         n_disc_updates_per_round=g['n_disc_updates_per_round'],
         disc_opt_kwargs=g['disc_opt_kwargs'], allow_variable_horizon=g['allow_variable_horizon'],
-        custom_logger=imit_logger.configure(run_dir / 'imitation_log', ['csv']))
+        custom_logger=imit_logger.configure(
+            run_dir / 'imitation_log' / f'from_{model.num_timesteps}', ['csv']))
     if state['steps'] > 0:
         saved = torch.load(disc_path, weights_only=True)
         reward_net.load_state_dict(saved['reward_net'])
