@@ -506,7 +506,11 @@ def crosscheck(args: argparse.Namespace) -> None:
     """Every seed of ``args.variant``, then the report (inside the venv)."""
     import warnings
 
+    if str(PKG_PATH) not in sys.path:  # (run with the venv's python directly)
+        sys.path.insert(0, str(PKG_PATH))
     import torch
+
+    from cgail_planner.learning.errors import LearningError
 
     torch.set_num_threads(args.threads)
     # imitation 1.0.1's BC logs a loss tensor with float(): harmless, and it would print per run
@@ -524,7 +528,10 @@ def crosscheck(args: argparse.Namespace) -> None:
         print(f'crosscheck: PPO {ppo_kwargs()}, {N_ENVS} envs')
         print(f'crosscheck: GAIL ({args.variant} reward) {gail_kwargs(args.disc_actions)}')
     t_start = time.monotonic()
-    demos = load_transitions(args.demos)
+    try:
+        demos = load_transitions(args.demos)
+    except LearningError as exc:  # missing bag, or a replay beyond the 1 mm tolerance
+        raise CrosscheckError(str(exc)) from None
     print(f'crosscheck: demonstrations loaded in {time.monotonic() - t_start:.0f} s')
     for seed in args.seeds:
         run_dir = args.root / f'{args.variant}_seed{seed}'
