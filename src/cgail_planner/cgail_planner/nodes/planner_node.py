@@ -28,6 +28,7 @@ from dataclasses import replace
 import math
 import sys
 import time
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PoseStamped
@@ -131,9 +132,10 @@ class PlannerNode(Node):
         policy = None
         if settings.planner_type == 'cgail':
             policy = self._load_policy(policy_path)
-        catheter = CatheterConfig(**{k: v for k, v in (('theta_max', theta_max),
+        overrides: dict[str, Any] = {k: v for k, v in (('theta_max', theta_max),
                                                         ('segment_length', segment_length))
-                                     if v > 0.0})
+                                     if v > 0.0}
+        catheter = CatheterConfig(**overrides)
         self.planner: Planner | None = None
         #: Lines about the policy's contract (overrides: logged as warnings, else as info).
         self.contract_notes: list[str] = []
