@@ -146,9 +146,18 @@ class GailConfig(RewardSignalConfig):
     """Discriminate (s, a) instead of s alone (ML-Agents default False)."""
     gradient_penalty: float = 1.0
     """Weight of the penalty (||grad logit D(x_hat)|| - 1)^2 on expert/policy interpolates."""
+    reward_form: str = 'absorbing'
+    """``absorbing``: ``-log(1 - D(s)) - r_abs`` with DAC's learned absorbing state
+    (:mod:`cgail_planner.learning.gail`); ``standard``: ML-Agents' ``-log(1 - D(s))`` alone,
+    never negative (the authors' runs, ML-Agents 0.29; the ``imitation`` cross-check's GAIL).
+    Measured on the default aorta, preset ``gail``, 2M steps: ``absorbing`` 0/30 for seeds 0 and
+    1 (evaluation episodes of 80-1,300 steps, r_abs 0.3-0.6 above the policy states' ~0.16, so
+    ending still paid)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        _check(self.reward_form in ('absorbing', 'standard'), 'gail.reward_form',
+               "'absorbing' or 'standard'", self.reward_form)
         _check(1 <= self.hidden_units <= 4096, 'gail.hidden_units', 'in [1, 4096]',
                self.hidden_units)
         _check(0 < self.learning_rate <= 1, 'gail.learning_rate', 'in (0, 1]',

@@ -174,9 +174,12 @@ class Trainer:
                 r = b.env_rewards.reshape(n)
             elif s == 'gail':  # relative to the absorbing state's reward (gail.py)
                 assert self.gail is not None
-                r_abs = self.gail.absorbing_reward()
-                r = self.gail.step_reward(obs_n, act, r_abs)
-                out['rewards/gail_absorbing'] = r_abs
+                if self.cfg.gail.reward_form == 'standard':
+                    r = self.gail.reward(obs_n, act)
+                else:
+                    r_abs = self.gail.absorbing_reward()
+                    r = self.gail.step_reward(obs_n, act, r_abs)
+                    out['rewards/gail_absorbing'] = r_abs
             else:
                 assert self.curiosity is not None
                 r = self.curiosity.reward(obs_n, act, nobs_n)
@@ -234,9 +237,10 @@ class Trainer:
                     idx = torch.as_tensor(draw[draw < n_demo])
                     with torch.no_grad():
                         ex_obs = self.actor.norm(self.demo_obs[idx])
+                    dac = self.cfg.gail.reward_form == 'absorbing'
                     add(self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c,
-                                         expert_absorbing=int((draw >= n_demo).sum()),
-                                         policy_absorbing=int(mb.terminated.sum())))
+                                         expert_absorbing=int((draw >= n_demo).sum()) * dac,
+                                         policy_absorbing=int(mb.terminated.sum()) * dac))
                 if self.curiosity is not None:
                     with torch.no_grad():
                         nobs_n = self.actor.norm(torch.as_tensor(mb.next_obs))

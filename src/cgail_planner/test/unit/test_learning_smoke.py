@@ -117,3 +117,35 @@ def test_bc_warm_start_solves_the_toy_env_before_any_env_step():
     ppo_only = config_from_dict({**SMOKE, 'gail': {'strength': 0.0}, 'bc': {'strength': 0.0}})
     with pytest.raises(DemoError, match='pretrain_bc: expected demonstrations'):
         Trainer(ppo_only, SyncVecEnv([PointReach])).pretrain_bc(5)
+
+
+@pytest.mark.parametrize('form', ['absorbing', 'standard'])
+def test_the_gail_reward_form_decides_what_the_policy_is_paid(form: str):
+    """``standard`` pays ML-Agents' ``-log(1 - D)`` (never negative) and trains the
+    discriminator without absorbing rows; ``absorbing`` pays it relative to the absorbing
+    state's reward and logs that reward."""
+    trainer = _trainer(0, max_steps=2048, gail={'strength': 0.8, 'hidden_units': 64,
+                                                'reward_form': form})
+    seen: dict[str, int] = {}
+    update = trainer.gail.update
+
+    def spy(*args, **kwargs):
+        seen['absorbing'] = seen.get('absorbing', 0) + kwargs['expert_absorbing'] + \
+            kwargs['policy_absorbing']
+        return update(*args, **kwargs)
+
+    trainer.gail.update = spy
+    scalars = {}
+    while trainer.step < 2048:
+        scalars = trainer.train_iteration()
+    assert ('rewards/gail_absorbing' in scalars) == (form == 'absorbing')
+    if form == 'standard':
+        assert seen['absorbing'] == 0 and scalars['rewards/gail_mean'] >= 0.0
+    else:
+        assert seen['absorbing'] > 0  # the toy's episodes end within the buffer
+
+
+def test_an_unknown_gail_reward_form_is_one_line():
+    with pytest.raises(Exception, match=r"gail\.reward_form must be 'absorbing' or "
+                                        r"'standard', found 'shifted'"):
+        config_from_dict({**SMOKE, 'gail': {'strength': 0.8, 'reward_form': 'shifted'}})
