@@ -119,11 +119,21 @@ def read_event_scalars(path: Path) -> list[tuple[str, float, int]]:
 class ScalarLogger:
     """Flat metric names (``losses/value_loss``) to a long-format CSV and an event file."""
 
-    def __init__(self, log_dir: Path, tensorboard: bool = True) -> None:
+    def __init__(self, log_dir: Path, tensorboard: bool = True,
+                 resume_step: int | None = None) -> None:
+        """``resume_step``: continue the CSV of a resumed run, dropping its rows past that step
+        (logged after the checkpoint the run resumes from); the event file is a new one."""
         log_dir.mkdir(parents=True, exist_ok=True)
-        self._csv_file = (log_dir / 'scalars.csv').open('w', newline='')
+        path = log_dir / 'scalars.csv'
+        kept: list[list[str]] = []
+        if resume_step is not None and path.is_file():
+            with path.open(newline='') as f:
+                kept = [r for r in list(csv.reader(f))[1:]
+                        if len(r) == 3 and r[0].isdigit() and int(r[0]) <= resume_step]
+        self._csv_file = path.open('w', newline='')
         self._csv = csv.writer(self._csv_file)
         self._csv.writerow(['step', 'tag', 'value'])
+        self._csv.writerows(kept)
         self._tb = EventFileWriter(log_dir) if tensorboard else None
 
     def log(self, step: int, scalars: dict[str, float]) -> None:

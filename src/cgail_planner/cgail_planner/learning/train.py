@@ -68,22 +68,35 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours'
 
 
 def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = True,
-                 seed: int = 0) -> dict[str, float]:
-    """The training loop: iterations, logging, periodic evaluation and checkpoints."""
+                 seed: int = 0, run_state: dict[str, Any] | None = None) -> dict[str, float]:
+    """The training loop: iterations, logging, periodic evaluation and checkpoints.
+
+    ``run_state``: the loop's state stored in the checkpoint a run resumes from (its ``run``;
+    :func:`latest_checkpoint`), after :meth:`Trainer.resume`: the best evaluation so far, the
+    next evaluation and checkpoint steps and the wall time spent.
+    """
     cfg = trainer.cfg
     out.mkdir(parents=True, exist_ok=True)
     (out / 'config.yaml').write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    logger = ScalarLogger(out)
-    next_eval = cfg.eval_every or math.inf
-    next_ckpt = cfg.checkpoint_every or math.inf
+    rs = run_state or {}
+    logger = ScalarLogger(out, resume_step=trainer.step if run_state is not None else None)
+    next_eval = rs.get('next_eval', cfg.eval_every or math.inf)
+    next_ckpt = rs.get('next_ckpt', cfg.checkpoint_every or math.inf)
     last: dict[str, float] = {}
-    best = -1.0
-    t0 = time.monotonic()
-    with tqdm(total=cfg.max_steps, disable=not progress, unit='step', dynamic_ncols=True) as bar:
+    best = rs.get('best', -1.0)
+    t0, step0, spent = time.monotonic(), trainer.step, float(rs.get('wall_s', 0.0))
+
+    def loop_state() -> dict[str, Any]:
+        return {'best': best, 'next_eval': next_eval, 'next_ckpt': next_ckpt,
+                'wall_s': spent + time.monotonic() - t0}
+
+    with tqdm(total=cfg.max_steps, initial=trainer.step, disable=not progress, unit='step',
+              dynamic_ncols=True) as bar:
         while trainer.step < cfg.max_steps:
             before = trainer.step
             scalars = trainer.train_iteration()
-            scalars['time/steps_per_s'] = trainer.step / max(time.monotonic() - t0, 1e-9)
+            scalars['time/steps_per_s'] = (trainer.step - step0) / max(time.monotonic() - t0,
+                                                                       1e-9)
             if trainer.step >= next_eval:
                 ev = evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
                                      seed=10_000 + seed)
@@ -95,22 +108,42 @@ def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = Tr
                     trainer.save(out / 'best.pt')
                     scalars['eval/best_success_rate'] = best
             if trainer.step >= next_ckpt:
-                trainer.save(out / 'checkpoints' / f'step_{trainer.step}.pt')
                 next_ckpt += cfg.checkpoint_every
+                trainer.save(out / 'checkpoints' / f'step_{trainer.step}.pt', loop_state())
             logger.log(trainer.step, scalars)
             last.update(scalars)
             bar.update(trainer.step - before)
             bar.set_postfix(
                 reward=f"{scalars.get('environment/episode_reward', math.nan):.3f}",
                 success=f"{scalars.get('environment/success_rate', math.nan):.2f}")
-    trainer.save(out / 'final.pt')
+    trainer.save(out / 'final.pt', loop_state())
     final = evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
                             seed=10_000 + seed)
     logger.log(trainer.step, final)
     logger.close()
     last.update(final)
-    last['time/wall_s'] = time.monotonic() - t0
+    last['time/wall_s'] = loop_state()['wall_s']
     return last
+
+
+def latest_checkpoint(run: Path) -> Path:
+    """The checkpoint a run resumes from: the highest-step one of ``run/checkpoints/step_<n>.pt``
+    and ``run/final.pt``.
+
+    Raises:
+        PolicyLoadError: no checkpoint in ``run``.
+    """
+    from cgail_planner.learning.errors import PolicyLoadError
+    from cgail_planner.learning.trainer import load_checkpoint
+
+    found = [(int(p.stem.split('_')[1]), p) for p in (run / 'checkpoints').glob('step_*.pt')
+             if p.stem.split('_')[1].isdigit()]
+    if (run / 'final.pt').is_file():
+        found.append((int(load_checkpoint(run / 'final.pt').get('step', -1)), run / 'final.pt'))
+    if not found:
+        raise PolicyLoadError(f'--resume {run}: expected a run directory with '
+                              'checkpoints/step_<n>.pt or final.pt, found none')
+    return max(found, key=lambda t: t[0])[1]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -130,6 +163,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--init-from', type=Path, default=None,
                    help='checkpoint to start from (pre-train static, re-train dynamic)')
     p.add_argument('--seed', type=int, default=0, help='seed; the same seed reproduces the run')
+    p.add_argument('--resume', type=Path, default=None, metavar='RUN',
+                   help="continue the run in RUN from its latest checkpoint, with its preset "
+                        "and seed (--max-steps may extend it; give the run's --mode, --anatomy "
+                        "and --demos); episodes in progress restart, so it continues the run "
+                        "rather than replaying it bit for bit")
     p.add_argument('--max-steps', type=int, default=None, help='override the preset max_steps')
     p.add_argument('--num-envs', type=int, default=None, help='override the preset num_envs')
     p.add_argument('--threads', type=int, default=1, help='torch CPU threads (1-2)')
@@ -147,7 +185,19 @@ def main(argv: list[str] | None = None) -> int:
         from cgail_planner.sim.anatomy import is_builtin, resolve_anatomy
 
         resolve_anatomy(args.anatomy)  # a bad anatomy fails before the demonstrations load
-        cfg = load_config(args.preset)
+        ckpt: dict[str, Any] | None = None
+        if args.resume is not None:
+            from cgail_planner.learning.trainer import load_checkpoint
+
+            if args.init_from is not None:
+                raise ValueError('--resume continues a run; --init-from starts a new one from '
+                                 'weights: expected one of them, found both')
+            ckpt = load_checkpoint(latest_checkpoint(args.resume))
+            cfg = config_from_dict(ckpt['config'])
+            args.seed = int(ckpt['seed'])
+            args.out = args.out or args.resume
+        else:
+            cfg = load_config(args.preset)
         if args.max_steps is not None or args.num_envs is not None:
             d = config_to_dict(cfg)
             d['max_steps'] = args.max_steps or cfg.max_steps
@@ -168,9 +218,19 @@ def main(argv: list[str] | None = None) -> int:
                           metadata=meta, demo_episodes=demo_episodes)
         if args.init_from is not None:
             trainer.load_weights(args.init_from)
+        if ckpt is not None:
+            was = {k: ckpt['metadata'].get(k) for k in ('mode', 'anatomy', 'anatomy_hash')}
+            now = {k: meta.get(k) for k in was}
+            if was != now:
+                raise ValueError(f'--resume {args.resume}: expected the run\'s simulator '
+                                 f'{was}, found {now} (give its --mode and --anatomy)')
+            trainer.resume(ckpt, args.resume)
+            print(f'train: resuming {args.resume} at step {trainer.step} of {cfg.max_steps}',
+                  file=sys.stderr)
         out = args.out or Path('runs') / f'{cfg.name}_{args.mode}'
         result = run_training(trainer, eval_env, out, progress=not args.no_progress,
-                              seed=args.seed)
+                              seed=args.seed, run_state=None if ckpt is None else
+                              ckpt.get('run', {}))
     except (LearningError, ValueError) as exc:
         print(f'train: error: {exc}', file=sys.stderr)
         return 2

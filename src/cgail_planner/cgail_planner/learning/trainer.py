@@ -331,8 +331,15 @@ class Trainer:
         return self.actor.deterministic(o).numpy()
 
     # ---------------------------------------------------------------- checkpoints
+    def _optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        opts: dict[str, torch.optim.Optimizer] = {'ppo': self.opt}
+        for name, part in (('gail', self.gail), ('curiosity', self.curiosity), ('bc', self.bc)):
+            if part is not None:
+                opts[name] = part.opt
+        return opts
+
     def state_dict(self) -> dict[str, Any]:
-        """Everything needed to resume, export or fine-tune."""
+        """Everything needed to resume (:meth:`resume`), export or fine-tune."""
         return {
             'config': config_to_dict(self.cfg), 'step': self.step, 'seed': self.seed,
             'obs_dim': self.obs_dim, 'act_dim': self.act_dim, 'metadata': self.metadata,
@@ -341,12 +348,91 @@ class Trainer:
             'gail': None if self.gail is None else self.gail.disc.state_dict(),
             'curiosity': None if self.curiosity is None else self.curiosity.icm.state_dict(),
             'curriculum_lesson': self.curriculum.lesson,
+            'resume': {
+                'n_updates': self.n_updates,
+                'optimizers': {k: o.state_dict() for k, o in self._optimizers().items()},
+                'numpy_rng': self.rng.bit_generator.state,
+                'torch_rng': torch.get_rng_state(),
+                'curriculum_window': list(self.curriculum._window),
+                'episodes': [list(self.stats.rewards), list(self.stats.lengths),
+                             list(self.stats.successes)],
+                'curiosity_updated': bool(self.curiosity is not None and self.curiosity.updated),
+            },
         }
 
-    def save(self, path: Path) -> None:
-        """Write a checkpoint (torch.save of :meth:`state_dict`)."""
+    def save(self, path: Path, run: dict[str, Any] | None = None) -> None:
+        """Write a checkpoint (torch.save of :meth:`state_dict`; ``run``: the training loop's
+        own state, kept for :func:`cgail_planner.learning.train.run_training` to resume)."""
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save(self.state_dict(), path)
+        state = self.state_dict()
+        if run is not None:
+            state['run'] = dict(run)
+        tmp = path.with_name(path.name + '.tmp')
+        torch.save(state, tmp)
+        tmp.replace(path)  # (a run killed while saving leaves the previous file whole)
+
+    def resume(self, ckpt: dict[str, Any], path: Path) -> None:
+        """Continue a run from its checkpoint ``ckpt`` (read from ``path``): networks,
+        normaliser, optimisers, schedules (from the step count), curriculum, episode
+        statistics and random streams.
+
+        The environments start new episodes (seeded ``seed + step``): the episodes in progress
+        when the checkpoint was written are not stored, so a resumed run continues the run
+        rather than replaying it bit for bit.
+
+        ``max_steps`` may differ from the checkpoint's (a run extended to a larger budget: the
+        linear schedules then decay towards the new end from the current step).
+
+        Raises:
+            PolicyLoadError: a checkpoint without the resume state (written before it existed,
+                or by ``export``), or of another preset or observation size.
+        """
+        state = ckpt.get('resume')
+        if state is None:
+            raise PolicyLoadError(f'{path}: expected a checkpoint with its resume state '
+                                  '(train writes one every checkpoint_every steps), found a '
+                                  'checkpoint without it; use --init-from to fine-tune from it')
+        mine = {k: v for k, v in config_to_dict(self.cfg).items() if k != 'max_steps'}
+        theirs = {k: v for k, v in ckpt['config'].items() if k != 'max_steps'}
+        if mine != theirs or ckpt['obs_dim'] != self.obs_dim:
+            raise PolicyLoadError(f'{path}: expected a checkpoint of this configuration '
+                                  f'(preset {self.cfg.name!r}, obs dim {self.obs_dim}), found '
+                                  f'preset {ckpt["config"].get("name")!r}, obs dim '
+                                  f'{ckpt["obs_dim"]} or other settings')
+        try:
+            self.actor.load_state_dict(ckpt['actor'])
+            self.critic.load_state_dict(ckpt['critic'])
+            if self.gail is not None:
+                self.gail.disc.load_state_dict(ckpt['gail'])
+            if self.curiosity is not None:
+                self.curiosity.icm.load_state_dict(ckpt['curiosity'])
+                self.curiosity.updated = bool(state['curiosity_updated'])
+            opts = self._optimizers()
+            if set(opts) != set(state['optimizers']):
+                raise KeyError(f'optimisers {sorted(state["optimizers"])}')
+            for k, o in opts.items():
+                o.load_state_dict(state['optimizers'][k])
+        except (RuntimeError, KeyError, ValueError) as exc:
+            raise PolicyLoadError(f'{path}: the checkpoint does not fit this run: '
+                                  f'{str(exc).splitlines()[0]}') from None
+        self.step = int(ckpt['step'])
+        self.n_updates = int(state['n_updates'])
+        self.rng.bit_generator.state = state['numpy_rng']
+        torch.set_rng_state(state['torch_rng'])
+        self.curriculum.lesson = int(ckpt['curriculum_lesson'])
+        self.curriculum._window.extend(state['curriculum_window'])
+        rewards, lengths, successes = state['episodes']
+        self.stats.rewards.clear()
+        self.stats.rewards.extend(rewards)
+        self.stats.lengths.clear()
+        self.stats.lengths.extend(lengths)
+        self.stats.successes.clear()
+        self.stats.successes.extend(successes)
+        if self.curriculum.theta_max is not None:
+            self.env.set_theta_max(self.curriculum.theta_max)
+        self._ep_reward[:] = 0.0
+        self._ep_len[:] = 0
+        self._obs = self.env.reset(seed=self.seed + self.step)
 
     def load_weights(self, path: Path) -> None:
         """Initialise from a checkpoint (``--init-from``): networks + normaliser, new step count.

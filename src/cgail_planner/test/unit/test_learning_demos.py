@@ -339,3 +339,46 @@ def test_train_smoke_runs_on_the_committed_demonstrations(tmp_path: Path):
     line = next(x for x in out.stderr.splitlines() if x.startswith('train: demonstrations: '))
     assert '70 episodes, 30185 steps re-simulated' in line and '(tolerance 1 mm)' in line
     assert (tmp_path / 'run' / 'final.pt').is_file()
+
+
+def test_train_resume_continues_a_run_from_its_latest_checkpoint(tmp_path: Path):
+    """``train --resume RUN`` picks the highest-step checkpoint, keeps the run's preset and
+    seed, extends it with ``--max-steps``, and rewrites ``scalars.csv`` from the resume step on
+    (no duplicated rows); bad combinations are one line, exit 2."""
+    import csv
+
+    import numpy as np
+    import yaml
+
+    from cgail_planner.learning.train import main
+
+    rng = np.random.default_rng(0)
+    demos = tmp_path / 'demos.npz'
+    np.savez(demos, obs=rng.normal(size=(512, 41)).astype(np.float32),
+             act=rng.uniform(-1, 1, (512, 3)).astype(np.float32), episodes=4)
+    preset = yaml.safe_load((REPO / 'src' / 'cgail_planner' / 'config' / 'presets' /
+                             'smoke.yaml').read_text())
+    preset.update(max_steps=2048, checkpoint_every=1024, eval_every=0, eval_episodes=1)
+    (tmp_path / 'tiny.yaml').write_text(yaml.safe_dump(preset))
+    run = tmp_path / 'run'
+    base = ['--mode', 'static', '--demos', str(demos), '--no-progress']
+    assert main(['--preset', str(tmp_path / 'tiny.yaml'), '--seed', '5', '--out', str(run),
+                 *base]) == 0
+    assert sorted(p.name for p in (run / 'checkpoints').iterdir()) == ['step_1024.pt',
+                                                                       'step_2048.pt']
+    (run / 'final.pt').unlink()
+    (run / 'checkpoints' / 'step_2048.pt').unlink()  # (as if killed after step 1024)
+    assert main(['--resume', str(run), '--max-steps', '3072', *base]) == 0
+    with (run / 'scalars.csv').open(newline='') as f:
+        rows = list(csv.reader(f))[1:]
+    steps = sorted({int(r[0]) for r in rows})
+    assert steps[0] == 1024 and steps[-1] == 3072
+    assert len(rows) == len({(r[0], r[1]) for r in rows})  # no step logged twice
+    from cgail_planner.learning.trainer import load_checkpoint
+
+    final = load_checkpoint(run / 'final.pt')
+    assert final['step'] == 3072 and final['seed'] == 5 and final['run']['next_ckpt'] == 4096
+    assert main(['--resume', str(run), '--init-from', str(run / 'final.pt'), *base]) == 2
+    assert main(['--resume', str(tmp_path / 'nothing'), *base]) == 2
+    assert main(['--resume', str(run), '--mode', 'dynamic', '--demos', str(demos),
+                 '--no-progress']) == 2

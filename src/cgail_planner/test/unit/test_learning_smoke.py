@@ -149,3 +149,40 @@ def test_an_unknown_gail_reward_form_is_one_line():
     with pytest.raises(Exception, match=r"gail\.reward_form must be 'absorbing' or "
                                         r"'standard', found 'shifted'"):
         config_from_dict({**SMOKE, 'gail': {'strength': 0.8, 'reward_form': 'shifted'}})
+
+
+def test_a_resumed_trainer_continues_where_its_checkpoint_stood(tmp_path: Path):
+    """``Trainer.resume``: step, update count, networks, optimisers, random streams, curriculum
+    and episode statistics are those of the checkpoint; a checkpoint of another configuration
+    or without the resume state is refused in one line."""
+    from cgail_planner.learning.errors import PolicyLoadError
+    from cgail_planner.learning.trainer import load_checkpoint
+
+    a = _trainer(3, max_steps=8192)
+    while a.step < 2048:
+        a.train_iteration()
+    a.save(tmp_path / 'a.pt', run={'best': 0.5})
+    ckpt = load_checkpoint(tmp_path / 'a.pt')
+    assert ckpt['run'] == {'best': 0.5} and not (tmp_path / 'a.pt.tmp').exists()
+    b = _trainer(3, max_steps=16384)  # (a larger budget may extend a run)
+    b.resume(ckpt, tmp_path / 'a.pt')
+    assert torch.equal(torch.get_rng_state(), ckpt['resume']['torch_rng'])
+    assert (b.step, b.n_updates, b.curriculum.lesson) == (a.step, a.n_updates,
+                                                          a.curriculum.lesson)
+    assert list(b.stats.successes) == list(a.stats.successes) and len(b.stats.successes) > 0
+    for pa, pb in zip(a.actor.parameters(), b.actor.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+    for name, opt in a._optimizers().items():
+        sa, sb = opt.state_dict()['state'], b._optimizers()[name].state_dict()['state']
+        assert sa.keys() == sb.keys() and all(
+            torch.equal(sa[k]['exp_avg'], sb[k]['exp_avg']) for k in sa), name
+    assert a.rng.integers(0, 2**31, 4).tolist() == b.rng.integers(0, 2**31, 4).tolist()
+    b.train_iteration()  # and it trains on
+    assert b.step > a.step
+
+    other = _trainer(3, max_steps=8192, ppo={**SMOKE['ppo'], 'learning_rate': 5e-4})
+    with pytest.raises(PolicyLoadError, match='expected a checkpoint of this configuration'):
+        other.resume(ckpt, tmp_path / 'a.pt')
+    del ckpt['resume']
+    with pytest.raises(PolicyLoadError, match='expected a checkpoint with its resume state'):
+        b.resume(ckpt, tmp_path / 'a.pt')
