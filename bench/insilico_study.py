@@ -1000,9 +1000,8 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                     continue
                 done = r.task.done()
                 if done:
-                    say(f'done {key} in {took}' + (
-                        f' ({last_log_line(layout.log(key), ": success ")})'
-                        if r.task.kind == 'eval' else ''))
+                    result = last_log_line(layout.log(key), ': success ')
+                    say(f'done {key} in {took}' + (f' ({result})' if result else ''))
                 finish(key, done, 'its outputs are missing after exit 0')
             if time.monotonic() - last_progress >= progress_every:
                 last_progress = time.monotonic()
