@@ -230,10 +230,11 @@ class Progress:
         return ', '.join(parts)
 
 
-def run_progress(run: Path) -> Progress:
-    """The :class:`Progress` of the run in ``run``."""
+def run_progress(run: Path, since: int = 0) -> Progress:
+    """The :class:`Progress` of the run in ``run``; its steps/s from the rows past step
+    ``since`` (those of the running ``train`` process, which resumed there)."""
     sc = read_scalars(run / 'scalars.csv')
-    rate = sc.get('time/steps_per_s', [])
+    rate = [r for r in sc.get('time/steps_per_s', []) if r[0] > since]
     ev = sc.get('eval/success_rate', [])
     return Progress(last_step(sc), rate[-1][1] if rate else None,
                     ev[-1][0] if ev else None, ev[-1][1] if ev else None)
@@ -724,7 +725,10 @@ class Task:
     command: Callable[[], list[str] | None]
     """The command to run now (None: nothing to run, only ``post``); may raise StudyError."""
     post: Callable[[], None] | None = None
-    progress: Callable[[], str] | None = None
+    run: Path | None = None
+    """A training's run folder (progress lines)."""
+    target: int = 0
+    """A training's step budget (progress lines)."""
     order: int = 0
 
 
@@ -790,11 +794,6 @@ def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) ->
                          '--out', str(run), *common)
 
 
-def progress_line(run: Path, target: int) -> str:
-    """The progress line of the training in ``run`` towards ``target`` steps."""
-    return run_progress(run).line(target)
-
-
 def dynamic_done(run: Path, steps: int) -> bool:
     """Whether the dynamic re-training in ``run`` finished its ``steps``."""
     return trained_to(run, steps) and (run / 'study_state.json').is_file()
@@ -838,8 +837,8 @@ def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[T
                     done=layout.snapshot(m, s, n).is_file,
                     command=partial(train_command, run, n, ['--preset', m, '--seed', str(s)],
                                     ['--mode', 'static', *common]),
-                    post=partial(static_post, layout, m, s, n),
-                    progress=partial(progress_line, run, n), order=10 * bi + 2))
+                    post=partial(static_post, layout, m, s, n), run=run, target=n,
+                    order=10 * bi + 2))
                 prev = static_key
                 best = layout.budget(m, s, n) / 'best.pt'
                 for mode in plan.modes:
@@ -854,8 +853,8 @@ def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[T
                             command=partial(train_command, dyn, d,
                                             ['--preset', m, '--seed', str(s), '--init-from',
                                              str(best)], ['--mode', 'dynamic', *common]),
-                            post=partial(record_state, dyn),
-                            progress=partial(progress_line, dyn, d), order=10 * bi + 1))
+                            post=partial(record_state, dyn), run=dyn, target=d,
+                            order=10 * bi + 1))
                     tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
                                       done=policy.is_file,
                                       command=partial(export_command, ckpt, policy)))
@@ -921,6 +920,8 @@ class Running:
     proc: subprocess.Popen[bytes]
     log: IO[str]
     started: float
+    since: int
+    """The step a training starts or resumes from."""
 
 
 def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: float,
@@ -975,7 +976,8 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                 log.flush()
                 proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
                                         env=child_env(), stdin=subprocess.DEVNULL)
-                running[t.key] = Running(t, proc, log, time.monotonic())
+                since = resumable_step(t.run) if t.run is not None else 0
+                running[t.key] = Running(t, proc, log, time.monotonic(), since)
                 state[t.key] = 'running'
                 say(f'start {t.key} (log {log_path.relative_to(layout.root)})')
             if not running:
@@ -1006,8 +1008,8 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
             if time.monotonic() - last_progress >= progress_every:
                 last_progress = time.monotonic()
                 for key, r in running.items():
-                    if r.task.progress is not None:
-                        say(f'{key}: {r.task.progress()}')
+                    if r.task.run is not None:
+                        say(f'{key}: {run_progress(r.task.run, r.since).line(r.task.target)}')
     finally:
         for key, r in running.items():
             say(f'stopping {key} (pid {r.proc.pid}); it resumes on the next run')

@@ -97,6 +97,8 @@ def test_scalars_skip_a_half_written_row_and_give_progress(tmp_path):
     assert p.line(4096) == ('2,048/4,096 steps (50%), 1,024 steps/s, ETA 2 s, '
                             'last eval success 0.25 at 2,048')
     assert study.run_progress(tmp_path / 'none').line(10) == '0/10 steps (0%)'
+    # steps/s only from the rows of the running process (past the step it resumed from)
+    assert study.run_progress(tmp_path, since=2048).steps_per_s is None
 
 
 def test_a_finished_run_needs_no_training(tmp_path):
