@@ -43,7 +43,8 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    a budget is shown with the steps it reached, marked.
 
 **Resuming.** Everything lives under ``--out`` (default ``runs/insilico_study``). Re-running the
-same command skips what is done (snapshots, policies, ``results.json`` files), resumes
+same command skips what is done (snapshots; policies newer than their checkpoint; evaluations
+of the current policy with ``--trials`` trials), resumes
 unfinished trainings from their latest checkpoint (``train --resume``; a run without a
 checkpoint restarts) and rebuilds the report. Ctrl-C or SIGTERM stops the running processes;
 their checkpoints stay. Each process logs to ``OUT/logs/<task>.log`` (appended across
@@ -794,6 +795,22 @@ def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) ->
                          '--out', str(run), *common)
 
 
+def up_to_date(output: Path, *inputs: Path) -> bool:
+    """Whether ``output`` exists and is not older than any of the ``inputs`` that exist."""
+    if not output.is_file():
+        return False
+    t = output.stat().st_mtime
+    return all(t >= i.stat().st_mtime for i in inputs if i.is_file())
+
+
+def evaluated(folder: Path, policy: Path | None, trials: int) -> bool:
+    """Whether ``folder/results.json`` holds ``trials`` trials of the current ``policy``."""
+    path = folder / 'results.json'
+    if not up_to_date(path, *([policy] if policy is not None else [])):
+        return False
+    return bool(json.loads(path.read_text()).get('trials') == trials)
+
+
 def dynamic_done(run: Path, steps: int) -> bool:
     """Whether the dynamic re-training in ``run`` finished its ``steps``."""
     return trained_to(run, steps) and (run / 'study_state.json').is_file()
@@ -856,13 +873,14 @@ def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[T
                             post=partial(record_state, dyn), run=dyn, target=d,
                             order=10 * bi + 1))
                     tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
-                                      done=policy.is_file,
+                                      done=partial(up_to_date, policy, ckpt,
+                                                   ckpt.with_name('final.pt')),
                                       command=partial(export_command, ckpt, policy)))
                     for k in plan.target_sets:
                         folder = layout.evaluation(m, s, n, mode, k)
                         tasks.append(Task(
                             f'{key}/eval-{mode}-targets{k}', 'eval', [f'{key}/export-{mode}'],
-                            done=(folder / 'results.json').is_file,
+                            done=partial(evaluated, folder, policy, plan.trials),
                             command=partial(python_module, evaluate, '--policy', f'{m}={policy}',
                                             '--baselines', '--modes', mode, '--trials',
                                             str(plan.trials), '--scenario-seed', str(k),
@@ -874,7 +892,7 @@ def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[T
                     folder = layout.baselines(options, mode, k)
                     tasks.append(Task(
                         f'baselines/{options}/{mode}-targets{k}', 'eval', [],
-                        done=(folder / 'results.json').is_file,
+                        done=partial(evaluated, folder, None, plan.trials),
                         command=partial(python_module, evaluate, '--baselines',
                                         *plan.baselines, '--env-options', options, '--modes',
                                         mode, '--trials', str(plan.trials), '--scenario-seed',

@@ -296,3 +296,21 @@ def test_run_tasks_follows_dependencies_and_blocks_after_a_failure(tmp_path, cap
     # a second run skips what is done
     assert study.run_tasks(tasks[:2], layout, 1, 3600.0) == (2, 0)
     assert '2 tasks: 2 already done, 0 to run' in capsys.readouterr().out
+
+
+def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_path):
+    import os
+
+    policy = tmp_path / 'static.onnx'
+    policy.write_bytes(b'onnx')
+    folder = tmp_path / 'eval'
+    write_results(folder, 'cgail', 'static', [True, False])
+    data = json.loads((folder / 'results.json').read_text())
+    data['trials'] = 2
+    (folder / 'results.json').write_text(json.dumps(data))
+    os.utime(policy, (1_000, 1_000))
+    assert study.evaluated(folder, policy, 2) and study.evaluated(folder, None, 2)
+    assert not study.evaluated(folder, policy, 100)
+    os.utime(policy, (4e9, 4e9))  # re-exported after the evaluation
+    assert not study.evaluated(folder, policy, 2)
+    assert not study.up_to_date(tmp_path / 'none.onnx', policy)
