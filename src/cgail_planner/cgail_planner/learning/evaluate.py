@@ -10,6 +10,10 @@ seed ``seed + k``, so every method sees the same start x target sequence. Metric
 Sec. IV-C): success rate delta (tip within epsilon = 10 mm of the target), timesteps T_s (all
 trials and successful ones), targeting error T_a (minimum tip-target distance, mm; all trials and
 successful ones). Kruskal-Wallis tests (p < 0.05) compare the methods on T_s and T_a.
+``--scenario-seed S`` evaluates on the anatomy's target set ``S`` (``EnvConfig.scenario_seed``;
+0, the default, is the set the demonstrations and the presets train on, so another seed gives
+targets no run trained on). Next to ``report.md`` goes ``results.json``: per mode and method
+the summary and every trial's outcome, for scripts (``bench/insilico_study.py``).
 
 **Why every trial differs (tracking noise).** With 3 starts x 5 targets there are only 15
 distinct scenarios, and in the rigid-wall simulator a deterministic planner is a deterministic
@@ -34,7 +38,9 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+import dataclasses
 from dataclasses import dataclass
+import json
 from pathlib import Path
 import sys
 import time
@@ -267,10 +273,27 @@ def boxplot(results: dict[str, list[Trial]], metric: str, title: str, path: Path
     plt.close(fig)
 
 
+def results_json(all_results: dict[str, dict[str, list[Trial]]],
+                 meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The machine-readable results: ``meta``, then per mode and method the
+    :func:`summarize` figures (nan as None) and every trial's outcome."""
+    def clean(v: Any) -> Any:
+        return None if isinstance(v, float) and not np.isfinite(v) else v
+
+    return {**(meta or {}), 'modes': {
+        mode: {name: {'summary': {k: clean(v) for k, v in summarize(trials).items()},
+                      'trials': [dataclasses.asdict(t) for t in trials]}
+               for name, trials in results.items()}
+        for mode, results in all_results.items()}}
+
+
 def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
-                 notes: str = '') -> Path:
-    """Markdown report with one table per mode, KW p-values and the box plots."""
+                 notes: str = '', meta: dict[str, Any] | None = None) -> Path:
+    """Markdown report with one table per mode, KW p-values and the box plots, and
+    ``results.json`` (:func:`results_json` with ``meta``) beside it."""
     out.mkdir(parents=True, exist_ok=True)
+    (out / 'results.json').write_text(json.dumps(results_json(all_results, meta), indent=1)
+                                      + '\n')
     lines = ['# In-silico evaluation', '', notes, '']
     for mode, results in all_results.items():
         lines += [f'## {mode}', '',
@@ -317,6 +340,9 @@ def main(argv: list[str] | None = None) -> int:
                         'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--trials', type=int, default=100)
     p.add_argument('--seed', type=int, default=1000)
+    p.add_argument('--scenario-seed', type=int, default=0,
+                   help="the anatomy's target set (EnvConfig.scenario_seed): 0 is the set the "
+                        'demonstrations and presets train on; another gives unseen targets')
     p.add_argument('--position-noise-mm', type=float, default=TrackingNoise.position_mm,
                    help='RMS position error of the simulated EM tracker, mm (0: none)')
     p.add_argument('--orientation-noise-deg', type=float, default=TrackingNoise.orientation_deg,
@@ -336,16 +362,19 @@ def main(argv: list[str] | None = None) -> int:
         check_anatomy_spec(args.anatomy)  # (before the policies are loaded)
         noise = TrackingNoise(args.position_noise_mm, args.orientation_noise_deg)
         policies: dict[str, Any] = {}
+        paths: dict[str, str] = {}
         for spec in args.policy:
             name, sep, path = spec.partition('=')
             if not sep:
                 raise LearningError(f'--policy expects NAME=PATH.onnx, found {spec!r}')
             policies[name] = OnnxPolicy(path)
+            paths[name] = path
         options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
         for mode in args.modes:
             env = CatheterNavEnv(EnvConfig.from_options(options, mode=mode,
-                                                        anatomy=args.anatomy))
+                                                        anatomy=args.anatomy,
+                                                        scenario_seed=args.scenario_seed))
             methods: dict[str, Any] = dict(policies)
             if 'centerline' in args.baselines:
                 methods['centerline'] = CenterlineFollower(env)
@@ -367,7 +396,9 @@ def main(argv: list[str] | None = None) -> int:
         named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
         notes = (f'Anatomy {named}, {args.trials} trials per method, epsilon 10 mm, '
                  f'seed {args.seed}, env options `{options}`. Trial k: start k % 3, target '
-                 '(k // 3) % 5. ')
+                 '(k // 3) % 5')
+        notes += (f' of target set (scenario seed) {args.scenario_seed}. '
+                  if args.scenario_seed else '. ')
         if noise.enabled:
             notes += (f'The methods perceive the tip through a simulated EM tracker '
                       f'({noise.position_mm:g} mm / {noise.orientation_deg:g} deg RMS, drawn per '
@@ -378,7 +409,12 @@ def main(argv: list[str] | None = None) -> int:
                       'outcome for a repeated start x target pair, so each pair is simulated '
                       'once and counted for each of its trials (the p-values then overstate '
                       'the evidence); the seeded expert runs every trial.')
-        path = write_report(all_results, args.out, notes)
+        meta = {'anatomy': label, 'trials': args.trials, 'seed': args.seed,
+                'scenario_seed': args.scenario_seed, 'env_options': options,
+                'position_noise_mm': noise.position_mm,
+                'orientation_noise_deg': noise.orientation_deg,
+                'policies': paths}
+        path = write_report(all_results, args.out, notes, meta)
     except (LearningError, ValueError) as exc:
         print(f'evaluate: error: {exc}', file=sys.stderr)
         return 2

@@ -111,3 +111,39 @@ def test_reuse_pairs_refuses_noise(static_env):
     with pytest.raises(ValueError, match='noise-free'):
         run_trials(static_env, CenterlineFollower(static_env), 2, seed=0, reuse_pairs=True,
                    noise=TrackingNoise())
+
+
+def test_scenario_seed_selects_the_target_set_and_results_json_records_it(
+        tmp_path, monkeypatch):
+    import json
+
+    from cgail_planner.learning import evaluate
+    import cgail_planner.sim.env as sim_env
+
+    built: list[EnvConfig] = []
+
+    class Spy(CatheterNavEnv):
+        def __init__(self, config: EnvConfig) -> None:
+            built.append(config)
+            super().__init__(config)
+
+    monkeypatch.setattr(sim_env, 'CatheterNavEnv', Spy)
+    assert evaluate.main(['--baselines', 'centerline', '--trials', '2', '--scenario-seed', '1',
+                          '--out', str(tmp_path)]) == 0
+    assert [c.scenario_seed for c in built] == [1]
+    data = json.loads((tmp_path / 'results.json').read_text())
+    assert (data['scenario_seed'], data['trials'], data['env_options']) == (1, 2, 'ours')
+    entry = data['modes']['static']['centerline']
+    assert entry['summary']['n'] == 2 and len(entry['trials']) == 2
+    assert set(entry['trials'][0]) == {'success', 'collision', 'timesteps',
+                                       'targeting_error_mm'}
+    assert 'of target set (scenario seed) 1.' in (tmp_path / 'report.md').read_text()
+
+
+def test_a_negative_scenario_seed_is_a_one_line_error(tmp_path, capsys):
+    from cgail_planner.learning import evaluate
+
+    assert evaluate.main(['--baselines', '--trials', '1', '--scenario-seed', '-1',
+                          '--out', str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert err == 'evaluate: error: scenario_seed must be an int >= 0, found -1\n'

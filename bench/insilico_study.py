@@ -1,0 +1,1197 @@
+"""The paper's in-silico comparison in one resumable command: train, evaluate, report.
+
+Run (from the workspace root, inside the workspace environment)::
+
+    scripts/ws python bench/insilico_study.py                    # the defaults below
+    scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
+        paper_code_mu0 --seeds 0 1 --steps 500000 5000000 --jobs 2
+    scripts/ws python bench/insilico_study.py --report-only      # rebuild OUT/report.md only
+    scripts/ws python bench/insilico_study.py --methods smoke --seeds 0 --steps 4096 8192 \
+        --trials 3 --dynamic-steps 2048 --out runs/insilico_smoke   # a smoke run, minutes
+
+Issue 13 (items 4 and 5): the baselines trained as the authors trained theirs, and the
+side-by-side report. For every preset of ``--methods`` (default the five "ours" presets: C-GAIL,
+GAIL and the three ablations) and every seed of ``--seeds`` it runs:
+
+1. **Static training** (``python -m cgail_planner.learning.train --preset P --mode static
+   --seed S --max-steps N1``, 1 torch thread), in the rigid aorta on the training targets
+   (scenario seed 0: the paper's 3 starts x 5 targets) with the committed demonstrations
+   (``--demos``). Each larger budget of ``--steps`` **continues the same run** with
+   ``train --resume RUN --max-steps N2``, after the smaller budget's result was snapshotted
+   (its ``best.pt``, ``scalars.csv`` and ``config.yaml`` go to ``steps_<N1>/``), so every budget
+   is reported from one training. The linear schedules (learning rate, epsilon, beta) of the
+   continued run first decayed towards N1 and then decay from there towards N2, so a budget
+   reached by continuation is not the same run as a fresh run of that budget.
+2. **Dynamic re-training** (``--modes`` with ``dynamic``), as the committed dynamic policy was
+   made (README, ``learning/models/insilico/report.md``): ``train --preset P --mode dynamic
+   --init-from steps_<N>/best.pt --max-steps D --seed S`` (``--dynamic-steps`` D, default
+   102,400), in the beating aorta with the moving target, from each budget's static best; every
+   method is re-trained the same way.
+3. **Export** of each policy (``export_onnx``): the run's ``best.pt`` (its best periodic
+   evaluation, on the training targets; ``final.pt`` when the run made no periodic evaluation).
+4. **Evaluation** (``python -m cgail_planner.learning.evaluate``), ``--trials`` trials (default
+   100) per policy through the simulated EM tracker, as ``evaluate`` does, on the training
+   targets (scenario seed 0) and on unseen targets (``--unseen-scenario-seed``, default 1: a
+   target set no run trained on), static policies in the static simulator and re-trained
+   policies in the dynamic one; ``--baselines`` (default the centerline follower) run on the same
+   target sets as references.
+5. **Report** ``OUT/report.md``: per option set (``ours``, ``paper_code``) and budget, success per
+   seed and their mean beside the paper's figures, the steps used beside the authors' budgets,
+   the ordering of the methods against the paper's; learning curves
+   ``OUT/curves_<options>_<mode>.png`` (``eval/success_rate`` against steps, one line per run,
+   from each run's ``scalars.csv``); ``OUT/results.csv`` in long form. A run that has not reached
+   a budget is shown with the steps it reached, marked.
+
+**Resuming.** Everything lives under ``--out`` (default ``runs/insilico_study``). Re-running the
+same command skips what is done (snapshots; policies newer than their checkpoint; evaluations
+of the current policy with ``--trials`` trials), resumes
+unfinished trainings from their latest checkpoint (``train --resume``; a run without a
+checkpoint restarts) and rebuilds the report. Ctrl-C or SIGTERM stops the running processes;
+their checkpoints stay. Each process logs to ``OUT/logs/<task>.log`` (appended across
+invocations). A progress line per running training every ``--progress-every`` seconds gives its
+steps, steps/s, ETA and last evaluation success.
+
+Layout of ``OUT``: ``<preset>/seed<S>/static/`` (the static run, continued budget after budget),
+``<preset>/seed<S>/steps_<N>/`` (snapshot ``best.pt`` + ``scalars.csv`` + ``config.yaml`` +
+``snapshot.json``, ``static.onnx``, ``dynamic/`` run, ``dynamic.onnx``,
+``eval_<mode>_targets<K>/`` with ``evaluate``'s ``report.md`` and ``results.json``),
+``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Iterable, Iterator, Sequence
+import contextlib
+import csv
+from dataclasses import dataclass, field
+import datetime
+from fractions import Fraction
+from functools import partial
+import itertools
+import json
+import os
+from pathlib import Path
+import platform
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from typing import Any, IO
+
+import yaml
+
+WS = Path(__file__).resolve().parent.parent
+DEFAULT_METHODS = ('cgail', 'gail', 'mu0', 'lambda0', 'nu0')
+MODES = ('static', 'dynamic')
+TRAINING_TARGETS = 0
+#: Paper success rates (%), ``paper.tex``: static and ablations §V-A (text of Fig.
+#: ``fig:comp_path``: C-GAIL 80, GAIL 42, mu = 0 11, lambda = 0 58, nu = 0 48, epsilon 10 mm);
+#: dynamic §V-A (text of Fig. ``fig:comp_softrig``: C-GAIL 17, GAIL 0); the second anatomy
+#: Table IV (``tab:models``: 79). Keyed by method kind (the preset name without ``paper_code_``).
+PAPER_SUCCESS: dict[tuple[str, str], int] = {
+    ('cgail', 'static'): 80, ('gail', 'static'): 42, ('mu0', 'static'): 11,
+    ('lambda0', 'static'): 58, ('nu0', 'static'): 48,
+    ('cgail', 'dynamic'): 17, ('gail', 'dynamic'): 0}
+PAPER_SECOND_ANATOMY = 79
+#: The authors' step budgets (``docs/fidelity.md``, "One row per trained run"): their GAIL
+#: baseline ``chi_soft_gail_3`` 5M, their C-GAIL ``softAorta12`` and PPO-only ``ppo_only_1`` 8M.
+#: Their repository holds no ablation run; the ablations get their C-GAIL run's 8M (as the
+#: ``paper_code_mu0`` / ``paper_code_lambda0`` presets do), marked as such in the report.
+AUTHORS_STEPS: dict[str, int] = {'cgail': 8_000_000, 'gail': 5_000_000, 'ppo': 8_000_000,
+                                 'mu0': 8_000_000, 'lambda0': 8_000_000, 'nu0': 8_000_000}
+AUTHORS_STEPS_INFERRED = frozenset({'mu0', 'lambda0', 'nu0'})
+LABELS = {'cgail': 'C-GAIL', 'gail': 'GAIL', 'mu0': 'mu = 0 (no BC)',
+          'lambda0': 'lambda = 0 (no GAIL)', 'nu0': 'nu = 0 (no curiosity)', 'ppo': 'PPO only'}
+#: Two success rates closer than this are a tie in the ordering (with 100 trials per seed the
+#: standard error of a rate near 50% is 3.5 points over two seeds).
+TIE = Fraction(5, 100)
+
+
+class StudyError(ValueError):
+    """A one-line failure of the study (bad input, or a run that cannot give a budget)."""
+
+
+# ------------------------------------------------------------------------------------------
+# Pure pieces: names, files, results, tables, ordering (unit-tested without training).
+
+
+def method_kind(preset: str) -> str:
+    """The method a preset trains: its name without the ``paper_code_`` prefix."""
+    return preset.removeprefix('paper_code_')
+
+
+def method_label(preset: str) -> str:
+    """Display name of a preset's method (``paper_code_gail`` -> ``GAIL``)."""
+    return LABELS.get(method_kind(preset), preset)
+
+
+def check_budgets(steps: Sequence[int]) -> tuple[int, ...]:
+    """The step budgets, which must be positive and strictly increasing.
+
+    Raises:
+        StudyError: an empty list, a budget < 1, or budgets out of order.
+    """
+    if not steps:
+        raise StudyError('--steps: expected one or more budgets, found none')
+    if any(n < 1 for n in steps):
+        raise StudyError(f'--steps: expected budgets >= 1, found {list(steps)}')
+    if any(b <= a for a, b in itertools.pairwise(steps)):
+        raise StudyError(f'--steps: expected strictly increasing budgets (a larger budget '
+                         f'continues the smaller one), found {list(steps)}')
+    return tuple(steps)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where everything of a study lives under ``root``."""
+
+    root: Path
+
+    def run_root(self, preset: str, seed: int) -> Path:
+        """Folder of one training run (static run plus its budgets)."""
+        return self.root / preset / f'seed{seed}'
+
+    def static_run(self, preset: str, seed: int) -> Path:
+        """The static training run, continued budget after budget."""
+        return self.run_root(preset, seed) / 'static'
+
+    def budget(self, preset: str, seed: int, steps: int) -> Path:
+        """Everything of one budget: snapshot, policies, dynamic run, evaluations."""
+        return self.run_root(preset, seed) / f'steps_{steps}'
+
+    def snapshot(self, preset: str, seed: int, steps: int) -> Path:
+        """The marker of a budget's snapshot (written last)."""
+        return self.budget(preset, seed, steps) / 'snapshot.json'
+
+    def dynamic_run(self, preset: str, seed: int, steps: int) -> Path:
+        """The dynamic re-training from a budget's static best."""
+        return self.budget(preset, seed, steps) / 'dynamic'
+
+    def policy(self, preset: str, seed: int, steps: int, mode: str) -> Path:
+        """The exported policy of a budget in ``mode``."""
+        return self.budget(preset, seed, steps) / f'{mode}.onnx'
+
+    def evaluation(self, preset: str, seed: int, steps: int, mode: str, targets: int) -> Path:
+        """``evaluate``'s output folder of one policy, mode and target set."""
+        return self.budget(preset, seed, steps) / f'eval_{mode}_targets{targets}'
+
+    def baselines(self, options: str, mode: str, targets: int) -> Path:
+        """``evaluate``'s output folder of the baselines."""
+        return self.root / 'baselines' / options / f'eval_{mode}_targets{targets}'
+
+    def log(self, task: str) -> Path:
+        """The log file of a task."""
+        return self.root / 'logs' / f'{task.replace("/", "_")}.log'
+
+
+def read_scalars(path: Path) -> dict[str, list[tuple[int, float]]]:
+    """``tag -> [(step, value), ...]`` from a run's long-format ``scalars.csv`` (empty when it
+    does not exist; malformed rows, e.g. a half-written last line, are skipped)."""
+    out: dict[str, list[tuple[int, float]]] = {}
+    if not path.is_file():
+        return out
+    with path.open(newline='') as f:
+        for row in csv.reader(f):
+            if len(row) != 3 or not row[0].isdigit():
+                continue
+            try:
+                value = float(row[2])
+            except ValueError:
+                continue
+            out.setdefault(row[1], []).append((int(row[0]), value))
+    return out
+
+
+def last_step(scalars: dict[str, list[tuple[int, float]]]) -> int:
+    """The highest step logged (0 for none)."""
+    return max((s for rows in scalars.values() for s, _ in rows), default=0)
+
+
+@dataclass(frozen=True)
+class Progress:
+    """Where a training run stands, from its ``scalars.csv``."""
+
+    step: int
+    steps_per_s: float | None
+    eval_step: int | None
+    eval_success: float | None
+
+    def line(self, target: int) -> str:
+        """``step/target (pct), steps/s, ETA, last eval success``."""
+        parts = [f'{self.step:,}/{target:,} steps ({100 * self.step / target:.0f}%)']
+        if self.steps_per_s:
+            eta = max(target - self.step, 0) / self.steps_per_s
+            parts += [f'{self.steps_per_s:,.0f} steps/s', f'ETA {format_duration(eta)}']
+        if self.eval_success is not None:
+            parts.append(f'last eval success {self.eval_success:.2f} at {self.eval_step:,}')
+        return ', '.join(parts)
+
+
+def run_progress(run: Path, since: int = 0) -> Progress:
+    """The :class:`Progress` of the run in ``run``; its steps/s from the rows past step
+    ``since`` (those of the running ``train`` process, which resumed there)."""
+    sc = read_scalars(run / 'scalars.csv')
+    rate = [r for r in sc.get('time/steps_per_s', []) if r[0] > since]
+    ev = sc.get('eval/success_rate', [])
+    return Progress(last_step(sc), rate[-1][1] if rate else None,
+                    ev[-1][0] if ev else None, ev[-1][1] if ev else None)
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``12.5 min`` or ``3.2 h``."""
+    if seconds < 90:
+        return f'{seconds:.0f} s'
+    if seconds < 5400:
+        return f'{seconds / 60:.1f} min'
+    return f'{seconds / 3600:.1f} h'
+
+
+def run_max_steps(run: Path) -> int | None:
+    """``max_steps`` of the last ``train`` invocation in ``run`` (its ``config.yaml``)."""
+    path = run / 'config.yaml'
+    if not path.is_file():
+        return None
+    data = yaml.safe_load(path.read_text()) or {}
+    value = data.get('max_steps')
+    return int(value) if isinstance(value, int) else None
+
+
+def trained_to(run: Path, steps: int) -> bool:
+    """Whether the run in ``run`` finished a ``train`` invocation of ``max_steps`` = ``steps``:
+    its ``final.pt`` exists, its ``config.yaml`` says ``steps`` and its log reached them."""
+    return ((run / 'final.pt').is_file() and run_max_steps(run) == steps
+            and last_step(read_scalars(run / 'scalars.csv')) >= steps)
+
+
+def checkpoint_steps(run: Path) -> list[int]:
+    """Steps of the run's periodic checkpoints ``checkpoints/step_<n>.pt``."""
+    return sorted(int(p.stem[5:]) for p in (run / 'checkpoints').glob('step_*.pt')
+                  if p.stem[5:].isdigit())
+
+
+def resumable(run: Path) -> bool:
+    """Whether ``train --resume`` can continue the run (a periodic checkpoint or final.pt)."""
+    return bool(checkpoint_steps(run)) or (run / 'final.pt').is_file()
+
+
+def resumable_step(run: Path) -> int:
+    """The step ``train --resume`` would continue from, as far as the files tell without
+    loading a checkpoint: the highest periodic checkpoint, or the step the study recorded
+    when a ``train`` invocation ended (``study_state.json``) while its final.pt is there."""
+    best = max(checkpoint_steps(run), default=0)
+    state = run / 'study_state.json'
+    if (run / 'final.pt').is_file() and state.is_file():
+        best = max(best, int(json.loads(state.read_text()).get('step', 0)))
+    return best
+
+
+def wall_seconds_from_log(log: Path) -> float | None:
+    """The run's cumulative training wall time: the last ``time/wall_s`` that ``train`` printed
+    in its result YAML (None when the log has none)."""
+    if not log.is_file():
+        return None
+    found = re.findall(r'^time/wall_s: ([0-9.eE+-]+)$', log.read_text(errors='replace'),
+                       flags=re.M)
+    return float(found[-1]) if found else None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Successes of a policy over its evaluation trials."""
+
+    successes: int
+    trials: int
+
+    @property
+    def rate(self) -> Fraction:
+        """The success rate, exact."""
+        return Fraction(self.successes, self.trials)
+
+
+def load_outcome(folder: Path, name: str | None = None) -> Outcome | None:
+    """The outcome of method ``name`` (default: the first method) of the first mode in
+    ``folder/results.json`` (``evaluate``'s), or None when it is not there."""
+    path = folder / 'results.json'
+    if not path.is_file():
+        return None
+    data = json.loads(path.read_text())
+    for methods in data['modes'].values():
+        key = name if name is not None else next(iter(methods), None)
+        if key in methods:
+            trials = methods[key]['trials']
+            return Outcome(sum(bool(t['success']) for t in trials), len(trials))
+    return None
+
+
+def load_baselines(folder: Path) -> dict[str, Outcome]:
+    """``method -> outcome`` of every method in ``folder/results.json`` (empty when absent)."""
+    path = folder / 'results.json'
+    if not path.is_file():
+        return {}
+    data = json.loads(path.read_text())
+    return {name: Outcome(sum(bool(t['success']) for t in m['trials']), len(m['trials']))
+            for methods in data['modes'].values() for name, m in methods.items()}
+
+
+def mean_outcome(outcomes: Iterable[Outcome | None]) -> Outcome | None:
+    """The pooled outcome of the seeds (None unless every seed has one)."""
+    got = list(outcomes)
+    if not got or any(o is None for o in got):
+        return None
+    return Outcome(sum(o.successes for o in got if o), sum(o.trials for o in got if o))
+
+
+def percent(rate: Fraction) -> str:
+    """``80%`` (rounded half up, exact)."""
+    return f'{int(rate * 100 + Fraction(1, 2))}%'
+
+
+def ordering(values: dict[str, Fraction], tie: Fraction = Fraction(0)) -> list[list[str]]:
+    """Methods from best to worst, grouped: a method joins the current group when its value is
+    within ``tie`` of the group's best; order within a group by value, then by name order."""
+    ranked = sorted(values, key=lambda k: (-values[k], list(values).index(k)))
+    groups: list[list[str]] = []
+    for name in ranked:
+        if groups and values[groups[-1][0]] - values[name] <= tie:
+            groups[-1].append(name)
+        else:
+            groups.append([name])
+    return groups
+
+
+def format_ordering(values: dict[str, Fraction], tie: Fraction = Fraction(0),
+                    label: Callable[[str], str] = str) -> str:
+    """``A 80% > B 58% ≈ C 55%`` (``≈``: within ``tie``)."""
+    return ' > '.join(' ≈ '.join(f'{label(n)} {percent(values[n])}' for n in group)
+                      for group in ordering(values, tie))
+
+
+def pair_agreement(ours: dict[str, Fraction], paper: dict[str, Fraction],
+                   tie: Fraction = TIE) -> tuple[int, int, list[tuple[str, str]]]:
+    """How many method pairs (with both figures) ours orders as the paper does.
+
+    A pair agrees when the paper's better method is better here by more than ``tie``; equal
+    paper figures want a tie here. Returns (agreeing, pairs, the disagreeing pairs as
+    (paper's better, paper's worse)).
+    """
+    names = [n for n in paper if n in ours]
+    agree, total, differ = 0, 0, []
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            hi, lo = (a, b) if paper[a] >= paper[b] else (b, a)
+            total += 1
+            if paper[hi] == paper[lo]:
+                ok = abs(ours[hi] - ours[lo]) <= tie
+            else:
+                ok = ours[hi] - ours[lo] > tie
+            if ok:
+                agree += 1
+            else:
+                differ.append((hi, lo))
+    return agree, total, differ
+
+
+@dataclass(frozen=True)
+class StudyPlan:
+    """What a study covers."""
+
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    budgets: tuple[int, ...]
+    modes: tuple[str, ...]
+    option_sets: dict[str, str]
+    """preset -> its env option set (``ours``, ``paper_code``)."""
+    trials: int = 100
+    unseen: int = 1
+    dynamic_steps: int = 102_400
+    baselines: tuple[str, ...] = ('centerline',)
+
+    @property
+    def target_sets(self) -> tuple[int, int]:
+        """(training targets, unseen targets) scenario seeds."""
+        return (TRAINING_TARGETS, self.unseen)
+
+    def options(self) -> list[str]:
+        """The option sets of the methods, in method order."""
+        return list(dict.fromkeys(self.option_sets[m] for m in self.methods))
+
+
+@dataclass
+class StudyResults:
+    """Everything the report needs, read from the files (:func:`collect`)."""
+
+    plan: StudyPlan
+    outcomes: dict[tuple[str, int, int, str, int], Outcome] = field(default_factory=dict)
+    """(preset, seed, budget, mode, target set) -> outcome."""
+    snapshots: dict[tuple[str, int, int], dict[str, Any]] = field(default_factory=dict)
+    """(preset, seed, budget) -> snapshot.json (``step``, ``wall_s``, ``policy``...)."""
+    reached: dict[tuple[str, int], int] = field(default_factory=dict)
+    """(preset, seed) -> the static run's last logged step."""
+    baselines: dict[tuple[str, str, int], dict[str, Outcome]] = field(default_factory=dict)
+    """(options, mode, target set) -> baseline -> outcome."""
+    curves: dict[tuple[str, int], list[tuple[int, float]]] = field(default_factory=dict)
+    """(preset, seed) -> static eval/success_rate curve."""
+    dynamic_curves: dict[tuple[str, int, int], list[tuple[int, float]]] = field(
+        default_factory=dict)
+    """(preset, seed, budget) -> dynamic re-training eval/success_rate curve."""
+
+
+def collect(layout: Layout, plan: StudyPlan) -> StudyResults:
+    """Read every result of ``plan`` that exists under ``layout``."""
+    res = StudyResults(plan)
+    for m in plan.methods:
+        for s in plan.seeds:
+            sc = read_scalars(layout.static_run(m, s) / 'scalars.csv')
+            res.reached[(m, s)] = last_step(sc)
+            res.curves[(m, s)] = sc.get('eval/success_rate', [])
+            for n in plan.budgets:
+                snap = layout.snapshot(m, s, n)
+                if snap.is_file():
+                    res.snapshots[(m, s, n)] = json.loads(snap.read_text())
+                dyn = read_scalars(layout.dynamic_run(m, s, n) / 'scalars.csv')
+                if dyn:
+                    res.dynamic_curves[(m, s, n)] = dyn.get('eval/success_rate', [])
+                for mode in plan.modes:
+                    for k in plan.target_sets:
+                        o = load_outcome(layout.evaluation(m, s, n, mode, k))
+                        if o is not None:
+                            res.outcomes[(m, s, n, mode, k)] = o
+    for options in plan.options():
+        for mode in plan.modes:
+            for k in plan.target_sets:
+                got = load_baselines(layout.baselines(options, mode, k))
+                if got:
+                    res.baselines[(options, mode, k)] = got
+    return res
+
+
+def steps_cell(res: StudyResults, preset: str, budget: int) -> str:
+    """The steps used for ``budget`` (per seed when they differ; a dagger where not reached)
+    and the authors' budget."""
+    parts = []
+    for s in res.plan.seeds:
+        snap = res.snapshots.get((preset, s, budget))
+        if snap is not None:
+            parts.append(f"{int(snap['step']):,}")
+        else:
+            parts.append(f'{res.reached.get((preset, s), 0):,} of {budget:,} †')
+    used = parts[0] if len(set(parts)) == 1 else ', '.join(
+        f'seed {s}: {p}' for s, p in zip(res.plan.seeds, parts, strict=True))
+    kind = method_kind(preset)
+    theirs = AUTHORS_STEPS.get(kind)
+    if theirs is None:
+        return f'{used} (authors: -)'
+    return f"{used} (authors: {theirs:,}{'*' if kind in AUTHORS_STEPS_INFERRED else ''})"
+
+
+def success_cell(res: StudyResults, preset: str, budget: int, mode: str, targets: int) -> str:
+    """``100%, 93% (mean **97%**)``: per seed, then pooled; ``-`` where missing."""
+    per = [res.outcomes.get((preset, s, budget, mode, targets)) for s in res.plan.seeds]
+    seeds = ', '.join(percent(o.rate) if o else '-' for o in per)
+    pooled = mean_outcome(per)
+    if len(per) == 1:
+        return f'**{seeds}**' if pooled else seeds
+    return f'{seeds} (mean **{percent(pooled.rate)}**)' if pooled else f'{seeds} (mean -)'
+
+
+def paper_cell(preset: str, mode: str) -> str:
+    """The paper's success rate of the preset's method in ``mode``, or ``-``."""
+    value = PAPER_SUCCESS.get((method_kind(preset), mode))
+    return '-' if value is None else f'{value}%'
+
+
+def budget_table(res: StudyResults, options: str, budget: int) -> list[str]:
+    """The side-by-side table of one option set and budget (markdown lines)."""
+    plan = res.plan
+    seeds = ('seeds ' if len(plan.seeds) > 1 else 'seed ') + ', '.join(map(str, plan.seeds))
+    head = ['method', 'steps used (authors\')']
+    for mode in plan.modes:
+        head += [f'{mode}: paper', f'{mode}: training targets ({seeds})',
+                 f'{mode}: unseen targets ({seeds})']
+    lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    for m in plan.methods:
+        if plan.option_sets[m] != options:
+            continue
+        row = [f'{method_label(m)} (`{m}`)', steps_cell(res, m, budget)]
+        for mode in plan.modes:
+            row += [paper_cell(m, mode)] + [success_cell(res, m, budget, mode, k)
+                                            for k in plan.target_sets]
+        lines.append('| ' + ' | '.join(row) + ' |')
+    return lines
+
+
+def baseline_line(res: StudyResults, options: str) -> str | None:
+    """``Baselines ...: centerline static 100% / 97%; ...`` (training / unseen targets)."""
+    parts = []
+    for mode in res.plan.modes:
+        got = [res.baselines.get((options, mode, k), {}) for k in res.plan.target_sets]
+        for name in dict.fromkeys(n for g in got for n in g):
+            cells = [percent(g[name].rate) if name in g else '-' for g in got]
+            parts.append(f'`{name}` {mode} {" / ".join(cells)}')
+    if not parts:
+        return None
+    return ('Baselines on the same trials (training / unseen targets; not trained, the same at '
+            'every budget): ' + '; '.join(parts) + '.')
+
+
+def pooled_rates(res: StudyResults, options: str, budget: int, mode: str, targets: int
+                 ) -> dict[str, Fraction]:
+    """preset -> pooled success rate over the seeds (methods with every seed evaluated)."""
+    out = {}
+    for m in res.plan.methods:
+        if res.plan.option_sets[m] != options:
+            continue
+        pooled = mean_outcome(res.outcomes.get((m, s, budget, mode, targets))
+                              for s in res.plan.seeds)
+        if pooled is not None:
+            out[m] = pooled.rate
+    return out
+
+
+def ordering_lines(res: StudyResults, options: str, budget: int) -> list[str]:
+    """Ours and the paper's ordering of the methods per mode and target set, and how many
+    method pairs keep the paper's order."""
+    lines = []
+    for mode in res.plan.modes:
+        paper = {m: Fraction(PAPER_SUCCESS[(method_kind(m), mode)], 100)
+                 for m in res.plan.methods if res.plan.option_sets[m] == options
+                 and (method_kind(m), mode) in PAPER_SUCCESS}
+        if len(paper) >= 2:
+            lines.append(f'- {mode}, paper: {format_ordering(paper, label=method_label)}')
+        for k in res.plan.target_sets:
+            ours = pooled_rates(res, options, budget, mode, k)
+            where = 'training targets' if k == TRAINING_TARGETS else 'unseen targets'
+            if len(ours) < 2:
+                lines.append(f'- {mode}, {where}: fewer than two methods evaluated yet')
+                continue
+            line = f'- {mode}, {where}: {format_ordering(ours, TIE, method_label)}'
+            agree, total, differ = pair_agreement(ours, paper)
+            if total:
+                line += f'; {agree} of {total} pairs ordered as in the paper'
+                if differ:
+                    line += ' (not: ' + ', '.join(
+                        f'{method_label(a)} > {method_label(b)}' for a, b in differ) + ')'
+            lines.append(line)
+    return lines
+
+
+def results_rows(res: StudyResults) -> list[list[Any]]:
+    """Long-form rows of every evaluated outcome (``results.csv``)."""
+    rows: list[list[Any]] = [['options', 'preset', 'seed', 'budget', 'steps', 'mode', 'targets',
+                              'successes', 'trials']]
+    for (m, s, n, mode, k), o in sorted(res.outcomes.items()):
+        snap = res.snapshots.get((m, s, n), {})
+        rows.append([res.plan.option_sets[m], m, s, n, snap.get('step', ''), mode,
+                     'training' if k == TRAINING_TARGETS else f'unseen (scenario seed {k})',
+                     o.successes, o.trials])
+    return rows
+
+
+def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[int], path: Path,
+                title: str, xlabel: str = 'env steps') -> bool:
+    """One line per run (``eval/success_rate`` against steps), dotted lines at ``budgets``.
+    Returns False (and writes nothing) when no curve has a point."""
+    if not any(curves.values()):
+        return False
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    styles = ['-', '--', ':', '-.']
+    colours: dict[str, str] = {}
+    count: dict[str, int] = {}
+    for label, pts in curves.items():
+        if not pts:
+            continue
+        method = label.split(' seed')[0]  # one colour per method, one style per run of it
+        colour = colours.setdefault(method, f'C{len(colours) % 10}')
+        count[method] = count.get(method, -1) + 1
+        xs, ys = zip(*pts, strict=True)
+        ax.plot(xs, ys, styles[count[method] % len(styles)], color=colour, marker='.',
+                label=label)
+    for n in budgets:
+        ax.axvline(n, color='0.6', linestyle=':', linewidth=1)
+    ax.set_ylim(-0.03, 1.03)
+    ax.set_xlim(left=0)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel('eval/success_rate')
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc='best')
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def build_report(res: StudyResults, command: str, out: Path, notes: str = '') -> str:
+    """The study's markdown report; writes the learning-curve PNGs next to it in ``out``."""
+    plan = res.plan
+    seeds = ', '.join(str(s) for s in plan.seeds)
+    lines = [
+        '# In-silico study: the paper side by side with ours', '',
+        f'Made by `bench/insilico_study.py` on {datetime.date.today().isoformat()} '
+        f'({platform.node() or "?"}, {os.cpu_count()} CPUs); re-run or continue with:', '',
+        f'```bash\n{command}\n```', '',
+        f'Seeds {seeds}; {plan.trials} evaluation trials per policy, target set and mode; '
+        'trial k uses start k % 3 and target (k // 3) % 5, seed 1000 + k, and the policy '
+        'perceives the tip through the simulated EM tracker (0.48 mm / 0.30 deg RMS), as '
+        '`evaluate` does. "training targets": scenario seed 0, the paper\'s 3 starts x 5 '
+        'targets that the demonstrations and every run trained on (each run\'s `best.pt` was '
+        'also selected on them by its periodic evaluation); "unseen targets": scenario seed '
+        f'{plan.unseen}, a target set no run trained on. Each cell: success per seed, then the '
+        'mean (pooled over the seeds).', '',
+        'Static: `train --mode static` to each budget of `--steps`; a larger budget continues '
+        'the same run (`train --resume RUN --max-steps N`) after the smaller budget\'s '
+        '`best.pt` was kept, so the linear schedules of a continued run first decayed towards '
+        'the smaller budget. The policy of a budget is the run\'s `best.pt` up to that budget.',
+        '']
+    if 'dynamic' in plan.modes:
+        lines += [f'Dynamic: as the committed dynamic policy was made, each budget\'s static '
+                  f'`best.pt` re-trained {plan.dynamic_steps:,} steps in the beating aorta '
+                  '(`train --mode dynamic --init-from .../best.pt`), then its `best.pt` '
+                  '(its `final.pt` when it made no periodic evaluation) evaluated in the '
+                  'dynamic simulator. Every method is re-trained the same way.', '']
+    lines += [f'Paper figures (`paper.tex`): static and ablations from §V-A (C-GAIL 80%, GAIL '
+              f'42%, mu = 0 11%, lambda = 0 58%, nu = 0 48%), dynamic from §V-A (C-GAIL 17%, '
+              f'GAIL 0%); the paper trained 5e5 steps by its Table III, while the authors\' '
+              f'code ran 5M (GAIL) and 8M (C-GAIL, PPO) steps (`docs/fidelity.md`). Their '
+              f'second anatomy ({PAPER_SECOND_ANATOMY}%, Table IV) is not part of this study. '
+              '† budget not reached yet (steps reached so far; no evaluation). * the authors\' '
+              'repository has no ablation run: their C-GAIL run\'s budget.', '']
+    if notes:
+        lines += [notes, '']
+    for options in plan.options():
+        lines += [f'## Option set `{options}`', '']
+        base = baseline_line(res, options)
+        if base:
+            lines += [base, '']
+        for n in plan.budgets:
+            lines += [f'### {n:,} steps', '', *budget_table(res, options, n), '',
+                      'Ordering (ties: within 5 points):', '', *ordering_lines(res, options, n),
+                      '']
+        curves = {f'{m} seed {s}': res.curves.get((m, s), []) for m in plan.methods
+                  if plan.option_sets[m] == options for s in plan.seeds}
+        png = f'curves_{options}_static.png'
+        if plot_curves(curves, plan.budgets, out / png, f'option set {options}: static '
+                       'training, periodic evaluation (training targets)'):
+            lines += ['Learning curves (periodic evaluation of each run on the training '
+                      'targets, noise-free; dotted: the budgets):', '', f'![static]({png})', '']
+        dyn = {f'{m} seed {s} from {n:,}': res.dynamic_curves.get((m, s, n), [])
+               for m in plan.methods if plan.option_sets[m] == options
+               for s in plan.seeds for n in plan.budgets}
+        png = f'curves_{options}_dynamic.png'
+        if 'dynamic' in plan.modes and plot_curves(
+                dyn, [], out / png, f'option set {options}: dynamic re-training, periodic '
+                'evaluation', 'env steps of the re-training'):
+            lines += [f'![dynamic]({png})', '']
+    walls = [f"{m} seed {s} {n:,}: {format_duration(float(snap['wall_s']))}"
+             for (m, s, n), snap in sorted(res.snapshots.items()) if snap.get('wall_s')]
+    if walls:
+        lines += ['Training wall time (cumulative, from `train`): ' + '; '.join(walls) + '.', '']
+    return '\n'.join(lines) + '\n'
+
+
+def write_report(layout: Layout, plan: StudyPlan, command: str) -> Path:
+    """Collect the results and write ``report.md``, the curves and ``results.csv``."""
+    res = collect(layout, plan)
+    layout.root.mkdir(parents=True, exist_ok=True)
+    with (layout.root / 'results.csv').open('w', newline='') as f:
+        csv.writer(f).writerows(results_rows(res))
+    path = layout.root / 'report.md'
+    path.write_text(build_report(res, command, layout.root))
+    return path
+
+
+# ------------------------------------------------------------------------------------------
+# Running: tasks (subprocesses with dependencies), scheduled --jobs at a time.
+
+
+@dataclass
+class Task:
+    """One step of the study: a subprocess (or nothing to run) and what follows it."""
+
+    key: str
+    kind: str
+    """``train``, ``export``, ``eval``: trainings are long, the rest short."""
+    deps: list[str]
+    done: Callable[[], bool]
+    command: Callable[[], list[str] | None]
+    """The command to run now (None: nothing to run, only ``post``); may raise StudyError."""
+    post: Callable[[], None] | None = None
+    run: Path | None = None
+    """A training's run folder (progress lines)."""
+    target: int = 0
+    """A training's step budget (progress lines)."""
+    order: int = 0
+
+
+def python_module(module: str, *args: str) -> list[str]:
+    """``python -m module args`` with this interpreter."""
+    return [sys.executable, '-m', module, *args]
+
+
+def snapshot(run: Path, dest: Path, budget: int, log: Path) -> None:
+    """Keep what a budget's result needs before the run continues: ``best.pt`` (or
+    ``final.pt``), ``scalars.csv``, ``config.yaml``, then ``snapshot.json`` (written last).
+
+    Raises:
+        StudyError: the run is not at ``budget`` (or went one iteration past it).
+    """
+    sc = read_scalars(run / 'scalars.csv')
+    step = last_step(sc)
+    cfg = yaml.safe_load((run / 'config.yaml').read_text()) or {}
+    per_iter = int(cfg.get('ppo', {}).get('buffer_size', 0)) or step
+    if not (budget <= step < budget + per_iter):
+        raise StudyError(f'{run}: expected the run at {budget:,} steps to snapshot, found it at '
+                         f'{step:,}')
+    dest.mkdir(parents=True, exist_ok=True)
+    policy = 'best.pt' if (run / 'best.pt').is_file() else 'final.pt'
+    shutil.copy2(run / policy, dest / 'best.pt')
+    shutil.copy2(run / 'scalars.csv', dest / 'scalars.csv')
+    shutil.copy2(run / 'config.yaml', dest / 'config.yaml')
+    ev = [v for s, v in sc.get('eval/success_rate', []) if s <= step]
+    info = {'budget': budget, 'step': step, 'policy': policy,
+            'best_eval_success': max(ev) if ev else None,
+            'wall_s': wall_seconds_from_log(log),
+            'time': datetime.datetime.now().isoformat(timespec='seconds')}
+    tmp = dest / 'snapshot.json.tmp'
+    tmp.write_text(json.dumps(info, indent=1) + '\n')
+    tmp.replace(dest / 'snapshot.json')
+
+
+def record_state(run: Path) -> None:
+    """After a ``train`` invocation ended well: the step its final.pt holds."""
+    (run / 'study_state.json').write_text(
+        json.dumps({'step': last_step(read_scalars(run / 'scalars.csv'))}) + '\n')
+
+
+def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) -> list[str] | None:
+    """Resume ``run`` to ``steps``, start it fresh (``fresh`` + ``common``), or None when it
+    already finished at ``steps``.
+
+    Raises:
+        StudyError: the run is already past ``steps`` (that budget was not kept in time).
+    """
+    if trained_to(run, steps):
+        return None
+    if resumable(run):
+        at = resumable_step(run)
+        if at >= steps:
+            raise StudyError(f'{run}: expected a run before {steps:,} steps, found one at '
+                             f'{at:,}: that budget was not snapshotted; use another --out')
+        return python_module('cgail_planner.learning.train', '--resume', str(run),
+                             '--max-steps', str(steps), *common)
+    if run.exists():
+        shutil.rmtree(run)  # nothing to resume (no checkpoint): start again
+    return python_module('cgail_planner.learning.train', *fresh, '--max-steps', str(steps),
+                         '--out', str(run), *common)
+
+
+def up_to_date(output: Path, *inputs: Path) -> bool:
+    """Whether ``output`` exists and is not older than any of the ``inputs`` that exist."""
+    if not output.is_file():
+        return False
+    t = output.stat().st_mtime
+    return all(t >= i.stat().st_mtime for i in inputs if i.is_file())
+
+
+def evaluated(folder: Path, policy: Path | None, trials: int) -> bool:
+    """Whether ``folder/results.json`` holds ``trials`` trials of the current ``policy``."""
+    path = folder / 'results.json'
+    if not up_to_date(path, *([policy] if policy is not None else [])):
+        return False
+    return bool(json.loads(path.read_text()).get('trials') == trials)
+
+
+def dynamic_done(run: Path, steps: int) -> bool:
+    """Whether the dynamic re-training in ``run`` finished its ``steps``."""
+    return trained_to(run, steps) and (run / 'study_state.json').is_file()
+
+
+def export_command(ckpt: Path, policy: Path) -> list[str]:
+    """Export ``ckpt`` (``best.pt``; ``final.pt`` beside it when the run made no periodic
+    evaluation) to ``policy``."""
+    use = ckpt if ckpt.is_file() else ckpt.with_name('final.pt')
+    return python_module('cgail_planner.learning.export', str(use), '--out', str(policy))
+
+
+def static_post(layout: Layout, preset: str, seed: int, budget: int) -> None:
+    """After the static training reached ``budget``: record its step, snapshot the budget."""
+    run = layout.static_run(preset, seed)
+    record_state(run)
+    snapshot(run, layout.budget(preset, seed, budget), budget,
+             layout.log(f'{preset}/seed{seed}/{budget}/train-static'))
+
+
+def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[Task]:
+    """Every task of the study, dependencies first.
+
+    Order among ready tasks (with ``--jobs`` 1, the whole smaller budget before the larger):
+    exports and evaluations, then baselines and dynamic re-trainings, then static trainings,
+    budget by budget.
+    """
+    tasks: list[Task] = []
+    demo_args = ['--demos', *[str(d) for d in demos]]
+    common = [*demo_args, '--threads', '1', '--no-progress']
+    evaluate = 'cgail_planner.learning.evaluate'
+    for m in plan.methods:
+        for s in plan.seeds:
+            run = layout.static_run(m, s)
+            prev: str | None = None
+            for bi, n in enumerate(plan.budgets):
+                key = f'{m}/seed{s}/{n}'
+                static_key = f'{key}/train-static'
+                tasks.append(Task(
+                    static_key, 'train', [prev] if prev else [],
+                    done=layout.snapshot(m, s, n).is_file,
+                    command=partial(train_command, run, n, ['--preset', m, '--seed', str(s)],
+                                    ['--mode', 'static', *common]),
+                    post=partial(static_post, layout, m, s, n), run=run, target=n,
+                    order=10 * bi + 2))
+                prev = static_key
+                best = layout.budget(m, s, n) / 'best.pt'
+                for mode in plan.modes:
+                    policy = layout.policy(m, s, n, mode)
+                    if mode == 'static':
+                        ckpt, source = best, static_key
+                    else:
+                        dyn, d = layout.dynamic_run(m, s, n), plan.dynamic_steps
+                        ckpt, source = dyn / 'best.pt', f'{key}/train-dynamic'
+                        tasks.append(Task(
+                            source, 'train', [static_key], done=partial(dynamic_done, dyn, d),
+                            command=partial(train_command, dyn, d,
+                                            ['--preset', m, '--seed', str(s), '--init-from',
+                                             str(best)], ['--mode', 'dynamic', *common]),
+                            post=partial(record_state, dyn), run=dyn, target=d,
+                            order=10 * bi + 1))
+                    tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
+                                      done=partial(up_to_date, policy, ckpt,
+                                                   ckpt.with_name('final.pt')),
+                                      command=partial(export_command, ckpt, policy)))
+                    for k in plan.target_sets:
+                        folder = layout.evaluation(m, s, n, mode, k)
+                        tasks.append(Task(
+                            f'{key}/eval-{mode}-targets{k}', 'eval', [f'{key}/export-{mode}'],
+                            done=partial(evaluated, folder, policy, plan.trials),
+                            command=partial(python_module, evaluate, '--policy', f'{m}={policy}',
+                                            '--baselines', '--modes', mode, '--trials',
+                                            str(plan.trials), '--scenario-seed', str(k),
+                                            '--out', str(folder))))
+    if plan.baselines:
+        for options in plan.options():
+            for mode in plan.modes:
+                for k in plan.target_sets:
+                    folder = layout.baselines(options, mode, k)
+                    tasks.append(Task(
+                        f'baselines/{options}/{mode}-targets{k}', 'eval', [],
+                        done=partial(evaluated, folder, None, plan.trials),
+                        command=partial(python_module, evaluate, '--baselines',
+                                        *plan.baselines, '--env-options', options, '--modes',
+                                        mode, '--trials', str(plan.trials), '--scenario-seed',
+                                        str(k), '--out', str(folder)),
+                        order=1))
+    return tasks
+
+
+def child_env() -> dict[str, str]:
+    """The environment of every process: one thread for torch, BLAS and numba."""
+    env = dict(os.environ)
+    for name in ('OMP_NUM_THREADS', 'MKL_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
+                 'NUMBA_NUM_THREADS'):
+        env[name] = '1'
+    return env
+
+
+def stamp() -> str:
+    """Wall-clock time for the progress lines."""
+    return time.strftime('%H:%M:%S')
+
+
+def say(line: str) -> None:
+    """One progress line."""
+    print(f'[{stamp()}] {line}', flush=True)
+
+
+def last_log_line(path: Path, containing: str = '') -> str:
+    """The last non-empty line of a log (with ``containing`` in it, if given) since the last
+    invocation's header."""
+    if not path.is_file():
+        return ''
+    text = path.read_text(errors='replace').rsplit('\n=== ', 1)[-1]
+    lines = [ln for ln in text.splitlines() if ln.strip() and containing in ln]
+    return lines[-1][-200:] if lines else ''
+
+
+@dataclass
+class Running:
+    """A task's running process."""
+
+    task: Task
+    proc: subprocess.Popen[bytes]
+    log: IO[str]
+    started: float
+    since: int
+    """The step a training starts or resumes from."""
+
+
+def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: float,
+              on_done: Callable[[Task], None] | None = None) -> tuple[int, int]:
+    """Run the tasks that are not done, ``jobs`` at a time, dependencies first.
+
+    Returns:
+        (tasks done, tasks failed or blocked by a failure).
+    """
+    by_key = {t.key: t for t in tasks}
+    state = {t.key: 'done' if t.done() else 'todo' for t in tasks}
+    skipped = sum(v == 'done' for v in state.values())
+    todo = len(tasks) - skipped
+    say(f'{len(tasks)} tasks: {skipped} already done, {todo} to run, {jobs} at a time')
+    running: dict[str, Running] = {}
+    last_progress = time.monotonic()
+    layout.root.joinpath('logs').mkdir(parents=True, exist_ok=True)
+
+    def finish(key: str, ok: bool, why: str = '') -> None:
+        state[key] = 'done' if ok else 'failed'
+        if ok and on_done is not None:
+            on_done(by_key[key])
+        if not ok:
+            say(f'FAILED {key}: {why}')
+
+    try:
+        while True:
+            for key, st in state.items():  # a failure blocks what depends on it
+                if st == 'todo' and any(state[d] in ('failed', 'blocked')
+                                        for d in by_key[key].deps):
+                    state[key] = 'blocked'
+            ready = sorted((t for t in tasks if state[t.key] == 'todo'
+                            and all(state[d] == 'done' for d in t.deps)),
+                           key=lambda t: (t.order, tasks.index(t)))
+            for t in ready:
+                if len(running) >= jobs:
+                    break
+                try:
+                    cmd = t.command()
+                    if cmd is None:  # nothing to run: the outputs are there
+                        if t.post is not None:
+                            t.post()
+                        finish(t.key, t.done(), 'not done after its step')
+                        continue
+                except (StudyError, OSError) as exc:
+                    finish(t.key, False, str(exc))
+                    continue
+                log_path = layout.log(t.key)
+                log = log_path.open('a')
+                log.write(f'=== {datetime.datetime.now().isoformat(timespec="seconds")} '
+                          f'{shlex.join(cmd)}\n')
+                log.flush()
+                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                        env=child_env(), stdin=subprocess.DEVNULL)
+                since = resumable_step(t.run) if t.run is not None else 0
+                running[t.key] = Running(t, proc, log, time.monotonic(), since)
+                state[t.key] = 'running'
+                say(f'start {t.key} (log {log_path.relative_to(layout.root)})')
+            if not running:
+                break
+            time.sleep(1.0)
+            for key, r in list(running.items()):
+                rc = r.proc.poll()
+                if rc is None:
+                    continue
+                r.log.close()
+                del running[key]
+                took = format_duration(time.monotonic() - r.started)
+                if rc != 0:
+                    finish(key, False, f'exit {rc} after {took}: '
+                           f'{last_log_line(layout.log(key))}')
+                    continue
+                try:
+                    if r.task.post is not None:
+                        r.task.post()
+                except (StudyError, OSError) as exc:
+                    finish(key, False, str(exc))
+                    continue
+                done = r.task.done()
+                if done:
+                    result = last_log_line(layout.log(key), ': success ')
+                    say(f'done {key} in {took}' + (f' ({result})' if result else ''))
+                finish(key, done, 'its outputs are missing after exit 0')
+            if time.monotonic() - last_progress >= progress_every:
+                last_progress = time.monotonic()
+                for key, r in running.items():
+                    if r.task.run is not None:
+                        say(f'{key}: {run_progress(r.task.run, r.since).line(r.task.target)}')
+    finally:
+        for key, r in running.items():
+            say(f'stopping {key} (pid {r.proc.pid}); it resumes on the next run')
+            r.proc.terminate()
+        for r in running.values():
+            try:
+                r.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                r.proc.kill()
+                r.proc.wait()
+            r.log.close()
+    n_done = sum(v == 'done' for v in state.values())
+    return n_done, len(tasks) - n_done
+
+
+# ------------------------------------------------------------------------------------------
+# Command line.
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The study's command line."""
+    p = argparse.ArgumentParser(prog='insilico_study', description=__doc__.split('\n')[0])
+    p.add_argument('--methods', nargs='+', default=list(DEFAULT_METHODS), metavar='PRESET',
+                   help='training presets (config/presets/); default: the five "ours" presets')
+    p.add_argument('--seeds', nargs='+', type=int, default=[0, 1])
+    p.add_argument('--steps', nargs='+', type=int, default=[500_000, 2_000_000], metavar='N',
+                   help='step budgets, increasing; a larger one continues the smaller run')
+    p.add_argument('--modes', nargs='+', choices=MODES, default=list(MODES))
+    p.add_argument('--jobs', type=int, default=1,
+                   help='processes at a time (trainings use 1 torch thread each)')
+    p.add_argument('--trials', type=int, default=100, help='evaluation trials per policy')
+    p.add_argument('--out', type=Path, default=Path('runs/insilico_study'))
+    p.add_argument('--demos', nargs='+', type=Path, default=[WS / 'bags/demos/default'],
+                   help='demonstrations (train --demos)')
+    p.add_argument('--unseen-scenario-seed', type=int, default=1,
+                   help='target set of the unseen-target evaluation (not 0, the training one)')
+    p.add_argument('--dynamic-steps', type=int, default=102_400,
+                   help='steps of the dynamic re-training from each static best')
+    p.add_argument('--baselines', nargs='*', choices=('centerline', 'expert'),
+                   default=['centerline'], help='reference methods evaluated on the same targets')
+    p.add_argument('--progress-every', type=float, default=60.0,
+                   help='seconds between progress lines of the running trainings')
+    p.add_argument('--report-only', action='store_true',
+                   help='rebuild OUT/report.md from what exists; run nothing')
+    return p
+
+
+def check_args(args: argparse.Namespace) -> StudyPlan:
+    """The plan of valid arguments.
+
+    Raises:
+        StudyError: an unknown preset, duplicate methods or seeds, bad budgets or counts.
+    """
+    from cgail_planner.learning.config import load_config
+    from cgail_planner.learning.errors import ConfigError
+
+    budgets = check_budgets(args.steps)
+    for name, values in (('--methods', args.methods), ('--seeds', args.seeds),
+                         ('--modes', args.modes)):
+        if len(set(values)) != len(values):
+            raise StudyError(f'{name}: expected distinct values, found {values}')
+    if any(s < 0 for s in args.seeds):
+        raise StudyError(f'--seeds: expected seeds >= 0, found {args.seeds}')
+    for name, value in (('--jobs', args.jobs), ('--trials', args.trials),
+                        ('--dynamic-steps', args.dynamic_steps)):
+        if value < 1:
+            raise StudyError(f'{name}: expected >= 1, found {value}')
+    if args.unseen_scenario_seed < 1:
+        raise StudyError(f'--unseen-scenario-seed: expected a target set other than the '
+                         f'training one (0), found {args.unseen_scenario_seed}')
+    option_sets = {}
+    for m in args.methods:
+        try:
+            option_sets[m] = load_config(m).env_options
+        except ConfigError as exc:
+            raise StudyError(f'--methods: {exc}') from None
+    if not args.report_only:
+        missing = [str(d) for d in args.demos if not d.exists()]
+        if missing:
+            raise StudyError(f'--demos: expected existing demonstrations, found none at '
+                             f'{missing}')
+    return StudyPlan(tuple(args.methods), tuple(args.seeds), budgets, tuple(args.modes),
+                     option_sets, args.trials, args.unseen_scenario_seed, args.dynamic_steps,
+                     tuple(args.baselines))
+
+
+def command_line(args: argparse.Namespace) -> str:
+    """The command that re-runs this study (relative paths where they are inside WS)."""
+    def rel(p: Path) -> str:
+        p = p.resolve()
+        return str(p.relative_to(WS)) if p.is_relative_to(WS) else str(p)
+
+    parts = ['scripts/ws', 'python', 'bench/insilico_study.py', '--methods', *args.methods,
+             '--seeds', *map(str, args.seeds), '--steps', *map(str, args.steps), '--modes',
+             *args.modes, '--trials', str(args.trials), '--dynamic-steps',
+             str(args.dynamic_steps), '--unseen-scenario-seed', str(args.unseen_scenario_seed),
+             '--baselines', *args.baselines, '--demos', *map(rel, args.demos),
+             '--out', rel(args.out), '--jobs', str(args.jobs)]
+    return shlex.join(parts)
+
+
+@contextlib.contextmanager
+def study_lock(root: Path) -> Iterator[None]:
+    """Hold ``root/.lock`` so two studies never share a folder.
+
+    Raises:
+        StudyError: another study holds it.
+    """
+    import fcntl
+
+    root.mkdir(parents=True, exist_ok=True)
+    with (root / '.lock').open('w') as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise StudyError(f'--out {root}: expected a folder no other study is using, found '
+                             'one running there') from None
+        f.write(f'{os.getpid()}\n')
+        f.flush()
+        yield
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point."""
+    args = build_parser().parse_args(argv)
+    try:
+        plan = check_args(args)
+    except StudyError as exc:
+        print(f'insilico_study: error: {exc}', file=sys.stderr)
+        return 2
+    layout = Layout(args.out.resolve())
+    command = command_line(args)
+    if args.report_only:
+        say(f'report: {write_report(layout, plan, command)}')
+        return 0
+    signal.signal(signal.SIGTERM, _terminate)
+    t0 = time.monotonic()
+    try:
+        with study_lock(layout.root):
+            tasks = plan_tasks(layout, plan, [d.resolve() for d in args.demos])
+
+            def on_done(task: Task) -> None:
+                if task.kind == 'eval':
+                    write_report(layout, plan, command)
+
+            try:
+                n_done, n_bad = run_tasks(tasks, layout, args.jobs, args.progress_every,
+                                          on_done)
+            except KeyboardInterrupt:
+                say('interrupted; re-run the same command to continue')
+                write_report(layout, plan, command)
+                return 130
+            path = write_report(layout, plan, command)
+    except StudyError as exc:
+        print(f'insilico_study: error: {exc}', file=sys.stderr)
+        return 2
+    say(f'{n_done} of {n_done + n_bad} tasks done in '
+        f'{format_duration(time.monotonic() - t0)}; report: {path}')
+    return 0 if n_bad == 0 else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

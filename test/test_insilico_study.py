@@ -1,0 +1,316 @@
+"""bench/insilico_study.py without training: budgets, run state, snapshots, results, tables,
+ordering, the report and the task scheduler, on fake run folders."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+import importlib.util
+import json
+from pathlib import Path
+import sys
+
+import pytest
+
+WS = Path(__file__).resolve().parent.parent
+_spec = importlib.util.spec_from_file_location('insilico_study',
+                                              WS / 'bench' / 'insilico_study.py')
+assert _spec is not None and _spec.loader is not None
+study = importlib.util.module_from_spec(_spec)
+sys.modules['insilico_study'] = study
+_spec.loader.exec_module(study)
+
+
+def write_scalars(run: Path, rows: list[tuple[int, str, float]], tail: str = '') -> None:
+    run.mkdir(parents=True, exist_ok=True)
+    lines = ['step,tag,value'] + [f'{s},{t},{v}' for s, t, v in rows]
+    (run / 'scalars.csv').write_text('\n'.join(lines) + '\n' + tail)
+
+
+def fake_run(run: Path, max_steps: int, reached: int, final: bool = True,
+             checkpoints: tuple[int, ...] = (), state: int | None = None) -> Path:
+    """A train run folder: config.yaml, scalars.csv up to ``reached``, final.pt, checkpoints."""
+    write_scalars(run, [(1024 * i, 'time/steps_per_s', 500.0) for i in range(1, reached // 1024
+                                                                              + 1)]
+                  + [(reached, 'eval/success_rate', 0.5)])
+    (run / 'config.yaml').write_text(f'name: smoke\nmax_steps: {max_steps}\n'
+                                     'ppo: {buffer_size: 1024}\n')
+    if final:
+        (run / 'final.pt').write_bytes(b'final')
+    for c in checkpoints:
+        (run / 'checkpoints').mkdir(exist_ok=True)
+        (run / 'checkpoints' / f'step_{c}.pt').write_bytes(b'ck')
+    if state is not None:
+        (run / 'study_state.json').write_text(json.dumps({'step': state}))
+    return run
+
+
+def write_results(folder: Path, name: str, mode: str, successes: list[bool]) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    trials = [{'success': s, 'collision': not s, 'timesteps': 400, 'targeting_error_mm': 9.0}
+              for s in successes]
+    (folder / 'results.json').write_text(json.dumps(
+        {'trials': len(trials), 'modes': {mode: {name: {'summary': {}, 'trials': trials}}}}))
+
+
+# ---------------------------------------------------------------------------- inputs
+
+
+def test_budgets_must_increase():
+    assert study.check_budgets([4096, 8192]) == (4096, 8192)
+    for bad, match in (([], 'one or more'), ([0, 10], '>= 1'),
+                       ([8192, 4096], 'strictly increasing'), ([4096, 4096], 'increasing')):
+        with pytest.raises(study.StudyError, match=match):
+            study.check_budgets(bad)
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--methods', 'nope'], "--methods: expected a preset name in ["),
+    (['--methods', 'smoke', '--steps', '8192', '4096'], '--steps: expected strictly increasing'),
+    (['--methods', 'smoke', '--unseen-scenario-seed', '0'], '--unseen-scenario-seed: expected'),
+    (['--methods', 'smoke', 'smoke'], '--methods: expected distinct values'),
+    (['--methods', 'smoke', '--jobs', '0'], '--jobs: expected >= 1, found 0'),
+])
+def test_bad_input_is_one_line_and_exit_2(argv, message, tmp_path, capsys):
+    assert study.main([*argv, '--out', str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'insilico_study: error: {message}') and err.count('\n') == 1
+    assert not (tmp_path / 'out').exists()
+
+
+def test_method_names():
+    assert study.method_kind('paper_code_gail') == 'gail'
+    assert study.method_label('paper_code_mu0') == 'mu = 0 (no BC)'
+    assert study.method_label('smoke') == 'smoke'
+
+
+# ---------------------------------------------------------------------------- run state
+
+
+def test_scalars_skip_a_half_written_row_and_give_progress(tmp_path):
+    write_scalars(tmp_path, [(1024, 'time/steps_per_s', 512.0),
+                             (2048, 'eval/success_rate', 0.25),
+                             (2048, 'time/steps_per_s', 1024.0)], tail='3072,time/st')
+    sc = study.read_scalars(tmp_path / 'scalars.csv')
+    assert sc['eval/success_rate'] == [(2048, 0.25)] and study.last_step(sc) == 2048
+    p = study.run_progress(tmp_path)
+    assert p == study.Progress(2048, 1024.0, 2048, 0.25)
+    assert p.line(4096) == ('2,048/4,096 steps (50%), 1,024 steps/s, ETA 2 s, '
+                            'last eval success 0.25 at 2,048')
+    assert study.run_progress(tmp_path / 'none').line(10) == '0/10 steps (0%)'
+    # steps/s only from the rows of the running process (past the step it resumed from)
+    assert study.run_progress(tmp_path, since=2048).steps_per_s is None
+
+
+def test_a_finished_run_needs_no_training(tmp_path):
+    run = fake_run(tmp_path / 'run', 4096, 4096)
+    assert study.trained_to(run, 4096) and not study.trained_to(run, 8192)
+    assert study.train_command(run, 4096, ['--preset', 'smoke'], ['--mode', 'static']) is None
+
+
+def test_a_larger_budget_resumes_the_run(tmp_path):
+    # the 4096 invocation ended (study_state), then a resume to 8192 was stopped at 6144
+    run = fake_run(tmp_path / 'run', 8192, 6144, state=4096)
+    assert study.resumable_step(run) == 4096
+    cmd = study.train_command(run, 8192, ['--preset', 'smoke'], ['--mode', 'static'])
+    assert cmd[1:] == ['-m', 'cgail_planner.learning.train', '--resume', str(run),
+                       '--max-steps', '8192', '--mode', 'static']
+
+
+def test_a_run_past_the_budget_cannot_give_it(tmp_path):
+    run = fake_run(tmp_path / 'run', 16384, 12288, checkpoints=(5120, 10240))
+    assert study.resumable_step(run) == 10240
+    with pytest.raises(study.StudyError, match='at 10,240: that budget was not snapshotted'):
+        study.train_command(run, 8192, ['--preset', 'smoke'], [])
+
+
+def test_a_run_without_checkpoint_starts_again(tmp_path):
+    run = fake_run(tmp_path / 'run', 4096, 2048, final=False)
+    cmd = study.train_command(run, 4096, ['--preset', 'smoke', '--seed', '1'], ['--mode', 'x'])
+    assert cmd[1:] == ['-m', 'cgail_planner.learning.train', '--preset', 'smoke', '--seed', '1',
+                       '--max-steps', '4096', '--out', str(run), '--mode', 'x']
+    assert not run.exists()
+
+
+def test_snapshot_keeps_the_budget_and_refuses_another(tmp_path):
+    run = fake_run(tmp_path / 'run', 4096, 4096)
+    (run / 'best.pt').write_bytes(b'best')
+    log = tmp_path / 'train.log'
+    log.write_text('=== start\ntime/steps_per_s: 900.0\ntime/wall_s: 12.5\n')
+    study.snapshot(run, tmp_path / 'steps_4096', 4096, log)
+    info = json.loads((tmp_path / 'steps_4096' / 'snapshot.json').read_text())
+    assert {k: info[k] for k in ('budget', 'step', 'policy', 'best_eval_success', 'wall_s')} == {
+        'budget': 4096, 'step': 4096, 'policy': 'best.pt', 'best_eval_success': 0.5,
+        'wall_s': 12.5}
+    assert (tmp_path / 'steps_4096' / 'best.pt').read_bytes() == b'best'
+    with pytest.raises(study.StudyError, match='expected the run at 2,048 steps'):
+        study.snapshot(run, tmp_path / 'steps_2048', 2048, log)
+
+
+# ---------------------------------------------------------------------------- results
+
+
+def test_outcomes_pool_over_seeds_and_round_half_up():
+    a, b = study.Outcome(3, 4), study.Outcome(1, 4)
+    assert study.mean_outcome([a, b]) == study.Outcome(4, 8)
+    assert study.mean_outcome([a, None]) is None
+    assert [study.percent(Fraction(n, d)) for n, d in ((1, 2), (2, 3), (1, 200), (0, 1))] == [
+        '50%', '67%', '1%', '0%']
+
+
+def test_load_outcome_counts_successes(tmp_path):
+    write_results(tmp_path, 'cgail', 'static', [True, False, True])
+    assert study.load_outcome(tmp_path) == study.Outcome(2, 3)
+    assert study.load_outcome(tmp_path, 'other') is None
+    assert study.load_outcome(tmp_path / 'none') is None
+
+
+PAPER_STATIC = {m: Fraction(v, 100) for m, v in (('cgail', 80), ('gail', 42), ('mu0', 11),
+                                                 ('lambda0', 58), ('nu0', 48))}
+
+
+def test_ordering_groups_ties():
+    assert study.ordering(PAPER_STATIC) == [['cgail'], ['lambda0'], ['nu0'], ['gail'], ['mu0']]
+    ours = {'cgail': Fraction(1), 'gail': Fraction(0), 'mu0': Fraction(0),
+            'lambda0': Fraction(1), 'nu0': Fraction(97, 100)}
+    assert study.ordering(ours, study.TIE) == [['cgail', 'lambda0', 'nu0'], ['gail', 'mu0']]
+    assert study.format_ordering(ours, study.TIE, study.method_label) == (
+        'C-GAIL 100% ≈ lambda = 0 (no GAIL) 100% ≈ nu = 0 (no curiosity) 97% > GAIL 0% '
+        '≈ mu = 0 (no BC) 0%')
+
+
+def test_pair_agreement_counts_the_paper_order():
+    ours = {'cgail': Fraction(1), 'gail': Fraction(0), 'mu0': Fraction(0),
+            'lambda0': Fraction(1), 'nu0': Fraction(97, 100)}
+    agree, total, differ = study.pair_agreement(ours, PAPER_STATIC)
+    assert (agree, total) == (6, 10)
+    assert sorted(differ) == sorted([('cgail', 'lambda0'), ('cgail', 'nu0'),
+                                     ('lambda0', 'nu0'), ('gail', 'mu0')])
+    assert study.pair_agreement(PAPER_STATIC, PAPER_STATIC) == (10, 10, [])
+
+
+def test_paper_figures():
+    assert study.PAPER_SUCCESS == {
+        ('cgail', 'static'): 80, ('gail', 'static'): 42, ('mu0', 'static'): 11,
+        ('lambda0', 'static'): 58, ('nu0', 'static'): 48, ('cgail', 'dynamic'): 17,
+        ('gail', 'dynamic'): 0}
+    assert study.PAPER_SECOND_ANATOMY == 79
+    assert (study.AUTHORS_STEPS['gail'], study.AUTHORS_STEPS['cgail']) == (5_000_000, 8_000_000)
+
+
+@pytest.fixture
+def fake_study(tmp_path):
+    """Two methods x two seeds x two budgets, static and dynamic; GAIL seed 1 stopped at
+    6,144 of 8,192 steps."""
+    layout = study.Layout(tmp_path / 'out')
+    plan = study.StudyPlan(('cgail', 'gail'), (0, 1), (4096, 8192), ('static', 'dynamic'),
+                           {'cgail': 'ours', 'gail': 'ours'}, trials=4)
+    wins = {'cgail': [4, 3], 'gail': [1, 0]}
+    for m in plan.methods:
+        for s in plan.seeds:
+            run = layout.static_run(m, s)
+            reached = 6144 if (m, s) == ('gail', 1) else 8192
+            write_scalars(run, [(4096, 'eval/success_rate', 0.25 * (s + 1)),
+                                (reached, 'eval/success_rate', 0.5)])
+            for n in plan.budgets:
+                if n > reached:
+                    continue
+                layout.budget(m, s, n).mkdir(parents=True)
+                layout.snapshot(m, s, n).write_text(json.dumps({'step': n + 1024,
+                                                                'wall_s': 60.0}))
+                write_scalars(layout.dynamic_run(m, s, n), [(2048, 'eval/success_rate', 0.75)])
+                for mode in plan.modes:
+                    for k in plan.target_sets:
+                        won = wins[m][s] - (k == 1)
+                        write_results(layout.evaluation(m, s, n, mode, k), m, mode,
+                                      [i < won for i in range(4)])
+    write_results(layout.baselines('ours', 'static', 0), 'centerline', 'static', [True] * 4)
+    return layout, plan
+
+
+def test_collect_and_the_report(fake_study):
+    layout, plan = fake_study
+    res = study.collect(layout, plan)
+    assert res.outcomes[('cgail', 1, 8192, 'static', 1)] == study.Outcome(2, 4)
+    assert ('gail', 1, 8192, 'static', 0) not in res.outcomes
+    assert res.reached[('gail', 1)] == 6144
+    path = study.write_report(layout, plan, 'scripts/ws python bench/insilico_study.py')
+    report = path.read_text()
+    assert ('| C-GAIL (`cgail`) | 5,120 (authors: 8,000,000) | 80% | 100%, 75% (mean **88%**) '
+            '| 75%, 50% (mean **63%**) | 17% | 100%, 75% (mean **88%**) | 75%, 50% (mean **63%**) '
+            '|') in report
+    assert ('| GAIL (`gail`) | seed 0: 9,216, seed 1: 6,144 of 8,192 † (authors: 5,000,000) | '
+            '42% | 25%, - (mean -) |') in report
+    assert '- static, paper: C-GAIL 80% > GAIL 42%' in report
+    assert ('- static, training targets: C-GAIL 88% > GAIL 13%; 1 of 1 pairs ordered as in the '
+            'paper') in report
+    assert '`centerline` static 100% / -' in report
+    assert (layout.root / 'curves_ours_static.png').stat().st_size > 0
+    assert (layout.root / 'curves_ours_dynamic.png').stat().st_size > 0
+    rows = (layout.root / 'results.csv').read_text().splitlines()
+    assert rows[0] == 'options,preset,seed,budget,steps,mode,targets,successes,trials'
+    # per seed and budget 2 modes x 2 target sets; GAIL seed 1 has only its first budget
+    assert len(rows) == 1 + 4 * (2 * 2 + 2 + 1)
+    assert 'ours,cgail,1,8192,9216,static,unseen (scenario seed 1),2,4' in rows
+
+
+# ---------------------------------------------------------------------------- tasks
+
+
+def test_plan_tasks_chain_budgets_and_modes(tmp_path):
+    layout = study.Layout(tmp_path)
+    plan = study.StudyPlan(('smoke',), (0,), (4096, 8192), ('static', 'dynamic'),
+                           {'smoke': 'ours'})
+    tasks = {t.key: t for t in study.plan_tasks(layout, plan, [tmp_path / 'demos'])}
+    assert len(tasks) == 2 * (1 + 1 + 2 + 4) + 4
+    assert tasks['smoke/seed0/8192/train-static'].deps == ['smoke/seed0/4096/train-static']
+    assert tasks['smoke/seed0/4096/train-dynamic'].deps == ['smoke/seed0/4096/train-static']
+    assert tasks['smoke/seed0/8192/eval-dynamic-targets1'].deps == [
+        'smoke/seed0/8192/export-dynamic']
+    cmd = tasks['smoke/seed0/4096/train-dynamic'].command()
+    assert cmd[cmd.index('--init-from') + 1] == str(layout.budget('smoke', 0, 4096) / 'best.pt')
+    cmd = tasks['smoke/seed0/4096/eval-static-targets1'].command()
+    assert cmd[cmd.index('--scenario-seed') + 1] == '1' and '--baselines' in cmd
+
+
+def _touch_task(key: str, out: Path, deps: list[str], code: str = '') -> object:
+    marker = out / f'{key}.done'
+    script = code or f'open({str(marker)!r}, "w").write("x")'
+    return study.Task(key, 'eval', deps, done=marker.is_file,
+                      command=lambda: [sys.executable, '-c', script])
+
+
+def test_run_tasks_follows_dependencies_and_blocks_after_a_failure(tmp_path, capsys):
+    layout = study.Layout(tmp_path)
+    tasks = [_touch_task('b', tmp_path, ['a']), _touch_task('a', tmp_path, []),
+             _touch_task('bad', tmp_path, [], code='import sys; print("boom"); sys.exit(3)'),
+             _touch_task('after-bad', tmp_path, ['bad'])]
+    finished: list[str] = []
+    assert study.run_tasks(tasks, layout, 2, 3600.0,
+                           lambda t: finished.append(t.key)) == (2, 2)
+    assert finished == ['a', 'b']
+    failed = [ln for ln in capsys.readouterr().out.splitlines() if 'FAILED' in ln]
+    assert len(failed) == 1 and ' FAILED bad: exit 3 after ' in failed[0]
+    assert failed[0].endswith(': boom')
+    assert not (tmp_path / 'after-bad.done').exists()
+    assert 'boom' in (tmp_path / 'logs' / 'bad.log').read_text()
+    # a second run skips what is done
+    assert study.run_tasks(tasks[:2], layout, 1, 3600.0) == (2, 0)
+    assert '2 tasks: 2 already done, 0 to run' in capsys.readouterr().out
+
+
+def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_path):
+    import os
+
+    policy = tmp_path / 'static.onnx'
+    policy.write_bytes(b'onnx')
+    folder = tmp_path / 'eval'
+    write_results(folder, 'cgail', 'static', [True, False])
+    data = json.loads((folder / 'results.json').read_text())
+    data['trials'] = 2
+    (folder / 'results.json').write_text(json.dumps(data))
+    os.utime(policy, (1_000, 1_000))
+    assert study.evaluated(folder, policy, 2) and study.evaluated(folder, None, 2)
+    assert not study.evaluated(folder, policy, 100)
+    os.utime(policy, (4e9, 4e9))  # re-exported after the evaluation
+    assert not study.evaluated(folder, policy, 2)
+    assert not study.up_to_date(tmp_path / 'none.onnx', policy)
