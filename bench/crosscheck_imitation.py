@@ -40,6 +40,9 @@ What runs, per seed:
   * ``shifted``: ``-log(1 - D) - log 2``, this project's GAIL reward until 2026-12 (negative
     whenever the discriminator tells the policy apart), applied by a wrapper around the
     discriminator's reward.
+* ``--ppo sb3`` replaces our preset's PPO settings by SB3's own defaults (``ppo_kwargs``);
+  with ``--disc-actions`` that is imitation's and SB3's out-of-the-box GAIL. The run folder
+  name says which (``standard_sb3ppo_disc_actions_seed0``).
 * **bc**: ``imitation.algorithms.bc.BC`` alone, its default policy (2 x 32) and settings,
   5 epochs (``--bc-epochs``) over the same transitions; no env steps.
 
@@ -250,10 +253,14 @@ def make_training_venv(seed: int) -> tuple[Any, list[tuple[bool, int]]]:
     return venv, finished
 
 
-def ppo_kwargs() -> dict[str, Any]:
-    """SB3 PPO settings (our ``gail`` preset's, see the module docstring)."""
+def ppo_kwargs(settings: str = 'ours') -> dict[str, Any]:
+    """SB3 PPO settings: ``ours``, our ``gail`` preset's (module docstring); ``sb3``, SB3
+    2.2.1's own defaults (lr 3e-4, ``n_steps`` 2048 per env, minibatch 64, 10 epochs, gamma
+    0.99, GAE lambda 0.95, clip 0.2, no entropy bonus, 2 x 64 tanh, initial log std 0)."""
     import torch
 
+    if settings == 'sb3':
+        return {}
     return dict(learning_rate=3e-4, n_steps=N_STEPS, batch_size=1024, n_epochs=3, gamma=0.99,
                 gae_lambda=0.95, clip_range=0.2, ent_coef=5e-4, vf_coef=0.5,
                 policy_kwargs=dict(net_arch=dict(pi=[64, 64], vf=[64, 64]),
@@ -356,7 +363,8 @@ def run_gail(args: argparse.Namespace, seed: int, run_dir: Path, demos: Any) -> 
         model = PPO.load(ppo_path, env=venv, device='cpu')
         print(f'crosscheck: {name}: resumed from {ppo_path} at {model.num_timesteps:,} steps')
     else:
-        model = PPO('MlpPolicy', venv, seed=seed, device='cpu', verbose=0, **ppo_kwargs())
+        model = PPO('MlpPolicy', venv, seed=seed, device='cpu', verbose=0,
+                    **ppo_kwargs(args.ppo))
     reward_net = BasicRewardNet(venv.observation_space, venv.action_space,
                                 use_action=g['disc_actions'], hid_sizes=g['disc_hidden'],
                                 normalize_input_layer=RunningNorm)
@@ -525,7 +533,8 @@ def crosscheck(args: argparse.Namespace) -> None:
         print(f'crosscheck: bc: imitation BC defaults (2 x 32 policy, batch 32, Adam 1e-3), '
               f'{args.bc_epochs} epochs')
     else:
-        print(f'crosscheck: PPO {ppo_kwargs()}, {N_ENVS} envs')
+        print(f'crosscheck: PPO ({args.ppo}) {ppo_kwargs(args.ppo) or "SB3 defaults"}, '
+              f'{N_ENVS} envs')
         print(f'crosscheck: GAIL ({args.variant} reward) {gail_kwargs(args.disc_actions)}')
     t_start = time.monotonic()
     try:
@@ -534,7 +543,8 @@ def crosscheck(args: argparse.Namespace) -> None:
         raise CrosscheckError(str(exc)) from None
     print(f'crosscheck: demonstrations loaded in {time.monotonic() - t_start:.0f} s')
     for seed in args.seeds:
-        run_dir = args.root / f'{args.variant}_seed{seed}'
+        run_dir = args.root / (f'{args.variant}{"_sb3ppo" * (args.ppo == "sb3")}'
+                               f'{"_disc_actions" * bool(args.disc_actions)}_seed{seed}')
         run = run_bc if args.variant == 'bc' else run_gail
         result = run(args, seed, run_dir, demos)
         save_json(run_dir / 'result.json', result)
@@ -555,6 +565,8 @@ def main(argv: list[str] | None = None) -> int:
                    help='env steps per GAIL run (rounded up to whole rounds of 10,240)')
     p.add_argument('--seeds', type=int, nargs='+', default=[0, 1])
     p.add_argument('--bc-epochs', type=int, default=5)
+    p.add_argument('--ppo', choices=('ours', 'sb3'), default='ours',
+                   help="PPO settings: our gail preset's (default) or SB3's own defaults")
     p.add_argument('--disc-actions', action='store_true',
                    help='the discriminator also sees the action (default: observation only)')
     p.add_argument('--resume', action='store_true',
