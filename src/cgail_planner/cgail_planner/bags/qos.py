@@ -103,8 +103,15 @@ def subscription_qos(offered: Sequence[Qos]) -> QoSProfile:
     """The recorder's subscription QoS, compatible with every offered profile.
 
     Best effort if any publisher is best effort (a reliable reader would not match it),
-    transient local only if all publishers are (to receive latched samples), depth 100.
+    transient local only if all publishers are (to receive latched samples), keep-last
+    :data:`RECORD_DEPTH` (or the largest offered depth, if larger): the reader's queue must hold
+    a burst the recorder's executor has not taken yet. With depth 100, a fresh-clone CI run
+    recorded 100 of a 150-message burst (keep-last dropped the oldest 50).
     """
     profile = to_rclpy(offered)
-    profile.depth = 100
+    profile.depth = max(RECORD_DEPTH, profile.depth)
     return profile
+
+
+RECORD_DEPTH = 5000
+"""Keep-last depth of the recorder's subscriptions (:func:`subscription_qos`)."""

@@ -362,3 +362,13 @@ def test_recover_refuses_a_file_without_a_complete_chunk(tmp_path: Path) -> None
     result = recover_bag(FIXTURE, tmp_path / 'copy')
     assert result.complete
     assert result.messages == 403
+
+
+def test_the_recorder_queue_holds_a_burst() -> None:
+    """The recorder subscribes keep-last deep enough for a burst it has not taken yet (depth
+    100 lost 50 of a 150-message burst on a loaded machine), and never shallower than offered."""
+    from cgail_planner.bags.qos import COMMAND, make_qos, RECORD_DEPTH, subscription_qos
+
+    assert RECORD_DEPTH >= 1000
+    assert subscription_qos([COMMAND]).depth == RECORD_DEPTH
+    assert subscription_qos([make_qos(True, False, 2 * RECORD_DEPTH)]).depth == 2 * RECORD_DEPTH
