@@ -154,8 +154,24 @@ class GailConfig(RewardSignalConfig):
     1 (evaluation episodes of 80-1,300 steps, r_abs 0.3-0.6 above the policy states' ~0.16, so
     ending still paid)."""
 
+    updates_per_buffer: int = 0
+    """Discriminator gradient steps per collected buffer. ``0``: one step per PPO minibatch, on
+    that minibatch and as many demonstration samples, during the PPO epochs (ML-Agents: its
+    reward signals update with the policy, ``num_epoch x buffer_size / batch_size`` steps).
+    ``N > 0``: N steps after the PPO epochs, each on ``batch_size`` policy transitions drawn
+    from the buffer and as many demonstration samples (the ``imitation`` library's
+    ``n_disc_updates_per_round`` and ``demo_batch_size``): the discriminator's pace no longer
+    follows the PPO minibatch size."""
+    batch_size: int = 1024
+    """Policy (and demonstration) samples per discriminator step when ``updates_per_buffer``
+    is set; at most the buffer size."""
+
     def __post_init__(self) -> None:
         super().__post_init__()
+        _check(0 <= self.updates_per_buffer <= 10_000, 'gail.updates_per_buffer',
+               'in [0, 10000] (0: one per PPO minibatch)', self.updates_per_buffer)
+        _check(1 <= self.batch_size <= 1_000_000, 'gail.batch_size', 'in [1, 1e6]',
+               self.batch_size)
         _check(self.reward_form in ('absorbing', 'standard'), 'gail.reward_form',
                "'absorbing' or 'standard'", self.reward_form)
         _check(1 <= self.hidden_units <= 4096, 'gail.hidden_units', 'in [1, 4096]',

@@ -228,23 +228,22 @@ class Trainer:
                 with torch.no_grad():
                     obs_n = self.actor.norm(obs)
                     act_c = torch.clamp(act, -1, 1)
-                if self.gail is not None:
-                    assert self.demo_obs is not None and self.demo_act is not None
-                    # expert: one absorbing sample per demonstration episode among the samples;
-                    # policy: one per terminated transition of the minibatch
-                    n_demo = len(self.demo_obs)
-                    draw = self.rng.integers(0, n_demo + self.demo_episodes, len(obs))
-                    idx = torch.as_tensor(draw[draw < n_demo])
-                    with torch.no_grad():
-                        ex_obs = self.actor.norm(self.demo_obs[idx])
-                    dac = self.cfg.gail.reward_form == 'absorbing'
-                    add(self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c,
-                                         expert_absorbing=int((draw >= n_demo).sum()) * dac,
-                                         policy_absorbing=int(mb.terminated.sum()) * dac))
+                if self.gail is not None and not self.cfg.gail.updates_per_buffer:
+                    add(self._gail_step(obs_n, act_c, mb.terminated))
                 if self.curiosity is not None:
                     with torch.no_grad():
                         nobs_n = self.actor.norm(torch.as_tensor(mb.next_obs))
                     add(self.curiosity.update(obs_n, act_c, nobs_n))
+        if self.gail is not None and self.cfg.gail.updates_per_buffer:
+            b = self.buffer
+            n = b.T * b.N
+            size = min(self.cfg.gail.batch_size, n)
+            for _ in range(self.cfg.gail.updates_per_buffer):
+                j = self.rng.choice(n, size, replace=False)
+                with torch.no_grad():
+                    obs_n = self.actor.norm(torch.as_tensor(b.obs.reshape(n, -1)[j]))
+                act_c = torch.as_tensor(np.clip(b.act.reshape(n, -1)[j], -1, 1))
+                add(self._gail_step(obs_n, act_c, b.terminated.reshape(n)[j]))
         if self.bc is not None:
             add(self.bc.update(self.step, lr, self.cfg.ppo.buffer_size, self.rng))
         if self.normalizer is not None:
@@ -254,6 +253,24 @@ class Trainer:
         out.update({'policy/learning_rate': lr, 'policy/epsilon': eps, 'policy/beta': beta,
                     'policy/std': float(self.actor.log_std.detach().exp().mean())})
         return out
+
+    def _gail_step(self, obs_n: torch.Tensor, act_c: torch.Tensor,
+                   terminated: np.ndarray) -> dict[str, float]:
+        """One discriminator step on these (normalised, clipped) policy transitions and as many
+        demonstration samples. With the absorbing reward, the expert side holds one absorbing
+        sample per demonstration episode among its draws, the policy side one per terminated
+        transition."""
+        assert self.gail is not None
+        assert self.demo_obs is not None and self.demo_act is not None
+        n_demo = len(self.demo_obs)
+        draw = self.rng.integers(0, n_demo + self.demo_episodes, len(obs_n))
+        idx = torch.as_tensor(draw[draw < n_demo])
+        with torch.no_grad():
+            ex_obs = self.actor.norm(self.demo_obs[idx])
+        dac = self.cfg.gail.reward_form == 'absorbing'
+        return self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c,
+                                expert_absorbing=int((draw >= n_demo).sum()) * dac,
+                                policy_absorbing=int(terminated.sum()) * dac)
 
     def train_iteration(self) -> dict[str, float]:
         """Collect one buffer, compute rewards/advantages, update; return the scalars."""

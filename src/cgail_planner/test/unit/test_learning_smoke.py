@@ -145,6 +145,36 @@ def test_the_gail_reward_form_decides_what_the_policy_is_paid(form: str):
         assert seen['absorbing'] > 0  # the toy's episodes end within the buffer
 
 
+@pytest.mark.parametrize('per_buffer', [0, 3])
+def test_the_discriminator_steps_per_buffer(per_buffer: int):
+    """``gail.updates_per_buffer`` 0: one discriminator step per PPO minibatch (ML-Agents: 3
+    epochs x 1024 / 256 = 12 per buffer, each on 256 policy samples); N: N steps per buffer on
+    ``gail.batch_size`` policy samples each (imitation's rounds)."""
+    trainer = _trainer(0, max_steps=1024,
+                       gail={'strength': 0.8, 'hidden_units': 64, 'updates_per_buffer': per_buffer,
+                             'batch_size': 100})
+    sizes: list[int] = []
+    update = trainer.gail.update
+
+    def spy(expert_obs, expert_act, policy_obs, policy_act, **kwargs):
+        sizes.append(len(policy_obs))
+        assert len(expert_obs) + kwargs['expert_absorbing'] == len(policy_obs)
+        return update(expert_obs, expert_act, policy_obs, policy_act, **kwargs)
+
+    trainer.gail.update = spy
+    before = [p.detach().clone() for p in trainer.gail.disc.parameters()]
+    trainer.train_iteration()
+    assert sizes == ([256] * 12 if per_buffer == 0 else [100] * per_buffer)
+    assert any((p != q).any() for p, q in zip(trainer.gail.disc.parameters(), before))
+
+
+def test_gail_update_settings_out_of_range_are_one_line():
+    with pytest.raises(Exception, match=r'gail\.updates_per_buffer must be in \[0, 10000\]'):
+        config_from_dict({**SMOKE, 'gail': {'strength': 0.8, 'updates_per_buffer': -1}})
+    with pytest.raises(Exception, match=r'gail\.batch_size must be in \[1, 1e6\]'):
+        config_from_dict({**SMOKE, 'gail': {'strength': 0.8, 'batch_size': 0}})
+
+
 def test_an_unknown_gail_reward_form_is_one_line():
     with pytest.raises(Exception, match=r"gail\.reward_form must be 'absorbing' or "
                                         r"'standard', found 'shifted'"):
