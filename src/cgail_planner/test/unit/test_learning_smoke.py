@@ -165,7 +165,7 @@ def test_the_discriminator_steps_per_buffer(per_buffer: int):
     before = [p.detach().clone() for p in trainer.gail.disc.parameters()]
     trainer.train_iteration()
     assert sizes == ([256] * 12 if per_buffer == 0 else [100] * per_buffer)
-    assert any((p != q).any() for p, q in zip(trainer.gail.disc.parameters(), before))
+    assert any((p != q).any() for p, q in zip(trainer.gail.disc.parameters(), before, strict=True))
 
 
 def test_gail_update_settings_out_of_range_are_one_line():
