@@ -40,6 +40,7 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverSt
 from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes import try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -406,7 +407,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

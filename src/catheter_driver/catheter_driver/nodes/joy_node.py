@@ -19,6 +19,7 @@ from catheter_driver.core.joy_filter import JoyConfig, JoyFilter
 from catheter_driver.exceptions import DeviceDisconnectedError
 from catheter_driver.hw.gamepad import Gamepad, GamepadFactory, SdlGamepad
 from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes import try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -128,7 +129,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

@@ -14,6 +14,7 @@ from sensor_msgs.msg import JointState, Joy
 from catheter_driver.core.teleop import Teleop, TeleopConfig, TeleopOutput
 from catheter_driver.exceptions import CommandError
 from catheter_driver.nodes import conversions as conv
+from catheter_driver.nodes import try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -87,7 +88,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

@@ -166,6 +166,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.signals import SignalHandlerOptions
 
     from cgail_planner.bags.rosutil import stop_on_signals
+    from cgail_planner.nodes import try_shutdown
 
     parser = build_parser()
     args, ros_args = parser.parse_known_args(argv)
@@ -191,7 +192,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             status = 2
         finally:
             node.destroy_node()
-            rclpy.try_shutdown()
+            try_shutdown()
     return status
 
 

@@ -203,6 +203,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
+    from cgail_planner.nodes import try_shutdown
+
     parser = build_parser()
     args, ros_args = parser.parse_known_args(argv)
     if args.max_duration < 0.0:
@@ -225,7 +227,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except BagError as exc:
             print(f'bag_record: error: {exc}', file=sys.stderr)
             node.destroy_node()
-            rclpy.try_shutdown()
+            try_shutdown()
             return 2
         print(f'bag_record: recording to {output}', flush=True)
         start = time.monotonic()
@@ -252,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         finally:
             executor.shutdown()
             node.destroy_node()
-            rclpy.try_shutdown()
+            try_shutdown()
     return status
 
 

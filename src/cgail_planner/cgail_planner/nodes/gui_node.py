@@ -42,6 +42,7 @@ from cgail_planner.gui.protocol import ClientCommand
 from cgail_planner.gui.server import GuiServer
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import build_table, find_web_root, missing_vendor
+from cgail_planner.nodes import try_shutdown
 from cgail_planner.sim.mesh_io import AnatomyError
 
 _D = GuiConfig()
@@ -452,7 +453,7 @@ def main(args: list[str] | None = None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

@@ -32,6 +32,7 @@ from std_srvs.srv import Trigger
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.operator import OperatorConfig, Percept, ScriptedOperator
 from cgail_planner.nodes import conversions as conv
+from cgail_planner.nodes import try_shutdown
 
 
 class OperatorNode(Node):
@@ -200,7 +201,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

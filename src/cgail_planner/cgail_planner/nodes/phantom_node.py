@@ -57,6 +57,7 @@ from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
+from cgail_planner.nodes import try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.mesh_io import AnatomyError
 from cgail_planner.sim.wall import WallError
@@ -341,7 +342,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

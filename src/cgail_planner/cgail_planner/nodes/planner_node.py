@@ -50,6 +50,7 @@ from cgail_planner.core.planner import (
     ReplanConfig,
 )
 from cgail_planner.nodes import conversions as conv
+from cgail_planner.nodes import try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
 from cgail_planner.sim.mesh_io import AnatomyError
 
@@ -356,7 +357,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

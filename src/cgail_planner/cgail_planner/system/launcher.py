@@ -316,6 +316,8 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
+    from cgail_planner.nodes import try_shutdown
+
     plain = LaunchSpec(spec.name, tuple(n for n in spec.nodes if not n.ros)) \
         if any(not n.ros for n in spec.nodes) else None
     ros_nodes = [n for n in spec.nodes if n.ros]
@@ -346,7 +348,7 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
         executor.shutdown()
         for node in nodes:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
         if children:
             children.request_stop()
             children.shutdown()

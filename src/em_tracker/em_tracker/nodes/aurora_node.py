@@ -45,6 +45,7 @@ from em_tracker.core.pose import Registration, TipPose
 from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
+from em_tracker.nodes import try_shutdown
 from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
@@ -314,7 +315,7 @@ def main(args=None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

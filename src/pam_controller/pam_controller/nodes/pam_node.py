@@ -36,6 +36,7 @@ from pam_controller.hw import can_protocol as proto
 from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
 from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes import conversions as conv
+from pam_controller.nodes import try_shutdown
 
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -417,7 +418,7 @@ def main(args: list[str] | None = None) -> None:
     finally:
         if node is not None:
             node.destroy_node()
-        rclpy.try_shutdown()
+        try_shutdown()
 
 
 if __name__ == '__main__':

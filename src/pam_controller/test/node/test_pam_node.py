@@ -413,7 +413,10 @@ def test_console_entry_point_starts_and_stops_on_sigint():
                 break
         assert 'active on CAN virtual:pam_main_test' in line
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=10.0) == 0
+        # (rclpy's SIGINT handler may shut the context down while main() is shutting it down
+        # too: pam_controller.nodes.try_shutdown tolerates that; the output shows any error)
+        rc = proc.wait(timeout=10.0)
+        assert rc == 0, proc.stdout.read()[-2000:]
     finally:
         if proc.poll() is None:
             proc.kill()
