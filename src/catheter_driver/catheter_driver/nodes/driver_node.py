@@ -40,7 +40,7 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverSt
 from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import try_shutdown
+from catheter_driver.nodes import RCLError, try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -404,6 +404,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()

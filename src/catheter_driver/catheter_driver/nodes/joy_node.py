@@ -19,7 +19,7 @@ from catheter_driver.core.joy_filter import JoyConfig, JoyFilter
 from catheter_driver.exceptions import DeviceDisconnectedError
 from catheter_driver.hw.gamepad import Gamepad, GamepadFactory, SdlGamepad
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import try_shutdown
+from catheter_driver.nodes import RCLError, try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -126,6 +126,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()

@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState, Joy
 from catheter_driver.core.teleop import Teleop, TeleopConfig, TeleopOutput
 from catheter_driver.exceptions import CommandError
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import try_shutdown
+from catheter_driver.nodes import RCLError, try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -85,6 +85,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()

@@ -42,7 +42,7 @@ from cgail_planner.gui.protocol import ClientCommand
 from cgail_planner.gui.server import GuiServer
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import build_table, find_web_root, missing_vendor
-from cgail_planner.nodes import try_shutdown
+from cgail_planner.nodes import RCLError, try_shutdown
 from cgail_planner.sim.mesh_io import AnatomyError
 
 _D = GuiConfig()
@@ -447,6 +447,9 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
+            raise
     except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
         print(f'gui_node: error: {exc}', file=sys.stderr)
         raise SystemExit(2) from None

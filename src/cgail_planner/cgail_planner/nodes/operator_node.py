@@ -32,7 +32,7 @@ from std_srvs.srv import Trigger
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.operator import OperatorConfig, Percept, ScriptedOperator
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import try_shutdown
+from cgail_planner.nodes import RCLError, try_shutdown
 
 
 class OperatorNode(Node):
@@ -198,6 +198,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()

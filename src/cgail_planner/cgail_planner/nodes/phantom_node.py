@@ -57,7 +57,7 @@ from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import try_shutdown
+from cgail_planner.nodes import RCLError, try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.mesh_io import AnatomyError
 from cgail_planner.sim.wall import WallError
@@ -336,6 +336,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
+            raise
     except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
         print(f'phantom_node: error: {exc}', file=sys.stderr)
         raise SystemExit(2) from None

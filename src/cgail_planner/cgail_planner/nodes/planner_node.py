@@ -50,7 +50,7 @@ from cgail_planner.core.planner import (
     ReplanConfig,
 )
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import try_shutdown
+from cgail_planner.nodes import RCLError, try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
 from cgail_planner.sim.mesh_io import AnatomyError
 
@@ -351,6 +351,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
+            raise
     except (ContractError, AnatomyError) as exc:  # a bad anatomy or contract: say so, exit 2
         print(f'planner_node: error: {exc}', file=sys.stderr)
         raise SystemExit(2) from None

@@ -45,7 +45,7 @@ from em_tracker.core.pose import Registration, TipPose
 from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
-from em_tracker.nodes import try_shutdown
+from em_tracker.nodes import RCLError, try_shutdown
 from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
@@ -312,6 +312,9 @@ def main(args=None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see em_tracker.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()

@@ -36,7 +36,7 @@ from pam_controller.hw import can_protocol as proto
 from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
 from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes import conversions as conv
-from pam_controller.nodes import try_shutdown
+from pam_controller.nodes import RCLError, try_shutdown
 
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -415,6 +415,9 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see pam_controller.nodes.RCLError)
+            raise
     finally:
         if node is not None:
             node.destroy_node()
