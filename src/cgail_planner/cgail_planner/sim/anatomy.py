@@ -140,8 +140,14 @@ class AnatomyParams:
     """Length of the straight ascending segment from the annulus to the arch start along the
     root axis (estimate). Range 35-120 mm."""
     root_tilt: float = 25.0 * _DEG
-    """Tilt of the root axis from cranial towards the patient's right-anterior (estimate).
-    Range 0-45 deg."""
+    """Tilt of the root axis from cranial towards the patient's right-anterior (estimate for
+    the default; in patients this is the "aortic angle" of the annulus plane against the
+    horizontal, 49.4 +- 9.4 deg, range 18-90, Int J Cardiol 2021). Range 0-60 deg: beyond
+    ~60 deg this generator's root frame (the right coronary sinus faces the anterior direction
+    projected onto the annulus plane) turns the right ostium to the patient's left of the left
+    one, the straight ascending segment meets the arch in a corner of < 12 mm bend radius, and
+    the descending aorta swings behind the annulus (the annulus cut then fails unless the arch
+    widens). Steeper roots need a curved ascending aorta in the generator."""
     arch_width: float = 0.072
     """Horizontal distance between the ascending and descending centrelines (72 mm; estimate
     from public synthetic aortas, Redheuil 2011 range 63-82). Range 40-120 mm."""
@@ -213,7 +219,7 @@ class AnatomyParams:
             "isthmus_diameter": (12 * mm, 40 * mm),
             "descending_diameter": (12 * mm, 40 * mm),
             "ascending_length": (35 * mm, 120 * mm),
-            "root_tilt": (0.0, 45 * _DEG),
+            "root_tilt": (0.0, 60 * _DEG),
             "arch_width": (40 * mm, 120 * mm),
             "arch_height": (20 * mm, 120 * mm),
             "arch_rotation": (0.0, 90 * _DEG),
