@@ -5,6 +5,7 @@ Command line (console script ``sim_render``)::
     sim_render --anatomy default --out docs/img/anatomy_default.png
     sim_render --anatomy elongated --rollout tip_points.npy --phases 4 --out /tmp/a.png
     sim_render --anatomy runs/patients/p07          # a prepared anatomy: anatomy_p07.png
+    sim_render --population 12 --seed 0 --out docs/img/population_grid.png
 
 Two views side by side: anterior (coronal; viewer looking at the patient's front, the
 patient's left on the right of the image) and left-lateral (viewer at the patient's left,
@@ -12,7 +13,9 @@ anterior on the left of the image). The wall is drawn semi-transparent with Lamb
 caps (non-wall faces) are grey. Targets and start configurations come from
 ``cgail_planner.sim.scenarios`` when it is importable, otherwise only the ostia are marked.
 With ``--phases N`` (needs ``cgail_planner.sim.wall.DeformableWall``) the aortic root is
-overlaid as wireframes at N phases of one heartbeat.
+overlaid as wireframes at N phases of one heartbeat. ``--population N`` draws a grid of the
+population samples ``--seed`` .. ``--seed + N - 1`` (:mod:`cgail_planner.sim.population`), each
+built and validated, in the anterior view, labelled with its seed, arch type, root tilt and age.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ import numpy as np
 from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError, resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
 
-__all__ = ["VIEWS", "heartbeat_phases", "main", "render_anatomy"]
+__all__ = ["VIEWS", "heartbeat_phases", "main", "render_anatomy", "render_population_grid"]
 
 VIEWS: dict[str, tuple[float, float]] = {
     "anterior": (8.0, -90.0),
@@ -233,6 +236,82 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
     return out_path
 
 
+def render_population_grid(seeds: Sequence[int], out: str | Path, *, cols: int = 4,
+                           view: str = "anterior", dpi: int = 90) -> Path:
+    """Draw population samples (:func:`cgail_planner.sim.population.sample_population`) in a
+    grid, one anatomy per panel on a common scale, labelled with seed, arch type, root tilt
+    and age.
+
+    Args:
+        seeds: the population seeds (each built and validated; a few seconds each when not
+            cached).
+        out: PNG path (parent folders are created).
+        cols: panels per row.
+        view: a name from :data:`VIEWS` ("root" is not a whole-aorta view and is refused).
+        dpi: output resolution.
+
+    Returns:
+        The written path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    from cgail_planner.sim.population import sample_population
+
+    if view not in VIEWS or view == "root":
+        raise ValueError(f"view must be one of {sorted(set(VIEWS) - {'root'})}, found {view!r}")
+    if not seeds:
+        raise ValueError("seeds must name at least one population sample, found none")
+    if cols < 1:
+        raise ValueError(f"cols must be >= 1, found {cols}")
+    samples = [sample_population(s) for s in seeds]
+    mm = 1e3
+    half = 0.5 * max(float(np.ptp(np.asarray(s.anatomy.vertices) * mm, axis=0).max())
+                     for s in samples) * 0.8
+    rows = -(-len(samples) // cols)
+    fig = plt.figure(figsize=(3.3 * cols, 3.6 * rows))
+    elev, azim = VIEWS[view]
+    e, a = np.radians(elev), np.radians(azim)
+    cam = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    light = cam + np.array([0.0, 0.0, 0.8])
+    light /= np.linalg.norm(light)
+    for k, smp in enumerate(samples):
+        anatomy, d = smp.anatomy, smp.draw
+        verts = np.asarray(anatomy.vertices) * mm
+        faces = np.asarray(anatomy.faces)
+        wall = np.asarray(anatomy.wall_face_mask)
+        ax = fig.add_subplot(rows, cols, k + 1, projection="3d")
+        ax.add_collection3d(Poly3DCollection(
+            verts[faces[wall]], edgecolors="none",
+            facecolors=_shaded_colours(verts, faces[wall], (0.86, 0.30, 0.27), 0.45, light)))
+        ax.add_collection3d(Poly3DCollection(verts[faces[~wall]],
+                                             facecolors=(0.55, 0.55, 0.55, 0.6),
+                                             edgecolors="none"))
+        for branch, o in anatomy.ostia.items():
+            ax.scatter(*(o * mm), s=18, color=_BRANCH_COLOURS.get(branch, "k"), edgecolors="k",
+                       depthshade=False)
+        centre = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
+        for lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, strict=True):
+            lim(c - half, c + half)
+        ax.set_box_aspect((1, 1, 1), zoom=1.2)
+        ax.view_init(elev=elev, azim=azim)
+        ax.set_axis_off()
+        ax.set_title(f"seed {d.seed}: type {'I' * d.arch_type if d.arch_type < 3 else 'III'}, "
+                     f"tilt {d.root_tilt_deg:.0f} deg\nage {d.age:.0f}, {d.sex}, "
+                     f"draws {d.draws}", fontsize=8)
+    fig.suptitle(f"anatomy population, seeds {seeds[0]}-{seeds[-1]} ({view} view; ostia: "
+                 "blue left, green right; same scale)", fontsize=10)
+    fig.tight_layout()
+    out_path = Path(out)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_path, dpi=dpi)
+    plt.close(fig)
+    return out_path
+
+
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="sim_render", description=__doc__.split("\n")[0])
     ap.add_argument("--anatomy", default="default",
@@ -247,6 +326,11 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--no-centerlines", action="store_true", help="skip the centrelines")
     ap.add_argument("--no-scenarios", action="store_true", help="skip targets and starts")
     ap.add_argument("--dpi", type=int, default=110)
+    ap.add_argument("--population", type=int, default=0, metavar="N",
+                    help="draw a grid of N population samples (sim.population) instead of "
+                         "--anatomy (default out: population_grid.png)")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="first population seed of the grid (--population)")
     return ap.parse_args(argv)
 
 
@@ -254,6 +338,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``sim_render``; returns the exit status."""
     args = _parse(argv)
     try:
+        if args.population:
+            if args.population < 0 or args.seed < 0:
+                raise ValueError(f"population and seed must be >= 0, found {args.population} "
+                                 f"and {args.seed}")
+            seeds = list(range(args.seed, args.seed + args.population))
+            path = render_population_grid(seeds, args.out or "population_grid.png",
+                                          dpi=args.dpi)
+            print(path)
+            return 0
         anatomy = resolve_anatomy(args.anatomy)
         centerlines = None if args.no_centerlines else compute_centerlines(anatomy)
         rollout = None

@@ -64,3 +64,12 @@ def test_heartbeat_phases_move_the_root() -> None:
     assert moved.max() > 1e-3
     with pytest.raises(ValueError, match="n_phases must be >= 1"):
         heartbeat_phases(anatomy, 0)
+
+
+def test_cli_population_grid(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "grid.png"
+    assert main(["--population", "1", "--seed", "0", "--out", str(out), "--dpi", "30"]) == 0
+    assert capsys.readouterr().out.strip() == str(out)
+    assert _is_png(out, min_bytes=2000)
+    assert main(["--population", "2", "--seed", "-1", "--out", str(out)]) == 2
+    assert "population and seed must be >= 0, found 2 and -1" in capsys.readouterr().err
