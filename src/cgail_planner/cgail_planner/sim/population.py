@@ -121,7 +121,7 @@ tilt and the descending bend. (Sugawara 2008 finds the elongation in the ascendi
 27921138 in the arch, Adriaans 2018 mostly in the proximal descending aorta: the split is a
 compromise.)
 
-Arch type -> geometry: the arch type (Myla's classification as used by the CT series) is the
+Arch type -> geometry: the arch type (the classification the CT series uses) is the
 height of the arch top above the brachiocephalic origin in left-common-carotid diameters
 (I < 1, II 1-2, III > 2). The generator's arch is a fixed shape (straight ascending segment,
 half-ellipse arch of ``arch_width`` x ``arch_height``, smoothed), so the sampler realises the
@@ -231,7 +231,7 @@ class PopulationDraw:
     params: AnatomyParams
     """The aorta's parameters."""
     arch_type: int
-    """1, 2 or 3 (Myla's arch types I-III)."""
+    """1, 2 or 3 (arch types I-III)."""
     age: float
     """Age the age-dependent quantities follow, years."""
     sex: str
