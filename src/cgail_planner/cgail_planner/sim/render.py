@@ -228,6 +228,13 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
             ax.legend(loc="lower left", fontsize=6, framealpha=0.7)
     fig.suptitle(title or f"anatomy '{anatomy.name}': {len(verts)} vertices, "
                  f"{int(wall.sum())} wall faces", fontsize=10)
+    return _save(fig, out, dpi)
+
+
+def _save(fig: Any, out: str | Path, dpi: int) -> Path:
+    """Lay out ``fig``, write it to ``out`` (parents created) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     out_path = Path(out)
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -299,17 +306,12 @@ def render_population_grid(seeds: Sequence[int], out: str | Path, *, cols: int =
         ax.set_box_aspect((1, 1, 1), zoom=1.2)
         ax.view_init(elev=elev, azim=azim)
         ax.set_axis_off()
-        ax.set_title(f"seed {d.seed}: type {'I' * d.arch_type if d.arch_type < 3 else 'III'}, "
+        ax.set_title(f"seed {d.seed}: type {'I' * d.arch_type}, "
                      f"tilt {d.root_tilt_deg:.0f} deg\nage {d.age:.0f}, {d.sex}, "
                      f"draws {d.draws}", fontsize=8)
     fig.suptitle(f"anatomy population, seeds {seeds[0]}-{seeds[-1]} ({view} view; ostia: "
                  "blue left, green right; same scale)", fontsize=10)
-    fig.tight_layout()
-    out_path = Path(out)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_path, dpi=dpi)
-    plt.close(fig)
-    return out_path
+    return _save(fig, out, dpi)
 
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
