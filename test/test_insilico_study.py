@@ -314,3 +314,20 @@ def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_pat
     os.utime(policy, (4e9, 4e9))  # re-exported after the evaluation
     assert not study.evaluated(folder, policy, 2)
     assert not study.up_to_date(tmp_path / 'none.onnx', policy)
+
+
+@pytest.mark.parametrize('name', ['pure_gail_ours_ppo', 'pure_gail_ours_ppo_normalised',
+                                  'pure_gail_sb3_defaults'])
+def test_the_gail_variants_of_the_readme_load_as_described(name):
+    """bench/gail_variants/*.yaml (README, "GAIL at 2M steps") stay valid presets and pure
+    GAIL at imitation's discriminator pace, as the README table says."""
+    from cgail_planner.learning.config import load_config
+
+    cfg = load_config(WS / 'bench' / 'gail_variants' / f'{name}.yaml')
+    assert cfg.extrinsic.strength == 0.0 and cfg.gail.strength == 1.0
+    assert cfg.bc.strength == 0.0 and cfg.curiosity.strength == 0.0
+    assert (cfg.gail.reward_form, cfg.gail.gradient_penalty) == ('standard', 0.0)
+    assert (cfg.gail.updates_per_buffer, cfg.gail.batch_size) == (4, 1024)
+    assert cfg.max_steps == 2_000_000 and cfg.ppo.schedule == 'constant'
+    assert cfg.normalize == (name != 'pure_gail_ours_ppo')
+    assert cfg.gail.use_actions == (name == 'pure_gail_sb3_defaults')
