@@ -331,3 +331,15 @@ def test_the_gail_variants_of_the_readme_load_as_described(name):
     assert cfg.max_steps == 2_000_000 and cfg.ppo.schedule == 'constant'
     assert cfg.normalize == (name != 'pure_gail_ours_ppo')
     assert cfg.gail.use_actions == (name == 'pure_gail_sb3_defaults')
+
+
+def test_the_bc_initialised_gail_variant_is_the_gail_preset_plus_a_warm_start():
+    from cgail_planner.learning.config import config_to_dict, load_config
+
+    variant = config_to_dict(load_config(WS / 'bench' / 'gail_variants' / 'gail_bc_init.yaml'))
+    preset = config_to_dict(load_config('gail'))
+    assert variant['bc'] == {**preset['bc'], 'pretrain_epochs': 30}
+    assert variant['max_steps'] == 2_000_000
+    for key in ('bc', 'max_steps', 'name'):
+        variant.pop(key), preset.pop(key)
+    assert variant == preset

@@ -215,6 +215,14 @@ class BCConfig:
     """Minibatch passes per PPO update, each over at most buffer_size demo samples."""
     steps: int = 0
     """BC strength decays linearly to 0 over these steps; 0 keeps it constant."""
+    pretrain_epochs: int = 0
+    """Supervised BC passes over the demonstrations before any environment step
+    (:meth:`~cgail_planner.learning.trainer.Trainer.pretrain_bc`, lr 1e-3, minibatch 512, the
+    normaliser fitted to the demonstrations first); 0, the default of every shipped preset,
+    starts from a random policy. Not part of the paper's method or of ML-Agents; it exists to
+    separate exploration from the reward in the GAIL baseline (a GAIL policy started from the
+    demonstrated behaviour: ``bench/gail_variants/gail_bc_init.yaml``, README "GAIL at 2M
+    steps"). A run continued with ``train --resume`` does not pass again."""
 
     def __post_init__(self) -> None:
         _check(0 <= self.strength <= 10, 'bc.strength', 'in [0, 10]', self.strength)
@@ -222,6 +230,8 @@ class BCConfig:
                self.batch_size)
         _check(1 <= self.num_epoch <= 100, 'bc.num_epoch', 'in [1, 100]', self.num_epoch)
         _check(self.steps >= 0, 'bc.steps', '>= 0', self.steps)
+        _check(0 <= self.pretrain_epochs <= 1000, 'bc.pretrain_epochs', 'in [0, 1000]',
+               self.pretrain_epochs)
 
 
 @dataclass(frozen=True)
@@ -306,8 +316,9 @@ class TrainConfig:
 
     @property
     def needs_demos(self) -> bool:
-        """Whether GAIL or BC is active (demonstrations required)."""
-        return self.gail.strength > 0 or self.bc.strength > 0
+        """Whether GAIL or BC (in the loop or as a warm start) is active (demonstrations
+        required)."""
+        return self.gail.strength > 0 or self.bc.strength > 0 or self.bc.pretrain_epochs > 0
 
     def signals(self) -> dict[str, RewardSignalConfig]:
         """Active reward signals in a fixed order (extrinsic, gail, curiosity)."""

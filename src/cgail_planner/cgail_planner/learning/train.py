@@ -218,6 +218,10 @@ def main(argv: list[str] | None = None) -> int:
                           metadata=meta, demo_episodes=demo_episodes)
         if args.init_from is not None:
             trainer.load_weights(args.init_from)
+        if cfg.bc.pretrain_epochs and ckpt is None:
+            warm = trainer.pretrain_bc(cfg.bc.pretrain_epochs)
+            print(f'train: BC warm start: {cfg.bc.pretrain_epochs} epochs, last loss '
+                  f'{warm["losses/bc_pretrain_loss"]:.4g}', file=sys.stderr)
         if ckpt is not None:
             was = {k: ckpt['metadata'].get(k) for k in ('mode', 'anatomy', 'anatomy_hash')}
             now = {k: meta.get(k) for k in was}

@@ -382,3 +382,47 @@ def test_train_resume_continues_a_run_from_its_latest_checkpoint(tmp_path: Path)
     assert main(['--resume', str(tmp_path / 'nothing'), *base]) == 2
     assert main(['--resume', str(run), '--mode', 'dynamic', '--demos', str(demos),
                  '--no-progress']) == 2
+
+
+def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys):
+    """``bc.pretrain_epochs`` clones the demonstrations before the first env step (the
+    normaliser fitted to them), needs demonstrations even with every reward signal off, and a
+    resumed run does not clone again."""
+    import numpy as np
+    import torch
+    import yaml
+
+    from cgail_planner.learning.config import config_from_dict
+    from cgail_planner.learning.train import main
+    from cgail_planner.learning.trainer import load_checkpoint
+
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(512, 41)).astype(np.float32)
+    demos = tmp_path / 'demos.npz'
+    np.savez(demos, obs=obs, act=rng.uniform(-1, 1, (512, 3)).astype(np.float32), episodes=4)
+    preset = yaml.safe_load((REPO / 'src' / 'cgail_planner' / 'config' / 'presets' /
+                             'smoke.yaml').read_text())
+    preset.update(max_steps=1024, checkpoint_every=1024, eval_every=0, eval_episodes=1,
+                  normalize=True, gail={'strength': 0.0}, curiosity={'strength': 0.0},
+                  bc={'strength': 0.0, 'pretrain_epochs': 2})
+    assert config_from_dict(preset).needs_demos
+    (tmp_path / 'warm.yaml').write_text(yaml.safe_dump(preset))
+    run = tmp_path / 'run'
+    base = ['--mode', 'static', '--demos', str(demos), '--no-progress']
+    assert main(['--preset', str(tmp_path / 'warm.yaml'), '--out', str(run), *base]) == 0
+    assert 'train: BC warm start: 2 epochs, last loss' in capsys.readouterr().err
+    # the normaliser was fitted to the 512 demonstration states (replacing the first reset's
+    # num_envs observations), then saw the same env steps as a run without the warm start
+    cold = dict(preset, bc={'strength': 0.0}, gail={'strength': 0.8})
+    (tmp_path / 'cold.yaml').write_text(yaml.safe_dump(cold))
+    assert main(['--preset', str(tmp_path / 'cold.yaml'), '--out', str(tmp_path / 'cold'),
+                 *base]) == 0
+    counts = [torch.as_tensor(load_checkpoint(r / 'final.pt')['normalizer']['count']).item()
+              for r in (run, tmp_path / 'cold')]
+    assert counts[0] - counts[1] == pytest.approx(512 - preset['num_envs'], abs=1e-3)
+    assert main(['--resume', str(run), '--max-steps', '2048', *base]) == 0
+    assert 'BC warm start' not in capsys.readouterr().err
+    preset['bc'] = {'pretrain_epochs': -1}
+    with pytest.raises(Exception, match=r'bc\.pretrain_epochs must be in \[0, 1000\], '
+                                        r'found -1'):
+        config_from_dict(preset)
