@@ -35,6 +35,14 @@ the tip.
 
 Both raw paths are B-spline fitted and resampled at ``path_spacing``
 (:func:`cgail_planner.core.path_fit.fit_path`).
+
+**RRT planner** (``planner_type='rrt'``, the classical peer): a curvature-constrained
+bi-directional RRT on OMPL's Vana-Owen curves with the catheter's smallest bend radius
+``L / theta_max`` and the wall clearance ``radius + clearance_margin``
+(:mod:`cgail_planner.core.rrt_planner`, settings :class:`~cgail_planner.core.rrt_planner.
+RrtConfig`). Its path ends at the goal (or, when the goal lacks that clearance, within
+``goal_tolerance / 2`` of it) and is resampled at ``path_spacing`` without a spline fit (a fit
+could bend it beyond the catheter's curvature).
 """
 
 from __future__ import annotations
@@ -50,8 +58,14 @@ from numpy.typing import NDArray
 
 from cgail_planner.core.errors import ContractError, InvalidInputError, NoPathError
 from cgail_planner.core.mlp import MlpProgram
-from cgail_planner.core.path_fit import fit_path, PathFitConfig, PathFitError
+from cgail_planner.core.path_fit import (
+    fit_path,
+    PathFitConfig,
+    PathFitError,
+    resample_by_arc_length,
+)
 from cgail_planner.core.rotations import validate_pose
+from cgail_planner.core.rrt_planner import Lumen, RrtConfig, RrtPlanner
 from cgail_planner.sim.ftl_model import (
     advance_pose,
     CatheterConfig,
@@ -72,7 +86,7 @@ from cgail_planner.sim.ftl_model import (
 
 FloatArray = NDArray[np.float64]
 
-PLANNER_TYPES = ("cgail", "centerline")
+PLANNER_TYPES = ("cgail", "centerline", "rrt")
 MODES = ("static", "dynamic")
 #: Largest distance between a policy's observation origin and the anatomy's bounding-box
 #: centre accepted as the same anatomy, m (built meshes differ by micrometres across CPUs).
@@ -103,7 +117,8 @@ class PlannerConfig:
     """Planner settings (the node's parameters of the same names) and the catheter model."""
 
     planner_type: str = "cgail"
-    """``cgail`` (ONNX policy rollout) or ``centerline`` (the traditional baseline)."""
+    """``cgail`` (ONNX policy rollout), ``centerline`` (the traditional baseline) or ``rrt``
+    (the curvature-constrained RRT, :mod:`cgail_planner.core.rrt_planner`)."""
     goal_tolerance: float = 0.010
     """The rollout reached the goal within this distance, m (paper epsilon 10 mm); (0, 0.05]."""
     max_rollout_steps: int = 1500
@@ -116,6 +131,8 @@ class PlannerConfig:
     """The catheter model of the rollout (a policy's: its contract's)."""
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     """Position scale and ray length of the rollout's observation (a policy's: its contract's)."""
+    rrt: RrtConfig = field(default_factory=RrtConfig)
+    """Settings of the ``rrt`` planner (time limit, seed, clearance margin, range)."""
 
     def __post_init__(self) -> None:
         if self.planner_type not in PLANNER_TYPES:
@@ -134,6 +151,8 @@ class PlannerConfig:
         if not isinstance(self.observation, ObservationConfig):
             raise ValueError(f"observation must be an ObservationConfig, found "
                              f"{type(self.observation).__name__}")
+        if not isinstance(self.rrt, RrtConfig):
+            raise ValueError(f"rrt must be an RrtConfig, found {type(self.rrt).__name__}")
 
     def with_contract(self, contract: PolicyContract) -> PlannerConfig:
         """These settings with the catheter model and observation of a policy's contract."""
@@ -157,11 +176,12 @@ class PlanResult:
     path: FloatArray
     """(M, 3) B-spline fitted path resampled every ``path_spacing``, tip first, goal last, m."""
     raw: FloatArray
-    """(K, 3) the raw rollout (or centerline) points the spline was fitted to, m."""
+    """(K, 3) the raw rollout (or centerline) points the spline was fitted to, m; for the RRT
+    its curves sampled every ``RrtConfig.resolution``."""
     planner_type: str
     """Which planner made it."""
     steps: int
-    """Rollout steps (0 for the centerline)."""
+    """Rollout steps (0 for the centerline and the RRT)."""
     elapsed_s: float
     """Wall time spent planning, s."""
 
@@ -245,6 +265,15 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
         exit_point=np.asarray(anatomy.exit_point, dtype=np.float64),
         exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64),
         introducer=_sim_introducer(world))
+
+
+def _lumen(world: ModelWorld, wall: RayWall) -> Lumen:
+    """The geometry queries the RRT needs: the wall's distance (its unchecked form when it has
+    one) and the model world's lumen test, centerlines, ostia, exit plane and bounds."""
+    distance = getattr(wall, "distance_unchecked", None) or wall.distance
+    return Lumen(distance=distance, contains=world.contains, centerlines=world.centerlines,
+                 ostia=world.ostia, exit_point=world.exit_point, exit_normal=world.exit_normal,
+                 bbox_low=world.bbox_low, bbox_high=world.bbox_high)
 
 
 def _wall_arrays(wall: object) -> Any | None:
@@ -370,6 +399,9 @@ class Planner:
             raise ValueError(f"policy observation size must be {self.obs_dim} ({self.spec.kind} "
                              f"observation, {self.spec.n_rays} sensors), found {obs_dim}")
         self._fit = PathFitConfig(spacing=config.path_spacing)
+        self.rrt: RrtPlanner | None = None
+        if config.planner_type == "rrt":
+            self.rrt = RrtPlanner(config.rrt, config.catheter, _lumen(world, wall))
         program = policy if isinstance(policy, MlpProgram) else getattr(policy, "mlp", None)
         self._program: MlpProgram | None = None
         if isinstance(program, MlpProgram) and program.in_dim == self.obs_dim \
@@ -425,12 +457,17 @@ class Planner:
         """Plan from the tip pose ``[rotation | position]`` to ``goal``.
 
         Raises:
-            InvalidInputError: bad pose or goal.
-            NoPathError: no path found.
+            InvalidInputError: bad pose or goal (for the RRT also a start without clearance).
+            NoPathError: no path found (for the RRT: none within its time limit).
         """
         t0 = time.perf_counter()
         p, r = validate_pose(position, rotation)
         g = self.validate_goal(goal)
+        if self.rrt is not None:
+            found = self.rrt.plan(p, r, g, self.config.goal_tolerance)
+            return PlanResult(path=resample_by_arc_length(found.points, self.config.path_spacing),
+                              raw=found.points, planner_type="rrt", steps=0,
+                              elapsed_s=time.perf_counter() - t0)
         if self.config.planner_type == "cgail":
             raw, steps = self.rollout(p, r, g)
         else:

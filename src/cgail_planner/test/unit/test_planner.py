@@ -256,7 +256,7 @@ def test_replan_reason(kwargs, expected) -> None:
 
 
 @pytest.mark.parametrize(('field', 'value', 'match'), [
-    ('planner_type', 'rrt', "planner_type must be one of"),
+    ('planner_type', 'prm', "planner_type must be one of"),
     ('goal_tolerance', 0.0, r'goal_tolerance must be in \(0.0, 0.05\]'),
     ('max_rollout_steps', 0, r'max_rollout_steps must be an int in \[1, 100000\]'),
     ('path_spacing', 1.0, r'path_spacing must be in \[0.0001, 0.01\]'),
