@@ -1,5 +1,8 @@
 """Planner node (``planner``): whole-path planning with the ONNX C-GAIL policy, and guidance.
 
+``planner_type`` ``cgail`` (the policy), ``centerline`` (baseline) or ``rrt`` (the
+curvature-constrained RRT of :mod:`cgail_planner.core.rrt_planner`, parameters ``rrt_*``).
+
 Run: ``ros2 run cgail_planner planner_node --ros-args -p policy_path:=model.onnx`` (pip-only
 workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxruntime only.
 
@@ -49,6 +52,7 @@ from cgail_planner.core.planner import (
     replan_reason,
     ReplanConfig,
 )
+from cgail_planner.core.rrt_planner import RrtConfig
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
@@ -65,7 +69,8 @@ class PlannerNode(Node):
                                    "(required by planner_type 'cgail')")
         settings = PlannerConfig(
             planner_type=conv.declare(self, 'planner_type', d.planner_type,
-                                      "'cgail' (policy rollout) or 'centerline' (baseline)"),
+                                      "'cgail' (policy rollout), 'centerline' (baseline) or "
+                                      "'rrt' (curvature-constrained RRT)"),
             goal_tolerance=conv.declare(self, 'goal_tolerance', d.goal_tolerance,
                                         'rollout reached the goal within this, m',
                                         lo=1e-4, hi=0.05),
@@ -74,7 +79,20 @@ class PlannerNode(Node):
                                            lo=1, hi=100000),
             path_spacing=conv.declare(self, 'path_spacing', d.path_spacing,
                                       'arc-length spacing of the published path, m',
-                                      lo=1e-4, hi=0.01))
+                                      lo=1e-4, hi=0.01),
+            rrt=RrtConfig(
+                time_limit_s=conv.declare(self, 'rrt_time_limit_s', d.rrt.time_limit_s,
+                                          'rrt: wall-time budget of one plan, s', lo=1e-3,
+                                          hi=60.0),
+                seed=conv.declare(self, 'rrt_seed', d.rrt.seed, 'rrt: seed of every random '
+                                  'draw (the same seed gives the same path)', lo=0,
+                                  hi=2**31 - 1),
+                clearance_margin=conv.declare(self, 'rrt_clearance_margin',
+                                              d.rrt.clearance_margin, 'rrt: clearance from '
+                                              'the wall beyond the catheter radius, m',
+                                              lo=0.0, hi=0.005),
+                range=conv.declare(self, 'rrt_range', d.rrt.range, 'rrt: longest curve one '
+                                   'tree extension adds, m', lo=0.002, hi=0.2)))
         # 0 = not set: the policy's contract (or the catheter model's default) decides
         theta_max = conv.declare(self, 'theta_max', 0.0, "maximal bending angle of the model, "
                                  "rad; 0: the policy's (cgail) or the model default",
@@ -162,7 +180,7 @@ class PlannerNode(Node):
                 self.contract_notes.append(
                     f'override_policy_contract: {policy_path} carries no catheter contract; '
                     'using the parameters and the catheter model defaults')
-            if settings.planner_type == 'centerline' or policy is not None:
+            if settings.planner_type in ('centerline', 'rrt') or policy is not None:
                 self.planner = Planner(replace(settings, catheter=catheter),
                                        model_world_from_sim(world), self.wall, policy)
         for note in self.contract_notes:
