@@ -8,6 +8,7 @@ import pytest
 from cgail_planner.learning.evaluate import (
     CenterlineFollower,
     observation_at,
+    RrtFollower,
     run_trials,
     summarize,
     TrackingNoise,
@@ -107,6 +108,23 @@ def test_noisy_policy_sees_the_perceived_pose(static_env):
     assert 0.0 < err_mm < 10.0
 
 
+def test_rrt_method_follows_its_planned_path_and_reports_planning_time(static_env):
+    rrt = RrtFollower(static_env)
+    trials = run_trials(static_env, rrt, 3, seed=0, reuse_pairs=True)
+    assert sum(t.success for t in trials) >= 2, trials
+    assert all(t.plan_ms is not None and 0.0 < t.plan_ms < 2000.0 for t in trials)
+    s = summarize(trials)
+    assert 0.0 < s['plan_ms_median'] <= s['plan_ms_max']
+    # the path pursued is the plan: from the start to the target
+    eng = static_env.engine
+    assert rrt.path is not None and rrt.path[0] == pytest.approx(
+        eng.scenarios.starts[2].position, abs=1e-9)
+    assert np.linalg.norm(rrt.path[-1] - eng.target[0]) < 0.005
+    # a method that does not plan reports none
+    assert np.isnan(summarize(run_trials(static_env, CenterlineFollower(static_env), 1,
+                                         seed=0))['plan_ms_median'])
+
+
 def test_reuse_pairs_refuses_noise(static_env):
     with pytest.raises(ValueError, match='noise-free'):
         run_trials(static_env, CenterlineFollower(static_env), 2, seed=0, reuse_pairs=True,
@@ -136,7 +154,7 @@ def test_scenario_seed_selects_the_target_set_and_results_json_records_it(
     entry = data['modes']['static']['centerline']
     assert entry['summary']['n'] == 2 and len(entry['trials']) == 2
     assert set(entry['trials'][0]) == {'success', 'collision', 'timesteps',
-                                       'targeting_error_mm'}
+                                       'targeting_error_mm', 'plan_ms'}
     assert 'of target set (scenario seed) 1.' in (tmp_path / 'report.md').read_text()
 
 
