@@ -12,7 +12,9 @@ a full bend ``theta_max`` over the steerable segment ``L``; 50 mm / 90 deg = 31.
 :class:`ompl.base.VanaOwenStateSpace` with turning radius ``r_min``: a state is a position and
 a heading (yaw, pitch); the curve couples a horizontal Dubins curve of radius ``r_h`` with a
 vertical one of radius ``r_v``, ``1/r_v^2 = 1/r_min^2 - 1/r_h^2``. Its 3-D curvature is
-``sqrt(1/r_v^2 + cos^4(pitch)/r_h^2) <= 1/r_min`` (tested on every planned path). The pitch is
+``sqrt(1/r_v^2 + cos^4(pitch)/r_h^2) <= 1/r_min``; OMPL's sampling of the curves bends them up
+to ~2% more, so it is asked for :data:`RADIUS_FACTOR` ``* r_min`` (the sampled path's curvature
+is tested against ``1 / r_min``). The pitch is
 bounded (:data:`MAX_PITCH`, the curves are singular at +-90 deg), so the planner plans in a frame
 whose "horizontal" plane is the best-fit plane of the goal's Voronoi centerline (the aortic arch's
 plane): along the lumen the heading stays near that plane (built-in anatomies: within 30 deg).
@@ -22,10 +24,12 @@ it samples states uniformly in the bounding box with uniform headings, and the 2
 not expose ``StateSpace.setStateSamplerAllocator``, so the sampler cannot be told about the
 lumen. In the aorta (a ~25 mm tube in a ~150 mm box) almost no uniform sample can be reached by
 a curvature-bounded curve that stays in the tube: 5 s per query and no solution for any of the
-15 default scenarios (measured on the 2-core CI machine). OMPL also seeds its samplers from a
-process-wide generator that cannot be reset once used, so plans could not be repeated by seed.
-So the tree search here is a small RRT-Connect of our own, and OMPL provides what is hard to
-get right: the curvature-bounded 3-D steering curves (``getPath``, ``interpolate``, ``distance``)
+15 default scenarios (measured on the 2-core VM). OMPL also seeds its samplers from a
+process-wide generator and warns, when re-seeded after first use, that sampling will then not
+be deterministic, so repeated plans in one process could not be tied to a seed.
+So the tree search here is a small bi-directional RRT of our own (RRT-Connect's two trees,
+joined by one curve), and OMPL provides what is hard to get right: the curvature-bounded
+3-D steering curves (``getPath``, ``interpolate``, ``distance``)
 and the motion checker that walks them (:class:`ompl.base.VanaOwenMotionValidator`).
 
 **Search** (bi-directional, as Fauser et al.). The start tree grows forward from the tip pose,
@@ -74,6 +78,11 @@ from cgail_planner.sim.ftl_model import CatheterConfig
 
 FloatArray = NDArray[np.float64]
 
+#: The Vana-Owen turning radius asked of OMPL, in units of ``r_min``. Its curves meet
+#: ``1 / rho`` in theory, but ``interpolate`` samples the horizontal and the vertical curve at the
+#: same fraction of their lengths, so the sampled points bend up to ~2% more (measured on the
+#: built-in anatomies); 5% more radius keeps the sampled path within ``1 / r_min``.
+RADIUS_FACTOR = 1.05
 #: Largest |pitch| of a state, rad: headings within 80 deg of the planning plane (the Vana-Owen
 #: curves are singular at 90 deg).
 MAX_PITCH = math.radians(80.0)
@@ -233,7 +242,7 @@ class RrtPlanner:
         """A Vana-Owen space in ``frame`` with its space information and validity check."""
         ob = self._ob
         lum = self.lumen
-        space = ob.VanaOwenStateSpace(self.r_min, MAX_PITCH)
+        space = ob.VanaOwenStateSpace(RADIUS_FACTOR * self.r_min, MAX_PITCH)
         corners = np.array([[x, y, z] for x in (lum.bbox_low[0], lum.bbox_high[0])
                             for y in (lum.bbox_low[1], lum.bbox_high[1])
                             for z in (lum.bbox_low[2], lum.bbox_high[2])])

@@ -15,9 +15,13 @@ from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.wall import StaticWall
 
-#: Allowance of the discrete (Menger) curvature of the 0.5 mm curve samples over 1 / r_min:
-#: OMPL finds the Vana-Owen radii by root finding (measured excess <= 0.4%).
-CURVATURE_ALLOWANCE = 1.01
+#: Allowance of the discrete (Menger) curvature of the 0.5 mm curve samples over 1 / r_min
+#: (rounding only: the planner asks OMPL for 5% more radius than r_min, RADIUS_FACTOR).
+CURVATURE_ALLOWANCE = 1.001
+#: The same for the published path, linearly resampled every 1 mm from those samples: a point
+#: 1 um off the curve (the chord error) moves the discrete curvature of 1 mm spacing by ~8 /m,
+#: so up to 2% over 1 / r_min was measured there although the curve is within it.
+PATH_CURVATURE_ALLOWANCE = 1.03
 
 
 def make_planner(anatomy: str = 'default', **rrt) -> Planner:
@@ -46,7 +50,7 @@ def test_path_respects_curvature_clearance_start_and_goal(planner, world, start,
     curve, path = result.raw, result.path
     # curvature of the curves (sampled every 0.5 mm) and of the published path
     assert discrete_curvature(curve).max() <= CURVATURE_ALLOWANCE / rrt.r_min
-    assert discrete_curvature(path).max() <= CURVATURE_ALLOWANCE / rrt.r_min
+    assert discrete_curvature(path).max() <= PATH_CURVATURE_ALLOWANCE / rrt.r_min
     # every point inside the lumen with the catheter radius plus the margin from the wall
     need = cat.radius + planner.config.rrt.clearance_margin
     assert rrt.clearance(curve).min() >= need - 1e-6
@@ -116,8 +120,9 @@ def test_bad_settings_raise_one_line(field, value, match) -> None:
         PlannerConfig(planner_type='rrt', rrt={'seed': 1})  # type: ignore[arg-type]
 
 
-#: Measured (seed 0, 1 s limit, 2-core CI VM shared with two trainings): default 15/15,
-#: elongated 14/15 (README, "Classical planner"). The bar leaves room for a loaded machine.
+#: Measured (1 s limit, 2-core VM shared with two trainings, bench/bench_planner_rrt.py):
+#: seed 0 15/15 default, 14/15 elongated; seeds 0-2 39/45 and 37/45. The bar leaves room for
+#: a loaded machine (a plan cut by the time limit).
 MIN_SUCCESS = {'default': 14, 'elongated': 12}
 
 
@@ -130,10 +135,12 @@ def test_success_over_the_15_start_target_pairs(anatomy) -> None:
     for st in sc.starts:
         for tg in sc.targets:
             try:
-                path = planner.plan(st.position, st.rotation, tg.position).path
+                result = planner.plan(st.position, st.rotation, tg.position)
             except NoPathError:
                 continue
             assert planner.rrt is not None
-            assert discrete_curvature(path).max() <= CURVATURE_ALLOWANCE / planner.rrt.r_min
+            r_min = planner.rrt.r_min
+            assert discrete_curvature(result.raw).max() <= CURVATURE_ALLOWANCE / r_min
+            assert discrete_curvature(result.path).max() <= PATH_CURVATURE_ALLOWANCE / r_min
             ok += 1
     assert ok >= MIN_SUCCESS[anatomy], f'{anatomy}: {ok}/15 planned'
