@@ -31,8 +31,9 @@ class NoPathError(PlannerError):
         points: (K, 3) the tip positions rolled out before the failure, m (None when the
             failure is not a rollout's); kept as :attr:`points` for diagnostics.
         reason: how a rollout ended: ``collided``, ``left`` (exit plane or bounding box),
-            ``limit`` (step limit) or ``bad_action``; None when not a rollout's.
-        step: the step it ended at (None when not a rollout's).
+            ``limit`` (step limit) or ``bad_action``; for the RRT the limit that ran out,
+            ``max_iterations`` or ``time_limit``; None otherwise.
+        step: the step it ended at (the RRT: the iterations it used; None otherwise).
     """
 
     def __init__(self, message: str, points: NDArray[np.float64] | None = None,

@@ -132,7 +132,8 @@ class PlannerConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     """Position scale and ray length of the rollout's observation (a policy's: its contract's)."""
     rrt: RrtConfig = field(default_factory=RrtConfig)
-    """Settings of the ``rrt`` planner (time limit, seed, clearance margin, range)."""
+    """Settings of the ``rrt`` planner (iteration budget, time limit, seed, clearance margin,
+    range)."""
 
     def __post_init__(self) -> None:
         if self.planner_type not in PLANNER_TYPES:
@@ -458,7 +459,8 @@ class Planner:
 
         Raises:
             InvalidInputError: bad pose or goal (for the RRT also a start without clearance).
-            NoPathError: no path found (for the RRT: none within its time limit).
+            NoPathError: no path found (for the RRT: none within its iteration budget or time
+                limit).
         """
         t0 = time.perf_counter()
         p, r = validate_pose(position, rotation)

@@ -43,7 +43,14 @@ nearest few by distance) for at most ``range``; after every new node the other t
 join it directly with one curve. The first joined path is shortcut greedily (each node joined to
 the furthest later node one valid curve reaches). Every random draw comes from one
 ``numpy.random.Generator(seed)`` and the OMPL calls are deterministic, so a seed gives the same
-path (when the search ends within the time limit on both runs).
+path.
+
+**Budget.** The search stops at whichever comes first: ``max_iterations`` iterations (each one
+a tree extension or a goal state added) or the wall-clock ``time_limit_s``. The iteration
+budget is the deterministic bound: with a generous time limit the result (a path or
+:class:`NoPathError`) is a function of the seed and the configuration only, whatever the host
+and its load. The time limit is the real-time safety bound of the planner node; a plan it cuts
+short depends on the machine's speed (its error says which limit ran out).
 
 **Validity.** A state is valid when the tip lies on the lumen side of the exit plane, inside the
 anatomy's bounding region (:func:`cgail_planner.sim.scenarios.episode_bounds`) and at least
@@ -94,6 +101,12 @@ NEAREST_CANDIDATES = 4
 JOIN_CANDIDATES = 6
 #: Probability that an iteration adds a goal state to the goal tree rather than extending.
 GOAL_SAMPLE_RATE = 0.05
+#: Default search budget of one plan, iterations (:attr:`RrtConfig.max_iterations`). Measured
+#: with the budget alone (60 s limit; 15 start x target pairs x seeds 0-2, README): 1000
+#: iterations plan 39/45 (default) and 37/45 (elongated), what the former 1 s wall-clock limit
+#: gave, and a search that uses all of them takes ~0.6-0.9 s of one core (the median plan 50-130
+#: ms); 2000 would add 2 elongated plans for twice the time of a failed search.
+MAX_ITERATIONS_DEFAULT = 1000
 #: Install command named when the OMPL bindings are missing.
 INSTALL_HINT = "scripts/ws pip install ompl==2.0.1"
 
@@ -102,8 +115,14 @@ INSTALL_HINT = "scripts/ws pip install ompl==2.0.1"
 class RrtConfig:
     """Settings of the curvature-constrained RRT (the planner node's ``rrt_*`` parameters)."""
 
+    max_iterations: int = MAX_ITERATIONS_DEFAULT
+    """Search iterations of one plan (tree extensions and goal states added), the
+    deterministic budget: the result depends on it, the seed and the rest of the configuration,
+    never on the host; [1, 1000000]."""
     time_limit_s: float = 1.0
-    """Wall-time budget of one plan (search and shortcutting), s; (0, 60]."""
+    """Wall-time bound of the search, s; (0, 60]. The real-time safety bound: a plan it cuts
+    before ``max_iterations`` depends on the machine's speed and load. Use a generous limit
+    (e.g. 30 s) where results must be reproducible."""
     seed: int = 0
     """Seed of every random draw of a plan (the same seed gives the same path); [0, 2^31 - 1]."""
     clearance_margin: float = 0.0005
@@ -129,6 +148,10 @@ class RrtConfig:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) \
                 or not 0 <= self.seed <= 2**31 - 1:
             raise ValueError(f"seed must be an int in [0, 2147483647], found {self.seed!r}")
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) \
+                or not 1 <= self.max_iterations <= 1_000_000:
+            raise ValueError(f"max_iterations must be an int in [1, 1000000], "
+                             f"found {self.max_iterations!r}")
 
 
 @dataclass(frozen=True)
@@ -165,7 +188,7 @@ class RrtPath:
     headings: FloatArray
     """(K, 3) unit headings at the knots."""
     iterations: int
-    """Search iterations until the trees joined."""
+    """Search iterations until the trees joined (at most ``max_iterations``)."""
     nodes: int
     """Nodes in both trees when they joined."""
     elapsed_s: float
@@ -295,7 +318,10 @@ class RrtPlanner:
         Raises:
             InvalidInputError: the start pose lacks clearance or leaves the planning frame's
                 pitch range.
-            NoPathError: the trees did not join within ``time_limit_s`` (one line).
+            NoPathError: the trees did not join within ``max_iterations`` iterations or
+                ``time_limit_s`` (one line naming the limit that ran out; :attr:`~cgail_planner.
+                core.errors.NoPathError.reason` ``max_iterations`` or ``time_limit``, ``step``
+                the iterations used).
         """
         t0 = time.perf_counter()
         cfg = self.config
@@ -321,12 +347,15 @@ class RrtPlanner:
             raise InvalidInputError(
                 f"rrt start: expected a heading within {math.degrees(MAX_PITCH):.0f} deg of the "
                 f"planning plane, found {math.degrees(pitch):.0f} deg")
-        joined = search.run(start, p0, g, goal_tolerance, deadline)
+        joined = search.run(start, p0, g, goal_tolerance, deadline, cfg.max_iterations)
         if joined is None:
+            if search.iterations >= cfg.max_iterations:
+                limit, what = "max_iterations", f"max_iterations {cfg.max_iterations}"
+            else:
+                limit, what = "time_limit", f"time_limit_s {cfg.time_limit_s:g} s"
             raise NoPathError(
-                f"rrt found no path within time_limit_s {cfg.time_limit_s:g} s "
-                f"({search.iterations} iterations, {search.size} nodes, seed {cfg.seed})",
-                None, "limit", search.iterations)
+                f"rrt found no path within {what} ({search.iterations} iterations, "
+                f"{search.size} nodes, seed {cfg.seed})", None, limit, search.iterations)
         states = search.shortcut(joined)
         points = search.dense(states)
         knots = np.array([search.position(s) for s in states])
@@ -450,8 +479,9 @@ class _Search:
 
     # search
     def run(self, start: Any, p0: FloatArray, goal: FloatArray, tolerance: float,
-            deadline: float) -> list[Any] | None:
-        """Grow both trees until they join: the states from the start to a goal state."""
+            deadline: float, max_iterations: int) -> list[Any] | None:
+        """Grow both trees until they join (the states from the start to a goal state), for
+        at most ``max_iterations`` iterations and until ``deadline`` (``perf_counter``)."""
         self.goal, self.tolerance = goal, tolerance
         i0, self.goal_index = self._index(p0), self._index(goal)
         self.lo, self.hi = min(i0, self.goal_index), max(i0, self.goal_index)
@@ -461,7 +491,7 @@ class _Search:
         self.start_tree.add(start, p0, -1)
         rng = self.rng
         forward = True
-        while time.perf_counter() < deadline:
+        while self.iterations < max_iterations and time.perf_counter() < deadline:
             self.iterations += 1
             if not self.goal_tree.states or rng.uniform() < GOAL_SAMPLE_RATE:
                 found = self.goal_state()
