@@ -81,9 +81,12 @@ class PlannerNode(Node):
                                       'arc-length spacing of the published path, m',
                                       lo=1e-4, hi=0.01),
             rrt=RrtConfig(
+                max_iterations=conv.declare(self, 'rrt_max_iterations', d.rrt.max_iterations,
+                                            'rrt: search iterations of one plan (the '
+                                            'deterministic budget)', lo=1, hi=1_000_000),
                 time_limit_s=conv.declare(self, 'rrt_time_limit_s', d.rrt.time_limit_s,
-                                          'rrt: wall-time budget of one plan, s', lo=1e-3,
-                                          hi=60.0),
+                                          'rrt: wall-time safety bound of one search, s',
+                                          lo=1e-3, hi=60.0),
                 seed=conv.declare(self, 'rrt_seed', d.rrt.seed, 'rrt: seed of every random '
                                   'draw (the same seed gives the same path)', lo=0,
                                   hi=2**31 - 1),

@@ -249,8 +249,9 @@ def test_dynamic_mode_replans_when_the_tip_leaves_the_corridor(ros, world) -> No
         rig.close()
 
 
-def test_rrt_planner_plans_within_one_second(ros, world) -> None:
-    rig = Rig(planner_type='rrt', diagnostics_period_s=0.1)
+def test_rrt_planner_plans_a_path(ros, world) -> None:
+    # the iteration budget ends the search, not the clock: the same on a loaded machine
+    rig = Rig(planner_type='rrt', rrt_time_limit_s=30.0, diagnostics_period_s=0.1)
     try:
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[1]
@@ -265,7 +266,7 @@ def test_rrt_planner_plans_within_one_second(ros, world) -> None:
         assert path[0] == pytest.approx(start.position, abs=1e-9)
         assert np.linalg.norm(path[-1] - target) <= 0.005
         assert np.linalg.norm(np.diff(path, axis=0), axis=1) == pytest.approx(0.001, rel=0.05)
-        assert rig.node.counts['plans'] == 1 and rig.node.last_plan_ms < 1000.0
+        assert rig.node.counts['plans'] == 1 and rig.node.last_plan_ms > 0.0
         assert rig.spin_until(lambda: rig.diags and rig.last_status().level
                               == DiagnosticStatus.OK)
         values = {v.key: v.value for v in rig.last_status().values}
@@ -274,8 +275,8 @@ def test_rrt_planner_plans_within_one_second(ros, world) -> None:
         rig.close()
 
 
-def test_rrt_without_a_path_in_time_publishes_none(ros, world) -> None:
-    rig = Rig(planner_type='rrt', rrt_time_limit_s=0.001, diagnostics_period_s=0.1)
+def test_rrt_without_a_path_in_its_budget_publishes_none(ros, world) -> None:
+    rig = Rig(planner_type='rrt', rrt_max_iterations=1, diagnostics_period_s=0.1)
     try:
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[0]
@@ -283,8 +284,8 @@ def test_rrt_without_a_path_in_time_publishes_none(ros, world) -> None:
         rig.spin_for(0.1)
         rig.send_goal(world.scenarios.targets[0].position)
         assert rig.spin_until(lambda: rig.node.counts['failed_plans'] == 1)
-        assert rig.spin_until(lambda: rig.diags and 'rrt found no path within time_limit_s '
-                              '0.001 s' in rig.last_status().message)
+        assert rig.spin_until(lambda: rig.diags and 'rrt found no path within max_iterations '
+                              '1 (1 iterations' in rig.last_status().message)
         assert rig.last_status().level == DiagnosticStatus.ERROR
         assert rig.paths == []
     finally:
@@ -293,6 +294,7 @@ def test_rrt_without_a_path_in_time_publishes_none(ros, world) -> None:
 
 @pytest.mark.parametrize(('name', 'value'), [('planner_type', 'prm'), ('mode', 'beating'),
                                              ('lookahead', 0.5), ('rrt_time_limit_s', 0.0),
+                                             ('rrt_max_iterations', 0),
                                              ('rrt_seed', -1), ('rrt_clearance_margin', 0.01),
                                              ('rrt_range', 1.0)])
 def test_bad_parameters_raise_at_construction(ros, name, value) -> None:
