@@ -52,6 +52,10 @@ from cgail_planner.core.rotations import rotvec_to_matrix
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 
+#: Wall-clock bound of the rrt baseline's search, s: generous, so that its iteration budget
+#: (``RrtConfig.max_iterations``) ends every search and the results do not depend on the host.
+RRT_TIME_LIMIT_S = 30.0
+
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
@@ -183,17 +187,22 @@ class RrtFollower(CenterlineFollower):
     Planner`) plans from the episode's start pose to its target in the env's wall, and the
     centerline baseline's pure pursuit follows that path instead of the centerline (resampled at
     the centerline's waypoint spacing, so the lookahead is the same distance). Without a path
-    within the time limit the catheter holds still until the episode is truncated (a failure).
-    ``plan_ms`` is the last plan's wall time. The default lookahead is 3 waypoints (the
-    centerline's 6): the planned path keeps only ``clearance_margin`` from the wall in the
-    bends, and a far carrot cuts them (static, 15 pairs, seed 0, measured before the planner
-    asked OMPL for 5% more radius: 6 waypoints 80% / 40%, 3 waypoints 87% / 93% success on
-    default / elongated, the losses at 6 mostly collisions).
+    within the search budget the catheter holds still until the episode is truncated (a
+    failure). The budget is host-independent: by default the search is bounded by
+    ``max_iterations`` (:class:`~cgail_planner.core.rrt_planner.RrtConfig`'s default) with a
+    generous time limit of :data:`RRT_TIME_LIMIT_S`, so whether a trial's plan is found is a
+    function of its seed and the settings, not of the machine or its load. ``plan_ms`` is the
+    last plan's wall time (host-dependent, reported only). The default lookahead is 3
+    waypoints (the centerline's 6): the planned path keeps only ``clearance_margin`` from the
+    wall in the bends, and a far carrot cuts them (static, 15 pairs, seed 0, measured before
+    the planner asked OMPL for 5% more radius: 6 waypoints 80% / 40%, 3 waypoints 87% / 93%
+    success on default / elongated, the losses at 6 mostly collisions).
 
     Args:
         env: the environment (its world, wall and catheter model are the planner's).
-        config: the RRT settings (default :class:`~cgail_planner.core.rrt_planner.RrtConfig`);
-            its seed is offset by each trial's seed.
+        config: the RRT settings (default :class:`~cgail_planner.core.rrt_planner.RrtConfig`
+            with ``time_limit_s`` :data:`RRT_TIME_LIMIT_S`); its seed is offset by each trial's
+            seed.
     """
 
     def __init__(self, env: Any, config: Any = None, lookahead: int = 3,
@@ -203,7 +212,8 @@ class RrtFollower(CenterlineFollower):
 
         super().__init__(env, lookahead, approach)
         eng = self.env.engine
-        self.rrt_config = config if config is not None else RrtConfig()
+        self.rrt_config = config if config is not None else \
+            RrtConfig(time_limit_s=RRT_TIME_LIMIT_S)
         self._settings = PlannerConfig(planner_type='rrt', catheter=eng.config.catheter,
                                        rrt=self.rrt_config)
         self._model = model_world_from_sim(eng.world)
@@ -423,7 +433,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--baselines', nargs='*', default=['centerline', 'expert'],
                    choices=('centerline', 'expert', 'rrt'),
                    help='rrt: the curvature-constrained RRT (core/rrt_planner.py) planned at '
-                        'each reset and followed by the centerline pure pursuit')
+                        'each reset (its iteration budget, a 30 s time limit: host-independent) '
+                        'and followed by the centerline pure pursuit')
     p.add_argument('--modes', nargs='+', default=['static'], choices=('static', 'dynamic'))
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '

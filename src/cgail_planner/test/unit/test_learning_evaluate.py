@@ -112,7 +112,9 @@ def test_rrt_method_follows_its_planned_path_and_reports_planning_time(static_en
     rrt = RrtFollower(static_env)
     trials = run_trials(static_env, rrt, 3, seed=0, reuse_pairs=True)
     assert sum(t.success for t in trials) >= 2, trials
-    assert all(t.plan_ms is not None and 0.0 < t.plan_ms < 2000.0 for t in trials)
+    # the default budget is host-independent: iterations, with a generous time limit
+    assert rrt.rrt_config.time_limit_s >= 30.0
+    assert all(t.plan_ms is not None and t.plan_ms > 0.0 for t in trials)
     s = summarize(trials)
     assert 0.0 < s['plan_ms_median'] <= s['plan_ms_max']
     # the path pursued is the plan: from the start to the target
