@@ -185,6 +185,8 @@ class PlanResult:
     """Rollout steps (0 for the centerline and the RRT)."""
     elapsed_s: float
     """Wall time spent planning, s."""
+    iterations: int = 0
+    """RRT search iterations used (at most ``RrtConfig.max_iterations``; 0 for the others)."""
 
 
 @dataclass(frozen=True)
@@ -469,7 +471,7 @@ class Planner:
             found = self.rrt.plan(p, r, g, self.config.goal_tolerance)
             return PlanResult(path=resample_by_arc_length(found.points, self.config.path_spacing),
                               raw=found.points, planner_type="rrt", steps=0,
-                              elapsed_s=time.perf_counter() - t0)
+                              elapsed_s=time.perf_counter() - t0, iterations=found.iterations)
         if self.config.planner_type == "cgail":
             raw, steps = self.rollout(p, r, g)
         else:

@@ -53,6 +53,7 @@ def test_path_respects_curvature_clearance_start_and_goal(planner, world, start,
     result = planner.plan(st.position, st.rotation, goal)
     rrt, cat = planner.rrt, planner.config.catheter
     assert result.planner_type == 'rrt'
+    assert 1 <= result.iterations <= planner.config.rrt.max_iterations
     assert rrt is not None and rrt.r_min == pytest.approx(cat.segment_length / cat.theta_max)
     curve, path = result.raw, result.path
     # curvature of the curves (sampled every 0.5 mm) and of the published path
