@@ -48,9 +48,12 @@ path.
 **Budget.** The search stops at whichever comes first: ``max_iterations`` iterations (each one
 a tree extension or a goal state added) or the wall-clock ``time_limit_s``. The iteration
 budget is the deterministic bound: with a generous time limit the result (a path or
-:class:`NoPathError`) is a function of the seed and the configuration only, whatever the host
-and its load. The time limit is the real-time safety bound of the planner node; a plan it cuts
-short depends on the machine's speed (its error says which limit ran out).
+:class:`NoPathError`) is a function of the seed and the configuration only, whatever the load
+of the host. (Not to the bit across CPUs: numpy's SIMD kernels (AVX-512, AVX2, SSE) round the
+anatomy built from its parameters differently in the last bits, and a long search amplifies
+that; the success counts differ by a few plans of 15, see the tests.) The time limit is the
+real-time safety bound of the planner node; a plan it cuts short depends on the machine's speed
+(its error says which limit ran out).
 
 **Validity.** A state is valid when the tip lies on the lumen side of the exit plane, inside the
 anatomy's bounding region (:func:`cgail_planner.sim.scenarios.episode_bounds`) and at least

@@ -148,10 +148,13 @@ def test_bad_settings_raise_one_line(field, value, match) -> None:
         PlannerConfig(planner_type='rrt', rrt={'seed': 1})  # type: ignore[arg-type]
 
 
-#: Measured (the default budget of 1000 iterations, 60 s limit, bench/bench_planner_rrt.py):
-#: seed 0 15/15 default, 14/15 elongated. The budget makes the count independent of the load;
-#: the bar leaves one plan for floating-point differences between CPUs (properties, not bits).
-MIN_SUCCESS = {'default': 14, 'elongated': 13}
+#: Measured (the default budget of 1000 iterations, 60 s limit, bench/bench_planner_rrt.py,
+#: seed 0): default 15/15 with numpy's AVX-512, AVX2 and baseline (SSE) kernels; elongated 14/15
+#: (AVX-512), 11/15 (AVX2, ``NPY_DISABLE_CPU_FEATURES=X86_V4``), 14/15 (baseline). The budget
+#: makes the count independent of the load, not of the CPU: numpy's SIMD kernels change the last
+#: bits of the anatomy built from its parameters, and the search amplifies them. The bar is
+#: below every count measured.
+MIN_SUCCESS = {'default': 14, 'elongated': 10}
 
 
 @pytest.mark.slow
