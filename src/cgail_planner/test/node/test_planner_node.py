@@ -79,6 +79,12 @@ class Rig:
         self.goal_pub.publish(conv.pose_msg(self.node.get_clock().now().to_msg(), frame,
                                             np.asarray(goal), np.eye(3)))
 
+    def request_plan(self, start, goal) -> None:
+        """The tip at ``start`` (a scenario start), then, once the node has it, the goal."""
+        self.send_pose(start.position, start.rotation)
+        self.spin_for(0.1)
+        self.send_goal(goal)
+
     def last_status(self) -> DiagnosticStatus:
         return self.diags[-1].status[0]
 
@@ -139,9 +145,7 @@ def test_centerline_planner_needs_no_model(ros, world) -> None:
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[0]
         target = world.scenarios.targets[0].position
-        rig.send_pose(start.position, start.rotation)
-        rig.spin_for(0.1)
-        rig.send_goal(target)
+        rig.request_plan(start, target)
         assert rig.spin_until(lambda: rig.paths)
         path = conv.path_points(rig.paths[-1])
         assert path[-1] == pytest.approx(target, abs=1e-9)
@@ -213,9 +217,7 @@ def test_failed_rollout_publishes_no_path(ros, world) -> None:
     try:
         assert rig.spin_until(rig.connected)
         start, goal = goal_ahead(world)
-        rig.send_pose(start.position, start.rotation)
-        rig.spin_for(0.1)
-        rig.send_goal(goal)
+        rig.request_plan(start, goal)
         assert rig.spin_until(lambda: rig.node.counts['failed_plans'] == 1)
         rig.send_pose(start.position, start.rotation)
         rig.spin_for(0.2)
@@ -233,9 +235,7 @@ def test_dynamic_mode_replans_when_the_tip_leaves_the_corridor(ros, world) -> No
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[0]
         target = world.scenarios.targets[0].position
-        rig.send_pose(start.position, start.rotation)
-        rig.spin_for(0.1)
-        rig.send_goal(target)
+        rig.request_plan(start, target)
         assert rig.spin_until(lambda: len(rig.paths) == 1)
         rig.send_pose(start.position + 0.005 * start.rotation[:, 0], start.rotation)
         assert rig.spin_until(lambda: len(rig.paths) == 2)
@@ -256,9 +256,7 @@ def test_rrt_planner_plans_a_path(ros, world) -> None:
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[1]
         target = world.scenarios.targets[3].position
-        rig.send_pose(start.position, start.rotation)
-        rig.spin_for(0.1)
-        rig.send_goal(target)
+        rig.request_plan(start, target)
         assert rig.spin_until(lambda: rig.paths)
         rig.send_pose(start.position, start.rotation)
         assert rig.spin_until(lambda: rig.bends)
@@ -280,9 +278,7 @@ def test_rrt_without_a_path_in_its_budget_publishes_none(ros, world) -> None:
     try:
         assert rig.spin_until(rig.connected)
         start = world.scenarios.starts[0]
-        rig.send_pose(start.position, start.rotation)
-        rig.spin_for(0.1)
-        rig.send_goal(world.scenarios.targets[0].position)
+        rig.request_plan(start, world.scenarios.targets[0].position)
         assert rig.spin_until(lambda: rig.node.counts['failed_plans'] == 1)
         assert rig.spin_until(lambda: rig.diags and 'rrt found no path within max_iterations '
                               '1 (1 iterations' in rig.last_status().message)
