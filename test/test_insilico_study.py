@@ -317,7 +317,7 @@ def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_pat
 
 
 @pytest.mark.parametrize('name', ['pure_gail_ours_ppo', 'pure_gail_ours_ppo_normalised',
-                                  'pure_gail_sb3_defaults'])
+                                  'pure_gail_sb3_defaults', 'pure_gail_imitation_matched'])
 def test_the_gail_variants_of_the_readme_load_as_described(name):
     """bench/gail_variants/*.yaml (README, "GAIL at 2M steps") stay valid presets and pure
     GAIL at imitation's discriminator pace, as the README table says."""
@@ -329,8 +329,13 @@ def test_the_gail_variants_of_the_readme_load_as_described(name):
     assert (cfg.gail.reward_form, cfg.gail.gradient_penalty) == ('standard', 0.0)
     assert (cfg.gail.updates_per_buffer, cfg.gail.batch_size) == (4, 1024)
     assert cfg.max_steps == 2_000_000 and cfg.ppo.schedule == 'constant'
-    assert cfg.normalize == (name != 'pure_gail_ours_ppo')
-    assert cfg.gail.use_actions == (name == 'pure_gail_sb3_defaults')
+    matched = name == 'pure_gail_imitation_matched'
+    assert cfg.normalize == (name not in ('pure_gail_ours_ppo', 'pure_gail_imitation_matched'))
+    assert cfg.gail.use_actions == (name in ('pure_gail_sb3_defaults',
+                                             'pure_gail_imitation_matched'))
+    assert cfg.gail.own_normalizer == matched and cfg.network.orthogonal_init == matched
+    assert (cfg.ppo.advantage_normalization, cfg.ppo.clip_value_loss) == (
+        ('minibatch', False) if matched else ('buffer', True))
 
 
 def test_the_bc_initialised_gail_variant_is_the_gail_preset_plus_a_warm_start():

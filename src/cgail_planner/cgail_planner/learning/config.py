@@ -66,6 +66,10 @@ class NetworkConfig:
     """Hidden activation: ``swish`` (ML-Agents' default, SiLU), ``tanh`` or ``relu``."""
     init_log_std: float = 0.0
     """Initial log standard deviation of the Gaussian policy (-5..2)."""
+    orthogonal_init: bool = False
+    """Orthogonal initialisation of the hidden layers (gain sqrt 2) and the value heads (gain
+    1), as stable-baselines3's PPO does (``ortho_init``); False keeps PyTorch's default (as
+    ML-Agents). The policy's mean layer is orthogonal with gain 0.01 either way."""
 
     def __post_init__(self) -> None:
         _check(1 <= self.hidden_units <= 4096, 'network.hidden_units', 'in [1, 4096]',
@@ -101,8 +105,17 @@ class PPOConfig:
     """Gradient clipping norm."""
     schedule: str = 'linear'
     """``linear`` (decay over max_steps) or ``constant``."""
+    advantage_normalization: str = 'buffer'
+    """``buffer``: advantages normalised once over the whole buffer (ML-Agents); ``minibatch``:
+    normalised again within every minibatch (stable-baselines3's ``normalize_advantage``)."""
+    clip_value_loss: bool = True
+    """Clip the value loss around the old values with ``epsilon`` (ML-Agents); False: the plain
+    squared error (stable-baselines3's default ``clip_range_vf=None``)."""
 
     def __post_init__(self) -> None:
+        _check(self.advantage_normalization in ('buffer', 'minibatch'),
+               'ppo.advantage_normalization', "'buffer' or 'minibatch'",
+               self.advantage_normalization)
         _check(0 < self.learning_rate <= 1, 'ppo.learning_rate', 'in (0, 1]', self.learning_rate)
         _check(1 <= self.batch_size <= 1_000_000, 'ppo.batch_size', 'in [1, 1e6]',
                self.batch_size)
@@ -165,6 +178,11 @@ class GailConfig(RewardSignalConfig):
     batch_size: int = 1024
     """Policy (and demonstration) samples per discriminator step when ``updates_per_buffer``
     is set; at most the buffer size."""
+    own_normalizer: bool = False
+    """False: the discriminator reads observations through the policy's normaliser (ML-Agents).
+    True: it normalises its own input (observation and action) with running statistics of
+    every expert and policy batch it trains on, unclipped (the ``imitation`` library's
+    ``BasicRewardNet(normalize_input_layer=RunningNorm)``)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -39,12 +39,15 @@ Truncation is bootstrapped with the value of the last observation, as before.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional
 
 from cgail_planner.learning.config import GailConfig
+from cgail_planner.learning.networks import RunningNormalizer
 
 EPS = 1e-7
 
@@ -65,6 +68,15 @@ class Discriminator(nn.Module):
         h = cfg.hidden_units
         self.net = nn.Sequential(nn.Linear(in_dim, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(),
                                  nn.Linear(h, 1))
+        self.normalizer = RunningNormalizer(in_dim - 1, clip=math.inf) \
+            if cfg.own_normalizer else None
+
+    def observe(self, obs: torch.Tensor, act: torch.Tensor | None) -> None:
+        """Fold a training batch into the input statistics (``gail.own_normalizer``)."""
+        if self.normalizer is not None:
+            assert act is not None or not self.use_actions
+            x = torch.cat([obs, act], dim=-1) if act is not None and self.use_actions else obs
+            self.normalizer.update(x.detach().numpy())
 
     def inputs(self, obs: torch.Tensor, act: torch.Tensor | None,
                absorbing: int = 0) -> torch.Tensor:
@@ -74,7 +86,10 @@ class Discriminator(nn.Module):
         if self.use_actions:
             assert act is not None
             parts.append(act)
-        x = torch.cat([*parts, torch.zeros(obs.shape[0], 1, dtype=obs.dtype)], dim=-1)
+        x = torch.cat(parts, dim=-1)
+        if self.normalizer is not None:
+            x = self.normalizer(x)
+        x = torch.cat([x, torch.zeros(obs.shape[0], 1, dtype=obs.dtype)], dim=-1)
         if absorbing:
             x = torch.cat([x, self.absorbing_input(absorbing, obs.dtype)])
         return x
@@ -145,7 +160,12 @@ class Gail:
     def update(self, expert_obs: torch.Tensor, expert_act: torch.Tensor | None,
                policy_obs: torch.Tensor, policy_act: torch.Tensor | None,
                expert_absorbing: int = 0, policy_absorbing: int = 0) -> dict[str, float]:
-        """One discriminator gradient step (see :meth:`loss`)."""
+        """One discriminator gradient step (see :meth:`loss`); with its own normaliser, both
+        batches join its statistics first (``imitation``'s ``RunningNorm`` in training mode)."""
+        if self.disc.normalizer is not None:
+            both_act = None if expert_act is None or policy_act is None \
+                else torch.cat([expert_act, policy_act])
+            self.disc.observe(torch.cat([expert_obs, policy_obs]), both_act)
         loss, stats = self.loss(expert_obs, expert_act, policy_obs, policy_act,
                                 expert_absorbing, policy_absorbing)
         self.opt.zero_grad()

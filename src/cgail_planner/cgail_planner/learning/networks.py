@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+import math
 
 import numpy as np
 import torch
@@ -27,6 +28,15 @@ def mlp(in_dim: int, hidden: int, layers: int, act: str) -> nn.Sequential:
         mods += [nn.Linear(d, hidden), activation(act)]
         d = hidden
     return nn.Sequential(*mods)
+
+
+def orthogonal_(module: nn.Module, gain: float) -> None:
+    """Orthogonal weights with ``gain`` and zero biases for every linear layer of ``module``
+    (stable-baselines3's ``ortho_init``; ``NetworkConfig.orthogonal_init``)."""
+    for m in module.modules():
+        if isinstance(m, nn.Linear):
+            nn.init.orthogonal_(m.weight, gain=gain)
+            nn.init.zeros_(m.bias)
 
 
 class RunningNormalizer(nn.Module):
@@ -87,6 +97,8 @@ class Actor(nn.Module):
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self.normalizer = normalizer
         self.body = mlp(obs_dim, cfg.hidden_units, cfg.num_layers, cfg.activation)
+        if cfg.orthogonal_init:
+            orthogonal_(self.body, math.sqrt(2.0))
         self.mu = nn.Linear(cfg.hidden_units, act_dim)
         nn.init.orthogonal_(self.mu.weight, gain=0.01)
         nn.init.zeros_(self.mu.bias)
@@ -117,6 +129,9 @@ class Critic(nn.Module):
         self.signals = list(signals)
         self.body = mlp(obs_dim, cfg.hidden_units, cfg.num_layers, cfg.activation)
         self.heads = nn.ModuleDict({s: nn.Linear(cfg.hidden_units, 1) for s in self.signals})
+        if cfg.orthogonal_init:
+            orthogonal_(self.body, math.sqrt(2.0))
+            orthogonal_(self.heads, 1.0)
 
     def forward(self, obs: torch.Tensor) -> dict[str, torch.Tensor]:
         x = obs if self.normalizer is None else self.normalizer(obs)

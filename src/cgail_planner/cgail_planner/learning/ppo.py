@@ -28,8 +28,11 @@ def clipped_surrogate(logp: torch.Tensor, old_logp: torch.Tensor, advantages: to
 
 
 def clipped_value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: torch.Tensor,
-                       epsilon: float) -> torch.Tensor:
-    """ML-Agents value loss: ``mean(max((R - V)^2, (R - V_clip)^2))``."""
+                       epsilon: float | None) -> torch.Tensor:
+    """ML-Agents value loss: ``mean(max((R - V)^2, (R - V_clip)^2))``; ``epsilon`` None: the
+    plain ``mean((R - V)^2)`` (stable-baselines3's default)."""
+    if epsilon is None:
+        return ((returns - values) ** 2).mean()
     v_clip = old_values + torch.clamp(values - old_values, -epsilon, epsilon)
     return torch.max((returns - values) ** 2, (returns - v_clip) ** 2).mean()
 
@@ -47,14 +50,22 @@ class PPOStats(NamedTuple):
 def ppo_loss(actor: Actor, critic: Critic, obs: torch.Tensor, act: torch.Tensor,
              old_logp: torch.Tensor, advantages: torch.Tensor,
              returns: dict[str, torch.Tensor], old_values: dict[str, torch.Tensor],
-             epsilon: float, beta: float, value_coef: float) -> tuple[torch.Tensor, PPOStats]:
-    """Total loss ``L_clip + value_coef * mean_signals(L_value) - beta * entropy``."""
+             epsilon: float, beta: float, value_coef: float, clip_value: bool = True,
+             normalize_advantages: bool = False) -> tuple[torch.Tensor, PPOStats]:
+    """Total loss ``L_clip + value_coef * mean_signals(L_value) - beta * entropy``.
+
+    ``clip_value`` False: the value loss is not clipped; ``normalize_advantages``: the
+    minibatch's advantages are normalised first (``PPOConfig.clip_value_loss`` and
+    ``advantage_normalization``)."""
+    if normalize_advantages and len(advantages) > 1:
+        advantages = (advantages - advantages.mean()) / (advantages.std() + 1e-8)
     dist = actor.distribution(obs)
     logp = dist.log_prob(act).sum(-1)
     entropy = dist.entropy().sum(-1).mean()
     policy_loss = clipped_surrogate(logp, old_logp, advantages, epsilon)
     values = critic(obs)
-    value_loss = torch.stack([clipped_value_loss(values[s], old_values[s], returns[s], epsilon)
+    v_eps = epsilon if clip_value else None
+    value_loss = torch.stack([clipped_value_loss(values[s], old_values[s], returns[s], v_eps)
                               for s in returns]).mean()
     loss = policy_loss + value_coef * value_loss - beta * entropy
     with torch.no_grad():

@@ -216,7 +216,8 @@ class Trainer:
                     torch.as_tensor(mb.advantages),
                     {s: torch.as_tensor(v) for s, v in mb.returns.items()},
                     {s: torch.as_tensor(v) for s, v in mb.old_values.items()},
-                    eps, beta, cfg.value_coef)
+                    eps, beta, cfg.value_coef, cfg.clip_value_loss,
+                    cfg.advantage_normalization == 'minibatch')
                 self.opt.zero_grad()
                 loss.backward()
                 torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
@@ -263,11 +264,11 @@ class Trainer:
         assert self.gail is not None
         assert self.demo_obs is not None and self.demo_act is not None
         n_demo = len(self.demo_obs)
-        draw = self.rng.integers(0, n_demo + self.demo_episodes, len(obs_n))
+        dac = self.cfg.gail.reward_form == 'absorbing'
+        draw = self.rng.integers(0, n_demo + self.demo_episodes * dac, len(obs_n))
         idx = torch.as_tensor(draw[draw < n_demo])
         with torch.no_grad():
             ex_obs = self.actor.norm(self.demo_obs[idx])
-        dac = self.cfg.gail.reward_form == 'absorbing'
         return self.gail.update(ex_obs, self.demo_act[idx], obs_n, act_c,
                                 expert_absorbing=int((draw >= n_demo).sum()) * dac,
                                 policy_absorbing=int(terminated.sum()) * dac)

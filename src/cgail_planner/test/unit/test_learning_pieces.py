@@ -26,8 +26,13 @@ from cgail_planner.learning.curriculum import Curriculum
 from cgail_planner.learning.errors import ConfigError
 from cgail_planner.learning.gail import Gail, gail_reward, gradient_penalty
 from cgail_planner.learning.logger import read_event_scalars, ScalarLogger
-from cgail_planner.learning.networks import Actor, RunningNormalizer
-from cgail_planner.learning.ppo import clipped_surrogate, clipped_value_loss, linear_schedule
+from cgail_planner.learning.networks import Actor, Critic, RunningNormalizer
+from cgail_planner.learning.ppo import (
+    clipped_surrogate,
+    clipped_value_loss,
+    linear_schedule,
+    ppo_loss,
+)
 
 torch.set_num_threads(1)   # tiny networks: threads only add overhead on the shared CPU
 
@@ -86,6 +91,74 @@ def test_clipped_value_loss_and_schedule():
     assert linear_schedule(0.2, 0.1, 50, 100) == pytest.approx(0.15)
     assert linear_schedule(0.2, 0.1, 500, 100) == pytest.approx(0.1)
     assert linear_schedule(0.2, 0.1, 50, 100, 'constant') == 0.2
+
+
+def test_unclipped_value_loss_is_the_plain_squared_error():
+    # stable-baselines3's default: V moved from 0 to 1, return 3 -> (3 - 1)^2, no clip to 0.2
+    loss = clipped_value_loss(torch.tensor([1.0]), torch.tensor([0.0]), torch.tensor([3.0]), None)
+    assert loss.item() == pytest.approx(4.0)
+
+
+@pytest.mark.parametrize(('normalize', 'invariant'), [(True, True), (False, False)])
+def test_minibatch_advantage_normalisation_removes_scale_and_shift(normalize, invariant):
+    """``ppo.advantage_normalization: minibatch`` (stable-baselines3): the policy loss of
+    advantages A and 3 A + 5 is the same; without it, it is not."""
+    torch.manual_seed(0)
+    net = NetworkConfig(hidden_units=8)
+    actor, critic = Actor(3, 2, net, None), Critic(3, ['extrinsic'], net, None)
+    obs, act = torch.randn(16, 3), torch.randn(16, 2)
+    with torch.no_grad():
+        old_logp = actor.distribution(obs).log_prob(act).sum(-1) + 0.3 * torch.randn(16)
+    adv = torch.randn(16)
+    ret, old_v = {'extrinsic': torch.randn(16)}, {'extrinsic': torch.zeros(16)}
+
+    def policy_loss(a: torch.Tensor) -> float:
+        _, st = ppo_loss(actor, critic, obs, act, old_logp, a, ret, old_v, 0.2, 0.0, 0.5,
+                         clip_value=False, normalize_advantages=normalize)
+        return st.policy_loss
+
+    same = policy_loss(adv) == pytest.approx(policy_loss(3 * adv + 5), rel=1e-4, abs=1e-6)
+    assert same == invariant
+
+
+def test_orthogonal_init_gives_orthogonal_hidden_layers():
+    """``network.orthogonal_init`` (stable-baselines3's ``ortho_init``): hidden weights W with
+    W W^T = 2 I (gain sqrt 2) and zero biases; value heads gain 1; the default init is not."""
+    torch.manual_seed(0)
+    for ortho in (True, False):
+        net = NetworkConfig(hidden_units=16, orthogonal_init=ortho)
+        actor, critic = Actor(32, 2, net, None), Critic(32, ['extrinsic'], net, None)
+        w = actor.body[0].weight.detach()
+        is_ortho = torch.allclose(w @ w.T, 2.0 * torch.eye(16), atol=1e-4)
+        assert is_ortho == ortho
+        if ortho:
+            assert not actor.body[0].bias.any() and not critic.body[2].bias.any()
+            head = critic.heads['extrinsic'].weight.detach()
+            assert head.norm().item() == pytest.approx(1.0, rel=1e-4)
+
+
+def test_the_discriminator_can_normalise_its_own_input():
+    """``gail.own_normalizer`` (``imitation``'s RunningNorm): every training batch, expert and
+    policy, joins the statistics; inputs are standardised, unclipped; rewards do not update
+    them; the statistics travel in the state dict (checkpoints)."""
+    torch.manual_seed(0)
+    gail = Gail(2, 1, GailConfig(strength=1.0, hidden_units=8, use_actions=True,
+                                 own_normalizer=True))
+    expert, policy = torch.randn(64, 2) * 10 + 100, torch.randn(64, 2) * 10 - 100
+    e_act, p_act = torch.ones(64, 1), -torch.ones(64, 1)
+    gail.update(expert, e_act, policy, p_act)
+    norm = gail.disc.normalizer
+    assert norm is not None and norm.count.item() == pytest.approx(128, abs=1e-3)
+    x = gail.disc.inputs(torch.cat([expert, policy]), torch.cat([e_act, p_act]))
+    assert x.shape == (128, 4) and not x[:, -1].any()               # the absorbing flag column
+    assert x[:, :3].mean(0).abs().max().item() < 1e-3
+    assert x[:, :3].std(0, unbiased=False).sub(1).abs().max().item() < 1e-3
+    gail.reward(expert, e_act)
+    assert norm.count.item() == pytest.approx(128, abs=1e-3)
+    assert {'normalizer.mean', 'normalizer.var', 'normalizer.count'} <= set(
+        gail.disc.state_dict())
+    plain = Gail(2, 1, GailConfig(strength=1.0, hidden_units=8))
+    assert plain.disc.normalizer is None and 'normalizer.mean' not in plain.disc.state_dict()
 
 
 def test_gail_reward_is_ml_agents_form_and_never_negative():
@@ -218,6 +291,8 @@ def test_cgail_preset_is_the_papers_table():
     ({'gail': {'strength': -1}}, r'gail.strength must be in \[0, 10\]'),
     ({'ppo': {'batch_size': 1000, 'buffer_size': 1500}}, 'ppo.buffer_size must be a multiple'),
     ({'max_steps': 'many'}, 'max_steps must be of type int'),
+    ({'ppo': {'advantage_normalization': 'episode'}},
+     r"ppo.advantage_normalization must be 'buffer' or 'minibatch', found 'episode'"),
     ({'curriculum': {'theta_max_deg': [60, 90], 'thresholds': [1]}}, 'non-increasing'),
 ])
 def test_bad_config_names_key_and_range(data, match):

@@ -168,6 +168,36 @@ def test_the_discriminator_steps_per_buffer(per_buffer: int):
     assert any((p != q).any() for p, q in zip(trainer.gail.disc.parameters(), before, strict=True))
 
 
+IMITATION_LIKE = dict(
+    max_steps=1024, normalize=False, extrinsic={'strength': 0.0}, bc={'strength': 0.0},
+    curiosity={'strength': 0.0}, curriculum={},
+    network={'hidden_units': 64, 'orthogonal_init': True},
+    ppo={'learning_rate': 1e-3, 'batch_size': 256, 'buffer_size': 1024, 'schedule': 'constant',
+         'advantage_normalization': 'minibatch', 'clip_value_loss': False},
+    gail={'strength': 1.0, 'hidden_units': 64, 'use_actions': True, 'reward_form': 'standard',
+          'gradient_penalty': 0.0, 'own_normalizer': True, 'updates_per_buffer': 2,
+          'batch_size': 100})
+
+
+def test_a_trainer_at_the_imitation_librarys_settings_runs_and_checkpoints(tmp_path: Path):
+    """stable-baselines3's PPO options (orthogonal init, minibatch advantage normalisation, no
+    value clipping, no observation normaliser) and ``imitation``'s discriminator (its own input
+    normaliser on (s, a), 2 steps of 100 a buffer): one iteration trains every part, and the
+    discriminator's statistics survive a checkpoint."""
+    from cgail_planner.learning.trainer import load_checkpoint
+    trainer = _trainer(0, **IMITATION_LIKE)
+    assert trainer.normalizer is None and list(trainer.signals) == ['gail']
+    scalars = trainer.train_iteration()
+    norm = trainer.gail.disc.normalizer
+    assert norm is not None and norm.count.item() == pytest.approx(2 * 200, abs=1e-3)
+    assert np.isfinite(scalars['losses/value_loss']) and scalars['rewards/gail_mean'] >= 0.0
+    trainer.save(tmp_path / 'a.pt')
+    again = _trainer(1, **IMITATION_LIKE)
+    assert not torch.equal(again.gail.disc.normalizer.mean, norm.mean)
+    again.resume(load_checkpoint(tmp_path / 'a.pt'), tmp_path / 'a.pt')
+    assert torch.equal(again.gail.disc.normalizer.mean, norm.mean)
+
+
 def test_gail_update_settings_out_of_range_are_one_line():
     with pytest.raises(Exception, match=r'gail\.updates_per_buffer must be in \[0, 10000\]'):
         config_from_dict({**SMOKE, 'gail': {'strength': 0.8, 'updates_per_buffer': -1}})
