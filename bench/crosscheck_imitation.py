@@ -26,8 +26,9 @@ What runs, per seed:
   uses; episode ends from the bag's episode headers. They become ``imitation`` ``Transitions``;
   an episode's last ``next_obs`` repeats its last ``obs`` (the bag does not hold the terminal
   observation, and the discriminator here does not read ``next_obs``).
-* **PPO** (SB3), our ``gail`` preset's settings: 2 x 64 SiLU layers for policy and value,
-  initial log std -1.0, lr 3e-4 (constant, so a resumed run continues the same schedule),
+* **PPO** (SB3), the ML-Agents settings of our presets (those of the ``gail`` preset until
+  2026-12-02, ``bench/gail_variants/gail_ml_agents.yaml``): 2 x 64 SiLU layers for policy and
+  value, initial log std -1.0, lr 3e-4 (constant, so a resumed run continues the same schedule),
   ``n_steps`` 1280 x 8 envs = 10,240 steps a round, minibatch 1024, 3 epochs, gamma 0.99,
   GAE lambda 0.95, clip 0.2, entropy coefficient 5e-4; no observation normalisation (ours is
   pre-scaled).
@@ -254,9 +255,10 @@ def make_training_venv(seed: int) -> tuple[Any, list[tuple[bool, int]]]:
 
 
 def ppo_kwargs(settings: str = 'ours') -> dict[str, Any]:
-    """SB3 PPO settings: ``ours``, our ``gail`` preset's (module docstring); ``sb3``, SB3
-    2.2.1's own defaults (lr 3e-4, ``n_steps`` 2048 per env, minibatch 64, 10 epochs, gamma
-    0.99, GAE lambda 0.95, clip 0.2, no entropy bonus, 2 x 64 tanh, initial log std 0)."""
+    """SB3 PPO settings: ``ours``, ML-Agents' as in ``gail_ml_agents.yaml`` (module
+    docstring); ``sb3``, SB3 2.2.1's own defaults (lr 3e-4, ``n_steps`` 2048 per env,
+    minibatch 64, 10 epochs, gamma 0.99, GAE lambda 0.95, clip 0.2, no entropy bonus, 2 x 64
+    tanh, initial log std 0)."""
     import torch
 
     if settings == 'sb3':
@@ -566,7 +568,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seeds', type=int, nargs='+', default=[0, 1])
     p.add_argument('--bc-epochs', type=int, default=5)
     p.add_argument('--ppo', choices=('ours', 'sb3'), default='ours',
-                   help="PPO settings: our gail preset's (default) or SB3's own defaults")
+                   help="PPO settings: ML-Agents' as our presets (default) or SB3's own defaults "
+                        "(the gail preset's since 2026-12-02)")
     p.add_argument('--disc-actions', action='store_true',
                    help='the discriminator also sees the action (default: observation only)')
     p.add_argument('--resume', action='store_true',

@@ -317,32 +317,31 @@ def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_pat
 
 
 @pytest.mark.parametrize('name', ['pure_gail_ours_ppo', 'pure_gail_ours_ppo_normalised',
-                                  'pure_gail_sb3_defaults', 'pure_gail_imitation_matched'])
+                                  'pure_gail_sb3_defaults', 'gail'])
 def test_the_gail_variants_of_the_readme_load_as_described(name):
     """bench/gail_variants/*.yaml (README, "GAIL at 2M steps") stay valid presets and pure
     GAIL at imitation's discriminator pace, as the README table says."""
     from cgail_planner.learning.config import load_config
 
-    cfg = load_config(WS / 'bench' / 'gail_variants' / f'{name}.yaml')
+    cfg = load_config(name if name == 'gail' else WS / 'bench' / 'gail_variants' / f'{name}.yaml')
     assert cfg.extrinsic.strength == 0.0 and cfg.gail.strength == 1.0
     assert cfg.bc.strength == 0.0 and cfg.curiosity.strength == 0.0
     assert (cfg.gail.reward_form, cfg.gail.gradient_penalty) == ('standard', 0.0)
     assert (cfg.gail.updates_per_buffer, cfg.gail.batch_size) == (4, 1024)
     assert cfg.max_steps == 2_000_000 and cfg.ppo.schedule == 'constant'
-    matched = name == 'pure_gail_imitation_matched'
-    assert cfg.normalize == (name not in ('pure_gail_ours_ppo', 'pure_gail_imitation_matched'))
-    assert cfg.gail.use_actions == (name in ('pure_gail_sb3_defaults',
-                                             'pure_gail_imitation_matched'))
+    matched = name == 'gail'  # the preset: imitation's GAIL on SB3's PPO defaults
+    assert cfg.normalize == (name not in ('pure_gail_ours_ppo', 'gail'))
+    assert cfg.gail.use_actions == (name in ('pure_gail_sb3_defaults', 'gail'))
     assert cfg.gail.own_normalizer == matched and cfg.network.orthogonal_init == matched
     assert (cfg.ppo.advantage_normalization, cfg.ppo.clip_value_loss) == (
         ('minibatch', False) if matched else ('buffer', True))
 
 
-def test_the_bc_initialised_gail_variant_is_the_gail_preset_plus_a_warm_start():
+def test_the_bc_initialised_gail_variant_is_the_ml_agents_gail_plus_a_warm_start():
     from cgail_planner.learning.config import config_to_dict, load_config
 
     variant = config_to_dict(load_config(WS / 'bench' / 'gail_variants' / 'gail_bc_init.yaml'))
-    preset = config_to_dict(load_config('gail'))
+    preset = config_to_dict(load_config(WS / 'bench' / 'gail_variants' / 'gail_ml_agents.yaml'))
     assert variant['bc'] == {**preset['bc'], 'pretrain_epochs': 30}
     assert variant['max_steps'] == 2_000_000
     for key in ('bc', 'max_steps', 'name'):

@@ -278,9 +278,11 @@ def test_cgail_preset_is_the_papers_table():
     assert cfg.curiosity.strength == 0.02 and cfg.ppo.beta == 5e-4
     assert (cfg.ppo.batch_size, cfg.ppo.buffer_size, cfg.max_steps) == (1024, 10240, 500_000)
     assert cfg.extrinsic.gamma == cfg.gail.gamma == 0.99
-    gail = load_config('gail')
-    assert gail.network.hidden_units == 64 and gail.network.activation == 'swish'
-    assert gail.bc.strength == 0 and gail.curiosity.strength == 0
+    gail = load_config('gail')   # pure GAIL (the authors' chi_soft_gail), SB3/imitation settings
+    assert gail.network.hidden_units == 64 and gail.network.activation == 'tanh'
+    assert gail.bc.strength == gail.curiosity.strength == gail.extrinsic.strength == 0
+    assert (gail.gail.strength, gail.gail.reward_form, gail.max_steps) == (1.0, 'standard',
+                                                                           2_000_000)
     assert load_config('mu0').bc.strength == 0 and load_config('lambda0').gail.strength == 0
     assert load_config('nu0').curiosity.strength == 0
 
