@@ -967,6 +967,7 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
 
     try:
         while True:
+            progressed = False  # a task finished without a process: its dependants may be ready
             for key, st in state.items():  # a failure blocks what depends on it
                 if st == 'todo' and any(state[d] in ('failed', 'blocked')
                                         for d in by_key[key].deps):
@@ -983,6 +984,7 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                         if t.post is not None:
                             t.post()
                         finish(t.key, t.done(), 'not done after its step')
+                        progressed = True
                         continue
                 except (StudyError, OSError) as exc:
                     finish(t.key, False, str(exc))
@@ -999,6 +1001,8 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                 state[t.key] = 'running'
                 say(f'start {t.key} (log {log_path.relative_to(layout.root)})')
             if not running:
+                if progressed:
+                    continue
                 break
             time.sleep(1.0)
             for key, r in list(running.items()):

@@ -279,6 +279,22 @@ def _touch_task(key: str, out: Path, deps: list[str], code: str = '') -> object:
                       command=lambda: [sys.executable, '-c', script])
 
 
+def test_run_tasks_runs_what_a_task_without_a_process_made_ready(tmp_path):
+    """A task with nothing to run (a budget's snapshot) finishes at once; what depends on it
+    runs in the same invocation rather than being left for the next one."""
+    layout = study.Layout(tmp_path)
+    marker = tmp_path / 'snap.done'
+
+    def snap() -> None:
+        marker.write_text('x')
+
+    tasks = [study.Task('snap', 'export', [], done=marker.is_file, command=lambda: None,
+                        post=snap),
+             _touch_task('export', tmp_path, ['snap']), _touch_task('eval', tmp_path, ['export'])]
+    assert study.run_tasks(tasks, layout, 2, 3600.0) == (3, 0)
+    assert (tmp_path / 'eval.done').is_file()
+
+
 def test_run_tasks_follows_dependencies_and_blocks_after_a_failure(tmp_path, capsys):
     layout = study.Layout(tmp_path)
     tasks = [_touch_task('b', tmp_path, ['a']), _touch_task('a', tmp_path, []),
