@@ -88,8 +88,7 @@ class ScriptedExpert:
     # -------------------------------------------------------------- helpers
     def _centerline(self) -> tuple[np.ndarray, np.ndarray]:
         eng = self.env.engine
-        branch = eng.scenarios.targets[int(eng.target_id[0])].branch
-        cl = eng.world.centerlines[branch]
+        cl = eng.world.centerlines[eng.branch[0]]
         return np.asarray(cl.points), np.asarray(cl.radii)
 
     def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, carrot: np.ndarray

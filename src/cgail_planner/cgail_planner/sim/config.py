@@ -7,7 +7,10 @@ rule, the reward of :mod:`~cgail_planner.sim.reward`, the heartbeat of
 
 * ``ours``: the defaults (what this project judges best; ``docs/fidelity.md``);
 * ``paper_code``: the authors' Unity code where ours differs: the 27-float observation with 16
-  probes in two rings, forward-only insertion, their reward values and their 0.74 s heartbeat.
+  probes in two rings, forward-only insertion, their reward values and their 0.74 s heartbeat;
+* ``sphere_targets``: ``ours`` with a target drawn anew per episode in the 30 mm sphere
+  (``targets``; the ``generalist`` preset trains in it, and its ``d_max`` is the sphere's bound,
+  so ``evaluate`` rebuilds it from the policy's contract).
 
 ``EnvConfig.from_options("paper_code", mode="dynamic")`` builds one; :attr:`EnvConfig.options`
 names the set a configuration follows (``custom`` when neither).
@@ -25,6 +28,7 @@ from cgail_planner.sim.anatomy import AnatomySpec, check_anatomy_spec
 from cgail_planner.sim.ftl_model import CatheterConfig, OBS_KINDS, ObservationConfig
 from cgail_planner.sim.heartbeat import HeartbeatConfig, PAPER_CODE_HEARTBEAT
 from cgail_planner.sim.reward import PAPER_CODE_REWARD, RewardConfig
+from cgail_planner.sim.scenarios import TARGET_MODES
 
 #: The catheter model's defaults (:mod:`cgail_planner.sim.ftl_model`) the fields below start from.
 _MODEL = CatheterConfig()
@@ -80,6 +84,14 @@ class EnvConfig:
     code; :attr:`~cgail_planner.sim.ftl_model.CatheterConfig.forward_only`)."""
     heartbeat: HeartbeatConfig = field(default_factory=HeartbeatConfig)
     """Annulus motion of the dynamic mode (:mod:`cgail_planner.sim.heartbeat`)."""
+    targets: str = "fixed"
+    """Where a reset that names no target takes one from: ``fixed``, the scenario set's
+    (``scenario_seed``; the paper's 5), or ``sphere``, drawn anew per episode in the 30 mm
+    sphere by the scenario set's sampler (:class:`~cgail_planner.sim.scenarios.TargetSampler`:
+    inside the lumen, wall clearance, attached to a wall vertex, branch = nearer ostium). A reset
+    that names a target id still takes the fixed set's. ``sphere`` also sets the observation's
+    ``d_max`` to the sphere's bound (:attr:`~cgail_planner.sim.scenarios.ScenarioSet.
+    sphere_d_max`)."""
 
     def __post_init__(self) -> None:
         """Validate every field.
@@ -109,6 +121,8 @@ class EnvConfig:
         if not isinstance(self.heartbeat, HeartbeatConfig):
             raise ValueError(f"heartbeat must be a HeartbeatConfig, found "
                              f"{type(self.heartbeat).__name__}")
+        if self.targets not in TARGET_MODES:
+            raise ValueError(f"targets must be one of {TARGET_MODES}, found {self.targets!r}")
         if self.observation_kind not in OBS_KINDS:
             raise ValueError(f"observation_kind must be one of {OBS_KINDS}, found "
                              f"{self.observation_kind!r}")
@@ -167,9 +181,13 @@ class EnvConfig:
 #: The named env option sets (module docstring): the values of :class:`EnvConfig` each fixes.
 OPTION_SETS: Mapping[str, Mapping[str, Any]] = {
     "ours": {"observation_kind": "ours", "forward_only": False, "reward": RewardConfig(),
-             "heartbeat": HeartbeatConfig()},
+             "heartbeat": HeartbeatConfig(), "targets": "fixed"},
     "paper_code": {"observation_kind": "paper_code", "forward_only": True,
-                   "reward": PAPER_CODE_REWARD, "heartbeat": PAPER_CODE_HEARTBEAT},
+                   "reward": PAPER_CODE_REWARD, "heartbeat": PAPER_CODE_HEARTBEAT,
+                   "targets": "fixed"},
+    "sphere_targets": {"observation_kind": "ours", "forward_only": False,
+                       "reward": RewardConfig(), "heartbeat": HeartbeatConfig(),
+                       "targets": "sphere"},
 }
 
 

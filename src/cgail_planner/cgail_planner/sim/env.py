@@ -43,7 +43,13 @@ from cgail_planner.sim.reward import (
     StepEvents,
     update_waypoints,
 )
-from cgail_planner.sim.scenarios import episode_bounds, load_world, World
+from cgail_planner.sim.scenarios import (
+    episode_bounds,
+    load_world,
+    target_sampler,
+    TargetConfig,
+    World,
+)
 from cgail_planner.sim.wall import DeformableWall, StaticWall
 
 FloatArray = NDArray[np.float64]
@@ -61,7 +67,7 @@ PAPER_CODE_DISTANCE_BOUND = 40.0
 def observation_spec(config: EnvConfig) -> ObservationSpec:
     """The observation spec of an env configuration (its anatomy's origin and d_max)."""
     sc = load_world(config.anatomy, config.n_waypoints, config.scenario_seed).scenarios
-    return ObservationSpec.for_world(sc, config.observation)
+    return ObservationSpec.for_world(sc, config.observation, d_max=sc.d_max_for(config.targets))
 
 
 def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
@@ -205,9 +211,10 @@ class NavEngine:
         self.exit_point = np.asarray(anatomy.exit_point, dtype=np.float64)
         self.exit_normal = np.asarray(anatomy.exit_normal, dtype=np.float64)
         self.bbox_low, self.bbox_high = episode_bounds(anatomy)
-        self._target_vertex = np.array([t.vertex for t in sc.targets], dtype=np.int64)
-        self._target_offset = np.array([t.offset for t in sc.targets])
-        self._target_rest = np.array([t.position for t in sc.targets])
+        #: the episode target's wall vertex, rest offset and branch, per environment
+        self._target_vertex = np.zeros(n_envs, dtype=np.int64)
+        self._target_offset = np.zeros((n_envs, 3))
+        self.branch = ["left"] * n_envs
         self._branch_waypoints = {b: w for b, w in sc.waypoints.items()}
         n_wp = next(iter(sc.waypoints.values())).shape[0]
         self.start_id = np.zeros(n_envs, dtype=np.int64)
@@ -218,7 +225,8 @@ class NavEngine:
         self.steps = np.zeros(n_envs, dtype=np.int64)
         self.time = np.zeros(n_envs)
         self.min_distance = np.zeros(n_envs)
-        self.spec = ObservationSpec.for_world(sc, config.observation)
+        self.spec = ObservationSpec.for_world(sc, config.observation,
+                                              d_max=sc.d_max_for(config.targets))
         #: (N, S) sensor readings of the last step (:func:`~cgail_planner.sim.ftl_model.
         #: observe_batch`): ray hit distances, or ``paper_code`` probe wall distances, m.
         self.hits = np.full((n_envs, self.spec.n_rays), self.spec.no_reading)
@@ -228,9 +236,16 @@ class NavEngine:
         self._clearance_lb = np.full(n_envs, -np.inf)
 
     # ------------------------------------------------------------------ episodes
+    def draw_target(self, rng: np.random.Generator) -> TargetConfig:
+        """A target drawn with ``rng`` in the anatomy's 30 mm sphere (``EnvConfig.targets ==
+        "sphere"``; :class:`~cgail_planner.sim.scenarios.TargetSampler`)."""
+        return target_sampler(self.world.anatomy).sample(rng, 1)[0]
+
     def reset_env(self, i: int, start_id: int, target_id: int,
-                  start_pose: tuple[FloatArray, FloatArray] | None = None) -> None:
-        """Start episode ``i`` from start ``start_id`` towards target ``target_id``.
+                  start_pose: tuple[FloatArray, FloatArray] | None = None,
+                  target: TargetConfig | None = None) -> None:
+        """Start episode ``i`` from start ``start_id`` towards target ``target_id``, or towards
+        ``target`` (a drawn one, :meth:`draw_target`; ``target_id`` is then -1).
 
         ``start_pose`` ``(position (3,), rotation (3, 3))`` puts the tip there instead of at
         the start's pose, with the introducer behind it
@@ -240,8 +255,11 @@ class NavEngine:
         sc = self.scenarios
         if not 0 <= start_id < len(sc.starts):
             raise ValueError(f"start must be in [0, {len(sc.starts) - 1}], found {start_id}")
-        if not 0 <= target_id < len(sc.targets):
+        if target is None and not 0 <= target_id < len(sc.targets):
             raise ValueError(f"target must be in [0, {len(sc.targets) - 1}], found {target_id}")
+        if target is not None and not isinstance(target, TargetConfig):
+            raise ValueError(f"target must be a TargetConfig or None, found "
+                             f"{type(target).__name__}")
         start = sc.starts[start_id]
         if start_pose is None:
             self.catheter.reset_env(i, start.position, start.rotation, start.introducer)
@@ -251,9 +269,13 @@ class NavEngine:
         if not self._shared_wall:
             self.walls[i].reset()
         self.start_id[i] = start_id
-        self.target_id[i] = target_id
-        self.target[i] = self._target_rest[target_id]
-        self.waypoints[i] = self._branch_waypoints[sc.targets[target_id].branch]
+        tc = sc.targets[target_id] if target is None else target
+        self.target_id[i] = target_id if target is None else -1
+        self.target[i] = tc.position
+        self._target_vertex[i] = tc.vertex
+        self._target_offset[i] = tc.offset
+        self.branch[i] = tc.branch
+        self.waypoints[i] = self._branch_waypoints[tc.branch]
         self.reached[i] = False
         self.steps[i] = 0
         self.time[i] = 0.0
@@ -333,9 +355,8 @@ class NavEngine:
                 # (unchecked step: finite times, a body from the catheter kinematics)
                 wall.step_unchecked(float(self.time[i]), float(cfg.dt),
                                     cat.body_points(i, cfg.body_spacing), float(self.radius))
-                tid = int(self.target_id[i])
-                self.target[i] = (wall.vertices[int(self._target_vertex[tid])]
-                                  + self._target_offset[tid])
+                self.target[i] = (wall.vertices[int(self._target_vertex[i])]
+                                  + self._target_offset[i])
         # Static broad phase (exact, not a heuristic): the clearance to a rigid wall is
         # 1-Lipschitz in the tip position, so after the tip travelled |delta_l| it is >= the last
         # exact clearance - |delta_l|; while that bound stays > 0 the tip cannot touch the wall and
@@ -496,7 +517,8 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     ``targeting_error`` (m, minimum tip-target distance so far: the paper's T_a), ``distance``
     (m, current), ``timesteps`` (steps so far: T_s), ``time`` (s), ``new_waypoints``,
     ``waypoints_reached``, ``bend`` (applied [alpha, gamma], rad), ``insertion`` (applied m),
-    ``reward_end``/``reward_centerline``/``reward_bending``, ``start``, ``target`` (ids),
+    ``reward_end``/``reward_centerline``/``reward_bending``, ``start``, ``target`` (ids; -1
+    for a target drawn per episode),
     ``target_position`` (m), ``theta_max`` (rad).
 
     **Rendering**: ``render_mode='rgb_array'`` draws the anatomy, centerlines, scenarios and the
@@ -504,7 +526,9 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     for inspection, not for training).
 
     **Reset options**: ``{'start': int, 'target': int}`` picks the scenario (default: drawn from
-    the env's seeded generator); ``'start_pose': (position, rotation)`` puts the tip at that pose
+    the env's seeded generator; with ``EnvConfig.targets == "sphere"`` a reset that names no
+    target draws a new one in the 30 mm sphere from that generator, :meth:`NavEngine.
+    draw_target`); ``'start_pose': (position, rotation)`` puts the tip at that pose
     instead of the start's (replaying a demonstration from the pose it was recorded from).
     ``set_theta_max(rad)`` changes theta_max (curriculum).
 
@@ -569,8 +593,12 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
                              f"found {sorted(unknown)}")
         sc = self.engine.scenarios
         start = int(opts.get("start", self.np_random.integers(len(sc.starts))))
-        target = int(opts.get("target", self.np_random.integers(len(sc.targets))))
-        self.engine.reset_env(0, start, target, opts.get("start_pose"))
+        if "target" not in opts and self.config.targets == "sphere":
+            self.engine.reset_env(0, start, -1, opts.get("start_pose"),
+                                  self.engine.draw_target(self.np_random))
+        else:
+            target = int(opts.get("target", self.np_random.integers(len(sc.targets))))
+            self.engine.reset_env(0, start, target, opts.get("start_pose"))
         self._needs_reset = False
         return self.engine.observe()[0], self._reset_info()
 

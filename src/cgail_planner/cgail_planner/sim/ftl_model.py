@@ -340,10 +340,13 @@ class ObservationSpec:
         object.__setattr__(self, "probe_offsets", probes)
 
     @classmethod
-    def for_world(cls, scenarios: Any, config: ObservationConfig | None = None
-                  ) -> ObservationSpec:
-        """The spec of a scenario set (``origin``, ``d_max``) with the default sensor sets."""
-        return cls(origin=np.asarray(scenarios.origin), d_max=float(scenarios.d_max),
+    def for_world(cls, scenarios: Any, config: ObservationConfig | None = None, *,
+                  d_max: float | None = None) -> ObservationSpec:
+        """The spec of a scenario set (``origin``, and ``d_max`` unless given: the scenario
+        set's :meth:`~cgail_planner.sim.scenarios.ScenarioSet.d_max_for` its env's targets)
+        with the default sensor sets."""
+        return cls(origin=np.asarray(scenarios.origin),
+                   d_max=float(scenarios.d_max if d_max is None else d_max),
                    config=config or ObservationConfig())
 
     @property

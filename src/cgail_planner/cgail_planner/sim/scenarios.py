@@ -19,6 +19,13 @@
   Its ``branch`` (``left``/``right``) is the nearer ostium; its centerline pays ``r_centerline``.
 * ``d_max``: the largest distance between any wall vertex (rest shape) and any target, i.e. the
   largest agent-target distance with the agent in the lumen (``u = ||p_g - p_t|| / d_max``).
+  With targets drawn anew per episode (``EnvConfig.targets == "sphere"``,
+  :class:`TargetSampler`) there is no fixed set to take the maximum over, so ``d_max`` is the
+  same bound over every target the sampler can draw: the largest distance from a wall vertex
+  to the sphere's centre plus its radius (``ScenarioSet.sphere_d_max``). It is a function of
+  the anatomy alone (not of the seed or of the episode), so ``u`` keeps one scale through a
+  training run, and it lies a few percent above the fixed sets' ``d_max`` (``u`` stays in
+  [0, 1]).
 * ``origin``: the centre of the anatomy's bounding box (observed positions are relative to it).
 
 The set is a pure function of the anatomy, the centerlines and the seed; :func:`load_world`
@@ -49,6 +56,9 @@ FloatArray = NDArray[np.float64]
 
 #: Branch names of the centerlines / coronary ostia.
 BRANCHES = ("left", "right")
+#: Where an episode's target comes from: ``fixed``, one of the scenario set's targets (the
+#: paper's 5); ``sphere``, drawn anew per episode by the same sampler (module docstring).
+TARGET_MODES = ("fixed", "sphere")
 
 
 class ScenarioError(AnatomyError):
@@ -109,9 +119,19 @@ class ScenarioSet:
     waypoints: dict[str, FloatArray]
     """Centerline waypoints per branch, (W, 3) each, descending aorta first."""
     d_max: float
-    """Largest agent-target distance in the lumen, m."""
+    """Largest agent-target distance in the lumen, m (over the fixed targets)."""
     origin: FloatArray
     """(3,) origin of the observed positions, m."""
+    sphere_d_max: float
+    """Largest distance between a rest wall vertex and any point of the target sphere, m: the
+    ``d_max`` of targets drawn per episode (:meth:`TargetSampler.max_distance`)."""
+
+    def d_max_for(self, targets: str) -> float:
+        """The observation's ``d_max`` when targets are ``fixed`` (this set's) or drawn per
+        episode in the ``sphere`` (module docstring)."""
+        if targets not in TARGET_MODES:
+            raise ValueError(f"targets must be one of {TARGET_MODES}, found {targets!r}")
+        return self.sphere_d_max if targets == "sphere" else self.d_max
 
 
 @dataclass(frozen=True)
@@ -333,6 +353,13 @@ def introducer_path(anatomy: Anatomy, centerline: FloatArray, position: FloatArr
         f"straight one: {straight}; the one along the centerline: {along}")
 
 
+#: Radius of the sphere targets are drawn in, m (paper: 30 mm near the coronary ostia).
+TARGET_RADIUS = 0.030
+#: Smallest wall clearance of a target, m: the tip radius + 1 mm.
+TARGET_CLEARANCE = 0.0045
+#: Smallest distance between two targets of a fixed set, m.
+TARGET_SEPARATION = 0.005
+
 #: Margin of the region an episode (or a planner's rollout) may visit around the anatomy, m.
 BOUNDS_MARGIN = 0.01
 
@@ -344,58 +371,110 @@ def episode_bounds(anatomy: Anatomy) -> tuple[FloatArray, FloatArray]:
     return verts.min(axis=0) - BOUNDS_MARGIN, verts.max(axis=0) + BOUNDS_MARGIN
 
 
-def build_targets(anatomy: Anatomy, *, n_targets: int = 5, target_radius: float = 0.030,
-                  target_clearance: float = 0.0045, min_separation: float = 0.005,
-                  seed: int = 0, max_candidates: int = 20000) -> tuple[TargetConfig, ...]:
+class TargetSampler:
+    """The one sampler of targets of an anatomy (module docstring): uniform in the
+    ``target_radius`` sphere centred at the midpoint of the two coronary ostia, kept when inside
+    the lumen and at least ``target_clearance`` from the wall, attached to the nearest wall
+    vertex, ``branch`` the nearer ostium. :func:`build_targets` draws a scenario set's fixed
+    targets with it; an env with ``EnvConfig.targets == "sphere"`` draws one per episode.
+
+    Args:
+        anatomy: the anatomy (rest shape).
+        target_radius: radius of the sphere, m.
+        target_clearance: smallest distance of a target from the wall (nearest wall vertex or
+            wall-face centroid), m.
+    """
+
+    def __init__(self, anatomy: Anatomy, *, target_radius: float = TARGET_RADIUS,
+                 target_clearance: float = TARGET_CLEARANCE) -> None:
+        self.anatomy = anatomy
+        self.target_radius = float(target_radius)
+        self.target_clearance = float(target_clearance)
+        wall_faces = anatomy.faces[anatomy.wall_face_mask]
+        self._wall_vids = np.unique(wall_faces)
+        self._verts = np.asarray(anatomy.vertices, dtype=np.float64)
+        samples = np.vstack([self._verts[self._wall_vids], self._verts[wall_faces].mean(axis=1)])
+        self._wall_tree = cKDTree(samples)
+        self._vert_tree = cKDTree(self._verts[self._wall_vids])
+        self.centre = 0.5 * (anatomy.ostia["left"] + anatomy.ostia["right"])
+
+    def max_distance(self) -> float:
+        """The largest distance between a rest wall vertex and any point of the sphere, m: an
+        upper bound of the agent-target distance for every target this sampler can draw (the
+        ``d_max`` of per-episode targets)."""
+        return float(np.linalg.norm(self._verts - self.centre, axis=1).max()) \
+            + self.target_radius
+
+    def sample(self, rng: np.random.Generator, n_targets: int = 1, *,
+               min_separation: float = 0.0, max_candidates: int = 20000
+               ) -> tuple[TargetConfig, ...]:
+        """``n_targets`` targets drawn with ``rng``, each at least ``min_separation`` from the
+        ones drawn before it.
+
+        Raises:
+            ScenarioError: fewer than ``n_targets`` accepted among ``max_candidates``.
+        """
+        anatomy, verts = self.anatomy, self._verts
+        chosen: list[TargetConfig] = []
+        tried = 0
+        while len(chosen) < n_targets and tried < max_candidates:
+            batch = 256
+            tried += batch
+            d = rng.normal(size=(batch, 3))
+            d /= np.linalg.norm(d, axis=1)[:, None]
+            r = self.target_radius * rng.uniform(size=batch) ** (1.0 / 3.0)
+            cand = self.centre + d * r[:, None]
+            clearance, _ = self._wall_tree.query(cand)
+            ok = clearance >= self.target_clearance
+            if ok.any():
+                ok[ok] = anatomy.contains(cand[ok])
+            for p in cand[ok]:
+                if any(np.linalg.norm(p - t.position) < min_separation for t in chosen):
+                    continue
+                _, j = self._vert_tree.query(p)
+                vid = int(self._wall_vids[j])
+                branch = min(BRANCHES,
+                             key=lambda b: float(np.linalg.norm(p - anatomy.ostia[b])))
+                chosen.append(TargetConfig(position=p.copy(), vertex=vid,
+                                           offset=p - verts[vid], branch=branch))
+                if len(chosen) == n_targets:
+                    break
+        if len(chosen) < n_targets:
+            raise ScenarioError(
+                f"expected {n_targets} targets inside the lumen within {self.target_radius} m "
+                f"of the ostia with {self.target_clearance} m wall clearance, found "
+                f"{len(chosen)}")
+        return tuple(chosen)
+
+
+@functools.lru_cache(maxsize=64)
+def target_sampler(anatomy: Anatomy, target_radius: float = TARGET_RADIUS) -> TargetSampler:
+    """The (cached) :class:`TargetSampler` of ``anatomy``."""
+    return TargetSampler(anatomy, target_radius=target_radius)
+
+
+def build_targets(anatomy: Anatomy, *, n_targets: int = 5, target_radius: float = TARGET_RADIUS,
+                  target_clearance: float = TARGET_CLEARANCE,
+                  min_separation: float = TARGET_SEPARATION, seed: int = 0,
+                  max_candidates: int = 20000) -> tuple[TargetConfig, ...]:
     """Seeded targets near the coronary ostia, inside the lumen (module doc)."""
-    rng = np.random.default_rng(seed)
-    wall_faces = anatomy.faces[anatomy.wall_face_mask]
-    wall_vids = np.unique(wall_faces)
-    verts = np.asarray(anatomy.vertices, dtype=np.float64)
-    samples = np.vstack([verts[wall_vids], verts[wall_faces].mean(axis=1)])
-    wall_tree = cKDTree(samples)
-    vert_tree = cKDTree(verts[wall_vids])
-    centre = 0.5 * (anatomy.ostia["left"] + anatomy.ostia["right"])
-    chosen: list[TargetConfig] = []
-    tried = 0
-    while len(chosen) < n_targets and tried < max_candidates:
-        batch = 256
-        tried += batch
-        d = rng.normal(size=(batch, 3))
-        d /= np.linalg.norm(d, axis=1)[:, None]
-        r = target_radius * rng.uniform(size=batch) ** (1.0 / 3.0)
-        cand = centre + d * r[:, None]
-        clearance, _ = wall_tree.query(cand)
-        ok = clearance >= target_clearance
-        if ok.any():
-            ok[ok] = anatomy.contains(cand[ok])
-        for p in cand[ok]:
-            if any(np.linalg.norm(p - t.position) < min_separation for t in chosen):
-                continue
-            _, j = vert_tree.query(p)
-            vid = int(wall_vids[j])
-            branch = min(BRANCHES, key=lambda b: float(np.linalg.norm(p - anatomy.ostia[b])))
-            chosen.append(TargetConfig(position=p.copy(), vertex=vid, offset=p - verts[vid],
-                                       branch=branch))
-            if len(chosen) == n_targets:
-                break
-    if len(chosen) < n_targets:
-        raise ScenarioError(
-            f"expected {n_targets} targets inside the lumen within {target_radius} m of the "
-            f"ostia with {target_clearance} m wall clearance, found {len(chosen)}")
-    return tuple(chosen)
+    sampler = TargetSampler(anatomy, target_radius=target_radius,
+                            target_clearance=target_clearance)
+    return sampler.sample(np.random.default_rng(seed), n_targets,
+                          min_separation=min_separation, max_candidates=max_candidates)
 
 
 def build_scenarios(anatomy: Anatomy, centerlines: dict[str, Centerline], *, seed: int = 0,
                     n_starts: int = 3, start_span: float = 0.053, n_targets: int = 5,
-                    target_radius: float = 0.030) -> ScenarioSet:
+                    target_radius: float = TARGET_RADIUS) -> ScenarioSet:
     """The scenario set of ``anatomy`` (see the module docstring)."""
     missing = [b for b in BRANCHES if b not in centerlines]
     if missing:
         raise ScenarioError(f"expected centerlines {BRANCHES}, found {sorted(centerlines)}")
     starts = build_starts(anatomy, centerlines["left"], n_starts=n_starts, start_span=start_span)
-    targets = build_targets(anatomy, n_targets=n_targets, target_radius=target_radius,
-                            seed=seed)
+    sampler = target_sampler(anatomy, target_radius)
+    targets = sampler.sample(np.random.default_rng(seed), n_targets,
+                             min_separation=TARGET_SEPARATION)
     verts = np.asarray(anatomy.vertices, dtype=np.float64)
     d_max = max(float(np.linalg.norm(verts - t.position, axis=1).max()) for t in targets)
     origin = 0.5 * (verts.min(axis=0) + verts.max(axis=0))
@@ -406,8 +485,9 @@ def build_scenarios(anatomy: Anatomy, centerlines: dict[str, Centerline], *, see
             f"{ {b: w.shape for b, w in waypoints.items()} }")
     for arr in (origin, *waypoints.values()):
         arr.setflags(write=False)
+    sphere_d_max = target_sampler(anatomy, target_radius).max_distance()
     return ScenarioSet(starts=starts, targets=targets, waypoints=waypoints, d_max=d_max,
-                       origin=origin)
+                       origin=origin, sphere_d_max=sphere_d_max)
 
 
 _WORLDS: dict[tuple[str, str, int, int], World] = {}

@@ -61,8 +61,10 @@ class CatheterNavVecEnv:
         sc = self.engine.scenarios
         rng = self._rngs[i]
         start = int(rng.integers(len(sc.starts)))
-        target = int(rng.integers(len(sc.targets)))
-        self.engine.reset_env(i, start, target)
+        if self.config.targets == "sphere":
+            self.engine.reset_env(i, start, -1, target=self.engine.draw_target(rng))
+        else:
+            self.engine.reset_env(i, start, int(rng.integers(len(sc.targets))))
 
     def reset(self, seed: int | None = None) -> NDArray[np.float32]:
         """Reset every environment (env ``i`` seeded ``seed + i``); returns (N, obs_dim)."""
