@@ -24,8 +24,9 @@
   same bound over every target the sampler can draw: the largest distance from a wall vertex
   to the sphere's centre plus its radius (``ScenarioSet.sphere_d_max``). It is a function of
   the anatomy alone (not of the seed or of the episode), so ``u`` keeps one scale through a
-  training run, and it lies a few percent above the fixed sets' ``d_max`` (``u`` stays in
-  [0, 1]).
+  training run, and it lies above every fixed set's ``d_max`` (``u`` stays in [0, 1]): by 6 %
+  on ``default`` and 22 % on ``elongated``, by 1-24 % (mean 6 %) over population seeds 0-39
+  and 10000-10019 (target set 0).
 * ``origin``: the centre of the anatomy's bounding box (observed positions are relative to it).
 
 The set is a pure function of the anatomy, the centerlines and the seed; :func:`load_world`
