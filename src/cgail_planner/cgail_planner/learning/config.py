@@ -281,6 +281,41 @@ class CurriculumConfig:
 
 
 @dataclass(frozen=True)
+class PopulationConfig:
+    """Training across the anatomy population (:mod:`cgail_planner.sim.population`); the
+    training env is a :class:`~cgail_planner.learning.envs.PopulationVecEnv`."""
+
+    anatomies: int = 0
+    """Training anatomies: the first ``anatomies`` population training seeds
+    (:data:`~cgail_planner.sim.population.TRAINING_SEEDS`); 0 trains on ``--anatomy`` alone."""
+    redraw_every: int = 4
+    """Episodes a worker runs in one anatomy before it draws another from the pool."""
+    eval_anatomies: int = 5
+    """Anatomies of the periodic evaluation that picks ``best.pt``: the training seeds right
+    after the pool (never trained on, never held out)."""
+
+    def __post_init__(self) -> None:
+        _check(0 <= self.anatomies <= 1000, 'population.anatomies', 'in [0, 1000]',
+               self.anatomies)
+        _check(self.redraw_every >= 1, 'population.redraw_every', '>= 1', self.redraw_every)
+        _check(1 <= self.eval_anatomies <= 100, 'population.eval_anatomies', 'in [1, 100]',
+               self.eval_anatomies)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether the run trains on the population."""
+        return self.anatomies > 0
+
+    def seeds(self) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """``(training seeds, periodic-evaluation seeds)``: consecutive population training
+        seeds from 0, disjoint."""
+        from cgail_planner.sim.population import split_seeds
+
+        both = split_seeds('train', self.anatomies + self.eval_anatomies)
+        return both[:self.anatomies], both[self.anatomies:]
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """A whole training run (one preset)."""
 
@@ -317,6 +352,8 @@ class TrainConfig:
     """The simulator's option set (:data:`cgail_planner.sim.config.OPTION_SETS`): ``ours``
     (the default) or ``paper_code`` (the authors' observation, insertion, reward and heartbeat);
     the training, evaluation and demonstration-replay envs all use it."""
+    population: PopulationConfig = field(default_factory=PopulationConfig)
+    """Training across the anatomy population (off by default)."""
 
     def __post_init__(self) -> None:
         from cgail_planner.sim.config import OPTION_SETS  # (the simulator owns the names)

@@ -143,3 +143,135 @@ class ConcatVecEnv:
         """Close every part."""
         for p in self.parts:
             getattr(p, 'close', lambda: None)()
+
+
+class PopulationVecEnv(ConcatVecEnv):
+    """Batched training across a pool of anatomies: ``num_envs`` workers, each a one-env
+    batched env in one anatomy of the pool at a time, drawing another one (uniformly, with its
+    own generator) after every ``redraw_every`` episodes.
+
+    Building an anatomy costs seconds (:func:`cgail_planner.sim.population.sample_anatomy`), so
+    the pool is built once by the caller; a worker's env in a drawn anatomy is cheap (~10 ms
+    static, ~35 ms dynamic: its rigid wall or deformable wall and catheter buffers), so it is
+    built afresh at each redraw. Same-step auto-reset holds across a redraw: when worker i's
+    episode ends and it moves to another anatomy, ``obs[i]`` is the first observation of its
+    next episode there.
+
+    Seeding: ``reset(seed)`` gives worker i the generator ``SeedSequence([seed, i])`` for its
+    anatomy draws and seeds its env ``seed + i``; a redraw seeds the new env with an integer
+    from the worker's generator. The run is a function of ``seed`` and the pool.
+
+    Args:
+        make_part: ``anatomy -> batched env`` with one env (a
+            :class:`~cgail_planner.sim.vec_env.CatheterNavVecEnv` of that anatomy).
+        anatomies: the pool (anatomy specs or :class:`~cgail_planner.sim.anatomy.Anatomy`).
+        num_envs: workers (>= 1).
+        redraw_every: episodes a worker runs in one anatomy before it draws again (>= 1).
+    """
+
+    def __init__(self, make_part: Callable[[Any], Any], anatomies: Sequence[Any],
+                 num_envs: int, redraw_every: int = 4) -> None:
+        if not anatomies:
+            raise ValueError('anatomies must hold at least one anatomy, found none')
+        if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f'num_envs must be an int >= 1, found {num_envs!r}')
+        if isinstance(redraw_every, bool) or not isinstance(redraw_every, int) \
+                or redraw_every < 1:
+            raise ValueError(f'redraw_every must be an int >= 1, found {redraw_every!r}')
+        self.make_part = make_part
+        self.anatomies = list(anatomies)
+        self.redraw_every = redraw_every
+        self.current = [i % len(self.anatomies) for i in range(num_envs)]
+        """Index into ``anatomies`` of each worker's anatomy."""
+        super().__init__([self._part(j) for j in self.current])
+        if self._bounds[-1] != num_envs:
+            raise ValueError(f'make_part must build a one-env batched env, found '
+                             f'{self._bounds[-1]} envs for {num_envs} workers')
+        self._rngs = [np.random.default_rng([0, i]) for i in range(num_envs)]
+        self._episodes = [0] * num_envs
+        self._theta_max: float | None = None
+
+    def _part(self, j: int) -> Any:
+        part = self.make_part(self.anatomies[j])
+        if getattr(self, '_theta_max', None) is not None:
+            part.set_theta_max(self._theta_max)
+        return part
+
+    def _redraw(self, i: int, env_seed: int | None = None) -> np.ndarray:
+        """Move worker i to an anatomy drawn from the pool and reset it there (seeded
+        ``env_seed``, else from the worker's generator); its first observation."""
+        rng = self._rngs[i]
+        j = int(rng.integers(len(self.anatomies)))
+        drawn = int(rng.integers(2**31))
+        if j != self.current[i]:
+            self.parts[i].close()
+            self.parts[i] = self._part(j)
+            self.current[i] = j
+        return self.parts[i].reset(seed=drawn if env_seed is None else env_seed)
+
+    def reset(self, seed: int | None = None) -> np.ndarray:
+        """Draw every worker's anatomy and reset it (the class docstring: seeding)."""
+        if seed is not None:
+            self._rngs = [np.random.default_rng([seed, i]) for i in range(self.num_envs)]
+        self._episodes = [0] * self.num_envs
+        return np.concatenate([
+            self._redraw(i, None if seed is None else seed + i)
+            for i in range(self.num_envs)]).astype(np.float32)
+
+    def step(self, actions: np.ndarray) -> StepResult:
+        """Step every worker; one whose episode ended and whose count reached
+        ``redraw_every`` moves to a newly drawn anatomy."""
+        obs, rew, term, trunc, infos = super().step(actions)
+        for i in np.flatnonzero(term | trunc).tolist():
+            infos[i]['anatomy'] = self.current[i]
+            self._episodes[i] += 1
+            if self._episodes[i] % self.redraw_every == 0:
+                obs[i] = self._redraw(i)[0]
+        return obs, rew, term, trunc, infos
+
+    def set_theta_max(self, theta_max: float) -> None:
+        """Set theta_max of every worker, and of the envs later redraws build."""
+        self._theta_max = float(theta_max)
+        super().set_theta_max(theta_max)
+
+
+class AnatomyCycleEnv:
+    """A single env over several anatomies for the periodic evaluation: ``reset(seed=s)``
+    runs the episode in anatomy ``s % len(envs)`` (so consecutive evaluation seeds visit every
+    anatomy in turn).
+
+    Args:
+        envs: one gymnasium env per anatomy (equal observation and action spaces).
+    """
+
+    def __init__(self, envs: Sequence[gym.Env]) -> None:
+        if not envs:
+            raise ValueError('envs must hold at least one env, found none')
+        self.envs = list(envs)
+        self.observation_space = self.envs[0].observation_space
+        self.action_space = self.envs[0].action_space
+        for e in self.envs[1:]:
+            if e.observation_space.shape != self.observation_space.shape:
+                raise ValueError(f'expected envs with equal observation spaces, found '
+                                 f'{self.observation_space} and {e.observation_space}')
+        self._env = self.envs[0]
+
+    def reset(self, *, seed: int | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Reset the env of anatomy ``seed % len(envs)`` (the first without a seed)."""
+        self._env = self.envs[0 if seed is None else seed % len(self.envs)]
+        return self._env.reset(seed=seed, options=options)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Step the current anatomy's env."""
+        return self._env.step(action)
+
+    def set_theta_max(self, theta_max: float) -> None:
+        """Set theta_max of every env."""
+        for e in self.envs:
+            e.unwrapped.set_theta_max(theta_max)
+
+    def close(self) -> None:
+        """Close every env."""
+        for e in self.envs:
+            e.close()

@@ -6,6 +6,12 @@ Examples::
         --out runs/cgail_static
     scripts/ws train --preset cgail --mode dynamic --init-from runs/cgail_static/final.pt \
         --demos bags/demos/default --out runs/cgail_dynamic
+    scripts/ws train --preset generalist --demos bags/demos/population --out runs/generalist
+
+A preset with ``population.anatomies`` > 0 (``generalist``) trains across that many population
+anatomies (:mod:`cgail_planner.sim.population`, training seeds only) instead of ``--anatomy``,
+with targets drawn per episode when its ``env_options`` say so (``sphere_targets``), and picks
+``best.pt`` on the next training seeds' anatomies.
 
 Writes ``<out>/config.yaml``, ``scalars.csv`` + a TensorBoard event file (flat names such as
 ``losses/value_loss``, ``eval/success_rate``), ``checkpoints/step_<n>.pt``, ``best.pt`` (highest
@@ -15,6 +21,7 @@ periodic evaluation success rate, latest on ties) and ``final.pt``.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 import math
 from pathlib import Path
 import sys
@@ -26,7 +33,12 @@ import torch
 from tqdm import tqdm
 import yaml
 
-from cgail_planner.learning.config import config_from_dict, config_to_dict, load_config
+from cgail_planner.learning.config import (
+    config_from_dict,
+    config_to_dict,
+    load_config,
+    PopulationConfig,
+)
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.logger import ScalarLogger
 from cgail_planner.learning.trainer import evaluate_policy, Trainer
@@ -54,17 +66,52 @@ def sim_metadata(env_cfg: Any) -> dict[str, Any]:
     return meta
 
 
-def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours'
-              ) -> tuple[Any, Any, dict[str, Any]]:
+def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
+              population: PopulationConfig | None = None,
+              report: Callable[[str], None] | None = None) -> tuple[Any, Any, dict[str, Any]]:
     """Batched training env, single evaluation env and metadata for the simulator, in the env
-    option set ``env_options`` (:data:`cgail_planner.sim.config.OPTION_SETS`)."""
+    option set ``env_options`` (:data:`cgail_planner.sim.config.OPTION_SETS`).
+
+    With ``population`` enabled (:class:`~cgail_planner.learning.config.PopulationConfig`),
+    ``anatomy`` is not used: the training env is a :class:`~cgail_planner.learning.envs.
+    PopulationVecEnv` over the population's training anatomies (built once, ~5 s each the
+    first time, then from the disk cache; ``report`` is told the progress), and the evaluation
+    env an :class:`~cgail_planner.learning.envs.AnatomyCycleEnv` over the next training seeds.
+    The contract's anatomy, ``origin`` and ``d_max`` are then the first evaluation anatomy's
+    (a planner must take them from the anatomy it runs in); ``population`` in the metadata
+    names the seeds.
+    """
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.vec_env import CatheterNavVecEnv
 
-    env_cfg = EnvConfig.from_options(env_options, mode=mode, anatomy=anatomy)
-    return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
-            sim_metadata(env_cfg))
+    if population is None or not population.enabled:
+        env_cfg = EnvConfig.from_options(env_options, mode=mode, anatomy=anatomy)
+        return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
+                sim_metadata(env_cfg))
+    from cgail_planner.learning.envs import AnatomyCycleEnv, PopulationVecEnv
+    from cgail_planner.sim.population import sample_anatomy
+
+    train_seeds, eval_seeds = population.seeds()
+    t0 = time.monotonic()
+    pool = [sample_anatomy(s) for s in train_seeds]
+    evals = [sample_anatomy(s) for s in eval_seeds]
+    if report is not None:
+        report(f'{len(pool)} training anatomies (population seeds {train_seeds[0]}-'
+               f'{train_seeds[-1]}) and {len(evals)} evaluation anatomies (seeds '
+               f'{eval_seeds[0]}-{eval_seeds[-1]}) ready in {time.monotonic() - t0:.0f} s')
+
+    def config(a: Any) -> EnvConfig:
+        return EnvConfig.from_options(env_options, mode=mode, anatomy=a)
+
+    env = PopulationVecEnv(lambda a: CatheterNavVecEnv(config(a), 1), pool, num_envs,
+                           population.redraw_every)
+    eval_env = AnatomyCycleEnv([CatheterNavEnv(config(a)) for a in evals])
+    meta = sim_metadata(config(evals[0]))
+    meta['population'] = {'train_seeds': [train_seeds[0], train_seeds[-1] + 1],
+                          'eval_seeds': [eval_seeds[0], eval_seeds[-1] + 1],
+                          'redraw_every': population.redraw_every}
+    return env, eval_env, meta
 
 
 def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = True,
@@ -210,9 +257,12 @@ def main(argv: list[str] | None = None) -> int:
             demo_obs, demo_act, demo_episodes = load_demos(
                 [Path(d) for d in args.demos],
                 report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
-                anatomy=None if is_builtin(args.anatomy) else args.anatomy,
+                anatomy=None if is_builtin(args.anatomy) or cfg.population.enabled
+                else args.anatomy,
                 env_options=cfg.env_options)
-        env, eval_env, meta = make_envs(args.mode, args.anatomy, cfg.num_envs, cfg.env_options)
+        env, eval_env, meta = make_envs(
+            args.mode, args.anatomy, cfg.num_envs, cfg.env_options, cfg.population,
+            report=lambda line: print(f'train: population: {line}', file=sys.stderr))
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,
                           metadata=meta, demo_episodes=demo_episodes)

@@ -148,10 +148,19 @@ mean 45 deg, median 47, 5-95 % 24-59 deg, 12 % under 30 and 21 % over 55 deg (th
 normal alone: 49.4 +- 9.4, 2 % and 27 %, but 13 % of it lies beyond the generator's 60 deg
 cap); arch width median 83 mm, 5-95 % 67-97 mm (wider than drawn: steep roots need a wider
 arch, :func:`_min_arch_width`); annulus-to-BCT median 93 mm, 5-95 % 71-115 mm (source: 81-93 mm).
+
+Training and held-out seeds
+---------------------------
+The seeds are split once, by range, so that no run can train on an anatomy it is tested on:
+:data:`TRAINING_SEEDS` = [0, 10000) for training anatomies, their demonstrations and the
+periodic evaluation that picks ``best.pt``; :data:`HELD_OUT_SEEDS` = [10000, 20000) for the
+zero-shot evaluation (``evaluate --population N``: the first N of them). ``train`` refuses a
+held-out seed (:func:`check_training_seeds`); :func:`split_seeds` names the first N of a split.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 import dataclasses
 from dataclasses import dataclass, field
 import functools
@@ -174,17 +183,23 @@ if TYPE_CHECKING:
 __all__ = [
     "ACCEPTANCE",
     "ARCH_TYPE_FREQUENCIES",
+    "HELD_OUT_SEEDS",
     "MAX_DRAWS",
     "MIN_ROOT_GAP",
     "ROOT_TILT_RANGE_DEG",
+    "SPLITS",
+    "TRAINING_SEEDS",
     "PopulationDraw",
     "PopulationSample",
     "arch_type_ratio",
+    "check_training_seeds",
     "population_draw",
     "population_name",
+    "population_seed",
     "sample_anatomy",
     "sample_anatomy_params",
     "sample_population",
+    "split_seeds",
 ]
 
 MM = 1e-3
@@ -257,6 +272,54 @@ class PopulationSample:
     anatomy: Anatomy
     validation: Validation = field(repr=False)
     """The ``validate_anatomy`` result (no errors)."""
+
+
+#: Population seeds a planner may train on: training anatomies, their demonstrations and the
+#: periodic evaluation that picks ``best.pt``.
+TRAINING_SEEDS = range(0, 10_000)
+#: Population seeds no training touches (disjoint from :data:`TRAINING_SEEDS`): the held-out
+#: anatomies ``evaluate --population`` tests a generalist on.
+HELD_OUT_SEEDS = range(10_000, 20_000)
+#: The named splits of the population seeds.
+SPLITS = {"train": TRAINING_SEEDS, "held_out": HELD_OUT_SEEDS}
+
+
+def split_seeds(split: str, count: int) -> tuple[int, ...]:
+    """The first ``count`` seeds of split ``split`` (:data:`SPLITS`).
+
+    Raises:
+        ValueError: an unknown split, or a count outside [1, len(split)].
+    """
+    if split not in SPLITS:
+        raise ValueError(f"split must be one of {sorted(SPLITS)}, found {split!r}")
+    seeds = SPLITS[split]
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= len(seeds):
+        raise ValueError(f"count must be an int in [1, {len(seeds)}], found {count!r}")
+    return tuple(seeds[:count])
+
+
+def check_training_seeds(seeds: Iterable[int]) -> tuple[int, ...]:
+    """``seeds`` as a tuple, each checked to lie in :data:`TRAINING_SEEDS`.
+
+    Raises:
+        ValueError: a held-out or otherwise out-of-range seed (naming it).
+    """
+    out = tuple(int(s) for s in seeds)
+    bad = [s for s in out if s not in TRAINING_SEEDS]
+    if bad:
+        raise ValueError(f"training population seeds must lie in [{TRAINING_SEEDS.start}, "
+                         f"{TRAINING_SEEDS.stop}) (the held-out ones are "
+                         f"[{HELD_OUT_SEEDS.start}, {HELD_OUT_SEEDS.stop})), found {bad[:5]}")
+    return out
+
+
+def population_seed(name: str) -> int | None:
+    """The seed of a population anatomy name (``population-<seed>``, :func:`population_name`),
+    or None for any other name."""
+    prefix = "population-"
+    if isinstance(name, str) and name.startswith(prefix) and name[len(prefix):].isdigit():
+        return int(name[len(prefix):])
+    return None
 
 
 def population_name(seed: int) -> str:
