@@ -24,6 +24,13 @@ mesh the episodes were recorded in, and ``numpy_simd``, the numpy SIMD targets o
 recording process; a bag recorded in a path anatomy also holds ``anatomy_path``, the absolute
 path it was loaded from, which :func:`replay_demo_bag` re-simulates in unless told otherwise.
 
+A **population bag** (``make_demos --population N``; custom data ``population: true``) holds
+episodes of many population anatomies: each episode's ``demo/episode`` JSON names its anatomy
+(``population-<seed>``) and its content hash, and :func:`replay_demo_bag` rebuilds each
+anatomy (:func:`~cgail_planner.sim.population.sample_anatomy`) and re-simulates its episodes
+there, under the same tolerance; the report's anatomy hash is :func:`population_hash` of the
+episodes' (in bag order).
+
 The bags hold no observation vectors (that keeps them small): :func:`load_demo_bag` re-simulates
 each episode with the recorded commands (normalised back with
 :func:`cgail_planner.sim.ftl_model.command_to_action`), so the (obs, act) arrays always match the
@@ -65,6 +72,7 @@ from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
 from rosbags.typesys import get_typestore, Stores
 
 from cgail_planner.learning.errors import DemoAnatomyWarning, DemoError
+from cgail_planner.sim.population import population_seed
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_PERIOD_NS = 1000 * 10**9
@@ -93,6 +101,11 @@ class DemoEpisode:
     tip_quaternion: np.ndarray  # (T, 4) x, y, z, w
     target_position: np.ndarray  # (T, 3)
     success: bool
+    anatomy: str | None = None
+    """The anatomy this episode ran in when it is not the bag's (a population bag:
+    ``population-<seed>``, :func:`~cgail_planner.sim.population.population_name`)."""
+    anatomy_hash: str | None = None
+    """Content hash of that anatomy as recorded (population bags)."""
 
 
 def _stamp(ns: int) -> Any:
@@ -174,7 +187,8 @@ class Replay(NamedTuple):
 def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mode: str,
                    dt: float, compress: bool | None = None,
                    anatomy_hash: str | None = None, anatomy_path: str | None = None,
-                   scenario_seed: int = 0, env_options: str = 'ours') -> Path:
+                   scenario_seed: int = 0, env_options: str = 'ours',
+                   population: bool = False) -> Path:
     """Write ``episodes`` to a new MCAP bag directory ``path`` (must not exist).
 
     ``compress`` (default: when ``zstandard`` is installed) zstd-compresses the MCAP chunks,
@@ -184,7 +198,10 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     anatomy; ``anatomy`` is then its label) too. ``scenario_seed`` is the target set the
     episodes' target ids refer to (``EnvConfig.scenario_seed``); stored when it is not 0.
     ``env_options`` is the env option set the episodes were recorded in (informational: a
-    replay uses its caller's); stored when it is not ``ours``.
+    replay uses its caller's); stored when it is not ``ours``. ``population`` marks a bag whose
+    episodes each ran in their own population anatomy (``DemoEpisode.anatomy``, written into
+    each episode's ``demo/episode`` JSON with its content hash); ``anatomy`` is then the
+    population's label and ``anatomy_hash`` :func:`population_hash` of the episodes'.
     """
     if compress is None:
         compress = zstd_available()
@@ -209,6 +226,12 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
         info['scenario_seed'] = int(scenario_seed)
     if env_options != 'ours':
         info['env_options'] = env_options
+    if population:
+        missing = [e for e, ep in enumerate(episodes) if population_seed(ep.anatomy or '') is None]
+        if missing:
+            raise DemoError(f'population bag: expected every episode in a population anatomy '
+                            f'(population-<seed>), found episodes {missing[:5]} without one')
+        info['population'] = True
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
         c_ep = writer.add_connection('demo/episode', 'std_msgs/msg/String', typestore=TYPESTORE)
@@ -220,8 +243,11 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
                                       typestore=TYPESTORE)
         for e, ep in enumerate(episodes):
             t0 = e * EPISODE_PERIOD_NS
-            info = {'index': e, 'anatomy': anatomy, 'mode': mode, 'start': ep.start,
-                    'target': ep.target, 'steps': len(ep.alpha), 'success': ep.success}
+            info = {'index': e, 'anatomy': ep.anatomy or anatomy, 'mode': mode,
+                    'start': ep.start, 'target': ep.target, 'steps': len(ep.alpha),
+                    'success': ep.success}
+            if ep.anatomy_hash is not None:
+                info['anatomy_hash'] = ep.anatomy_hash
             msg = T['std_msgs/msg/String'](data=json.dumps(info))
             writer.write(c_ep, t0, TYPESTORE.serialize_cdr(msg, 'std_msgs/msg/String'))
             for t in range(len(ep.alpha)):
@@ -255,7 +281,8 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
         ``(meta, episodes)``: ``meta`` has ``anatomy``, ``mode``, ``env_options`` (only when
         recorded in another option set than ``ours``) and ``scenario_seed`` (0 when
         the bag does not record one), and ``anatomy_hash``, ``numpy_simd`` and
-        ``anatomy_path`` when the bag records them.
+        ``anatomy_path`` when the bag records them, and ``population`` (True) for a bag
+        whose episodes each name their own population anatomy.
     """
     if not path.exists():
         raise DemoError(f'demo bag not found: {path}')
@@ -294,6 +321,9 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     meta.update({k: str(custom[k]) for k in ('anatomy_hash', 'numpy_simd', 'anatomy_path',
                                              'env_options') if k in custom})
     meta['scenario_seed'] = custom.get('scenario_seed', 0)
+    if custom.get('population'):  # (the episodes name their own anatomies)
+        meta['population'] = True
+        meta['anatomy'] = str(custom.get('anatomy', 'population'))
     if not isinstance(meta['scenario_seed'], int) or meta['scenario_seed'] < 0:
         raise DemoError(f'{path}: expected an int scenario_seed >= 0 in its custom data, found '
                         f'{meta["scenario_seed"]!r}')
@@ -304,9 +334,11 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
         if len(pose) != h['steps'] or len(act) != h['steps']:
             raise DemoError(f'{path}: episode {h["index"]}: expected {h["steps"]} steps, '
                             f'found {len(pose)} poses and {len(act)} actions')
+        own = meta.get('population', False)
         episodes.append(DemoEpisode(h['start'], h['target'], act[:, 0], act[:, 1], act[:, 2],
                                     pose[:, :3], pose[:, 3:], np.asarray(r['tgt']),
-                                    bool(h['success'])))
+                                    bool(h['success']), h['anatomy'] if own else None,
+                                    h.get('anatomy_hash') if own else None))
     return meta, episodes
 
 
@@ -479,6 +511,8 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         episodes = [e for e in episodes if e.success]
     if not episodes:
         raise DemoError(f'{path}: no successful demonstrations')
+    if meta.get('population'):
+        return _replay_population(path, meta, episodes, tolerance_m, anatomy, env_options)
     if anatomy is None:
         anatomy = meta.get('anatomy_path') or meta.get('anatomy', 'default')
         if not is_builtin(anatomy) and not Path(anatomy).exists():
@@ -514,6 +548,72 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
             f'within the {tolerance_m * 1e3:g} mm tolerance'), stacklevel=2)
     _LOG.info(report.summary())
     return Replay(obs, act, report)
+
+
+def population_hash(hashes: list[str]) -> str:
+    """One content hash for the anatomies of a population bag's episodes (in episode order):
+    the first 16 hex digits of the SHA-256 of their content hashes, one a line."""
+    import hashlib
+
+    return hashlib.sha256('\n'.join(hashes).encode()).hexdigest()[:16]
+
+
+def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpisode],
+                       tolerance_m: float, anatomy: Any, env_options: str) -> Replay:
+    """:func:`replay_demo_bag` of a population bag: each episode re-simulated in its own
+    population anatomy (``DemoEpisode.anatomy``, rebuilt with
+    :func:`~cgail_planner.sim.population.sample_anatomy`), the drift checked as for any bag."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.population import sample_anatomy
+
+    if anatomy is not None:
+        raise DemoError(f'{path}: a population bag re-simulates each episode in its own '
+                        f'anatomy: expected no anatomy to re-simulate in, found {anatomy!r}')
+    groups: dict[str, list[DemoEpisode]] = {}
+    for ep in episodes:
+        groups.setdefault(str(ep.anatomy), []).append(ep)
+    current: dict[str, str] = {}
+    obs_l, act_l, drifts, moved = [], [], [], []
+    for name, eps in groups.items():
+        seed = population_seed(name)
+        if seed is None:
+            raise DemoError(f'{path}: expected population-<seed> episode anatomies, found '
+                            f'{name!r}')
+        built = sample_anatomy(seed)
+        current[name] = built.content_hash
+        recorded = eps[0].anatomy_hash
+        note = ''
+        if recorded is not None and recorded != built.content_hash:
+            moved.append(name)
+            note = f' (recorded in {name} {recorded}, re-simulated in {built.content_hash})'
+        env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=built,
+                                                    scenario_seed=meta['scenario_seed']))
+        obs, act, drift = resimulate(env, eps, tolerance_m=tolerance_m,
+                                     source=f'{path} [{name}]', anatomy_note=note)
+        obs_l.append(obs)
+        act_l.append(act)
+        drifts.append((drift, len(eps), len(obs)))
+    steps = sum(n for _, _, n in drifts)
+    report = ReplayReport(
+        source=str(path), episodes=len(episodes), steps=steps,
+        max_start_offset_m=max(d.start_max_m for d, _, _ in drifts),
+        mean_start_offset_m=sum(d.start_mean_m * e for d, e, _ in drifts) / len(episodes),
+        max_drift_m=max(d.max_m for d, _, _ in drifts),
+        mean_drift_m=sum(d.mean_m * n for d, _, n in drifts) / max(steps, 1),
+        ended_early=sum(d.ended_early for d, _, _ in drifts),
+        recorded_anatomy_hash=None if any(ep.anatomy_hash is None for ep in episodes)
+        else population_hash([str(ep.anatomy_hash) for ep in episodes]),
+        anatomy_hash=population_hash([current[str(ep.anatomy)] for ep in episodes]),
+        tolerance_m=tolerance_m)
+    if moved:
+        warnings.warn(DemoAnatomyWarning(
+            f'{path}: {len(moved)} of {len(groups)} population anatomies ({", ".join(moved[:3])}'
+            f'...) differ from the recording (another CPU or commit built a different mesh); '
+            f'the re-simulated tip drifts up to {report.max_drift_m * 1e3:.3g} mm, within the '
+            f'{tolerance_m * 1e3:g} mm tolerance'), stacklevel=3)
+    _LOG.info(report.summary())
+    return Replay(np.concatenate(obs_l), np.concatenate(act_l), report)
 
 
 def load_demo_bag(path: Path, only_successful: bool = True, *,

@@ -10,11 +10,21 @@ the content hash of the anatomy the episodes were recorded in. ``--env-options p
 records in the authors' option set (:data:`cgail_planner.sim.config.OPTION_SETS`); the bag holds
 poses and commands, not observations, so ``train`` replays it in its preset's option set
 either way.
+
+Population form (``--population N``): the episodes are spread over the first ``N`` population
+training anatomies (:data:`cgail_planner.sim.population.TRAINING_SEEDS`): episode k runs in
+anatomy ``k % N`` with the start, target and seed above (so the anatomies see different
+targets of their own sets), grouped by anatomy in the bag. Each episode's ``demo/episode``
+JSON names its anatomy (``population-<seed>``) and content hash, so ``load_demos``
+re-simulates each in its own anatomy::
+
+    scripts/ws make_demos --population 32 --episodes 96 --out bags/demos/population
 """
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 import json
 from pathlib import Path
 import sys
@@ -30,7 +40,8 @@ from cgail_planner.learning.expert import ScriptedExpert
 Pairs = list[tuple[np.ndarray, np.ndarray]]
 
 
-def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None
+def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None, *,
+                    indices: Sequence[int] | None = None
                     ) -> tuple[list[DemoEpisode], dict[str, float]]:
     """Run the expert for ``n`` episodes; returns the episodes and summary statistics.
 
@@ -42,12 +53,14 @@ def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None
         pairs: when given, the (obs, act) arrays of every *successful* episode are appended to
             it as they were simulated (what a replay of the bag on this machine gives), so a
             caller that trains at once needs no replay.
+        indices: the episode numbers k to run (default ``range(n)``; ``n`` is then unused).
     """
     expert = ScriptedExpert(env)
     eng = env.unwrapped.engine
     n_s, n_t = len(eng.scenarios.starts), len(eng.scenarios.targets)
     episodes, steps, t_a = [], [], []
-    for k in range(n):
+    ks = list(range(n)) if indices is None else [int(k) for k in indices]
+    for k in ks:
         obs, _ = env.reset(seed=seed + k,
                            options={'start': k % n_s, 'target': (k // n_s) % n_t})
         expert.reset(seed + k)
@@ -76,7 +89,7 @@ def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None
         steps.append(len(rows['al']))
         t_a.append(info['targeting_error'])
     succ = [e.success for e in episodes]
-    return episodes, {'episodes': n, 'success_rate': float(np.mean(succ)),
+    return episodes, {'episodes': len(ks), 'success_rate': float(np.mean(succ)),
                       'mean_steps': float(np.mean(steps)),
                       'mean_targeting_error_mm': 1e3 * float(np.mean(t_a))}
 
@@ -95,12 +108,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--env-options', default='ours',
                    help="the simulator's option set: 'ours' (default) or 'paper_code' (the "
                         "authors' observation, forward-only insertion, reward, heartbeat)")
+    p.add_argument('--population', type=int, default=0, metavar='N',
+                   help='spread the episodes over the first N population training anatomies '
+                        '(--anatomy is then not used)')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
     args = p.parse_args(argv)
     if args.episodes < 1:
         print(f'make_demos: error: --episodes must be >= 1, found {args.episodes}',
               file=sys.stderr)
         return 2
+    if args.population:
+        return _population_main(args)
     from cgail_planner.sim.anatomy import anatomy_label, is_builtin
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
@@ -122,6 +140,59 @@ def main(argv: list[str] | None = None) -> int:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2
     print(json.dumps({'anatomy': label, 'env_options': args.env_options, **stats}))
+    return 0
+
+
+def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
+                      env_options: str = 'ours') -> tuple[list[DemoEpisode], dict[str, float]]:
+    """Expert episodes spread over the population anatomies ``seeds`` (module docstring);
+    each :class:`~cgail_planner.learning.demo_bags.DemoEpisode` names its anatomy."""
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.population import population_name, sample_anatomy
+
+    out: list[DemoEpisode] = []
+    steps: list[float] = []
+    errors: list[float] = []
+    for j, s in enumerate(seeds):
+        ks = range(j, episodes, len(seeds))
+        count = len(ks)
+        if count == 0:
+            continue
+        anatomy = sample_anatomy(s)
+        env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=anatomy))
+        eps, stats = record_episodes(env, count, seed, indices=ks)
+        for ep in eps:
+            ep.anatomy, ep.anatomy_hash = population_name(s), anatomy.content_hash
+        out.extend(eps)
+        steps.append(stats['mean_steps'] * count)
+        errors.append(stats['mean_targeting_error_mm'] * count)
+    return out, {'episodes': len(out), 'anatomies': len(seeds),
+                 'success_rate': float(np.mean([e.success for e in out])),
+                 'mean_steps': float(sum(steps) / len(out)),
+                 'mean_targeting_error_mm': float(sum(errors) / len(out))}
+
+
+def _population_main(args: argparse.Namespace) -> int:
+    """``make_demos --population N``."""
+    from cgail_planner.learning.demo_bags import population_hash
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.population import split_seeds
+
+    try:
+        seeds = split_seeds('train', args.population)
+        t0 = time.monotonic()
+        episodes, stats = record_population(seeds, args.episodes, args.seed, args.env_options)
+        stats['wall_s'] = time.monotonic() - t0
+        write_demo_bag(args.out, episodes, anatomy='population', mode='static',
+                       dt=EnvConfig.from_options(args.env_options).dt,
+                       anatomy_hash=population_hash([str(e.anatomy_hash) for e in episodes]),
+                       env_options=args.env_options, population=True)
+    except (LearningError, ValueError) as exc:
+        print(f'make_demos: error: {exc}', file=sys.stderr)
+        return 2
+    print(json.dumps({'anatomy': 'population', 'population_seeds': [seeds[0], seeds[-1] + 1],
+                      'env_options': args.env_options, **stats}))
     return 0
 
 

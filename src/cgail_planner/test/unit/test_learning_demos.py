@@ -426,3 +426,54 @@ def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys)
     with pytest.raises(Exception, match=r'bc\.pretrain_epochs must be in \[0, 1000\], '
                                         r'found -1'):
         config_from_dict(preset)
+
+
+# ----------------------------------------------------------------------------------------------
+# Population bags: each episode names its anatomy and replays in it
+@pytest.mark.slow
+def test_a_population_bag_replays_each_episode_in_its_own_anatomy(tmp_path: Path):
+    import dataclasses
+
+    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_planner.learning.demos_cli import record_population
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_planner.sim.population import sample_anatomy
+
+    episodes, stats = record_population((0, 1), 3, seed=0)
+    assert stats['success_rate'] == 1.0 and stats['anatomies'] == 2
+    # episode k in anatomy k % 2, with start k % 3: grouped by anatomy in the bag
+    assert [(e.anatomy, e.start) for e in episodes] == [
+        ('population-0', 0), ('population-0', 2), ('population-1', 1)]
+    assert episodes[2].anatomy_hash == sample_anatomy(1).content_hash
+    write_demo_bag(tmp_path / 'p', episodes, anatomy='population', mode='static', dt=0.1,
+                   population=True)
+    meta, back = read_demo_bag(tmp_path / 'p')
+    assert meta['population'] and meta['anatomy'] == 'population'
+    assert [(e.anatomy, e.anatomy_hash) for e in back] == \
+        [(e.anatomy, e.anatomy_hash) for e in episodes]
+    replay = replay_demo_bag(tmp_path / 'p', env_options='sphere_targets')
+    assert replay.report.max_drift_m == 0.0 and replay.report.same_anatomy
+    assert len(replay.obs) == sum(len(e.alpha) for e in episodes)
+    # the last episode's first observation is population-1's, with the sphere's d_max
+    env = CatheterNavEnv(EnvConfig(anatomy=sample_anatomy(1), targets='sphere'))
+    first, _ = env.reset(options={'start': 1, 'target': episodes[2].target})
+    np.testing.assert_array_equal(replay.obs[-len(episodes[2].alpha)], first)
+    # an episode that names the wrong anatomy does not replay
+    swapped = [dataclasses.replace(episodes[2], anatomy='population-0')]
+    write_demo_bag(tmp_path / 's', swapped, anatomy='population', mode='static', dt=0.1,
+                   population=True)
+    with pytest.raises(DemoError, match=r'\[population-0\]: episode 0: the recorded'):
+        replay_demo_bag(tmp_path / 's')
+    with pytest.raises(DemoError, match='a population bag re-simulates each episode in its own '
+                                        "anatomy: expected no anatomy to re-simulate in, found "
+                                        "'default'"):
+        replay_demo_bag(tmp_path / 'p', anatomy='default')
+
+
+def test_a_population_bag_needs_every_episode_in_a_population_anatomy(tmp_path: Path):
+    with pytest.raises(DemoError, match=r'population bag: expected every episode in a '
+                                        r'population anatomy \(population-<seed>\), found '
+                                        r'episodes \[0\] without one'):
+        write_demo_bag(tmp_path / 'x', [_episode()], anatomy='population', mode='static',
+                       dt=0.1, population=True)
