@@ -28,6 +28,12 @@ the number of distinct outcomes. ``--position-noise-mm 0 --orientation-noise-deg
 noise-free simulator (and then each repeated start x target pair is simulated once in static
 mode). The scripted expert is the demonstrator with the simulator's state (no tracker), seeded.
 
+**Held-out anatomies** (``--population N``): the same trials in each of the first N held-out
+population anatomies (:data:`cgail_planner.sim.population.HELD_OUT_SEEDS`, which no training
+run may use), pooled per method, with a per-anatomy success table at the end of the report.
+With ``--anatomy default`` or ``elongated`` and a generalist policy (trained on the
+population only) the targets are unseen too.
+
 **Env option set.** The simulator runs in the option set the policies were trained in (their
 contracts' ``env_options``: ``ours`` or ``paper_code``, :data:`cgail_planner.sim.config.
 OPTION_SETS`), so a ``paper_code`` policy sees its 27-float observation; policies of different
@@ -425,6 +431,58 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
     return path
 
 
+def _held_out(count: int) -> list[Any]:
+    """The first ``count`` held-out population anatomies (none for 0)."""
+    if count == 0:
+        return []
+    if count < 0:
+        raise ValueError(f'--population must be >= 0 (held-out anatomies), found {count}')
+    from cgail_planner.sim.population import sample_anatomy, split_seeds
+
+    return [sample_anatomy(s) for s in split_seeds('held_out', count)]
+
+
+def _run_methods(env: Any, policies: dict[str, Any], args: argparse.Namespace,
+                 noise: TrackingNoise, mode: str, where: str = '') -> dict[str, list[Trial]]:
+    """The trials of every method (the policies and the requested baselines) in ``env``."""
+    from cgail_planner.learning.expert import ScriptedExpert
+
+    methods: dict[str, Any] = dict(policies)
+    if 'centerline' in args.baselines:
+        methods['centerline'] = CenterlineFollower(env)
+    if 'rrt' in args.baselines:
+        methods['rrt'] = RrtFollower(env)
+    if 'expert' in args.baselines:
+        methods['expert'] = ScriptedExpert(env)
+    results = {}
+    for name, method in methods.items():
+        t0 = time.monotonic()
+        tracked = name != 'expert'  # the demonstrator uses the simulator's state
+        # noise-free static: a deterministic method's outcome is a function of the pair
+        reuse = mode == 'static' and tracked and not noise.enabled
+        results[name] = run_trials(env, method, args.trials, args.seed, reuse, noise, tracked)
+        s = summarize(results[name])
+        print(f"{mode}{where} {name}: success {100 * s['success_rate']:.0f}% "
+              f"({time.monotonic() - t0:.0f} s)", flush=True)
+    return results
+
+
+def _append_per_anatomy(report: Path, per_anatomy: dict[str, dict[str, dict[str, float]]]
+                        ) -> None:
+    """Add a per-anatomy success table (anatomies x methods) per mode to ``report``."""
+    lines = ['## Success per anatomy', '']
+    for mode, methods in per_anatomy.items():
+        names = list(methods)
+        anatomies = list(next(iter(methods.values())))
+        lines += [f'### {mode}', '', '| anatomy | ' + ' | '.join(names) + ' |',
+                  '|---|' + '---|' * len(names)]
+        lines += [f'| {a} | ' + ' | '.join(f'{100 * methods[n][a]:.0f}%' for n in names)
+                  + ' |' for a in anatomies]
+        lines.append('')
+    with report.open('a') as f:
+        f.write('\n'.join(lines) + '\n')
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``evaluate``."""
     p = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n')[0])
@@ -451,9 +509,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--env-options', default=None,
                    help="the simulator's option set (ours, paper_code); default: the one the "
                         "policies were trained in (their contracts'), else ours")
+    p.add_argument('--population', type=int, default=0, metavar='N',
+                   help='evaluate on the first N held-out population anatomies (seeds 10000 on, '
+                        'which no training uses; sim/population.py) instead of --anatomy: '
+                        '--trials per anatomy, the results pooled, with a per-anatomy table')
     p.add_argument('--out', type=Path, default=Path('reports/insilico'))
     args = p.parse_args(argv)
-    from cgail_planner.learning.expert import ScriptedExpert
     from cgail_planner.sim.anatomy import anatomy_identity, check_anatomy_spec
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
@@ -461,6 +522,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         check_anatomy_spec(args.anatomy)  # (before the policies are loaded)
+        held_out = _held_out(args.population)
         noise = TrackingNoise(args.position_noise_mm, args.orientation_noise_deg)
         policies: dict[str, Any] = {}
         paths: dict[str, str] = {}
@@ -472,32 +534,30 @@ def main(argv: list[str] | None = None) -> int:
             paths[name] = path
         options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
+        per_anatomy: dict[str, dict[str, dict[str, float]]] = {}
         for mode in args.modes:
-            env = CatheterNavEnv(EnvConfig.from_options(options, mode=mode,
-                                                        anatomy=args.anatomy,
-                                                        scenario_seed=args.scenario_seed))
-            methods: dict[str, Any] = dict(policies)
-            if 'centerline' in args.baselines:
-                methods['centerline'] = CenterlineFollower(env)
-            if 'rrt' in args.baselines:
-                methods['rrt'] = RrtFollower(env)
-            if 'expert' in args.baselines:
-                methods['expert'] = ScriptedExpert(env)
-            results = {}
-            for name, method in methods.items():
-                t0 = time.monotonic()
-                tracked = name != 'expert'  # the demonstrator uses the simulator's state
-                # noise-free static: a deterministic method's outcome is a function of the pair
-                reuse = mode == 'static' and tracked and not noise.enabled
-                results[name] = run_trials(env, method, args.trials, args.seed, reuse,
-                                           noise, tracked)
-                s = summarize(results[name])
-                print(f"{mode} {name}: success {100 * s['success_rate']:.0f}% "
-                      f"({time.monotonic() - t0:.0f} s)", flush=True)
+            results: dict[str, list[Trial]] = {}
+            for anatomy in held_out or [args.anatomy]:
+                env = CatheterNavEnv(EnvConfig.from_options(options, mode=mode,
+                                                            anatomy=anatomy,
+                                                            scenario_seed=args.scenario_seed))
+                where = f' {env.anatomy.name}' if held_out else ''
+                for name, trials in _run_methods(env, policies, args, noise, mode,
+                                                 where).items():
+                    results.setdefault(name, []).extend(trials)
+                    per_anatomy.setdefault(mode, {}).setdefault(name, {})[
+                        env.anatomy.name] = summarize(trials)['success_rate']
             all_results[mode] = results
-        label, content_hash = anatomy_identity(args.anatomy)
-        named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
-        notes = (f'Anatomy {named}, {args.trials} trials per method, epsilon 10 mm, '
+        if held_out:
+            named = (f'{len(held_out)} held-out population anatomies '
+                     f'({held_out[0].name} to {held_out[-1].name}, never trained on)')
+            label = f'population-held-out-{len(held_out)}'
+        else:
+            label, content_hash = anatomy_identity(args.anatomy)
+            named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
+            named = f'Anatomy {named}'
+        per = ' per anatomy' if held_out else ''
+        notes = (f'{named}, {args.trials} trials per method{per}, epsilon 10 mm, '
                  f'seed {args.seed}, env options `{options}`. Trial k: start k % 3, target '
                  '(k // 3) % 5')
         notes += (f' of target set (scenario seed) {args.scenario_seed}. '
@@ -517,7 +577,12 @@ def main(argv: list[str] | None = None) -> int:
                 'position_noise_mm': noise.position_mm,
                 'orientation_noise_deg': noise.orientation_deg,
                 'policies': paths}
+        if held_out:
+            meta['population_seeds'] = [a.name for a in held_out]
+            meta['per_anatomy_success'] = per_anatomy
         path = write_report(all_results, args.out, notes, meta)
+        if held_out:
+            _append_per_anatomy(path, per_anatomy)
     except (LearningError, ValueError) as exc:
         print(f'evaluate: error: {exc}', file=sys.stderr)
         return 2
