@@ -301,19 +301,20 @@ def test_option_sets_name_their_values() -> None:
     assert cfg.catheter.forward_only and cfg.observation.kind == 'paper_code'
     assert dataclasses.replace(cfg, forward_only=False).options == 'custom'
     assert EnvConfig().with_options('paper_code') == EnvConfig.from_options('paper_code')
-    assert sorted(OPTION_SETS) == ['ours', 'paper_code']
+    assert sorted(OPTION_SETS) == ['ours', 'paper_code', 'sphere_targets']
 
 
 def test_bad_option_set_names_are_one_line_errors() -> None:
     with pytest.raises(ValueError, match=r"env options: expected one of \['ours', "
-                                         r"'paper_code'\], found 'paper'"):
+                                         r"'paper_code', 'sphere_targets'\], found 'paper'"):
         EnvConfig.from_options('paper')
     with pytest.raises(ValueError, match=r"env options 'paper_code' fix \['forward_only'\]"):
         EnvConfig.from_options('paper_code', forward_only=False)
     with pytest.raises(ValueError, match="observation_kind must be one of"):
         EnvConfig(observation_kind='unity')
     with pytest.raises(ConfigError, match=r"env_options must be one of \['ours', "
-                                          r"'paper_code'\], found 'papercode'"):
+                                          r"'paper_code', 'sphere_targets'\], found "
+                                          r"'papercode'"):
         config_from_dict({'env_options': 'papercode'})
 
 
