@@ -203,7 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
-                        'or mesh file with its <stem>.yaml landmarks')
+                        'or mesh file with its <stem>.yaml landmarks (not with a population '
+                        'preset such as generalist, which trains on population anatomies)')
     p.add_argument('--demos', nargs='*', default=[],
                    help='demonstration bag directories / .mcap files / .npz (GAIL, BC); with '
                         'a path --anatomy, demo bags are re-simulated in that anatomy')
@@ -250,6 +251,10 @@ def main(argv: list[str] | None = None) -> int:
             d['max_steps'] = args.max_steps or cfg.max_steps
             d['num_envs'] = args.num_envs or cfg.num_envs
             cfg = config_from_dict(d)
+        if cfg.population.enabled and args.anatomy != 'default':
+            raise ValueError(f'--anatomy: preset {cfg.name!r} trains on '
+                             f'{cfg.population.anatomies} population anatomies: expected no '
+                             f'--anatomy, found {args.anatomy!r}')
         from cgail_planner.learning.demos import load_demos
 
         demo_obs = demo_act = demo_episodes = None

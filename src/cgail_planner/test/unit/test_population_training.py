@@ -182,3 +182,12 @@ def test_a_negative_held_out_count_is_one_line(tmp_path, capsys) -> None:
                           '--out', str(tmp_path)]) == 2
     assert capsys.readouterr().err == ('evaluate: error: --population must be >= 0 '
                                        '(held-out anatomies), found -1\n')
+
+
+def test_train_refuses_an_anatomy_with_a_population_preset(capsys) -> None:
+    from cgail_planner.learning import train
+
+    assert train.main(['--preset', 'generalist', '--anatomy', 'elongated']) == 2
+    assert capsys.readouterr().err == (
+        "train: error: --anatomy: preset 'generalist' trains on 32 population anatomies: "
+        "expected no --anatomy, found 'elongated'\n")
