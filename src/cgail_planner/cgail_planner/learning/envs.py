@@ -8,7 +8,7 @@ observation of the ended one (used to bootstrap truncated episodes).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any, Protocol, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -241,10 +241,11 @@ class AnatomyCycleEnv:
     anatomy in turn).
 
     Args:
-        envs: one gymnasium env per anatomy (equal observation and action spaces).
+        envs: one catheter env per anatomy (:class:`~cgail_planner.sim.env.CatheterNavEnv`;
+            equal observation and action spaces).
     """
 
-    def __init__(self, envs: Sequence[gym.Env]) -> None:
+    def __init__(self, envs: Sequence[Any]) -> None:
         if not envs:
             raise ValueError('envs must hold at least one env, found none')
         self.envs = list(envs)
@@ -262,12 +263,13 @@ class AnatomyCycleEnv:
         self._env = self.envs[0 if seed is None else seed % len(self.envs)]
         return self._env.reset(seed=seed, options=options)
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+    def step(self, action: np.ndarray) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         """Step the current anatomy's env."""
         return self._env.step(action)
 
     def set_theta_max(self, theta_max: float) -> None:
-        """Set theta_max of every env."""
+        """Set theta_max of every env (the catheter simulator's, :class:`~cgail_planner.sim.
+        env.CatheterNavEnv`)."""
         for e in self.envs:
             e.unwrapped.set_theta_max(theta_max)
 
