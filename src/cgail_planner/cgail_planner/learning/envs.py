@@ -179,6 +179,7 @@ class PopulationVecEnv(ConcatVecEnv):
                 or redraw_every < 1:
             raise ValueError(f'redraw_every must be an int >= 1, found {redraw_every!r}')
         self.make_part = make_part
+        self._theta_max: float | None = None
         self.anatomies = list(anatomies)
         self.redraw_every = redraw_every
         self.current = [i % len(self.anatomies) for i in range(num_envs)]
@@ -189,11 +190,10 @@ class PopulationVecEnv(ConcatVecEnv):
                              f'{self._bounds[-1]} envs for {num_envs} workers')
         self._rngs = [np.random.default_rng([0, i]) for i in range(num_envs)]
         self._episodes = [0] * num_envs
-        self._theta_max: float | None = None
 
     def _part(self, j: int) -> Any:
         part = self.make_part(self.anatomies[j])
-        if getattr(self, '_theta_max', None) is not None:
+        if self._theta_max is not None:
             part.set_theta_max(self._theta_max)
         return part
 

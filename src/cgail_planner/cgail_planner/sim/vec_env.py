@@ -12,7 +12,8 @@ episode and ``infos[i]['final_obs']`` holds the last observation of the ended on
 
 Seeding: ``reset(seed)`` gives environment ``i`` its own generator seeded ``seed + i`` (as
 ``SyncVecEnv`` does with ``env.reset(seed=seed + i)``), which draws the start and target ids of
-each of its episodes exactly as a single env reset with ``seed + i`` would.
+each of its episodes exactly as a single env reset with ``seed + i`` would (with
+``EnvConfig.targets == "sphere"``: the start id and a newly drawn target).
 """
 
 from __future__ import annotations
