@@ -146,10 +146,17 @@ def main(argv: list[str] | None = None) -> int:
 def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
                       env_options: str = 'ours') -> tuple[list[DemoEpisode], dict[str, float]]:
     """Expert episodes spread over the population anatomies ``seeds`` (module docstring);
-    each :class:`~cgail_planner.learning.demo_bags.DemoEpisode` names its anatomy."""
+    each :class:`~cgail_planner.learning.demo_bags.DemoEpisode` names its anatomy.
+
+    Raises:
+        ValueError: a seed outside the training seeds (demonstrations never touch a held-out
+            anatomy).
+    """
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
-    from cgail_planner.sim.population import population_name, sample_anatomy
+    from cgail_planner.sim.population import check_training_seeds, population_name, sample_anatomy
+
+    seeds = check_training_seeds(seeds)
 
     out: list[DemoEpisode] = []
     steps: list[float] = []

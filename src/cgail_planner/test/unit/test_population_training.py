@@ -191,3 +191,10 @@ def test_train_refuses_an_anatomy_with_a_population_preset(capsys) -> None:
     assert capsys.readouterr().err == (
         "train: error: --anatomy: preset 'generalist' trains on 32 population anatomies: "
         "expected no --anatomy, found 'elongated'\n")
+
+
+def test_demonstrations_refuse_a_held_out_anatomy() -> None:
+    from cgail_planner.learning.demos_cli import record_population
+
+    with pytest.raises(ValueError, match=r"training population seeds must lie in \[0, 10000\)"):
+        record_population((0, 10_000), 2)
