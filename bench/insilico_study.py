@@ -1297,27 +1297,37 @@ def main(argv: list[str] | None = None) -> int:
     if args.report_only:
         say(f'report: {write_report(layout, plan, command)}')
         return 0
-    signal.signal(signal.SIGTERM, _terminate)
-    t0 = time.monotonic()
     try:
         with study_lock(layout.root):
-            tasks = plan_tasks(layout, plan)
-
-            def on_done(task: Task) -> None:
-                if task.kind == 'eval':
-                    write_report(layout, plan, command)
-
-            try:
-                n_done, n_bad = run_tasks(tasks, layout, args.jobs, args.progress_every,
-                                          on_done)
-            except KeyboardInterrupt:
-                say('interrupted; re-run the same command to continue')
-                write_report(layout, plan, command)
-                return 130
-            path = write_report(layout, plan, command)
+            return run_study(layout, plan, command, args.jobs, args.progress_every)
     except StudyError as exc:
         print(f'insilico_study: error: {exc}', file=sys.stderr)
         return 2
+
+
+def run_study(layout: Layout, plan: StudyPlan, command: str, jobs: int, progress_every: float,
+              launch: Launcher = launch_process) -> int:
+    """Run what is not done of ``plan`` (the caller holds :func:`study_lock`), rewriting the
+    report after every evaluation and at the end; SIGTERM stops it as Ctrl-C does.
+
+    Returns:
+        The exit status: 0 all done, 1 a task failed, 130 interrupted.
+    """
+    signal.signal(signal.SIGTERM, _terminate)
+    t0 = time.monotonic()
+    tasks = plan_tasks(layout, plan)
+
+    def on_done(task: Task) -> None:
+        if task.kind == 'eval':
+            write_report(layout, plan, command)
+
+    try:
+        n_done, n_bad = run_tasks(tasks, layout, jobs, progress_every, on_done, launch)
+    except KeyboardInterrupt:
+        say('interrupted; re-run the same command to continue')
+        write_report(layout, plan, command)
+        return 130
+    path = write_report(layout, plan, command)
     say(f'{n_done} of {n_done + n_bad} tasks done in '
         f'{format_duration(time.monotonic() - t0)}; report: {path}')
     return 0 if n_bad == 0 else 1
