@@ -56,6 +56,11 @@ Layout of ``OUT``: ``<preset>/seed<S>/static/`` (the static run, continued budge
 ``snapshot.json``, ``static.onnx``, ``dynamic/`` run, ``dynamic.onnx``,
 ``eval_<mode>_targets<K>/`` with ``evaluate``'s ``report.md`` and ``results.json``),
 ``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``.
+
+**Anatomies.** This command runs in the default anatomy, with ``--demos``. ``bench/sweep.py``
+runs the same tasks in several anatomies (an :class:`Anatomy` each, what ``train`` and
+``evaluate`` are told) and on Ray (:data:`Launcher`): the default anatomy's runs lie as above,
+another's under ``anatomies/<name>/`` in the same layout, and the report has a row per anatomy.
 """
 
 from __future__ import annotations
