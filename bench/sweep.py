@@ -28,9 +28,9 @@ bound to 127.0.0.1, no dashboard; nothing listens beyond this machine.
 
 **A cluster** (``--address HOST:PORT``): start a head and workers from the workspace
 environment of every node, e.g. ``scripts/ws ray start --head --port 6379 --num-cpus 16`` on the
-head and ``scripts/ws ray start --address HEAD_IP:6379`` on each worker (Ray's token
-authentication, on by default, wants the head's token on every node: see Ray's "token
-authentication" docs). The sweep assumes a **shared filesystem**: every node sees the
+head and ``scripts/ws ray start --address HEAD_IP:6379`` on each worker, all of them and the
+sweep with ``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``; the
+README has the commands). The sweep assumes a **shared filesystem**: every node sees the
 workspace (the same interpreter path) and ``--out`` at the same path as the driver, since the
 tasks write their runs there and the driver reads them back. It checks that at start: a probe
 on every node reads a file the driver wrote in ``--out`` and writes one beside it; a node that
@@ -325,7 +325,14 @@ def ray_launcher(root: Path, address: str | None, num_cpus: int | None
         ray.init(address='local', num_cpus=num_cpus or os.cpu_count() or 1,
                  include_dashboard=False, log_to_driver=False, configure_logging=False)
     else:
-        ray.init(address=address, log_to_driver=False, configure_logging=False)
+        try:
+            ray.init(address=address, log_to_driver=False, configure_logging=False)
+        except (ConnectionError, RuntimeError) as exc:
+            raise SweepError(
+                f'--address {address}: expected a Ray cluster this process can join, found '
+                f'none ({type(exc).__name__}: {str(exc).strip().splitlines()[0]}; with token '
+                'authentication, RAY_AUTH_MODE=token and the cluster\'s token here too)'
+            ) from None
     try:
         nodes = [n for n in ray.nodes() if n['Alive']]
         if address is None and {n['NodeManagerAddress'] for n in nodes} != {'127.0.0.1'}:
