@@ -56,6 +56,11 @@ Layout of ``OUT``: ``<preset>/seed<S>/static/`` (the static run, continued budge
 ``snapshot.json``, ``static.onnx``, ``dynamic/`` run, ``dynamic.onnx``,
 ``eval_<mode>_targets<K>/`` with ``evaluate``'s ``report.md`` and ``results.json``),
 ``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``.
+
+**Anatomies.** This command runs in the default anatomy, with ``--demos``. ``bench/sweep.py``
+runs the same tasks in several anatomies (an :class:`Anatomy` each, what ``train`` and
+``evaluate`` are told) and on Ray (:data:`Launcher`): the default anatomy's runs lie as above,
+another's under ``anatomies/<name>/`` in the same layout, and the report has a row per anatomy.
 """
 
 from __future__ import annotations
@@ -80,7 +85,7 @@ import signal
 import subprocess
 import sys
 import time
-from typing import Any, IO
+from typing import Any, Protocol
 
 import yaml
 
@@ -145,11 +150,66 @@ def check_budgets(steps: Sequence[int]) -> tuple[int, ...]:
     return tuple(steps)
 
 
+#: The anatomy a study runs in unless told otherwise; its runs lie directly under ``--out``.
+DEFAULT_ANATOMY = 'default'
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """One anatomy of a study: what ``train`` and ``evaluate`` are told, and the demonstrations.
+
+    A built-in name or a path becomes ``--anatomy X`` for both (:meth:`named`). Any other
+    anatomy (a population: ``train`` with a population preset, ``evaluate --population N``)
+    gives its own arguments, so the study needs no knowledge of how it is drawn.
+    """
+
+    name: str
+    """Its label in task keys, folders (``anatomies/<name>/``) and tables."""
+    train_args: tuple[str, ...]
+    """Arguments of every ``train`` invocation in it (fresh, resumed, dynamic)."""
+    eval_args: tuple[str, ...]
+    """Arguments of every ``evaluate`` invocation in it."""
+    demos: tuple[Path, ...]
+    """``train --demos``."""
+
+    @classmethod
+    def named(cls, spec: str, demos: Sequence[Path] | None = None) -> Anatomy:
+        """A built-in anatomy or a path (``--anatomy spec``): its demonstrations default to
+        ``bags/demos/<name>`` for a built-in one, else ``bags/demos/default`` (``train``
+        re-simulates them in a path anatomy).
+
+        Raises:
+            StudyError: ``spec`` is neither a built-in name nor a usable anatomy path.
+        """
+        from cgail_planner.sim.anatomy import (
+            anatomy_label,
+            AnatomyError,
+            check_anatomy_spec,
+            is_builtin,
+        )
+
+        try:
+            check_anatomy_spec(spec)
+        except AnatomyError as exc:
+            raise StudyError(f'anatomy: {exc}') from None
+        name = anatomy_label(spec)
+        if demos is None:
+            demos = [WS / 'bags' / 'demos' / (name if is_builtin(spec) else DEFAULT_ANATOMY)]
+        return cls(name, ('--anatomy', spec), ('--anatomy', spec), tuple(demos))
+
+
 @dataclass(frozen=True)
 class Layout:
-    """Where everything of a study lives under ``root``."""
+    """Where everything of a study lives under ``root``: the default anatomy's runs directly
+    there (as before anatomies were an axis, so older studies resume), every other anatomy's
+    in a layout of its own under ``root/anatomies/<name>/`` (:meth:`of_anatomy`); the logs and
+    the report of all of them under ``root``."""
 
     root: Path
+
+    def of_anatomy(self, name: str) -> Layout:
+        """The layout of anatomy ``name``'s runs, evaluations and baselines."""
+        return self if name == DEFAULT_ANATOMY else Layout(self.root / 'anatomies' / name)
 
     def run_root(self, preset: str, seed: int) -> Path:
         """Folder of one training run (static run plus its budgets)."""
@@ -409,6 +469,13 @@ class StudyPlan:
     unseen: int = 1
     dynamic_steps: int = 102_400
     baselines: tuple[str, ...] = ('centerline',)
+    anatomies: tuple[Anatomy, ...] = ()
+    """Every run trains and is evaluated in each of them (empty: the default anatomy with its
+    committed demonstrations)."""
+
+    def __post_init__(self) -> None:
+        if not self.anatomies:
+            object.__setattr__(self, 'anatomies', (Anatomy.named(DEFAULT_ANATOMY),))
 
     @property
     def target_sets(self) -> tuple[int, int]:
@@ -425,6 +492,7 @@ class StudyResults:
     """Everything the report needs, read from the files (:func:`collect`)."""
 
     plan: StudyPlan
+    anatomy: str = DEFAULT_ANATOMY
     outcomes: dict[tuple[str, int, int, str, int], Outcome] = field(default_factory=dict)
     """(preset, seed, budget, mode, target set) -> outcome."""
     snapshots: dict[tuple[str, int, int], dict[str, Any]] = field(default_factory=dict)
@@ -440,9 +508,10 @@ class StudyResults:
     """(preset, seed, budget) -> dynamic re-training eval/success_rate curve."""
 
 
-def collect(layout: Layout, plan: StudyPlan) -> StudyResults:
-    """Read every result of ``plan`` that exists under ``layout``."""
-    res = StudyResults(plan)
+def collect(layout: Layout, plan: StudyPlan, anatomy: str = DEFAULT_ANATOMY) -> StudyResults:
+    """Read every result of ``plan`` in ``anatomy`` that exists under ``layout``."""
+    res = StudyResults(plan, anatomy)
+    layout = layout.of_anatomy(anatomy)
     for m in plan.methods:
         for s in plan.seeds:
             sc = read_scalars(layout.static_run(m, s) / 'scalars.csv')
@@ -504,23 +573,29 @@ def paper_cell(preset: str, mode: str) -> str:
     return '-' if value is None else f'{value}%'
 
 
-def budget_table(res: StudyResults, options: str, budget: int) -> list[str]:
-    """The side-by-side table of one option set and budget (markdown lines)."""
-    plan = res.plan
+def budget_table(results: Sequence[StudyResults], options: str, budget: int) -> list[str]:
+    """The side-by-side table of one option set and budget (markdown lines): a row per method
+    and anatomy (the anatomy column only when there are several; the paper's figures only in
+    the default anatomy, the paper's)."""
+    plan = results[0].plan
     seeds = ('seeds ' if len(plan.seeds) > 1 else 'seed ') + ', '.join(map(str, plan.seeds))
-    head = ['method', 'steps used (authors\')']
+    by_anatomy = len(results) > 1
+    head = ['anatomy'] * by_anatomy + ['method', 'steps used (authors\')']
     for mode in plan.modes:
         head += [f'{mode}: paper', f'{mode}: training targets ({seeds})',
                  f'{mode}: unseen targets ({seeds})']
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
-    for m in plan.methods:
-        if plan.option_sets[m] != options:
-            continue
-        row = [f'{method_label(m)} (`{m}`)', steps_cell(res, m, budget)]
-        for mode in plan.modes:
-            row += [paper_cell(m, mode)] + [success_cell(res, m, budget, mode, k)
-                                            for k in plan.target_sets]
-        lines.append('| ' + ' | '.join(row) + ' |')
+    for res in results:
+        for m in plan.methods:
+            if plan.option_sets[m] != options:
+                continue
+            row = [f'`{res.anatomy}`'] * by_anatomy + [f'{method_label(m)} (`{m}`)',
+                                                       steps_cell(res, m, budget)]
+            for mode in plan.modes:
+                paper = paper_cell(m, mode) if res.anatomy == DEFAULT_ANATOMY else '-'
+                row += [paper] + [success_cell(res, m, budget, mode, k)
+                                  for k in plan.target_sets]
+            lines.append('| ' + ' | '.join(row) + ' |')
     return lines
 
 
@@ -554,12 +629,13 @@ def pooled_rates(res: StudyResults, options: str, budget: int, mode: str, target
 
 def ordering_lines(res: StudyResults, options: str, budget: int) -> list[str]:
     """Ours and the paper's ordering of the methods per mode and target set, and how many
-    method pairs keep the paper's order."""
+    method pairs keep the paper's order (the paper's only in its anatomy, the default)."""
     lines = []
     for mode in res.plan.modes:
         paper = {m: Fraction(PAPER_SUCCESS[(method_kind(m), mode)], 100)
                  for m in res.plan.methods if res.plan.option_sets[m] == options
-                 and (method_kind(m), mode) in PAPER_SUCCESS}
+                 and (method_kind(m), mode) in PAPER_SUCCESS
+                 and res.anatomy == DEFAULT_ANATOMY}
         if len(paper) >= 2:
             lines.append(f'- {mode}, paper: {format_ordering(paper, label=method_label)}')
         for k in res.plan.target_sets:
@@ -579,15 +655,17 @@ def ordering_lines(res: StudyResults, options: str, budget: int) -> list[str]:
     return lines
 
 
-def results_rows(res: StudyResults) -> list[list[Any]]:
-    """Long-form rows of every evaluated outcome (``results.csv``)."""
-    rows: list[list[Any]] = [['options', 'preset', 'seed', 'budget', 'steps', 'mode', 'targets',
-                              'successes', 'trials']]
-    for (m, s, n, mode, k), o in sorted(res.outcomes.items()):
-        snap = res.snapshots.get((m, s, n), {})
-        rows.append([res.plan.option_sets[m], m, s, n, snap.get('step', ''), mode,
-                     'training' if k == TRAINING_TARGETS else f'unseen (scenario seed {k})',
-                     o.successes, o.trials])
+def results_rows(results: Sequence[StudyResults]) -> list[list[Any]]:
+    """Long-form rows of every evaluated outcome of every anatomy (``results.csv``)."""
+    rows: list[list[Any]] = [['anatomy', 'options', 'preset', 'seed', 'budget', 'steps', 'mode',
+                              'targets', 'successes', 'trials']]
+    for res in results:
+        for (m, s, n, mode, k), o in sorted(res.outcomes.items()):
+            snap = res.snapshots.get((m, s, n), {})
+            rows.append([res.anatomy, res.plan.option_sets[m], m, s, n, snap.get('step', ''),
+                         mode,
+                         'training' if k == TRAINING_TARGETS else f'unseen (scenario seed {k})',
+                         o.successes, o.trials])
     return rows
 
 
@@ -631,13 +709,16 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[in
     return True
 
 
-def build_report(res: StudyResults, command: str, out: Path, notes: str = '') -> str:
-    """The study's markdown report; writes the learning-curve PNGs next to it in ``out``."""
-    plan = res.plan
+def build_report(results: Sequence[StudyResults], command: str, out: Path,
+                 notes: str = '') -> str:
+    """The study's markdown report of every anatomy's results (the default anatomy's alone
+    reads as before anatomies were an axis); writes the learning-curve PNGs next to it in
+    ``out``."""
+    plan = results[0].plan
     seeds = ', '.join(str(s) for s in plan.seeds)
     lines = [
         '# In-silico study: the paper side by side with ours', '',
-        f'Made by `bench/insilico_study.py` on {datetime.date.today().isoformat()} '
+        f'Made on {datetime.date.today().isoformat()} '
         f'({platform.node() or "?"}, {os.cpu_count()} CPUs); re-run or continue with:', '',
         f'```bash\n{command}\n```', '',
         f'Seeds {seeds}; {plan.trials} evaluation trials per policy, target set and mode; '
@@ -648,6 +729,8 @@ def build_report(res: StudyResults, command: str, out: Path, notes: str = '') ->
         'also selected on them by its periodic evaluation); "unseen targets": scenario seed '
         f'{plan.unseen}, a target set no run trained on. Each cell: success per seed, then the '
         'mean (pooled over the seeds).', '',
+        *([f'Anatomies: {", ".join(f"`{r.anatomy}`" for r in results)}; each run trains and '
+           'is evaluated in its own anatomy.', ''] if len(results) > 1 else []),
         'Static: `train --mode static` to each budget of `--steps`; a larger budget continues '
         'the same run (`train --resume RUN --max-steps N`) after the smaller budget\'s '
         '`best.pt` was kept, so the linear schedules of a continued run first decayed towards '
@@ -668,32 +751,45 @@ def build_report(res: StudyResults, command: str, out: Path, notes: str = '') ->
               'repository has no ablation run: their C-GAIL run\'s budget.', '']
     if notes:
         lines += [notes, '']
+    by_anatomy = len(results) > 1
     for options in plan.options():
         lines += [f'## Option set `{options}`', '']
-        base = baseline_line(res, options)
-        if base:
-            lines += [base, '']
+        for res in results:
+            base = baseline_line(res, options)
+            if base:
+                lines += [f'`{res.anatomy}`: {base}' if by_anatomy else base, '']
         for n in plan.budgets:
-            lines += [f'### {n:,} steps', '', *budget_table(res, options, n), '',
-                      'Ordering (ties: within 5 points):', '', *ordering_lines(res, options, n),
-                      '']
-        curves = {f'{m} seed {s}': res.curves.get((m, s), []) for m in plan.methods
-                  if plan.option_sets[m] == options for s in plan.seeds}
-        png = f'curves_{options}_static.png'
-        if plot_curves(curves, plan.budgets, out / png, f'option set {options}: static '
-                       'training, periodic evaluation (training targets)'):
-            lines += ['Learning curves (periodic evaluation of each run on the training '
-                      'targets, noise-free; dotted: the budgets):', '', f'![static]({png})', '']
-        dyn = {f'{m} seed {s} from {n:,}': res.dynamic_curves.get((m, s, n), [])
-               for m in plan.methods if plan.option_sets[m] == options
-               for s in plan.seeds for n in plan.budgets}
-        png = f'curves_{options}_dynamic.png'
-        if 'dynamic' in plan.modes and plot_curves(
-                dyn, [], out / png, f'option set {options}: dynamic re-training, periodic '
-                'evaluation', 'env steps of the re-training'):
-            lines += [f'![dynamic]({png})', '']
-    walls = [f"{m} seed {s} {n:,}: {format_duration(float(snap['wall_s']))}"
-             for (m, s, n), snap in sorted(res.snapshots.items()) if snap.get('wall_s')]
+            lines += [f'### {n:,} steps', '', *budget_table(results, options, n), '',
+                      'Ordering (ties: within 5 points):', '']
+            for res in results:
+                lines += [f'- `{res.anatomy}` {ln[2:]}' if by_anatomy else ln
+                          for ln in ordering_lines(res, options, n)]
+            lines.append('')
+        for res in results:
+            # the default anatomy's pictures keep their names; another's carry its name
+            stem = f'curves_{options}' if res.anatomy == DEFAULT_ANATOMY else \
+                f'curves_{res.anatomy}_{options}'
+            where = f' in `{res.anatomy}`' if by_anatomy else ''
+            curves = {f'{m} seed {s}': res.curves.get((m, s), []) for m in plan.methods
+                      if plan.option_sets[m] == options for s in plan.seeds}
+            png = f'{stem}_static.png'
+            if plot_curves(curves, plan.budgets, out / png, f'option set {options}{where}: '
+                           'static training, periodic evaluation (training targets)'):
+                lines += [f'Learning curves{where} (periodic evaluation of each run on the '
+                          'training targets, noise-free; dotted: the budgets):', '',
+                          f'![static]({png})', '']
+            dyn = {f'{m} seed {s} from {n:,}': res.dynamic_curves.get((m, s, n), [])
+                   for m in plan.methods if plan.option_sets[m] == options
+                   for s in plan.seeds for n in plan.budgets}
+            png = f'{stem}_dynamic.png'
+            if 'dynamic' in plan.modes and plot_curves(
+                    dyn, [], out / png, f'option set {options}{where}: dynamic re-training, '
+                    'periodic evaluation', 'env steps of the re-training'):
+                lines += [f'![dynamic]({png})', '']
+    walls = [f"{m}{f' {res.anatomy}' if by_anatomy else ''} seed {s} {n:,}: "
+             f"{format_duration(float(snap['wall_s']))}"
+             for res in results for (m, s, n), snap in sorted(res.snapshots.items())
+             if snap.get('wall_s')]
     if walls:
         lines += ['Training wall time (cumulative, from `train`): ' + '; '.join(walls) + '.', '']
     return '\n'.join(lines) + '\n'
@@ -701,12 +797,12 @@ def build_report(res: StudyResults, command: str, out: Path, notes: str = '') ->
 
 def write_report(layout: Layout, plan: StudyPlan, command: str) -> Path:
     """Collect the results and write ``report.md``, the curves and ``results.csv``."""
-    res = collect(layout, plan)
+    results = [collect(layout, plan, a.name) for a in plan.anatomies]
     layout.root.mkdir(parents=True, exist_ok=True)
     with (layout.root / 'results.csv').open('w', newline='') as f:
-        csv.writer(f).writerows(results_rows(res))
+        csv.writer(f).writerows(results_rows(results))
     path = layout.root / 'report.md'
-    path.write_text(build_report(res, command, layout.root))
+    path.write_text(build_report(results, command, layout.root))
     return path
 
 
@@ -823,81 +919,90 @@ def export_command(ckpt: Path, policy: Path) -> list[str]:
     return python_module('cgail_planner.learning.export', str(use), '--out', str(policy))
 
 
-def static_post(layout: Layout, preset: str, seed: int, budget: int) -> None:
-    """After the static training reached ``budget``: record its step, snapshot the budget."""
+def static_post(layout: Layout, preset: str, seed: int, budget: int, log: Path) -> None:
+    """After the static training reached ``budget``: record its step, snapshot the budget
+    (its wall time from the training's ``log``)."""
     run = layout.static_run(preset, seed)
     record_state(run)
-    snapshot(run, layout.budget(preset, seed, budget), budget,
-             layout.log(f'{preset}/seed{seed}/{budget}/train-static'))
+    snapshot(run, layout.budget(preset, seed, budget), budget, log)
 
 
-def plan_tasks(layout: Layout, plan: StudyPlan, demos: Sequence[Path]) -> list[Task]:
-    """Every task of the study, dependencies first.
+def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
+    """Every task of the study, dependencies first, in every anatomy of the plan.
 
+    Task keys are ``<preset>/seed<S>/<budget>/<step>`` in the default anatomy and
+    ``<anatomy>/<preset>/...`` in another; their logs all lie in ``root``'s ``logs/``.
     Order among ready tasks (with ``--jobs`` 1, the whole smaller budget before the larger):
     exports and evaluations, then baselines and dynamic re-trainings, then static trainings,
     budget by budget.
     """
     tasks: list[Task] = []
-    demo_args = ['--demos', *[str(d) for d in demos]]
-    common = [*demo_args, '--threads', '1', '--no-progress']
     evaluate = 'cgail_planner.learning.evaluate'
-    for m in plan.methods:
-        for s in plan.seeds:
-            run = layout.static_run(m, s)
-            prev: str | None = None
-            for bi, n in enumerate(plan.budgets):
-                key = f'{m}/seed{s}/{n}'
-                static_key = f'{key}/train-static'
-                tasks.append(Task(
-                    static_key, 'train', [prev] if prev else [],
-                    done=layout.snapshot(m, s, n).is_file,
-                    command=partial(train_command, run, n, ['--preset', m, '--seed', str(s)],
-                                    ['--mode', 'static', *common]),
-                    post=partial(static_post, layout, m, s, n), run=run, target=n,
-                    order=10 * bi + 2))
-                prev = static_key
-                best = layout.budget(m, s, n) / 'best.pt'
-                for mode in plan.modes:
-                    policy = layout.policy(m, s, n, mode)
-                    if mode == 'static':
-                        ckpt, source = best, static_key
-                    else:
-                        dyn, d = layout.dynamic_run(m, s, n), plan.dynamic_steps
-                        ckpt, source = dyn / 'best.pt', f'{key}/train-dynamic'
-                        tasks.append(Task(
-                            source, 'train', [static_key], done=partial(dynamic_done, dyn, d),
-                            command=partial(train_command, dyn, d,
-                                            ['--preset', m, '--seed', str(s), '--init-from',
-                                             str(best)], ['--mode', 'dynamic', *common]),
-                            post=partial(record_state, dyn), run=dyn, target=d,
-                            order=10 * bi + 1))
-                    tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
-                                      done=partial(up_to_date, policy, ckpt,
-                                                   ckpt.with_name('final.pt')),
-                                      command=partial(export_command, ckpt, policy)))
-                    for k in plan.target_sets:
-                        folder = layout.evaluation(m, s, n, mode, k)
-                        tasks.append(Task(
-                            f'{key}/eval-{mode}-targets{k}', 'eval', [f'{key}/export-{mode}'],
-                            done=partial(evaluated, folder, policy, plan.trials),
-                            command=partial(python_module, evaluate, '--policy', f'{m}={policy}',
-                                            '--baselines', '--modes', mode, '--trials',
-                                            str(plan.trials), '--scenario-seed', str(k),
-                                            '--out', str(folder))))
-    if plan.baselines:
-        for options in plan.options():
-            for mode in plan.modes:
-                for k in plan.target_sets:
-                    folder = layout.baselines(options, mode, k)
+    for anatomy in plan.anatomies:
+        layout = root.of_anatomy(anatomy.name)
+        at = '' if anatomy.name == DEFAULT_ANATOMY else f'{anatomy.name}/'
+        common = ['--demos', *[str(d) for d in anatomy.demos], '--threads', '1',
+                  '--no-progress', *anatomy.train_args]
+        in_anatomy = ['--trials', str(plan.trials), *anatomy.eval_args]
+        for m in plan.methods:
+            for s in plan.seeds:
+                run = layout.static_run(m, s)
+                prev: str | None = None
+                for bi, n in enumerate(plan.budgets):
+                    key = f'{at}{m}/seed{s}/{n}'
+                    static_key = f'{key}/train-static'
                     tasks.append(Task(
-                        f'baselines/{options}/{mode}-targets{k}', 'eval', [],
-                        done=partial(evaluated, folder, None, plan.trials),
-                        command=partial(python_module, evaluate, '--baselines',
-                                        *plan.baselines, '--env-options', options, '--modes',
-                                        mode, '--trials', str(plan.trials), '--scenario-seed',
-                                        str(k), '--out', str(folder)),
-                        order=1))
+                        static_key, 'train', [prev] if prev else [],
+                        done=layout.snapshot(m, s, n).is_file,
+                        command=partial(train_command, run, n,
+                                        ['--preset', m, '--seed', str(s)],
+                                        ['--mode', 'static', *common]),
+                        post=partial(static_post, layout, m, s, n, root.log(static_key)),
+                        run=run, target=n, order=10 * bi + 2))
+                    prev = static_key
+                    best = layout.budget(m, s, n) / 'best.pt'
+                    for mode in plan.modes:
+                        policy = layout.policy(m, s, n, mode)
+                        if mode == 'static':
+                            ckpt, source = best, static_key
+                        else:
+                            dyn, d = layout.dynamic_run(m, s, n), plan.dynamic_steps
+                            ckpt, source = dyn / 'best.pt', f'{key}/train-dynamic'
+                            tasks.append(Task(
+                                source, 'train', [static_key],
+                                done=partial(dynamic_done, dyn, d),
+                                command=partial(train_command, dyn, d,
+                                                ['--preset', m, '--seed', str(s), '--init-from',
+                                                 str(best)], ['--mode', 'dynamic', *common]),
+                                post=partial(record_state, dyn), run=dyn, target=d,
+                                order=10 * bi + 1))
+                        tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
+                                          done=partial(up_to_date, policy, ckpt,
+                                                       ckpt.with_name('final.pt')),
+                                          command=partial(export_command, ckpt, policy)))
+                        for k in plan.target_sets:
+                            folder = layout.evaluation(m, s, n, mode, k)
+                            tasks.append(Task(
+                                f'{key}/eval-{mode}-targets{k}', 'eval',
+                                [f'{key}/export-{mode}'],
+                                done=partial(evaluated, folder, policy, plan.trials),
+                                command=partial(python_module, evaluate, '--policy',
+                                                f'{m}={policy}', '--baselines', '--modes', mode,
+                                                *in_anatomy, '--scenario-seed', str(k),
+                                                '--out', str(folder))))
+        if plan.baselines:
+            for options in plan.options():
+                for mode in plan.modes:
+                    for k in plan.target_sets:
+                        folder = layout.baselines(options, mode, k)
+                        tasks.append(Task(
+                            f'{at}baselines/{options}/{mode}-targets{k}', 'eval', [],
+                            done=partial(evaluated, folder, None, plan.trials),
+                            command=partial(python_module, evaluate, '--baselines',
+                                            *plan.baselines, '--env-options', options,
+                                            '--modes', mode, *in_anatomy, '--scenario-seed',
+                                            str(k), '--out', str(folder)),
+                            order=1))
     return tasks
 
 
@@ -930,21 +1035,50 @@ def last_log_line(path: Path, containing: str = '') -> str:
     return lines[-1][-200:] if lines else ''
 
 
+class Process(Protocol):
+    """What the scheduler needs of a running task: :class:`subprocess.Popen` has it, and so
+    has a task run elsewhere (``bench/sweep.py``'s Ray tasks)."""
+
+    def poll(self) -> int | None:
+        """The exit status, or None while it runs."""
+
+    def terminate(self) -> None:
+        """Ask it to stop (SIGTERM: a training keeps its checkpoints)."""
+
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait for the exit status; raises :class:`subprocess.TimeoutExpired`."""
+
+    def kill(self) -> None:
+        """Stop it now."""
+
+
+#: Starts a task's command with its output appended to the log file; returns its process.
+Launcher = Callable[[list[str], Path], Process]
+
+
+def launch_process(cmd: list[str], log: Path) -> Process:
+    """The default :data:`Launcher`: a child process of this one, in :func:`child_env`."""
+    with log.open('a') as f:
+        return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=child_env(),
+                                stdin=subprocess.DEVNULL)
+
+
 @dataclass
 class Running:
     """A task's running process."""
 
     task: Task
-    proc: subprocess.Popen[bytes]
-    log: IO[str]
+    proc: Process
     started: float
     since: int
     """The step a training starts or resumes from."""
 
 
 def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: float,
-              on_done: Callable[[Task], None] | None = None) -> tuple[int, int]:
-    """Run the tasks that are not done, ``jobs`` at a time, dependencies first.
+              on_done: Callable[[Task], None] | None = None,
+              launch: Launcher = launch_process) -> tuple[int, int]:
+    """Run the tasks that are not done, ``jobs`` at a time, dependencies first, each started
+    by ``launch`` (default: a local child process).
 
     Returns:
         (tasks done, tasks failed or blocked by a failure).
@@ -990,14 +1124,12 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                     finish(t.key, False, str(exc))
                     continue
                 log_path = layout.log(t.key)
-                log = log_path.open('a')
-                log.write(f'=== {datetime.datetime.now().isoformat(timespec="seconds")} '
-                          f'{shlex.join(cmd)}\n')
-                log.flush()
-                proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
-                                        env=child_env(), stdin=subprocess.DEVNULL)
+                with log_path.open('a') as log:
+                    log.write(f'=== {datetime.datetime.now().isoformat(timespec="seconds")} '
+                              f'{shlex.join(cmd)}\n')
+                proc = launch(cmd, log_path)
                 since = resumable_step(t.run) if t.run is not None else 0
-                running[t.key] = Running(t, proc, log, time.monotonic(), since)
+                running[t.key] = Running(t, proc, time.monotonic(), since)
                 state[t.key] = 'running'
                 say(f'start {t.key} (log {log_path.relative_to(layout.root)})')
             if not running:
@@ -1009,7 +1141,6 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                 rc = r.proc.poll()
                 if rc is None:
                     continue
-                r.log.close()
                 del running[key]
                 took = format_duration(time.monotonic() - r.started)
                 if rc != 0:
@@ -1034,7 +1165,7 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
                         say(f'{key}: {run_progress(r.task.run, r.since).line(r.task.target)}')
     finally:
         for key, r in running.items():
-            say(f'stopping {key} (pid {r.proc.pid}); it resumes on the next run')
+            say(f'stopping {key}; it resumes on the next run')
             r.proc.terminate()
         for r in running.values():
             try:
@@ -1042,7 +1173,6 @@ def run_tasks(tasks: list[Task], layout: Layout, jobs: int, progress_every: floa
             except subprocess.TimeoutExpired:
                 r.proc.kill()
                 r.proc.wait()
-            r.log.close()
     n_done = sum(v == 'done' for v in state.values())
     return n_done, len(tasks) - n_done
 
@@ -1113,9 +1243,10 @@ def check_args(args: argparse.Namespace) -> StudyPlan:
         if missing:
             raise StudyError(f'--demos: expected existing demonstrations, found none at '
                              f'{missing}')
+    anatomy = Anatomy.named(DEFAULT_ANATOMY, [d.resolve() for d in args.demos])
     return StudyPlan(tuple(args.methods), tuple(args.seeds), budgets, tuple(args.modes),
                      option_sets, args.trials, args.unseen_scenario_seed, args.dynamic_steps,
-                     tuple(args.baselines))
+                     tuple(args.baselines), (anatomy,))
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -1171,27 +1302,37 @@ def main(argv: list[str] | None = None) -> int:
     if args.report_only:
         say(f'report: {write_report(layout, plan, command)}')
         return 0
-    signal.signal(signal.SIGTERM, _terminate)
-    t0 = time.monotonic()
     try:
         with study_lock(layout.root):
-            tasks = plan_tasks(layout, plan, [d.resolve() for d in args.demos])
-
-            def on_done(task: Task) -> None:
-                if task.kind == 'eval':
-                    write_report(layout, plan, command)
-
-            try:
-                n_done, n_bad = run_tasks(tasks, layout, args.jobs, args.progress_every,
-                                          on_done)
-            except KeyboardInterrupt:
-                say('interrupted; re-run the same command to continue')
-                write_report(layout, plan, command)
-                return 130
-            path = write_report(layout, plan, command)
+            return run_study(layout, plan, command, args.jobs, args.progress_every)
     except StudyError as exc:
         print(f'insilico_study: error: {exc}', file=sys.stderr)
         return 2
+
+
+def run_study(layout: Layout, plan: StudyPlan, command: str, jobs: int, progress_every: float,
+              launch: Launcher = launch_process) -> int:
+    """Run what is not done of ``plan`` (the caller holds :func:`study_lock`), rewriting the
+    report after every evaluation and at the end; SIGTERM stops it as Ctrl-C does.
+
+    Returns:
+        The exit status: 0 all done, 1 a task failed, 130 interrupted.
+    """
+    signal.signal(signal.SIGTERM, _terminate)
+    t0 = time.monotonic()
+    tasks = plan_tasks(layout, plan)
+
+    def on_done(task: Task) -> None:
+        if task.kind == 'eval':
+            write_report(layout, plan, command)
+
+    try:
+        n_done, n_bad = run_tasks(tasks, layout, jobs, progress_every, on_done, launch)
+    except KeyboardInterrupt:
+        say('interrupted; re-run the same command to continue')
+        write_report(layout, plan, command)
+        return 130
+    path = write_report(layout, plan, command)
     say(f'{n_done} of {n_done + n_bad} tasks done in '
         f'{format_duration(time.monotonic() - t0)}; report: {path}')
     return 0 if n_bad == 0 else 1

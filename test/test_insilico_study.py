@@ -247,10 +247,10 @@ def test_collect_and_the_report(fake_study):
     assert (layout.root / 'curves_ours_static.png').stat().st_size > 0
     assert (layout.root / 'curves_ours_dynamic.png').stat().st_size > 0
     rows = (layout.root / 'results.csv').read_text().splitlines()
-    assert rows[0] == 'options,preset,seed,budget,steps,mode,targets,successes,trials'
+    assert rows[0] == 'anatomy,options,preset,seed,budget,steps,mode,targets,successes,trials'
     # per seed and budget 2 modes x 2 target sets; GAIL seed 1 has only its first budget
     assert len(rows) == 1 + 4 * (2 * 2 + 2 + 1)
-    assert 'ours,cgail,1,8192,9216,static,unseen (scenario seed 1),2,4' in rows
+    assert 'default,ours,cgail,1,8192,9216,static,unseen (scenario seed 1),2,4' in rows
 
 
 # ---------------------------------------------------------------------------- tasks
@@ -260,7 +260,7 @@ def test_plan_tasks_chain_budgets_and_modes(tmp_path):
     layout = study.Layout(tmp_path)
     plan = study.StudyPlan(('smoke',), (0,), (4096, 8192), ('static', 'dynamic'),
                            {'smoke': 'ours'})
-    tasks = {t.key: t for t in study.plan_tasks(layout, plan, [tmp_path / 'demos'])}
+    tasks = {t.key: t for t in study.plan_tasks(layout, plan)}
     assert len(tasks) == 2 * (1 + 1 + 2 + 4) + 4
     assert tasks['smoke/seed0/8192/train-static'].deps == ['smoke/seed0/4096/train-static']
     assert tasks['smoke/seed0/4096/train-dynamic'].deps == ['smoke/seed0/4096/train-static']
@@ -363,3 +363,64 @@ def test_the_bc_initialised_gail_variant_is_the_ml_agents_gail_plus_a_warm_start
     for key in ('bc', 'max_steps', 'name'):
         variant.pop(key), preset.pop(key)
     assert variant == preset
+
+
+# ---------------------------------------------------------------------------- anatomies
+
+
+def test_an_anatomy_axis_keeps_the_default_anatomy_where_it_was(tmp_path):
+    """The default anatomy's runs, keys and logs stay where a study without the axis had them
+    (so such a study resumes); another anatomy's lie under anatomies/<name>/, its keys carry
+    its name, and every train and evaluate invocation in it is told so."""
+    layout = study.Layout(tmp_path)
+    elongated = study.Anatomy.named('elongated')
+    assert elongated == study.Anatomy('elongated', ('--anatomy', 'elongated'),
+                                      ('--anatomy', 'elongated'),
+                                      (WS / 'bags' / 'demos' / 'elongated',))
+    plan = study.StudyPlan(('smoke',), (0,), (4096,), ('static',), {'smoke': 'ours'},
+                           anatomies=(study.Anatomy.named('default'), elongated))
+    tasks = {t.key: t for t in study.plan_tasks(layout, plan)}
+    assert len(tasks) == 2 * (1 + 1 + 2 + 2)
+    assert tasks['smoke/seed0/4096/train-static'].run == tmp_path / 'smoke' / 'seed0' / 'static'
+    assert tasks['elongated/smoke/seed0/4096/train-static'].run == (
+        tmp_path / 'anatomies' / 'elongated' / 'smoke' / 'seed0' / 'static')
+    cmd = tasks['elongated/smoke/seed0/4096/train-static'].command()
+    assert cmd[cmd.index('--anatomy') + 1] == 'elongated'
+    assert cmd[cmd.index('--demos') + 1] == str(WS / 'bags' / 'demos' / 'elongated')
+    cmd = tasks['elongated/smoke/seed0/4096/eval-static-targets1'].command()
+    assert cmd[cmd.index('--anatomy') + 1] == 'elongated'
+    assert cmd[cmd.index('--out') + 1] == str(layout.of_anatomy('elongated').evaluation(
+        'smoke', 0, 4096, 'static', 1))
+    assert 'elongated/baselines/ours/static-targets0' in tasks
+    assert layout.log('elongated/smoke/seed0/4096/train-static') == (
+        tmp_path / 'logs' / 'elongated_smoke_seed0_4096_train-static.log')
+
+
+def test_an_anatomy_that_does_not_exist_is_one_line():
+    with pytest.raises(study.StudyError, match=r"^anatomy: expected a built-in anatomy name "
+                                               r"\['default', 'elongated'\]"):
+        study.Anatomy.named('no/such/aorta')
+
+
+def test_the_report_of_two_anatomies_is_one_table(tmp_path):
+    layout = study.Layout(tmp_path / 'out')
+    anatomies = (study.Anatomy.named('default'), study.Anatomy.named('elongated'))
+    plan = study.StudyPlan(('cgail',), (0,), (4096,), ('static',), {'cgail': 'ours'}, trials=4,
+                           anatomies=anatomies)
+    for a, won in (('default', 3), ('elongated', 1)):
+        at = layout.of_anatomy(a)
+        at.budget('cgail', 0, 4096).mkdir(parents=True)
+        at.snapshot('cgail', 0, 4096).write_text(json.dumps({'step': 4096}))
+        write_scalars(at.static_run('cgail', 0), [(4096, 'eval/success_rate', 0.5)])
+        for k in plan.target_sets:
+            write_results(at.evaluation('cgail', 0, 4096, 'static', k), 'cgail', 'static',
+                          [i < won for i in range(4)])
+    report = study.write_report(layout, plan, 'sweep').read_text()
+    assert '| anatomy | method | steps used' in report
+    row = '| `{}` | C-GAIL (`cgail`) | 4,096 (authors: 8,000,000) | {} | **{}** |'
+    assert row.format('default', '80%', '75%') in report
+    assert row.format('elongated', '-', '25%') in report
+    assert (layout.root / 'curves_ours_static.png').is_file()
+    assert (layout.root / 'curves_elongated_ours_static.png').is_file()
+    rows = (layout.root / 'results.csv').read_text().splitlines()
+    assert 'elongated,ours,cgail,0,4096,4096,static,training,1,4' in rows and len(rows) == 5
