@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+import sys
 
 import numpy as np
 import onnx
@@ -17,10 +18,13 @@ import pytest
 import torch
 import yaml
 
-from cgail_planner.learning import demos_cli, evaluate, export, train
+from cgail_planner.learning import evaluate, export, train
 from cgail_planner.learning.config import load_config
 from cgail_planner.learning.onnx_policy import OnnxPolicy
 from cgail_planner.sim.ftl_model import CONTRACT_KEY
+
+sys.path.insert(0, str(Path(__file__).parent))
+from tiny_pipeline import demos_and_training
 
 TINY = {
     'name': 'paper_code_tiny', 'env_options': 'paper_code', 'max_steps': 512, 'num_envs': 2,
@@ -35,15 +39,8 @@ TINY = {
 @pytest.fixture(scope='module')
 def run(tmp_path_factory) -> Path:
     """make_demos (2 episodes) and train (512 steps), both in paper_code; the run directory."""
-    torch.set_num_threads(1)
-    root = tmp_path_factory.mktemp('paper_code')
-    assert demos_cli.main(['--episodes', '2', '--env-options', 'paper_code',
-                           '--out', str(root / 'demos')]) == 0
-    preset = root / 'tiny.yaml'
-    preset.write_text(yaml.safe_dump(TINY))
-    assert train.main(['--preset', str(preset), '--demos', str(root / 'demos'),
-                       '--out', str(root / 'run'), '--no-progress']) == 0
-    return root
+    return demos_and_training(tmp_path_factory.mktemp('paper_code'),
+                              ['--episodes', '2', '--env-options', 'paper_code'], TINY)
 
 
 def test_make_demos_records_the_option_set(run) -> None:

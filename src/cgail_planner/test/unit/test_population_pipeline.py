@@ -9,14 +9,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+import sys
 
 import pytest
 import torch
-import yaml
 
-from cgail_planner.learning import demos_cli, evaluate, export, train
+from cgail_planner.learning import evaluate, export, train
 from cgail_planner.learning.demo_bags import read_demo_bag
 from cgail_planner.sim.ftl_model import CONTRACT_KEY
+
+sys.path.insert(0, str(Path(__file__).parent))
+from tiny_pipeline import demos_and_training
 
 pytestmark = pytest.mark.slow
 
@@ -34,15 +37,9 @@ TINY = {
 @pytest.fixture(scope='module')
 def run(tmp_path_factory) -> Path:
     """make_demos --population 2 (2 episodes) and a 512-step population training run."""
-    torch.set_num_threads(1)
-    root = tmp_path_factory.mktemp('population')
-    assert demos_cli.main(['--population', '2', '--episodes', '2',
-                           '--out', str(root / 'demos')]) == 0
-    preset = root / 'tiny.yaml'
-    preset.write_text(yaml.safe_dump(TINY))
-    assert train.main(['--preset', str(preset), '--demos', str(root / 'demos'),
-                       '--out', str(root / 'run'), '--no-progress', '--threads', '1']) == 0
-    return root
+    return demos_and_training(tmp_path_factory.mktemp('population'),
+                              ['--population', '2', '--episodes', '2'], TINY,
+                              ['--threads', '1'])
 
 
 def test_the_demos_run_in_the_population_training_anatomies(run) -> None:
