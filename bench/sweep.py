@@ -24,19 +24,27 @@ trainings from their checkpoints, as the study does. Ctrl-C or SIGTERM cancels t
 tasks; each stops its process (SIGTERM, then SIGKILL after 30 s) and the checkpoints stay.
 
 **Local Ray** (the default): ``ray.init(address='local', num_cpus=--num-cpus)``, every server
-bound to 127.0.0.1, no dashboard; nothing listens beyond this machine.
+bound to 127.0.0.1, no dashboard; nothing listens beyond this machine. Its workers run at
+niceness 0 (``RAY_worker_niceness=0``, as Ray's own job manager sets): Ray's default, 15, is
+inherited by every task's process, which then gets a few per cent of a CPU beside any other
+work on the machine (a 20 s training took 6.6 min beside a busy loop on each core).
 
-**A cluster** (``--address HOST:PORT``): start a head and workers from the workspace
-environment of every node, e.g. ``scripts/ws ray start --head --port 6379 --num-cpus 16`` on the
-head and ``scripts/ws ray start --address HEAD_IP:6379`` on each worker, all of them and the
-sweep with ``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``; the
-README has the commands). The sweep assumes a **shared filesystem**: every node sees the
-workspace (the same interpreter path) and ``--out`` at the same path as the driver, since the
-tasks write their runs there and the driver reads them back. It checks that at start: a probe
-on every node reads a file the driver wrote in ``--out`` and writes one beside it; a node that
-cannot ends the sweep with a one-line error before anything runs. Numbers of a node with other
-SIMD instructions may differ in the last bits (``docs``: ``NPY_DISABLE_CPU_FEATURES``); set such
-variables in the driver's environment, which every task inherits.
+**Nothing to run.** When every task of the plan is done, the sweep starts no Ray at all: it
+says so and rewrites the report (seconds, not Ray's start-up).
+
+**A cluster** (``--address HOST:PORT``): start a head and workers from the workspace environment
+of every node, e.g. ``scripts/ws ray start --head --port 6379 --num-cpus 16`` on the head and
+``scripts/ws ray start --address HEAD_IP:6379`` on each worker, all of them and the sweep with
+``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``; the README has
+the commands), and with ``RAY_worker_niceness=0`` where the nodes run other work too (a task's
+log says when it runs at a niceness above 0). The sweep assumes a **shared filesystem**: every
+node sees the workspace (the same interpreter path) and ``--out`` at the same path as the
+driver, since the tasks write their runs there and the driver reads them back. It checks that at
+start: a probe on every node reads a file the driver wrote in ``--out`` and writes one beside
+it; a node that cannot ends the sweep with a one-line error before anything runs. Numbers of a
+node with other SIMD instructions may differ in the last bits (``docs``:
+``NPY_DISABLE_CPU_FEATURES``); set such variables in the driver's environment, which every task
+inherits.
 
 Configuration (YAML; relative paths are relative to the workspace root)::
 
@@ -89,9 +97,11 @@ STUDY_FLAG = {'presets': 'methods', 'seeds': 'seeds', 'budgets': 'steps', 'modes
 BASELINES = ('centerline', 'expert')
 ANATOMY_KEYS = ('name', 'train', 'evaluate', 'demos')
 NAME = re.compile(r'[A-Za-z0-9][A-Za-z0-9_.-]*')
-#: Set before ray is imported, this makes a local Ray bind every server to 127.0.0.1 (Ray reads
-#: it at import; on Linux its default, 1, binds them to all interfaces).
-LOCAL_ONLY = {'RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER': '0'}
+#: Set before ray is imported and started: ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0`` makes a local
+#: Ray bind every server to 127.0.0.1 (Ray reads it at import; on Linux its default, 1, binds
+#: them to all interfaces); ``RAY_worker_niceness=0`` runs its workers, and so every task's
+#: process, at the driver's priority (the raylet reads it at start; default 15).
+LOCAL_RAY = {'RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER': '0', 'RAY_worker_niceness': '0'}
 
 
 class SweepError(study.StudyError):
@@ -226,6 +236,10 @@ def run_logged(cmd: list[str], log: str, env: dict[str, str], cwd: str) -> int:
     when the task is cancelled (KeyboardInterrupt in this worker), stop the child as the study
     does (SIGTERM, SIGKILL after 30 s). Returns its exit status."""
     with open(log, 'a') as f:
+        if (nice := os.nice(0)) > 0:
+            f.write(f'sweep: this task runs at niceness {nice} (the Ray node was started '
+                    'without RAY_worker_niceness=0): slow beside other work\n')
+            f.flush()
         proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=env, cwd=cwd)
     try:
@@ -315,7 +329,7 @@ def ray_launcher(root: Path, address: str | None, num_cpus: int | None
         SweepError: local Ray not on 127.0.0.1, or a node that cannot see ``root``.
     """
     if address is None:
-        os.environ.update(LOCAL_ONLY)
+        os.environ.update(LOCAL_RAY)
     import ray
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
@@ -428,7 +442,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     try:
         with study.study_lock(out):
-            if args.no_ray:
+            if args.no_ray or all(t.done() for t in study.plan_tasks(layout, plan)):
+                if not args.no_ray:
+                    study.say('every task is done: no Ray needed')
                 return study.run_study(layout, plan, command, args.num_cpus or 1,
                                        args.progress_every)
             with ray_launcher(out, args.address, args.num_cpus) as (launch, cpus):

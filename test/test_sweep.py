@@ -180,6 +180,13 @@ def test_study_tasks_on_local_ray(tmp_path, capsys):
         assert study.run_tasks(tasks[:2], layout, cpus, 3600.0, launch=launch) == (2, 0)
         assert '2 tasks: 2 already done, 0 to run' in capsys.readouterr().out
 
+        # A task's process runs at the driver's priority, not Ray's worker niceness (15).
+        nice = launch([sys.executable, '-c', 'import os; print("niceness", os.nice(0))'],
+                      tmp_path / 'nice.log')
+        assert nice.wait(timeout=120) == 0
+        assert f'niceness {os.nice(0)}' in (tmp_path / 'nice.log').read_text()
+        assert 'sweep: this task runs at niceness' not in (tmp_path / 'nice.log').read_text()
+
         pid_file = tmp_path / 'pid'
         proc = launch([sys.executable, '-c', f'import os, time; open({str(pid_file)!r}, "w")'
                        '.write(str(os.getpid())); time.sleep(600)'], tmp_path / 'sleep.log')
@@ -236,6 +243,7 @@ def test_a_tiny_sweep_on_local_ray_and_its_rerun(tmp_path):
     again = _sweep(config, out)
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
     assert '4 tasks: 4 already done, 0 to run' in again.stdout
+    assert 'every task is done: no Ray needed' in again.stdout and 'Ray up' not in again.stdout
     assert 'start ' not in again.stdout
 
 
