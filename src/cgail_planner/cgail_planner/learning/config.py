@@ -293,6 +293,12 @@ class PopulationConfig:
     eval_anatomies: int = 5
     """Anatomies of the periodic evaluation that picks ``best.pt``: the training seeds right
     after the pool (never trained on, never held out)."""
+    include: tuple[str, ...] = ()
+    """Built-in anatomies (``default``, ``elongated``) added to the pool beside the population
+    samples, each drawn as often as one sample. They lie outside the population's ranges in
+    places (``elongated``: root tilt 15 deg, below the population's 18 deg) and are the
+    anatomies a user tries first, so the generalist trains on them too; its evaluation on them
+    uses target sets it never trained on."""
 
     def __post_init__(self) -> None:
         _check(0 <= self.anatomies <= 1000, 'population.anatomies', 'in [0, 1000]',
@@ -300,6 +306,16 @@ class PopulationConfig:
         _check(self.redraw_every >= 1, 'population.redraw_every', '>= 1', self.redraw_every)
         _check(1 <= self.eval_anatomies <= 100, 'population.eval_anatomies', 'in [1, 100]',
                self.eval_anatomies)
+        if self.include:
+            from cgail_planner.sim.anatomy import ANATOMY_NAMES
+
+            _check(all(n in ANATOMY_NAMES for n in self.include)
+                   and len(set(self.include)) == len(self.include), 'population.include',
+                   f'distinct built-in anatomy names of {sorted(ANATOMY_NAMES)}',
+                   list(self.include))
+        _check(not self.include or self.anatomies > 0, 'population.include',
+               'no anatomies without a population (population.anatomies > 0)',
+               list(self.include))
 
     @property
     def enabled(self) -> bool:
@@ -406,6 +422,9 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
             ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(
                 float(value))
             value = float(value) if ok else value
+        elif isinstance(default, tuple) and 'str' in str(known[key].type):
+            ok = isinstance(value, list) and all(isinstance(v, str) for v in value)
+            value = tuple(value) if ok else value
         elif isinstance(default, tuple):
             ok = isinstance(value, list) and all(
                 isinstance(v, int | float) and not isinstance(v, bool) for v in value)

@@ -227,10 +227,14 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     if env_options != 'ours':
         info['env_options'] = env_options
     if population:
-        missing = [e for e, ep in enumerate(episodes) if population_seed(ep.anatomy or '') is None]
+        from cgail_planner.sim.anatomy import ANATOMY_NAMES
+
+        missing = [e for e, ep in enumerate(episodes) if population_seed(ep.anatomy or '') is None
+                   and ep.anatomy not in ANATOMY_NAMES]
         if missing:
             raise DemoError(f'population bag: expected every episode in a population anatomy '
-                            f'(population-<seed>), found episodes {missing[:5]} without one')
+                            f'(population-<seed>) or a built-in one {sorted(ANATOMY_NAMES)}, '
+                            f'found episodes {missing[:5]} without one')
         info['population'] = True
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
@@ -562,7 +566,10 @@ def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpis
                        tolerance_m: float, anatomy: Any, env_options: str) -> Replay:
     """:func:`replay_demo_bag` of a population bag: each episode re-simulated in its own
     population anatomy (``DemoEpisode.anatomy``, rebuilt with
-    :func:`~cgail_planner.sim.population.sample_anatomy`), the drift checked as for any bag."""
+    :func:`~cgail_planner.sim.population.sample_anatomy`; a built-in name, ``make_demos
+    --include``, with :func:`~cgail_planner.sim.anatomy.resolve_anatomy`), the drift checked as
+    for any bag."""
+    from cgail_planner.sim.anatomy import ANATOMY_NAMES, resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.population import sample_anatomy
@@ -577,10 +584,10 @@ def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpis
     obs_l, act_l, drifts, moved = [], [], [], []
     for name, eps in groups.items():
         seed = population_seed(name)
-        if seed is None:
-            raise DemoError(f'{path}: expected population-<seed> episode anatomies, found '
-                            f'{name!r}')
-        built = sample_anatomy(seed)
+        if seed is None and name not in ANATOMY_NAMES:
+            raise DemoError(f'{path}: expected population-<seed> or built-in episode anatomies '
+                            f'{sorted(ANATOMY_NAMES)}, found {name!r}')
+        built = resolve_anatomy(name) if seed is None else sample_anatomy(seed)
         current[name] = built.content_hash
         recorded = eps[0].anatomy_hash
         note = ''

@@ -19,6 +19,9 @@ JSON names its anatomy (``population-<seed>``) and content hash, so ``load_demos
 re-simulates each in its own anatomy::
 
     scripts/ws make_demos --population 32 --episodes 96 --out bags/demos/population
+
+``--include default elongated`` adds built-in anatomies after the population's (episode k runs
+in anatomy ``k % (N + 2)``), named by their built-in names in the episodes' JSON.
 """
 
 from __future__ import annotations
@@ -111,8 +114,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--population', type=int, default=0, metavar='N',
                    help='spread the episodes over the first N population training anatomies '
                         '(--anatomy is then not used)')
+    p.add_argument('--include', nargs='+', default=[], metavar='NAME',
+                   help='with --population: built-in anatomies (default, elongated) that get '
+                        "episodes too, after the population's (the pool of a preset's "
+                        '`population.include`)')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
     args = p.parse_args(argv)
+    if args.include and not args.population:
+        print('make_demos: error: --include: expected --population N beside it (it adds '
+              'built-in anatomies to a population bag)', file=sys.stderr)
+        return 2
     if args.episodes < 1:
         print(f'make_demos: error: --episodes must be >= 1, found {args.episodes}',
               file=sys.stderr)
@@ -144,37 +155,46 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
-                      env_options: str = 'ours') -> tuple[list[DemoEpisode], dict[str, float]]:
-    """Expert episodes spread over the population anatomies ``seeds`` (module docstring);
-    each :class:`~cgail_planner.learning.demo_bags.DemoEpisode` names its anatomy.
+                      env_options: str = 'ours', include: tuple[str, ...] = (),
+                      ) -> tuple[list[DemoEpisode], dict[str, float]]:
+    """Expert episodes spread over the population anatomies ``seeds`` and then the built-in
+    anatomies ``include`` (module docstring); each
+    :class:`~cgail_planner.learning.demo_bags.DemoEpisode` names its anatomy.
 
     Raises:
         ValueError: a seed outside the training seeds (demonstrations never touch a held-out
-            anatomy).
+            anatomy), or an ``include`` name that is no built-in anatomy.
     """
+    from cgail_planner.sim.anatomy import ANATOMY_NAMES, resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.population import check_training_seeds, population_name, sample_anatomy
 
     seeds = check_training_seeds(seeds)
+    bad = [n for n in include if n not in ANATOMY_NAMES]
+    if bad or len(set(include)) != len(include):
+        raise ValueError(f'--include: expected distinct built-in anatomy names of '
+                         f'{sorted(ANATOMY_NAMES)}, found {list(include)}')
+    named = [(population_name(s), lambda s=s: sample_anatomy(s)) for s in seeds] + [
+        (n, lambda n=n: resolve_anatomy(n)) for n in include]
 
     out: list[DemoEpisode] = []
     steps: list[float] = []
     errors: list[float] = []
-    for j, s in enumerate(seeds):
-        ks = range(j, episodes, len(seeds))
+    for j, (name, build) in enumerate(named):
+        ks = range(j, episodes, len(named))
         count = len(ks)
         if count == 0:
             continue
-        anatomy = sample_anatomy(s)
+        anatomy = build()
         env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=anatomy))
         eps, stats = record_episodes(env, count, seed, indices=ks)
         for ep in eps:
-            ep.anatomy, ep.anatomy_hash = population_name(s), anatomy.content_hash
+            ep.anatomy, ep.anatomy_hash = name, anatomy.content_hash
         out.extend(eps)
         steps.append(stats['mean_steps'] * count)
         errors.append(stats['mean_targeting_error_mm'] * count)
-    return out, {'episodes': len(out), 'anatomies': len(seeds),
+    return out, {'episodes': len(out), 'anatomies': len(named),
                  'success_rate': float(np.mean([e.success for e in out])),
                  'mean_steps': float(sum(steps) / len(out)),
                  'mean_targeting_error_mm': float(sum(errors) / len(out))}
@@ -189,7 +209,8 @@ def _population_main(args: argparse.Namespace) -> int:
     try:
         seeds = split_seeds('train', args.population)
         t0 = time.monotonic()
-        episodes, stats = record_population(seeds, args.episodes, args.seed, args.env_options)
+        episodes, stats = record_population(seeds, args.episodes, args.seed, args.env_options,
+                                            tuple(args.include))
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy='population', mode='static',
                        dt=EnvConfig.from_options(args.env_options).dt,
@@ -199,7 +220,7 @@ def _population_main(args: argparse.Namespace) -> int:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2
     print(json.dumps({'anatomy': 'population', 'population_seeds': [seeds[0], seeds[-1] + 1],
-                      'env_options': args.env_options, **stats}))
+                      'include': args.include, 'env_options': args.env_options, **stats}))
     return 0
 
 

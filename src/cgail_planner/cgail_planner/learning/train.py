@@ -90,15 +90,18 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
         return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
                 sim_metadata(env_cfg))
     from cgail_planner.learning.envs import AnatomyCycleEnv, PopulationVecEnv
+    from cgail_planner.sim.anatomy import resolve_anatomy
     from cgail_planner.sim.population import sample_anatomy
 
     train_seeds, eval_seeds = population.seeds()
     t0 = time.monotonic()
-    pool = [sample_anatomy(s) for s in train_seeds]
+    pool = [sample_anatomy(s) for s in train_seeds] + [
+        resolve_anatomy(name) for name in population.include]
     evals = [sample_anatomy(s) for s in eval_seeds]
     if report is not None:
+        also = f' and {", ".join(population.include)}' if population.include else ''
         report(f'{len(pool)} training anatomies (population seeds {train_seeds[0]}-'
-               f'{train_seeds[-1]}) and {len(evals)} evaluation anatomies (seeds '
+               f'{train_seeds[-1]}{also}) and {len(evals)} evaluation anatomies (seeds '
                f'{eval_seeds[0]}-{eval_seeds[-1]}) ready in {time.monotonic() - t0:.0f} s')
 
     def config(a: Any) -> EnvConfig:
@@ -110,7 +113,8 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     meta = sim_metadata(config(evals[0]))
     meta['population'] = {'train_seeds': [train_seeds[0], train_seeds[-1] + 1],
                           'eval_seeds': [eval_seeds[0], eval_seeds[-1] + 1],
-                          'redraw_every': population.redraw_every}
+                          'redraw_every': population.redraw_every,
+                          'include': list(population.include)}
     return env, eval_env, meta
 
 
@@ -252,9 +256,10 @@ def main(argv: list[str] | None = None) -> int:
             d['num_envs'] = args.num_envs or cfg.num_envs
             cfg = config_from_dict(d)
         if cfg.population.enabled and args.anatomy != 'default':
+            also = ''.join(f' and {n}' for n in cfg.population.include)
             raise ValueError(f'--anatomy: preset {cfg.name!r} trains on '
-                             f'{cfg.population.anatomies} population anatomies: expected no '
-                             f'--anatomy, found {args.anatomy!r}')
+                             f'{cfg.population.anatomies} population anatomies{also}: expected '
+                             f'no --anatomy, found {args.anatomy!r}')
         from cgail_planner.learning.demos import load_demos
 
         demo_obs = demo_act = demo_episodes = None

@@ -1078,9 +1078,10 @@ _PATH_CACHE_MAX = 8
 def _usage(spec: object) -> str:
     found = repr(spec) if isinstance(spec, (str, os.PathLike)) else \
         f"an object of type {type(spec).__name__}"  # (never an arbitrary repr: no array dumps)
-    return (f"expected a built-in anatomy name {list(ANATOMY_NAMES)}, a prepared anatomy "
-            f"directory (holding {PREPARED_MESH} and lumen.yaml) or a mesh file "
-            f"({'/'.join(MESH_SUFFIXES)} in mm, with its <stem>.yaml landmarks), found {found}")
+    return (f"expected a built-in anatomy name {list(ANATOMY_NAMES)}, a population sample "
+            f"population-<seed>, a prepared anatomy directory (holding {PREPARED_MESH} and "
+            f"lumen.yaml) or a mesh file ({'/'.join(MESH_SUFFIXES)} in mm, with its <stem>.yaml "
+            f"landmarks), found {found}")
 
 
 def _mesh_of(spec: str | os.PathLike[str]) -> Path:
@@ -1122,8 +1123,8 @@ def anatomy_label(spec: AnatomySpec) -> str:
     """
     if isinstance(spec, Anatomy):
         raw = spec.name
-    elif isinstance(spec, str) and spec in ANATOMY_NAMES:
-        raw = spec
+    elif is_builtin(spec) or _population_seed(spec) is not None:
+        raw = str(spec)
     else:
         path = Path(spec).expanduser().resolve()
         if path.is_dir() or path.suffix.lower() not in MESH_SUFFIXES:
@@ -1142,7 +1143,7 @@ def check_anatomy_spec(spec: AnatomySpec) -> None:
     Raises:
         AnatomyError: what :func:`resolve_anatomy` raises before it reads a mesh.
     """
-    if isinstance(spec, Anatomy) or is_builtin(spec):
+    if isinstance(spec, Anatomy) or is_builtin(spec) or _population_seed(spec) is not None:
         return
     if not isinstance(spec, (str, os.PathLike)) or (isinstance(spec, str) and not spec.strip()):
         raise AnatomyError(_usage(spec))
@@ -1171,13 +1172,22 @@ def is_builtin(spec: AnatomySpec) -> bool:
     return isinstance(spec, str) and spec in ANATOMY_NAMES
 
 
+def _population_seed(spec: object) -> int | None:
+    """The seed of a population sample's name (``population-<seed>``), else None."""
+    from cgail_planner.sim.population import population_seed  # (it imports this module)
+
+    return population_seed(spec) if isinstance(spec, str) else None
+
+
 def resolve_anatomy(spec: AnatomySpec) -> Anatomy:
     """The anatomy an argument stands for: the one resolver every CLI, node and config uses.
 
     Args:
         spec: a built-in name (:data:`ANATOMY_NAMES`; a name wins over a directory of the same
-            name: write ``./default`` for that), a prepared anatomy directory (``DIR/lumen.stl``
-            plus ``DIR/lumen.yaml``, as ``prepare_anatomy`` writes), a mesh file
+            name: write ``./default`` for that), a population sample ``population-<seed>``
+            (:func:`cgail_planner.sim.population.sample_anatomy`, the same rule), a prepared
+            anatomy directory (``DIR/lumen.stl`` plus ``DIR/lumen.yaml``, as
+            ``prepare_anatomy`` writes), a mesh file
             (:data:`MESH_SUFFIXES`, millimetres) with its ``<stem>.yaml`` landmarks, or an
             :class:`Anatomy` (returned as is).
 
@@ -1197,6 +1207,10 @@ def resolve_anatomy(spec: AnatomySpec) -> Anatomy:
         return spec
     if is_builtin(spec):
         return build_anatomy(str(spec))
+    if (seed := _population_seed(spec)) is not None:
+        from cgail_planner.sim.population import sample_anatomy
+
+        return sample_anatomy(seed)
     check_anatomy_spec(spec)
     mesh = _mesh_of(spec).resolve()
     sidecar = mesh.with_suffix(".yaml")

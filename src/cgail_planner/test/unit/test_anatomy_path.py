@@ -32,9 +32,9 @@ from cgail_planner.sim.env import CatheterNavEnv
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.wall import DeformableWall
 
-USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a prepared anatomy "
-         r"directory \(holding lumen.stl and lumen.yaml\) or a mesh file \(.stl/.obj/.ply in mm, "
-         r"with its <stem>.yaml landmarks\), found ")
+USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a population sample "
+         r"population-<seed>, a prepared anatomy directory \(holding lumen.stl and lumen.yaml\) "
+         r"or a mesh file \(.stl/.obj/.ply in mm, with its <stem>.yaml landmarks\), found ")
 
 
 PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
@@ -44,6 +44,20 @@ def test_a_name_is_the_cached_built_in_anatomy() -> None:
     assert resolve_anatomy('default') is build_anatomy('default')
     assert is_builtin('elongated') and not is_builtin('./elongated')
     assert anatomy_label('elongated') == 'elongated'
+
+
+def test_a_population_name_is_that_sample_everywhere() -> None:
+    from cgail_planner.sim.anatomy import anatomy_identity, anatomy_label, check_anatomy_spec
+    from cgail_planner.sim.population import sample_anatomy
+
+    a = resolve_anatomy('population-10003')
+    assert a is sample_anatomy(10003) and a.name == 'population-10003'
+    assert anatomy_label('population-10003') == 'population-10003'
+    assert anatomy_identity('population-10003') == ('population-10003', a.content_hash)
+    check_anatomy_spec('population-10003')
+    for bad in ('population-', 'population-x1', 'population--3'):
+        with pytest.raises(AnatomyError, match=USAGE):
+            check_anatomy_spec(bad)
 
 
 def test_a_prepared_directory_and_its_mesh_resolve_to_one_cached_anatomy(prepared) -> None:

@@ -471,9 +471,29 @@ def test_a_population_bag_replays_each_episode_in_its_own_anatomy(tmp_path: Path
         replay_demo_bag(tmp_path / 'p', anatomy='default')
 
 
+def test_a_population_bag_holds_included_built_in_anatomies(tmp_path: Path, capsys):
+    from cgail_planner.learning.demos_cli import main, record_population
+
+    episodes, stats = record_population((0,), 2, seed=0, include=('elongated',))
+    assert stats['anatomies'] == 2
+    assert [(e.anatomy, e.start) for e in episodes] == [('population-0', 0), ('elongated', 1)]
+    write_demo_bag(tmp_path / 'p', episodes, anatomy='population', mode='static', dt=0.1,
+                   population=True)
+    replay = replay_demo_bag(tmp_path / 'p', env_options='sphere_targets')
+    assert replay.report.max_drift_m == 0.0 and replay.report.episodes == 2
+    with pytest.raises(ValueError, match=r"--include: expected distinct built-in anatomy names "
+                                         r"of \['default', 'elongated'\], found \['aorta'\]"):
+        record_population((0,), 2, include=('aorta',))
+    assert main(['--include', 'elongated', '--out', str(tmp_path / 'x')]) == 2
+    assert capsys.readouterr().err == ('make_demos: error: --include: expected --population N '
+                                       'beside it (it adds built-in anatomies to a population '
+                                       'bag)\n')
+
+
 def test_a_population_bag_needs_every_episode_in_a_population_anatomy(tmp_path: Path):
     with pytest.raises(DemoError, match=r'population bag: expected every episode in a '
-                                        r'population anatomy \(population-<seed>\), found '
+                                        r'population anatomy \(population-<seed>\) or a '
+                                        r"built-in one \['default', 'elongated'\], found "
                                         r'episodes \[0\] without one'):
         write_demo_bag(tmp_path / 'x', [_episode()], anatomy='population', mode='static',
                        dt=0.1, population=True)

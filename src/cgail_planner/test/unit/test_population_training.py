@@ -63,6 +63,13 @@ def test_the_population_config_trains_and_selects_on_training_seeds_only() -> No
     ({"anatomies": -1}, r"population.anatomies must be in \[0, 1000\], found -1"),
     ({"redraw_every": 0}, r"population.redraw_every must be >= 1, found 0"),
     ({"eval_anatomies": 0}, r"population.eval_anatomies must be in \[1, 100\], found 0"),
+    ({"anatomies": 4, "include": ["default", "default"]},
+     r"population.include must be distinct built-in anatomy names of \['default', "
+     r"'elongated'\], found \['default', 'default'\]"),
+    ({"anatomies": 4, "include": ["population-3"]}, r"population.include must be distinct "
+                                                     r"built-in anatomy names"),
+    ({"anatomies": 4, "include": [3]}, r"population.include must be of type tuple, found \[3\]"),
+    ({"include": ["elongated"]}, r"population.include must be no anatomies without a population"),
 ])
 def test_bad_population_settings_are_one_line(data: dict, match: str) -> None:
     from cgail_planner.learning.config import config_from_dict
@@ -76,10 +83,14 @@ def test_the_generalist_preset_is_cgail_on_the_population_with_drawn_targets() -
     gen, cgail = load_config("generalist"), load_config("cgail")
     assert gen.env_options == "sphere_targets"
     assert (gen.population.anatomies, gen.population.redraw_every,
-            gen.population.eval_anatomies) == (32, 4, 5)
-    # the C-GAIL mechanics (reward signals, strengths, PPO, curriculum) are the cgail preset's
+            gen.population.eval_anatomies, gen.population.include) == (
+                128, 4, 5, ("default", "elongated"))
+    assert (gen.max_steps, gen.eval_every, gen.eval_episodes) == (6_000_000, 204_800, 30)
+    # the C-GAIL mechanics (reward signals, strengths, PPO, curriculum) are the cgail preset's;
+    # only the run's size and its periodic evaluation differ
     a, b = config_to_dict(gen), config_to_dict(cgail)
-    for key in ("name", "env_options", "population"):
+    for key in ("name", "env_options", "population", "max_steps", "eval_every",
+                "eval_episodes"):
         a.pop(key), b.pop(key)
     assert a == b
 
@@ -189,8 +200,24 @@ def test_train_refuses_an_anatomy_with_a_population_preset(capsys) -> None:
 
     assert train.main(['--preset', 'generalist', '--anatomy', 'elongated']) == 2
     assert capsys.readouterr().err == (
-        "train: error: --anatomy: preset 'generalist' trains on 32 population anatomies: "
-        "expected no --anatomy, found 'elongated'\n")
+        "train: error: --anatomy: preset 'generalist' trains on 128 population anatomies and "
+        "default and elongated: expected no --anatomy, found 'elongated'\n")
+
+
+def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:
+    from cgail_planner.learning.train import make_envs
+    from cgail_planner.sim.anatomy import resolve_anatomy
+    import cgail_planner.sim.population as population
+
+    built: list[int] = []
+    monkeypatch.setattr(population, "sample_anatomy",
+                        lambda s: built.append(s) or resolve_anatomy("default"))
+    env, _, meta = make_envs("static", "default", 3, "sphere_targets",
+                              PopulationConfig(anatomies=2, eval_anatomies=1,
+                                               include=("elongated",)))
+    assert built == [0, 1, 2]  # 2 training samples, then 1 selection sample
+    assert [a.name for a in env.anatomies] == ["default", "default", "elongated"]
+    assert meta["population"]["include"] == ["elongated"]
 
 
 def test_demonstrations_refuse_a_held_out_anatomy() -> None:
