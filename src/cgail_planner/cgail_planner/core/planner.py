@@ -294,6 +294,20 @@ def _wall_arrays(wall: object) -> Any | None:
     return wall.bvh.query_arrays
 
 
+def world_observation_spec(scenarios: Any, contract: PolicyContract) -> ObservationSpec:
+    """The observation spec of the anatomy ``scenarios`` for a policy of ``contract``: that
+    anatomy's ``origin``, and the ``d_max`` of the targets the policy was trained on (fixed
+    targets or the sphere, from its ``env_options``), with the policy's sensors."""
+    from cgail_planner.sim.config import EnvConfig
+
+    try:
+        targets = EnvConfig.from_options(contract.env_options).targets
+    except ValueError:  # a 'custom' option set: the fixed targets' bound
+        targets = "fixed"
+    return ObservationSpec.for_world(scenarios, contract.observation.config,
+                                     d_max=scenarios.d_max_for(targets))
+
+
 def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
                        theta_max: float | None, segment_length: float | None, override: bool,
                        world_spec: ObservationSpec | None = None, anatomy_hash: str = ""
@@ -312,8 +326,10 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
         theta_max: the maximal bending angle setting, rad, or None.
         segment_length: the steerable segment length setting, m, or None.
         override: let disagreeing settings win (with a warning).
-        world_spec: this anatomy's own observation spec (origin, d_max), used in place of the
-            policy's when an overridden anatomy disagrees.
+        world_spec: this anatomy's own observation spec (origin, d_max, for the policy's
+            targets: :func:`world_observation_spec`), used in place of the policy's when an
+            overridden anatomy disagrees, and always for a population policy
+            (``contract.anatomies == 'population'``), which runs in any anatomy.
         anatomy_hash: the content hash of a path anatomy, ``""`` for a built-in one
             (:func:`cgail_planner.sim.anatomy.anatomy_identity`). What identifies the anatomy
             is compared: the hashes when either side has one (a path anatomy: its label may
@@ -339,7 +355,20 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
     observation = contract.observation
     same = (anatomy_hash == contract.anatomy_hash if anatomy_hash or contract.anatomy_hash
             else anatomy == contract.anatomy)
-    if not same:
+    if contract.anatomies == "population":  # a generalist: any anatomy, in its own frame
+        if world_spec is None:
+            raise ContractError("anatomy: a population policy is observed in the frame of the "
+                                "anatomy it runs in: expected that anatomy's observation spec "
+                                "(world_spec), found none")
+        observation = ObservationSpec(origin=world_spec.origin, d_max=world_spec.d_max,
+                                      config=observation.config,
+                                      ray_directions=observation.ray_directions,
+                                      probe_offsets=observation.probe_offsets)
+        notes.append(f"population policy (trained across the anatomy population) runs in "
+                     f"{describe_anatomy(anatomy, anatomy_hash)}, observed in its frame "
+                     f"(origin {np.round(world_spec.origin * 1e3, 1).tolist()} mm, d_max "
+                     f"{world_spec.d_max * 1e3:.1f} mm)")
+    elif not same:
         ours, theirs = describe_anatomy(anatomy, anatomy_hash), contract.describe_anatomy()
         if not (anatomy_hash or contract.anatomy_hash):  # two built-in names: just the names
             ours, theirs = repr(anatomy), repr(contract.anatomy)
@@ -360,7 +389,7 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
     return PolicyContract(catheter=CatheterConfig(**{**asdict(cat), **changes}),
                           observation=observation, anatomy=anatomy, mode=contract.mode,
                           training=contract.training, anatomy_hash=anatomy_hash,
-                          env_options=contract.env_options), notes
+                          env_options=contract.env_options, anatomies=contract.anatomies), notes
 
 
 class Planner:

@@ -80,6 +80,8 @@ def export_checkpoint(ckpt_path: Path, out: Path) -> Path:
     else:  # a checkpoint of an older train: the default model in its anatomy and mode
         contract = default_contract(str(meta.get('anatomy', 'default')),
                                     str(meta.get('mode', 'static')))
+    if 'population' in meta:  # (a population run's checkpoint from before the contract said so)
+        contract = replace(contract, anatomies='population')
     meta[CONTRACT_KEY] = replace(contract, training=training_notes(ckpt)).to_dict()
     for key in LEGACY_KEYS:
         meta.pop(key, None)

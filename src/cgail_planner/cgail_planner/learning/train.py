@@ -44,8 +44,9 @@ from cgail_planner.learning.logger import ScalarLogger
 from cgail_planner.learning.trainer import evaluate_policy, Trainer
 
 
-def sim_metadata(env_cfg: Any) -> dict[str, Any]:
-    """The catheter contract of a simulator config (checkpoint/ONNX metadata).
+def sim_metadata(env_cfg: Any, anatomies: str = 'one') -> dict[str, Any]:
+    """The catheter contract of a simulator config (checkpoint/ONNX metadata); ``anatomies``:
+    the contract's (:attr:`~cgail_planner.sim.ftl_model.PolicyContract.anatomies`).
 
     The contract's ``theta_max`` is the evaluation env's (``env_cfg.theta_max``): the periodic
     evaluation that picks ``best.pt`` runs there, whatever the training curriculum did to the
@@ -59,7 +60,7 @@ def sim_metadata(env_cfg: Any) -> dict[str, Any]:
     label, content_hash = anatomy_identity(env_cfg.anatomy)
     contract = PolicyContract(catheter=env_cfg.catheter, observation=observation_spec(env_cfg),
                               anatomy=label, mode=env_cfg.mode, anatomy_hash=content_hash,
-                              env_options=env_cfg.options)
+                              env_options=env_cfg.options, anatomies=anatomies)
     meta = {CONTRACT_KEY: contract.to_dict(), 'anatomy': label, 'mode': env_cfg.mode}
     if content_hash:
         meta['anatomy_hash'] = content_hash
@@ -77,9 +78,10 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     PopulationVecEnv` over the population's training anatomies (built once, ~5 s each the
     first time, then from the disk cache; ``report`` is told the progress), and the evaluation
     env an :class:`~cgail_planner.learning.envs.AnatomyCycleEnv` over the next training seeds.
-    The contract's anatomy, ``origin`` and ``d_max`` are then the first evaluation anatomy's
-    (a planner must take them from the anatomy it runs in); ``population`` in the metadata
-    names the seeds.
+    The contract is then a population one (``anatomies: population``: a planner takes
+    ``origin`` and ``d_max`` from the anatomy it runs in); its anatomy, ``origin`` and
+    ``d_max`` are the first evaluation anatomy's; ``population`` in the metadata names the
+    seeds.
     """
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
@@ -110,7 +112,7 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     env = PopulationVecEnv(lambda a: CatheterNavVecEnv(config(a), 1), pool, num_envs,
                            population.redraw_every)
     eval_env = AnatomyCycleEnv([CatheterNavEnv(config(a)) for a in evals])
-    meta = sim_metadata(config(evals[0]))
+    meta = sim_metadata(config(evals[0]), anatomies='population')
     meta['population'] = {'train_seeds': [train_seeds[0], train_seeds[-1] + 1],
                           'eval_seeds': [eval_seeds[0], eval_seeds[-1] + 1],
                           'redraw_every': population.redraw_every,

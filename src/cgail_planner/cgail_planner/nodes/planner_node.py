@@ -22,7 +22,9 @@ workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxrunt
   a path anatomy agrees when its content hash is the contract's):
   a disagreeing one raises :class:`~cgail_planner.core.errors.ContractError` at construction,
   unless ``override_policy_contract`` is set (then it wins, with a warning). A policy without a
-  contract is refused unless ``override_policy_contract`` is set.
+  contract is refused unless ``override_policy_contract`` is set. A population policy (the
+  ``generalist`` preset; contract ``anatomies: population``) runs in any ``anatomy``, observed
+  in that anatomy's frame (its own origin and target bound ``d_max``), which the log says.
 """
 
 from __future__ import annotations
@@ -51,11 +53,12 @@ from cgail_planner.core.planner import (
     reconcile_contract,
     replan_reason,
     ReplanConfig,
+    world_observation_spec,
 )
 from cgail_planner.core.rrt_planner import RrtConfig
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, try_shutdown
-from cgail_planner.sim.ftl_model import CatheterConfig, ObservationSpec
+from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.mesh_io import AnatomyError
 
 
@@ -171,7 +174,8 @@ class PlannerNode(Node):
                 contract, self.contract_notes = reconcile_contract(
                     policy.contract, anatomy=label, anatomy_hash=anatomy_hash, mode=self.mode,
                     theta_max=theta_max or None, segment_length=segment_length or None,
-                    override=override, world_spec=ObservationSpec.for_world(world.scenarios))
+                    override=override,
+                    world_spec=world_observation_spec(world.scenarios, policy.contract))
                 self.planner = Planner.from_contract(contract, world, self.wall, policy,
                                                      settings)
             except ContractError:

@@ -1123,6 +1123,12 @@ class PolicyContract:
     OPTION_SETS`: ``ours``, ``paper_code``, or ``custom`` for a configuration that is neither):
     what ``evaluate`` rebuilds its env with. Its observation and insertion rule are also in
     ``observation`` and ``catheter``, which the planner reads."""
+    anatomies: str = "one"
+    """``one``: trained in ``anatomy``, and runs there (another anatomy only with an
+    override). ``population``: a generalist, trained across the anatomy population
+    (:mod:`cgail_planner.sim.population`); it runs in any anatomy, observed in that anatomy's
+    frame (its own ``origin`` and ``d_max``; ``anatomy`` and ``observation`` then only record
+    the anatomy its checkpoint was selected in)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.env_options, str) or not self.env_options:
@@ -1132,6 +1138,9 @@ class PolicyContract:
             raise ValueError(f"mode must be 'static' or 'dynamic', found {self.mode!r}")
         if not isinstance(self.anatomy, str) or not self.anatomy:
             raise ValueError(f"anatomy must be a non-empty name, found {self.anatomy!r}")
+        if self.anatomies not in ("one", "population"):
+            raise ValueError(f"anatomies must be 'one' or 'population', found "
+                             f"{self.anatomies!r}")
         if not isinstance(self.anatomy_hash, str) or not (
                 self.anatomy_hash == "" or (len(self.anatomy_hash) == 16 and all(
                     c in "0123456789abcdef" for c in self.anatomy_hash))):
@@ -1161,6 +1170,7 @@ class PolicyContract:
             **({"anatomy_hash": self.anatomy_hash} if self.anatomy_hash else {}),
             "mode": self.mode,
             "env_options": self.env_options,
+            **({"anatomies": self.anatomies} if self.anatomies != "one" else {}),
             "training": dict(self.training),
         }
 
@@ -1188,7 +1198,8 @@ class PolicyContract:
             return cls(catheter=catheter, observation=observation, anatomy=data["anatomy"],
                        mode=data["mode"], training=dict(data.get("training", {})),
                        anatomy_hash=data.get("anatomy_hash", ""),
-                       env_options=data.get("env_options", "ours"))
+                       env_options=data.get("env_options", "ours"),
+                       anatomies=data.get("anatomies", "one"))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"contract: expected the keys of PolicyContract.to_dict, found "
                              f"{sorted(data)} ({exc})") from None

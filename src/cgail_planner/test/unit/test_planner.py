@@ -338,6 +338,36 @@ def test_a_contract_round_trips_its_anatomy_hash() -> None:
         dataclasses.replace(contract(), anatomy_hash='xyz')
 
 
+def test_a_population_policy_runs_in_any_anatomy_in_its_frame() -> None:
+    """A generalist's contract (anatomies: population) is not tied to the anatomy it was
+    selected in: it runs anywhere without an override, observed with that anatomy's origin and
+    the d_max of the targets it was trained on (sphere targets: the sphere's bound)."""
+    from cgail_planner.core.planner import world_observation_spec
+    from cgail_planner.sim.scenarios import load_world
+
+    c = dataclasses.replace(contract(), anatomy='population-128', anatomy_hash=H1,
+                            anatomies='population', env_options='sphere_targets')
+    assert PolicyContract.from_json(c.to_json()).anatomies == 'population'
+    assert 'anatomies' not in contract().to_dict()  # (one anatomy: as before)
+    args = dict(mode='static', theta_max=None, segment_length=None, override=False)
+    with pytest.raises(ContractError, match="a population policy is observed in the frame of "
+                                            "the anatomy it runs in"):
+        reconcile_contract(c, anatomy='elongated', **args)
+    sc = load_world('elongated').scenarios
+    world = world_observation_spec(sc, c)
+    assert world.d_max == sc.d_max_for('sphere') != sc.d_max
+    np.testing.assert_array_equal(world.origin, sc.origin)
+    assert world_observation_spec(sc, contract()).d_max == sc.d_max  # fixed targets
+    got, notes = reconcile_contract(c, anatomy='elongated', world_spec=world, **args)
+    assert (got.anatomy, got.anatomy_hash, got.anatomies) == ('elongated', '', 'population')
+    assert got.observation.same_as(world)
+    assert len(notes) == 1 and notes[0].startswith(
+        "population policy (trained across the anatomy population) runs in built-in "
+        "'elongated', observed in its frame (origin [")
+    with pytest.raises(ValueError, match="anatomies must be 'one' or 'population', found 'all'"):
+        dataclasses.replace(c, anatomies='all')
+
+
 def test_an_override_applies_the_setting_and_warns() -> None:
     world = ObservationSpec(origin=np.ones(3), d_max=0.25)
     got, notes = reconcile_contract(contract(), anatomy='elongated', mode='static',

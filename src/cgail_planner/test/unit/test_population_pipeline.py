@@ -30,31 +30,35 @@ TINY = {
     'extrinsic': {'strength': 0.06}, 'gail': {'strength': 0.8, 'hidden_units': 16},
     'bc': {'strength': 0.14, 'batch_size': 128, 'num_epoch': 1},
     'eval_every': 256, 'eval_episodes': 2, 'checkpoint_every': 256,
-    'population': {'anatomies': 2, 'redraw_every': 1, 'eval_anatomies': 1},
+    'population': {'anatomies': 2, 'redraw_every': 1, 'eval_anatomies': 1,
+                   'include': ['elongated']},
 }
 
 
 @pytest.fixture(scope='module')
 def run(tmp_path_factory) -> Path:
-    """make_demos --population 2 (2 episodes) and a 512-step population training run."""
+    """make_demos --population 2 --include elongated (3 episodes) and a 512-step population
+    training run."""
     return demos_and_training(tmp_path_factory.mktemp('population'),
-                              ['--population', '2', '--episodes', '2'], TINY,
+                              ['--population', '2', '--include', 'elongated', '--episodes', '3'],
+                              TINY,
                               ['--threads', '1'])
 
 
 def test_the_demos_run_in_the_population_training_anatomies(run) -> None:
     meta, episodes = read_demo_bag(run / 'demos')
-    assert meta['population'] and [e.anatomy for e in episodes] == ['population-0',
-                                                                    'population-1']
+    assert meta['population'] and [e.anatomy for e in episodes] == [
+        'population-0', 'population-1', 'elongated']
 
 
 def test_train_records_the_population_and_resumes(run) -> None:
     ckpt = torch.load(run / 'run' / 'final.pt', weights_only=False)
     meta = ckpt['metadata']
     assert meta['population'] == {'train_seeds': [0, 2], 'eval_seeds': [2, 3],
-                                  'redraw_every': 1}
+                                  'redraw_every': 1, 'include': ['elongated']}
     contract = meta[CONTRACT_KEY]
     assert contract['env_options'] == 'sphere_targets' and contract['anatomy'] == 'population-2'
+    assert contract['anatomies'] == 'population'
     assert ckpt['step'] >= 512
     assert train.main(['--resume', str(run / 'run'), '--demos', str(run / 'demos'),
                        '--max-steps', '768', '--no-progress']) == 0
@@ -76,4 +80,35 @@ def test_evaluate_runs_on_held_out_anatomies(run) -> None:
                                                                 'population-10001'}
     report = (out / 'report.md').read_text()
     assert '2 held-out population anatomies' in report and '| population-10001 |' in report
+
+
+def test_the_planner_runs_the_generalist_in_another_anatomy(run) -> None:
+    """The exported contract says population: the planner takes it in `default` (not its
+    selection anatomy) without an override, in default's frame, and plans."""
+    from cgail_planner.core.errors import NoPathError
+    from cgail_planner.core.planner import Planner, reconcile_contract, world_observation_spec
+    from cgail_planner.learning.onnx_policy import OnnxPolicy
+    from cgail_planner.sim.scenarios import load_world
+    from cgail_planner.sim.wall import StaticWall
+
+    policy_path = run / 'policy_for_planner.onnx'
+    assert export.main([str(run / 'run' / 'final.pt'), '--out', str(policy_path)]) == 0
+    policy = OnnxPolicy(policy_path)
+    assert policy.contract is not None and policy.contract.anatomies == 'population'
+    world = load_world('default')
+    spec = world_observation_spec(world.scenarios, policy.contract)
+    contract, notes = reconcile_contract(policy.contract, anatomy='default', mode='static',
+                                         theta_max=None, segment_length=None, override=False,
+                                         world_spec=spec)
+    assert notes[0].startswith('population policy') and contract.observation.same_as(spec)
+    planner = Planner.from_contract(contract, world, StaticWall(world.anatomy), policy)
+    assert planner.spec.same_as(spec)
+    start = world.scenarios.starts[0]
+    # a 512-step policy rarely reaches the goal: the rollout runs it to the end either way
+    try:
+        result = planner.plan(start.position, start.rotation,
+                              world.scenarios.targets[0].position)
+        assert len(result.path) >= 2
+    except NoPathError as exc:
+        assert 'cgail rollout did not reach the goal within' in str(exc)
 
