@@ -95,6 +95,17 @@ def test_the_generalist_preset_is_cgail_on_the_population_with_drawn_targets() -
     assert a == b
 
 
+def test_the_finetune_preset_is_the_generalist_in_one_anatomy_for_a_short_run() -> None:
+    ft, gen = load_config("finetune"), load_config("generalist")
+    assert not ft.population.enabled and ft.env_options == gen.env_options  # same observation
+    assert (ft.max_steps, ft.ppo.learning_rate, ft.curriculum.theta_max_deg) == (300_000, 1e-4, ())
+    a, b = config_to_dict(ft), config_to_dict(gen)
+    for key in ("name", "max_steps", "eval_every", "eval_episodes", "curriculum", "population"):
+        a.pop(key), b.pop(key)
+    a["ppo"].pop("learning_rate"), b["ppo"].pop("learning_rate")
+    assert a == b
+
+
 # ------------------------------------------------------------------ the env
 ANATOMIES = ["default", "elongated"]
 
