@@ -504,7 +504,7 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         DemoError: unreadable bag, no successful episode, a replay beyond ``tolerance_m``, or
             a bag recorded in a path anatomy that is no longer there (pass ``anatomy``).
     """
-    from cgail_planner.sim.anatomy import is_builtin
+    from cgail_planner.sim.anatomy import is_named
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -519,7 +519,7 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         return _replay_population(path, meta, episodes, tolerance_m, anatomy, env_options)
     if anatomy is None:
         anatomy = meta.get('anatomy_path') or meta.get('anatomy', 'default')
-        if not is_builtin(anatomy) and not Path(anatomy).exists():
+        if not is_named(anatomy) and not Path(anatomy).exists():
             raise DemoError(
                 f'{path}: expected the anatomy it was recorded in, {meta.get("anatomy")!r} '
                 f'(content hash {meta.get("anatomy_hash")}) at {anatomy}, found no such path: '

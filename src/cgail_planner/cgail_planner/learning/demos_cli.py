@@ -130,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.population:
         return _population_main(args)
-    from cgail_planner.sim.anatomy import anatomy_label, is_builtin
+    from cgail_planner.sim.anatomy import anatomy_label, is_named
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy=label, mode='static',
                        dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
-                       anatomy_path=None if is_builtin(args.anatomy)
+                       anatomy_path=None if is_named(args.anatomy)
                        else str(Path(args.anatomy).expanduser().resolve()),
                        scenario_seed=args.scenario_seed, env_options=args.env_options)
     except (LearningError, ValueError) as exc:

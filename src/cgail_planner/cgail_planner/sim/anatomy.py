@@ -1172,6 +1172,12 @@ def is_builtin(spec: AnatomySpec) -> bool:
     return isinstance(spec, str) and spec in ANATOMY_NAMES
 
 
+def is_named(spec: AnatomySpec) -> bool:
+    """True when ``spec`` is a name the code rebuilds an anatomy from, with no file behind
+    it: a built-in name or a population sample's ``population-<seed>``."""
+    return is_builtin(spec) or _population_seed(spec) is not None
+
+
 def _population_seed(spec: object) -> int | None:
     """The seed of a population sample's name (``population-<seed>``), else None."""
     from cgail_planner.sim.population import population_seed  # (it imports this module)

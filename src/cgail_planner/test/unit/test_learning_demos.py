@@ -490,6 +490,19 @@ def test_a_population_bag_holds_included_built_in_anatomies(tmp_path: Path, caps
                                        'bag)\n')
 
 
+def test_demonstrations_in_a_population_sample_named_by_its_seed(tmp_path: Path):
+    """make_demos --anatomy population-<seed> (the fine-tuning recipe): the bag names the
+    sample, records no path, and replays in it by name."""
+    from cgail_planner.learning.demos_cli import main
+
+    assert main(['--anatomy', 'population-10003', '--episodes', '1', '--out',
+                 str(tmp_path / 'd')]) == 0
+    meta, _ = read_demo_bag(tmp_path / 'd')
+    assert meta['anatomy'] == 'population-10003' and 'anatomy_path' not in meta
+    replay = replay_demo_bag(tmp_path / 'd')
+    assert replay.report.same_anatomy and replay.report.max_drift_m == 0.0
+
+
 def test_a_population_bag_needs_every_episode_in_a_population_anatomy(tmp_path: Path):
     with pytest.raises(DemoError, match=r'population bag: expected every episode in a '
                                         r'population anatomy \(population-<seed>\) or a '
