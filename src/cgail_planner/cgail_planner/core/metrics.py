@@ -287,3 +287,62 @@ def kruskal_by_condition(
             stat, pvalue = float(res.statistic), float(res.pvalue)
         results.append(KruskalResult(metric, stat, pvalue))
     return results
+
+
+# ----------------------------------------------------------------------------------------------
+# 95 % confidence intervals (the evaluation's tables)
+
+#: Two-sided 95 % normal quantile.
+Z95 = 1.959963984540054
+
+
+def wilson_interval(successes: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a proportion ``successes / n`` (95 % by default): unlike the
+    normal approximation it stays inside [0, 1] and is not empty at 0 or n successes
+    (Wilson 1927; Brown, Cai & DasGupta 2001 recommend it for small n). ``(nan, nan)`` for
+    ``n == 0``."""
+    if n < 0 or not 0 <= successes <= n:
+        raise MetricsError(f"wilson_interval: expected 0 <= successes <= n, found {successes} "
+                           f"of {n}")
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def bootstrap_interval(values: Sequence[float], statistic: str = "median",
+                       resamples: int = 2000, seed: int = 0,
+                       level: float = 0.95) -> tuple[float, float]:
+    """Percentile-bootstrap interval of a sample's median or mean: ``resamples`` draws with
+    replacement from a generator seeded ``seed`` (so the interval is a function of the
+    values), the ``(1 - level) / 2`` and ``(1 + level) / 2`` quantiles of the statistic.
+    ``(nan, nan)`` for an empty sample."""
+    if statistic not in ("median", "mean"):
+        raise MetricsError(f"bootstrap_interval: expected statistic 'median' or 'mean', found "
+                           f"{statistic!r}")
+    x = np.asarray(values, dtype=np.float64)
+    if x.size == 0:
+        return math.nan, math.nan
+    idx = np.random.default_rng(seed).integers(0, x.size, size=(resamples, x.size))
+    draws = x[idx]
+    stats = np.median(draws, axis=1) if statistic == "median" else draws.mean(axis=1)
+    lo, hi = np.quantile(stats, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
+
+
+def cluster_bootstrap_rate(groups: Sequence[Sequence[bool]], resamples: int = 2000,
+                           seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Interval of a pooled success rate whose trials come in clusters (the trials of one
+    anatomy are not independent: they share its geometry): resample whole clusters with
+    replacement, pool their trials, take the quantiles of the pooled rate. ``(nan, nan)``
+    without trials."""
+    sizes = np.array([len(g) for g in groups], dtype=np.int64)
+    if sizes.sum() == 0:
+        return math.nan, math.nan
+    hits = np.array([int(np.sum(g)) for g in groups], dtype=np.int64)
+    idx = np.random.default_rng(seed).integers(0, len(groups), size=(resamples, len(groups)))
+    rates = hits[idx].sum(axis=1) / np.maximum(sizes[idx].sum(axis=1), 1)
+    lo, hi = np.quantile(rates, [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)

@@ -321,13 +321,26 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
 
 
 def summarize(trials: list[Trial]) -> dict[str, float]:
-    """Success rate, T_s and T_a (all and successful) of a method."""
+    """Success rate, T_s and T_a (all and successful) of a method, and their 95 % confidence
+    intervals (``*_ci``: ``(low, high)``): Wilson score intervals for the success and
+    collision rates, percentile-bootstrap intervals of the medians
+    (:mod:`cgail_planner.core.metrics`; seeded, so a function of the trials). The trials are
+    taken as independent: true within one anatomy, where every trial draws its own tracker
+    noise; across anatomies :func:`anatomy_interval` gives the honest one."""
+    from cgail_planner.core.metrics import bootstrap_interval, wilson_interval
+
     succ = [t for t in trials if t.success]
+    planned = [t.plan_ms for t in trials if t.plan_ms is not None]
 
     def med(xs: list[float]) -> float:
         return float(np.median(xs)) if xs else float('nan')
 
     return {
+        'success_ci': wilson_interval(len(succ), len(trials)),
+        'collision_ci': wilson_interval(sum(t.collision for t in trials), len(trials)),
+        'T_s_succ_ci': bootstrap_interval([t.timesteps for t in succ]),
+        'T_a_all_ci': bootstrap_interval([t.targeting_error_mm for t in trials]),
+        'plan_ms_ci': bootstrap_interval(planned),
         'n': len(trials),
         'distinct': len({(t.success, t.collision, t.timesteps, round(t.targeting_error_mm, 6))
                          for t in trials}),
@@ -376,6 +389,8 @@ def results_json(all_results: dict[str, dict[str, list[Trial]]],
     """The machine-readable results: ``meta``, then per mode and method the
     :func:`summarize` figures (nan as None) and every trial's outcome."""
     def clean(v: Any) -> Any:
+        if isinstance(v, tuple):
+            return [clean(x) for x in v]
         return None if isinstance(v, float) and not np.isfinite(v) else v
 
     return {**(meta or {}), 'modes': {
@@ -383,6 +398,31 @@ def results_json(all_results: dict[str, dict[str, list[Trial]]],
                       'trials': [dataclasses.asdict(t) for t in trials]}
                for name, trials in results.items()}
         for mode, results in all_results.items()}}
+
+
+def _interval(ci: tuple[float, float], fmt: str) -> str:
+    """``[low-high]`` of a confidence interval (empty for an undefined one)."""
+    lo, hi = ci
+    return '' if not (np.isfinite(lo) and np.isfinite(hi)) else f'[{lo:{fmt}}-{hi:{fmt}}]'
+
+
+def _with(value: float, ci: tuple[float, float], fmt: str) -> str:
+    """A value and its interval, e.g. ``434 [394-474]``."""
+    return f'{value:{fmt}} {_interval(ci, fmt)}'.strip()
+
+
+def _pct(rate: float, ci: tuple[float, float]) -> str:
+    """A rate and its interval in per cent, e.g. ``87% [80-92]``."""
+    return f"{100 * rate:.0f}% {_interval((100 * ci[0], 100 * ci[1]), '.0f')}".strip()
+
+
+def anatomy_interval(per_trial: dict[str, list[bool]]) -> tuple[float, float]:
+    """95 % interval of a success rate pooled over anatomies (``anatomy -> successes``):
+    a bootstrap over the anatomies (:func:`cgail_planner.core.metrics.cluster_bootstrap_rate`),
+    since the trials of one anatomy share its geometry."""
+    from cgail_planner.core.metrics import cluster_bootstrap_rate
+
+    return cluster_bootstrap_rate(list(per_trial.values()))
 
 
 def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
@@ -395,14 +435,16 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
     lines = ['# In-silico evaluation', '', notes, '']
     for mode, results in all_results.items():
         lines += [f'## {mode}', '',
-                  '| method | n | distinct | success | collision | T_s all | T_s succ | '
-                  'T_a all (mm) | T_a succ (mm) |', '|---|---|---|---|---|---|---|---|---|']
+                  '| method | n | distinct | success [95% CI] | collision [95% CI] | T_s all | '
+                  'T_s succ [95% CI] | T_a all (mm) [95% CI] | T_a succ (mm) |',
+                  '|---|---|---|---|---|---|---|---|---|']
         for name, trials in results.items():
             s = summarize(trials)
             lines.append(f"| {name} | {s['n']} | {s['distinct']} | "
-                         f"{100 * s['success_rate']:.0f}% | "
-                         f"{100 * s['collision_rate']:.0f}% | {s['T_s_all']:.0f} | "
-                         f"{s['T_s_succ']:.0f} | {s['T_a_all_mm']:.1f} | "
+                         f"{_pct(s['success_rate'], s['success_ci'])} | "
+                         f"{_pct(s['collision_rate'], s['collision_ci'])} | {s['T_s_all']:.0f} | "
+                         f"{_with(s['T_s_succ'], s['T_s_succ_ci'], '.0f')} | "
+                         f"{_with(s['T_a_all_mm'], s['T_a_all_ci'], '.1f')} | "
                          f"{s['T_a_succ_mm']:.1f} |")
         p_ts = kruskal({n: [t.timesteps for t in tr if t.success] for n, tr in results.items()})
         p_ta = kruskal({n: [t.targeting_error_mm for t in tr] for n, tr in results.items()})
@@ -410,10 +452,12 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
                    if any(t.plan_ms is not None for t in tr)}
         if planned:
             lines.append('')
-        lines += [f"- {n} planning time: median {s['plan_ms_median']:.0f} ms, max "
-                  f"{s['plan_ms_max']:.0f} ms per trial" for n, s in planned.items()]
+        lines += [f"- {n} planning time: median {s['plan_ms_median']:.0f} ms "
+                  f"{_interval(s['plan_ms_ci'], '.0f')}, max {s['plan_ms_max']:.0f} ms per "
+                  "trial" for n, s in planned.items()]
         lines += ['', '(medians; T_s/T_a "succ" over successful trials only; "distinct": '
-                  'number of different outcomes among the trials)', '',
+                  'number of different outcomes among the trials; 95% CIs: Wilson for rates, '
+                  'bootstrap for medians, trials taken as independent)', '',
                   f'Kruskal-Wallis across methods: T_s (successful) p = {p_ts:.3g}; '
                   f'T_a (all) p = {p_ta:.3g}.', '']
         first = next(iter(results))
@@ -467,18 +511,29 @@ def _run_methods(env: Any, policies: dict[str, Any], args: argparse.Namespace,
     return results
 
 
-def _append_per_anatomy(report: Path, per_anatomy: dict[str, dict[str, dict[str, float]]]
+def _append_per_anatomy(report: Path, outcomes: dict[str, dict[str, dict[str, list[bool]]]]
                         ) -> None:
-    """Add a per-anatomy success table (anatomies x methods) per mode to ``report``."""
+    """Add a per-anatomy success table (anatomies x methods) per mode to ``report``, with the
+    pooled rate and its 95 % interval over anatomies (:func:`anatomy_interval`)."""
     lines = ['## Success per anatomy', '']
-    for mode, methods in per_anatomy.items():
+    for mode, methods in outcomes.items():
         names = list(methods)
         anatomies = list(next(iter(methods.values())))
         lines += [f'### {mode}', '', '| anatomy | ' + ' | '.join(names) + ' |',
                   '|---|' + '---|' * len(names)]
-        lines += [f'| {a} | ' + ' | '.join(f'{100 * methods[n][a]:.0f}%' for n in names)
+        lines += [f'| {a} | ' + ' | '.join(f'{100 * np.mean(methods[n][a]):.0f}%' for n in names)
                   + ' |' for a in anatomies]
+        pooled = {n: float(np.mean([x for a in anatomies for x in methods[n][a]]))
+                  for n in names}
+        lines.append('| **all** [95% CI over anatomies] | ' + ' | '.join(
+            _pct(pooled[n], anatomy_interval(methods[n])) for n in names) + ' |')
+        lines.append('| anatomies at 100% | ' + ' | '.join(
+            f'{sum(bool(np.all(methods[n][a])) for a in anatomies)} of {len(anatomies)}'
+            for n in names) + ' |')
         lines.append('')
+    lines += ['(The interval over anatomies resamples whole anatomies, whose trials share '
+              'their geometry; with few anatomies it understates the uncertainty: read the '
+              'per-trial Wilson interval above beside it.)', '']
     with report.open('a') as f:
         f.write('\n'.join(lines) + '\n')
 
@@ -535,6 +590,7 @@ def main(argv: list[str] | None = None) -> int:
         options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
         per_anatomy: dict[str, dict[str, dict[str, float]]] = {}
+        outcomes: dict[str, dict[str, dict[str, list[bool]]]] = {}
         for mode in args.modes:
             results: dict[str, list[Trial]] = {}
             for anatomy in held_out or [args.anatomy]:
@@ -547,6 +603,8 @@ def main(argv: list[str] | None = None) -> int:
                     results.setdefault(name, []).extend(trials)
                     per_anatomy.setdefault(mode, {}).setdefault(name, {})[
                         env.anatomy.name] = summarize(trials)['success_rate']
+                    outcomes.setdefault(mode, {}).setdefault(name, {})[
+                        env.anatomy.name] = [t.success for t in trials]
             all_results[mode] = results
         if held_out:
             named = (f'{len(held_out)} held-out population anatomies '
@@ -580,9 +638,12 @@ def main(argv: list[str] | None = None) -> int:
         if held_out:
             meta['population_seeds'] = [a.name for a in held_out]
             meta['per_anatomy_success'] = per_anatomy
+            meta['success_ci_over_anatomies'] = {
+                mode: {n: list(anatomy_interval(by)) for n, by in methods.items()}
+                for mode, methods in outcomes.items()}
         path = write_report(all_results, args.out, notes, meta)
         if held_out:
-            _append_per_anatomy(path, per_anatomy)
+            _append_per_anatomy(path, outcomes)
     except (LearningError, ValueError) as exc:
         print(f'evaluate: error: {exc}', file=sys.stderr)
         return 2

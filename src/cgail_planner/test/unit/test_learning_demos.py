@@ -86,6 +86,11 @@ def test_summary_and_kruskal():
     s = summarize(trials)
     assert s['success_rate'] == pytest.approx(2 / 3) and s['T_s_succ'] == 110
     assert s['T_a_all_mm'] == 7.0 and s['collision_rate'] == pytest.approx(1 / 3)
+    lo, hi = s['success_ci']  # Wilson, 2 of 3
+    assert lo == pytest.approx(0.2077, abs=1e-3) and hi == pytest.approx(0.9385, abs=1e-3)
+    assert s['T_s_succ_ci'][0] >= 100 and s['T_s_succ_ci'][1] <= 120
+    assert s['T_a_all_ci'][0] <= 7.0 <= s['T_a_all_ci'][1]
+    assert all(np.isnan(s['plan_ms_ci']))  # no method planned
     assert kruskal({'a': [1, 2, 3, 4, 5], 'b': [11, 12, 13, 14, 15]}) < 0.05
     assert np.isnan(kruskal({'a': [1.0], 'b': []}))
 

@@ -207,3 +207,48 @@ def test_a_path_latched_from_an_earlier_trial_is_not_the_desired_path() -> None:
     assert m.samples == int(np.sum(t >= 1.0))
     with pytest.raises(MetricsError, match='stamped at or after the first goal'):
         compute_trial_metrics(trial(t, tip, goal_t=(1.0,), path_t=(-60.0,), paths=(old,)))
+
+
+# ----------------------------------------------------------------------------------------------
+# 95 % intervals of the evaluation tables
+
+
+def test_wilson_interval_matches_its_formula_and_stays_in_0_1() -> None:
+    from cgail_planner.core.metrics import wilson_interval
+
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    lo, hi = wilson_interval(0, 10)
+    assert lo == 0.0 and hi == pytest.approx(0.2775, abs=1e-4)
+    lo, hi = wilson_interval(100, 100)
+    assert lo == pytest.approx(0.9630, abs=1e-4) and hi == 1.0
+    assert all(math.isnan(x) for x in wilson_interval(0, 0))
+    with pytest.raises(MetricsError, match="expected 0 <= successes <= n, found 11 of 10"):
+        wilson_interval(11, 10)
+
+
+def test_bootstrap_interval_is_seeded_and_brackets_the_statistic() -> None:
+    from cgail_planner.core.metrics import bootstrap_interval
+
+    x = np.random.default_rng(3).normal(50.0, 10.0, size=200)
+    a, b = bootstrap_interval(x), bootstrap_interval(x)
+    assert a == b and a[0] < np.median(x) < a[1] and a[1] - a[0] < 6.0
+    lo, hi = bootstrap_interval(x, 'mean')
+    assert lo < x.mean() < hi and (hi - lo) == pytest.approx(2 * 1.96 * 10 / np.sqrt(200),
+                                                             rel=0.25)
+    assert bootstrap_interval([4.0, 4.0]) == (4.0, 4.0)
+    assert all(math.isnan(v) for v in bootstrap_interval([]))
+    with pytest.raises(MetricsError, match="expected statistic 'median' or 'mean', found 'max'"):
+        bootstrap_interval(x, 'max')
+
+
+def test_the_rate_over_clusters_resamples_whole_clusters() -> None:
+    from cgail_planner.core.metrics import cluster_bootstrap_rate, wilson_interval
+
+    assert cluster_bootstrap_rate([[True] * 15] * 20) == (1.0, 1.0)
+    # 16 anatomies always succeed, 4 always fail: 80 % pooled, but only 20 independent units
+    groups = [[True] * 15] * 16 + [[False] * 15] * 4
+    lo, hi = cluster_bootstrap_rate(groups)
+    assert lo < 0.8 < hi
+    wlo, whi = wilson_interval(240, 300)
+    assert hi - lo > 2 * (whi - wlo)  # much wider than if the 300 trials were independent
+    assert all(math.isnan(v) for v in cluster_bootstrap_rate([[], []]))
