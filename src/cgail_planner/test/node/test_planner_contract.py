@@ -127,3 +127,30 @@ def test_a_policy_without_a_contract_is_refused_unless_overridden(ros, no_contra
         assert node.contract_notes[0].startswith('override_policy_contract: ')
     finally:
         node.destroy_node()
+
+
+def test_a_population_policy_plans_in_any_anatomy_in_its_frame(ros, tmp_path: Path) -> None:
+    """A generalist's contract (anatomies: population; here the committed policy's contract so
+    marked, selected in a population sample): the node takes it in `elongated` without an
+    override, observes in elongated's frame with the sphere targets' d_max, and says so."""
+    import dataclasses
+
+    from cgail_planner.learning.export import write_contract
+    from cgail_planner.learning.onnx_policy import OnnxPolicy
+    from cgail_planner.sim.scenarios import load_world
+
+    contract = dataclasses.replace(OnnxPolicy(POLICY).contract, anatomy='population-128',
+                                   anatomy_hash='0123456789abcdef', anatomies='population',
+                                   env_options='sphere_targets')
+    path = write_contract(Path(POLICY), contract, tmp_path / 'generalist.onnx')
+    node = planner_node(ros, policy_path=str(path), anatomy='elongated')
+    try:
+        assert node.planner is not None
+        sc = load_world('elongated').scenarios
+        assert node.planner.spec.d_max == sc.d_max_for('sphere')
+        assert node.planner.spec.origin.tolist() == sc.origin.tolist()
+        assert len(node.contract_notes) == 1 and node.contract_notes[0].startswith(
+            "population policy (trained across the anatomy population) runs in built-in "
+            "'elongated', observed in its frame")
+    finally:
+        node.destroy_node()
