@@ -511,6 +511,32 @@ def _run_methods(env: Any, policies: dict[str, Any], args: argparse.Namespace,
     return results
 
 
+def per_anatomy_plot(methods: dict[str, dict[str, list[bool]]], title: str, path: Path) -> None:
+    """Grouped bars: each method's success rate in each anatomy (where each one fails)."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    names = list(methods)
+    anatomies = list(next(iter(methods.values())))
+    x = np.arange(len(anatomies))
+    width = 0.8 / len(names)
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(anatomies) * max(1, len(names) / 2)), 3.8))
+    for k, n in enumerate(names):
+        ax.bar(x + (k - (len(names) - 1) / 2) * width,
+               [100 * np.mean(methods[n][a]) for a in anatomies], width, label=n)
+    ax.set_xticks(x, [a.replace('population-', 'p') for a in anatomies], rotation=60,
+                  fontsize=8)
+    ax.set_ylabel('success (%)')
+    ax.set_ylim(0, 105)
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc='upper left', bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def _append_per_anatomy(report: Path, outcomes: dict[str, dict[str, dict[str, list[bool]]]]
                         ) -> None:
     """Add a per-anatomy success table (anatomies x methods) per mode to ``report``, with the
@@ -530,7 +556,9 @@ def _append_per_anatomy(report: Path, outcomes: dict[str, dict[str, dict[str, li
         lines.append('| anatomies at 100% | ' + ' | '.join(
             f'{sum(bool(np.all(methods[n][a])) for a in anatomies)} of {len(anatomies)}'
             for n in names) + ' |')
-        lines.append('')
+        png = f'per_anatomy_{mode}.png'
+        per_anatomy_plot(methods, f'success per held-out anatomy ({mode})', report.parent / png)
+        lines += ['', f'![success per anatomy, {mode}]({png})', '']
     lines += ['(The interval over anatomies resamples whole anatomies, whose trials share '
               'their geometry; with few anatomies it understates the uncertainty: read the '
               'per-trial Wilson interval above beside it.)', '']

@@ -80,6 +80,10 @@ def test_evaluate_runs_on_held_out_anatomies(run) -> None:
                                                                 'population-10001'}
     report = (out / 'report.md').read_text()
     assert '2 held-out population anatomies' in report and '| population-10001 |' in report
+    assert '| **all** [95% CI over anatomies] |' in report
+    assert '![success per anatomy, static](per_anatomy_static.png)' in report
+    assert (out / 'per_anatomy_static.png').stat().st_size > 5000
+    assert set(data['success_ci_over_anatomies']['static']) == {'G', 'centerline'}
 
 
 def test_the_planner_runs_the_generalist_in_another_anatomy(run) -> None:
