@@ -320,7 +320,7 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
     return out
 
 
-def summarize(trials: list[Trial]) -> dict[str, float]:
+def summarize(trials: list[Trial]) -> dict[str, Any]:
     """Success rate, T_s and T_a (all and successful) of a method, and their 95 % confidence
     intervals (``*_ci``: ``(low, high)``): Wilson score intervals for the success and
     collision rates, percentile-bootstrap intervals of the medians
