@@ -37,12 +37,12 @@ of every node, e.g. ``scripts/ws ray start --head --port 6379 --num-cpus 16`` on
 ``scripts/ws ray start --address HEAD_IP:6379`` on each worker, all of them and the sweep with
 ``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``; the README has
 the commands), and with ``RAY_worker_niceness=0`` where the nodes run other work too (a task's
-log says when it runs at a niceness above 0). The sweep assumes a **shared filesystem**: every
-node sees the workspace (the same interpreter path) and ``--out`` at the same path as the
-driver, since the tasks write their runs there and the driver reads them back. It checks that at
-start: a probe on every node reads a file the driver wrote in ``--out`` and writes one beside
-it; a node that cannot ends the sweep with a one-line error before anything runs. Numbers of a
-node with other SIMD instructions may differ in the last bits (``docs``:
+log says when it runs at a niceness above the sweep's). The sweep assumes a **shared
+filesystem**: every node sees the workspace (the same interpreter path) and ``--out`` at the
+same path as the driver, since the tasks write their runs there and the driver reads them back.
+It checks that at start: a probe on every node reads a file the driver wrote in ``--out`` and
+writes one beside it; a node that cannot ends the sweep with a one-line error before anything
+runs. Numbers of a node with other SIMD instructions may differ in the last bits (``docs``:
 ``NPY_DISABLE_CPU_FEATURES``); set such variables in the driver's environment, which every task
 inherits.
 
@@ -231,14 +231,17 @@ def _plan(data: Any) -> study.StudyPlan:
 # Ray: the executor, and the shared-filesystem check.
 
 
-def run_logged(cmd: list[str], log: str, env: dict[str, str], cwd: str) -> int:
-    """The body of a Ray task: run ``cmd`` as a child process, output appended to ``log``;
+def run_logged(cmd: list[str], log: str, env: dict[str, str], cwd: str,
+               driver_nice: int = 0) -> int:
+    """The body of a Ray task: run ``cmd`` as a child process, output appended to ``log``
+    (first a line when this worker runs at a higher niceness than ``driver_nice``, the sweep's);
     when the task is cancelled (KeyboardInterrupt in this worker), stop the child as the study
     does (SIGTERM, SIGKILL after 30 s). Returns its exit status."""
     with open(log, 'a') as f:
-        if (nice := os.nice(0)) > 0:
-            f.write(f'sweep: this task runs at niceness {nice} (the Ray node was started '
-                    'without RAY_worker_niceness=0): slow beside other work\n')
+        if (nice := os.nice(0)) > driver_nice:
+            f.write(f'sweep: this task runs at niceness {nice}, the sweep at {driver_nice} (the '
+                    'Ray node was started without RAY_worker_niceness=0): slow beside other '
+                    'work\n')
             f.flush()
         proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=env, cwd=cwd)
@@ -369,10 +372,10 @@ def ray_launcher(root: Path, address: str | None, num_cpus: int | None
                                  f'same path (a shared filesystem), found node '
                                  f'{node["NodeManagerAddress"]} {problem}')
         task = ray.remote(num_cpus=1, max_retries=0)(run_logged)
-        cwd, env = os.getcwd(), study.child_env()
+        cwd, env, driver_nice = os.getcwd(), study.child_env(), os.nice(0)
 
         def launch(cmd: list[str], log: Path) -> study.Process:
-            return RayProcess(task.remote(cmd, str(log), env, cwd), log)
+            return RayProcess(task.remote(cmd, str(log), env, cwd, driver_nice), log)
 
         cpus = int(ray.cluster_resources().get('CPU', 1))
         study.say(f'Ray: {len(nodes)} node(s), {cpus} CPUs; every node sees {root}')
