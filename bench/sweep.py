@@ -371,7 +371,7 @@ def ray_launcher(root: Path, address: str | None, num_cpus: int | None
                 raise SweepError(f'--out {root}: expected a folder every Ray node sees at the '
                                  f'same path (a shared filesystem), found node '
                                  f'{node["NodeManagerAddress"]} {problem}')
-        task = ray.remote(num_cpus=1, max_retries=0)(run_logged)
+        task: Any = ray.remote(num_cpus=1, max_retries=0)(run_logged)  # (ray: its default arg)
         cwd, env, driver_nice = os.getcwd(), study.child_env(), os.nice(0)
 
         def launch(cmd: list[str], log: Path) -> study.Process:
