@@ -72,7 +72,6 @@ from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
 from rosbags.typesys import get_typestore, Stores
 
 from cgail_planner.learning.errors import DemoAnatomyWarning, DemoError
-from cgail_planner.sim.population import population_seed
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_PERIOD_NS = 1000 * 10**9
@@ -227,10 +226,9 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     if env_options != 'ours':
         info['env_options'] = env_options
     if population:
-        from cgail_planner.sim.anatomy import ANATOMY_NAMES
+        from cgail_planner.sim.anatomy import ANATOMY_NAMES, is_named
 
-        missing = [e for e, ep in enumerate(episodes) if population_seed(ep.anatomy or '') is None
-                   and ep.anatomy not in ANATOMY_NAMES]
+        missing = [e for e, ep in enumerate(episodes) if not is_named(ep.anatomy or '')]
         if missing:
             raise DemoError(f'population bag: expected every episode in a population anatomy '
                             f'(population-<seed>) or a built-in one {sorted(ANATOMY_NAMES)}, '
@@ -569,10 +567,9 @@ def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpis
     :func:`~cgail_planner.sim.population.sample_anatomy`; a built-in name, ``make_demos
     --include``, with :func:`~cgail_planner.sim.anatomy.resolve_anatomy`), the drift checked as
     for any bag."""
-    from cgail_planner.sim.anatomy import ANATOMY_NAMES, resolve_anatomy
+    from cgail_planner.sim.anatomy import ANATOMY_NAMES, is_named, resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
-    from cgail_planner.sim.population import sample_anatomy
 
     if anatomy is not None:
         raise DemoError(f'{path}: a population bag re-simulates each episode in its own '
@@ -583,11 +580,10 @@ def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpis
     current: dict[str, str] = {}
     obs_l, act_l, drifts, moved = [], [], [], []
     for name, eps in groups.items():
-        seed = population_seed(name)
-        if seed is None and name not in ANATOMY_NAMES:
+        if not is_named(name):
             raise DemoError(f'{path}: expected population-<seed> or built-in episode anatomies '
                             f'{sorted(ANATOMY_NAMES)}, found {name!r}')
-        built = resolve_anatomy(name) if seed is None else sample_anatomy(seed)
+        built = resolve_anatomy(name)
         current[name] = built.content_hash
         recorded = eps[0].anatomy_hash
         note = ''

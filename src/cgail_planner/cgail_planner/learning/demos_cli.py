@@ -168,25 +168,24 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
     from cgail_planner.sim.anatomy import ANATOMY_NAMES, resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
-    from cgail_planner.sim.population import check_training_seeds, population_name, sample_anatomy
+    from cgail_planner.sim.population import check_training_seeds, population_name
 
     seeds = check_training_seeds(seeds)
     bad = [n for n in include if n not in ANATOMY_NAMES]
     if bad or len(set(include)) != len(include):
         raise ValueError(f'--include: expected distinct built-in anatomy names of '
                          f'{sorted(ANATOMY_NAMES)}, found {list(include)}')
-    named = [(population_name(s), lambda s=s: sample_anatomy(s)) for s in seeds] + [
-        (n, lambda n=n: resolve_anatomy(n)) for n in include]
+    names = [population_name(s) for s in seeds] + list(include)
 
     out: list[DemoEpisode] = []
     steps: list[float] = []
     errors: list[float] = []
-    for j, (name, build) in enumerate(named):
-        ks = range(j, episodes, len(named))
+    for j, name in enumerate(names):
+        ks = range(j, episodes, len(names))
         count = len(ks)
         if count == 0:
             continue
-        anatomy = build()
+        anatomy = resolve_anatomy(name)  # (a population name: sample_anatomy)
         env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=anatomy))
         eps, stats = record_episodes(env, count, seed, indices=ks)
         for ep in eps:
@@ -194,7 +193,7 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
         out.extend(eps)
         steps.append(stats['mean_steps'] * count)
         errors.append(stats['mean_targeting_error_mm'] * count)
-    return out, {'episodes': len(out), 'anatomies': len(named),
+    return out, {'episodes': len(out), 'anatomies': len(names),
                  'success_rate': float(np.mean([e.success for e in out])),
                  'mean_steps': float(sum(steps) / len(out)),
                  'mean_targeting_error_mm': float(sum(errors) / len(out))}

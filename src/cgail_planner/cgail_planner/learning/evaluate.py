@@ -617,7 +617,6 @@ def main(argv: list[str] | None = None) -> int:
             paths[name] = path
         options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
-        per_anatomy: dict[str, dict[str, dict[str, float]]] = {}
         outcomes: dict[str, dict[str, dict[str, list[bool]]]] = {}
         for mode in args.modes:
             results: dict[str, list[Trial]] = {}
@@ -629,8 +628,6 @@ def main(argv: list[str] | None = None) -> int:
                 for name, trials in _run_methods(env, policies, args, noise, mode,
                                                  where).items():
                     results.setdefault(name, []).extend(trials)
-                    per_anatomy.setdefault(mode, {}).setdefault(name, {})[
-                        env.anatomy.name] = summarize(trials)['success_rate']
                     outcomes.setdefault(mode, {}).setdefault(name, {})[
                         env.anatomy.name] = [t.success for t in trials]
             all_results[mode] = results
@@ -665,7 +662,10 @@ def main(argv: list[str] | None = None) -> int:
                 'policies': paths}
         if held_out:
             meta['population_seeds'] = [a.name for a in held_out]
-            meta['per_anatomy_success'] = per_anatomy
+            meta['per_anatomy_success'] = {
+                mode: {n: {a: float(np.mean(ok)) for a, ok in by.items()}
+                       for n, by in methods.items()}
+                for mode, methods in outcomes.items()}
             meta['success_ci_over_anatomies'] = {
                 mode: {n: list(anatomy_interval(by)) for n, by in methods.items()}
                 for mode, methods in outcomes.items()}
