@@ -295,10 +295,15 @@ class PopulationConfig:
     after the pool (never trained on, never held out)."""
     include: tuple[str, ...] = ()
     """Built-in anatomies (``default``, ``elongated``) added to the pool beside the population
-    samples, each drawn as often as one sample. They lie outside the population's ranges in
+    samples, each drawn ``include_weight`` times as often as one sample. They lie outside the population's ranges in
     places (``elongated``: root tilt 15 deg, below the population's 18 deg) and are the
     anatomies a user tries first, so the generalist trains on them too; its evaluation on them
     uses target sets it never trained on."""
+    include_weight: float = 1.0
+    """How many times as often a worker draws each ``include`` anatomy as one population
+    sample (>= 1). At 1 a built-in gets 1/130 of a 128-sample pool's episodes, too few for
+    ``elongated``, which lies farthest outside the population (the generalist trained so:
+    0 % there, 92 % on held-out samples)."""
 
     def __post_init__(self) -> None:
         _check(0 <= self.anatomies <= 1000, 'population.anatomies', 'in [0, 1000]',
@@ -313,6 +318,8 @@ class PopulationConfig:
                    and len(set(self.include)) == len(self.include), 'population.include',
                    f'distinct built-in anatomy names of {sorted(ANATOMY_NAMES)}',
                    list(self.include))
+        _check(1.0 <= self.include_weight <= 1000.0, 'population.include_weight',
+               'in [1, 1000]', self.include_weight)
         _check(not self.include or self.anatomies > 0, 'population.include',
                'no anatomies without a population (population.anatomies > 0)',
                list(self.include))

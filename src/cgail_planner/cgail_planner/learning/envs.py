@@ -147,8 +147,8 @@ class ConcatVecEnv:
 
 class PopulationVecEnv(ConcatVecEnv):
     """Batched training across a pool of anatomies: ``num_envs`` workers, each a one-env
-    batched env in one anatomy of the pool at a time, drawing another one (uniformly, with its
-    own generator) after every ``redraw_every`` episodes.
+    batched env in one anatomy of the pool at a time, drawing another one (uniformly or by
+    ``weights``, with its own generator) after every ``redraw_every`` episodes.
 
     Building an anatomy costs seconds (:func:`cgail_planner.sim.population.sample_anatomy`), so
     the pool is built once by the caller; a worker's env in a drawn anatomy is cheap (~10 ms
@@ -167,10 +167,12 @@ class PopulationVecEnv(ConcatVecEnv):
         anatomies: the pool (anatomy specs or :class:`~cgail_planner.sim.anatomy.Anatomy`).
         num_envs: workers (>= 1).
         redraw_every: episodes a worker runs in one anatomy before it draws again (>= 1).
+        weights: relative draw weights, one per anatomy (> 0); None draws uniformly.
     """
 
     def __init__(self, make_part: Callable[[Any], Any], anatomies: Sequence[Any],
-                 num_envs: int, redraw_every: int = 4) -> None:
+                 num_envs: int, redraw_every: int = 4,
+                 weights: Sequence[float] | None = None) -> None:
         if not anatomies:
             raise ValueError('anatomies must hold at least one anatomy, found none')
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
@@ -178,6 +180,13 @@ class PopulationVecEnv(ConcatVecEnv):
         if isinstance(redraw_every, bool) or not isinstance(redraw_every, int) \
                 or redraw_every < 1:
             raise ValueError(f'redraw_every must be an int >= 1, found {redraw_every!r}')
+        self._p: np.ndarray | None = None
+        if weights is not None:
+            w = np.asarray(weights, dtype=float)
+            if w.shape != (len(anatomies),) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+                raise ValueError(f'weights must be {len(anatomies)} finite numbers > 0 (one '
+                                 f'per anatomy), found {list(weights)!r}')
+            self._p = w / w.sum()
         self.make_part = make_part
         self._theta_max: float | None = None
         self.anatomies = list(anatomies)
@@ -201,7 +210,8 @@ class PopulationVecEnv(ConcatVecEnv):
         """Move worker i to an anatomy drawn from the pool and reset it there (seeded
         ``env_seed``, else from the worker's generator); its first observation."""
         rng = self._rngs[i]
-        j = int(rng.integers(len(self.anatomies)))
+        j = int(rng.integers(len(self.anatomies)) if self._p is None
+                else rng.choice(len(self.anatomies), p=self._p))
         drawn = int(rng.integers(2**31))
         if j != self.current[i]:
             self.parts[i].close()

@@ -109,14 +109,17 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     def config(a: Any) -> EnvConfig:
         return EnvConfig.from_options(env_options, mode=mode, anatomy=a)
 
+    weights = None if population.include_weight == 1.0 else (
+        [1.0] * len(train_seeds) + [population.include_weight] * len(population.include))
     env = PopulationVecEnv(lambda a: CatheterNavVecEnv(config(a), 1), pool, num_envs,
-                           population.redraw_every)
+                           population.redraw_every, weights)
     eval_env = AnatomyCycleEnv([CatheterNavEnv(config(a)) for a in evals])
     meta = sim_metadata(config(evals[0]), anatomies='population')
     meta['population'] = {'train_seeds': [train_seeds[0], train_seeds[-1] + 1],
                           'eval_seeds': [eval_seeds[0], eval_seeds[-1] + 1],
                           'redraw_every': population.redraw_every,
-                          'include': list(population.include)}
+                          'include': list(population.include),
+                          'include_weight': population.include_weight}
     return env, eval_env, meta
 
 

@@ -69,6 +69,7 @@ def test_the_population_config_trains_and_selects_on_training_seeds_only() -> No
     ({"anatomies": 4, "include": ["population-3"]}, r"population.include must be distinct "
                                                      r"built-in anatomy names"),
     ({"anatomies": 4, "include": [3]}, r"population.include must be of type tuple, found \[3\]"),
+    ({"include_weight": 0.5}, r"population.include_weight must be in \[1, 1000\], found 0.5"),
     ({"include": ["elongated"]}, r"population.include must be no anatomies without a population"),
 ])
 def test_bad_population_settings_are_one_line(data: dict, match: str) -> None:
@@ -83,9 +84,9 @@ def test_the_generalist_preset_is_cgail_on_the_population_with_drawn_targets() -
     gen, cgail = load_config("generalist"), load_config("cgail")
     assert gen.env_options == "sphere_targets"
     assert (gen.population.anatomies, gen.population.redraw_every,
-            gen.population.eval_anatomies, gen.population.include) == (
-                128, 4, 5, ("default", "elongated"))
-    assert (gen.max_steps, gen.eval_every, gen.eval_episodes) == (6_000_000, 204_800, 30)
+            gen.population.eval_anatomies, gen.population.include,
+            gen.population.include_weight) == (128, 4, 5, ("default", "elongated"), 10.0)
+    assert (gen.max_steps, gen.eval_every, gen.eval_episodes) == (7_000_000, 204_800, 30)
     # the C-GAIL mechanics (reward signals, strengths, PPO, curriculum) are the cgail preset's;
     # only the run's size and its periodic evaluation differ
     a, b = config_to_dict(gen), config_to_dict(cgail)
@@ -176,6 +177,18 @@ def test_theta_max_reaches_the_envs_built_at_later_redraws() -> None:
     assert all(p.engine.catheter.theta_max == 1.0 for p in env.parts)
 
 
+def test_weights_make_a_worker_draw_an_anatomy_that_much_more_often() -> None:
+    env = PopulationVecEnv(lambda a: CatheterNavVecEnv(EnvConfig(anatomy=a, targets="sphere"), 1),
+                           ANATOMIES, 1, 1, weights=[1.0, 9.0])
+    env.reset(seed=0)
+    drawn = []
+    for _ in range(400):
+        env._redraw(0)
+        drawn.append(env.current[0])
+    # 9 in 10 draws are elongated: 400 draws give 360 +- 6 (binomial std); 320 is 6.7 std off
+    assert 320 < sum(drawn) < 400
+
+
 def test_bad_population_env_arguments_are_one_line() -> None:
     def make(a):
         return CatheterNavVecEnv(EnvConfig(anatomy=a), 1)
@@ -186,6 +199,9 @@ def test_bad_population_env_arguments_are_one_line() -> None:
         PopulationVecEnv(make, ANATOMIES, 2, 0)
     with pytest.raises(ValueError, match="make_part must build a one-env batched env, found 4"):
         PopulationVecEnv(lambda a: CatheterNavVecEnv(EnvConfig(anatomy=a), 2), ANATOMIES, 2)
+    with pytest.raises(ValueError, match=r"weights must be 2 finite numbers > 0 \(one per "
+                                         r"anatomy\), found \[1.0, 0.0\]"):
+        PopulationVecEnv(make, ANATOMIES, 2, 1, weights=[1.0, 0.0])
 
 
 def test_the_evaluation_env_cycles_through_its_anatomies() -> None:
@@ -225,10 +241,11 @@ def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:
                         lambda s: built.append(s) or resolve_anatomy("default"))
     env, _, meta = make_envs("static", "default", 3, "sphere_targets",
                               PopulationConfig(anatomies=2, eval_anatomies=1,
-                                               include=("elongated",)))
+                                               include=("elongated",), include_weight=4))
     assert built == [0, 1, 2]  # 2 training samples, then 1 selection sample
     assert [a.name for a in env.anatomies] == ["default", "default", "elongated"]
     assert meta["population"]["include"] == ["elongated"]
+    np.testing.assert_allclose(env._p, [1 / 6, 1 / 6, 4 / 6])
 
 
 def test_demonstrations_refuse_a_held_out_anatomy() -> None:
