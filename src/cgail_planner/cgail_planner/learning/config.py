@@ -295,10 +295,10 @@ class PopulationConfig:
     after the pool (never trained on, never held out)."""
     include: tuple[str, ...] = ()
     """Built-in anatomies (``default``, ``elongated``) added to the pool beside the population
-    samples, each drawn ``include_weight`` times as often as one sample. They lie outside the population's ranges in
-    places (``elongated``: root tilt 15 deg, below the population's 18 deg) and are the
-    anatomies a user tries first, so the generalist trains on them too; its evaluation on them
-    uses target sets it never trained on."""
+    samples, each drawn ``include_weight`` times as often as one sample. They lie outside the
+    population's ranges in places (``elongated``: root tilt 15 deg, below the population's
+    18 deg) and are the anatomies a user tries first, so the generalist trains on them too; its
+    evaluation on them uses target sets it never trained on."""
     include_weight: float = 1.0
     """How many times as often a worker draws each ``include`` anatomy as one population
     sample (>= 1). At 1 a built-in gets 1/130 of a 128-sample pool's episodes, too few for
