@@ -29,6 +29,8 @@ setup(
         'console_scripts': [
             'aurora_node = em_tracker.nodes.aurora_node:main',
             'sim_aurora = em_tracker.hw.sim_aurora:main',
+            'register_phantom = em_tracker.cli.register_phantom:main',
+            'pivot_calibrate = em_tracker.cli.pivot_calibrate:main',
         ],
     },
 )

@@ -33,3 +33,12 @@ class DeviceTimeout(EmTrackerError, TimeoutError):  # noqa: N818
 
 class DeviceDisconnected(EmTrackerError, ConnectionError):  # noqa: N818
     """The serial link is gone (port vanished, read/write error, device closed)."""
+
+
+class CalibrationError(EmTrackerError, ValueError):
+    """Fiducials, a traced trajectory or pivoting poses cannot determine the transform asked
+    for (too few, non-finite, degenerate geometry, too little rotation)."""
+
+
+class InputFileError(EmTrackerError, ValueError):
+    """A calibration input or output file is missing, unreadable or malformed."""

@@ -98,6 +98,12 @@ class Registration:
         quat = matrix_to_quat_xyzw(rot @ quat_xyzw_to_matrix(quat_xyzw))
         return pos, quat
 
+    def to_flat(self) -> list[float]:
+        """The 7 values ``[tx ty tz qx qy qz qw]`` (m, quaternion with ``qw >= 0``) that
+        :meth:`from_flat` reads back: the form of the ``registration`` parameter."""
+        quat = matrix_to_quat_xyzw(self.matrix[:3, :3])
+        return [float(v) for v in (*self.matrix[:3, 3], *quat)]
+
 
 @dataclass(frozen=True)
 class TipPose:

@@ -54,6 +54,14 @@ def test_registration_rejects(values, match):
         Registration.from_flat(values)
 
 
+def test_registration_flat_round_trip():
+    reg = Registration.from_flat([0.1, -0.2, 0.3, 0.0, 0.0, -math.sqrt(0.5), math.sqrt(0.5)])
+    flat = reg.to_flat()
+    assert len(flat) == 7 and flat[6] >= 0.0
+    assert Registration.from_flat(flat).matrix == pytest.approx(reg.matrix, abs=1e-12)
+    assert Registration.identity().to_flat() == [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]
+
+
 def test_convert_sample_scales_and_reorders():
     pose = convert_sample((1.0, 0.0, 0.0, 0.0), (100.0, -50.0, -300.0), 0.5,
                           Registration.identity(), max_abs_position_m=1.0)
