@@ -118,7 +118,8 @@ class TrackerHealth:
         port_status: last port status word of the tracked handle.
         tool_visible: last reading had a valid transform.
         rejected: readings rejected by validation (NaN, implausible values).
-        bad_replies: replies that failed (bad CRC, ERRORxx, garbage).
+        bad_replies: replies that failed (bad CRC, ERRORxx, garbage) or were stale (the last
+            frame number again, 1.5 frame periods after it first came).
         reconnects: number of reconnection attempts.
         published: poses published.
         last_frame_time: monotonic time of the last new frame, s (None before the first).

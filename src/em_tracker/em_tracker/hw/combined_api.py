@@ -165,8 +165,9 @@ def decode_command(frame: bytes) -> Command:
         The parsed command.
 
     Raises:
-        ProtocolError: the frame is not ASCII, has no name, or its CRC does not match
-            (the message names the expected and found CRC).
+        ProtocolError: the frame is not ASCII, has no name, has no ``:`` or space after the
+            name (a bare ``TX``), or its CRC does not match (the message names the expected
+            and found CRC).
     """
     frame = frame.rstrip(CR)
     try:
@@ -177,7 +178,9 @@ def decode_command(frame: bytes) -> Command:
     name = text[:sep]
     if not _NAME.fullmatch(name):
         raise ProtocolError(f'expected an upper-case command name, found {name!r}')
-    if sep < len(text) and text[sep] == ':':
+    if sep == len(text):
+        raise ProtocolError(f"expected ':' or ' ' after the command name, found {text!r}")
+    if text[sep] == ':':
         rest = text[sep + 1:]
         if len(rest) < 4:
             raise ProtocolError(f'expected 4 CRC digits after {name}:, found {rest!r}')

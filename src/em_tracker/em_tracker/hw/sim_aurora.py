@@ -9,7 +9,11 @@ same name and the device is back in its power-on state.
 Behaviour (as a real Aurora): power-on -> ``INIT:`` -> setup mode (``PHSR``, ``PVWR``,
 ``PINIT``, ``PENA``, ``PDIS``, ``PHF``, ``COMM``, ``VER``, ``BEEP``) -> ``TSTART:`` ->
 tracking mode (``TX``, ``BX``, ``TSTOP``). Commands in the wrong mode get ``ERROR0C``, unknown
-commands ``ERROR01``, a bad command CRC ``ERROR04``. ``COMM`` is acknowledged with ``OKAY``
+commands and frames that are not a command (no ``:`` or space after the name, e.g. a bare
+``TX``) ``ERROR01``, a bad command CRC ``ERROR04``, a parameter that is not what the command
+takes (``TX:ZZZZ``, ``BX:G001``) ``ERROR23`` or the command's own code. No input stops the
+device: a line whose handling fails anyway is answered ``ERROR01`` and recorded in
+:attr:`SimStats.handler_errors`. ``COMM`` is acknowledged with ``OKAY``
 and the new baud rate is recorded but ignored, since a pty has no line speed. The device
 produces frames at ``frame_rate_hz`` from ``TSTART``; ``TX``/``BX`` return the latest one,
 with its frame number.
@@ -31,6 +35,7 @@ import contextlib
 from dataclasses import dataclass, field
 import math
 import os
+import re
 import select
 import signal
 import tempfile
@@ -42,6 +47,9 @@ import numpy as np
 
 from em_tracker.core.errors import ProtocolError
 from em_tracker.hw import combined_api as api
+
+_NAME_COLON = re.compile(rb'[A-Z0-9]+:')
+_HEX_DIGITS = frozenset('0123456789ABCDEFabcdef')
 
 PoseSource = Callable[[float], tuple[Sequence[float] | np.ndarray, Sequence[float] | np.ndarray]]
 """``t_s -> (position_mm (3,), quat_wxyz (4,))`` in the field-generator frame."""
@@ -158,10 +166,13 @@ class SimStats:
     """Counters of what the simulated device saw (for tests and the benchmark).
 
     ``commands`` keeps the raw command frames received (the oldest are dropped past 10000).
+    ``handler_errors`` records the exceptions raised while handling a line (the line was
+    answered ``ERROR01``; the first 100 are kept): empty unless the simulator has a bug.
     """
 
     commands: list[str] = field(default_factory=list)
     bad_command_crc: int = 0
+    handler_errors: list[str] = field(default_factory=list)
     baud: int = 9600
     frames_served: int = 0
 
@@ -343,10 +354,21 @@ class SimAurora:
                 buffer += chunk
                 while b'\r' in buffer:
                     line, buffer = buffer.split(b'\r', 1)
-                    reply = self._handle(line)
+                    reply = self._handle_safely(line)
                     if reply is not None and self._master >= 0:
                         with contextlib.suppress(OSError):
                             os.write(self._master, reply)
+
+    def _handle_safely(self, line: bytes) -> bytes | None:
+        """:meth:`_handle`, answering ``ERROR01`` if it raises: the serving thread must never
+        die, or the device would go deaf for good. Anything may raise here (a pose source is
+        arbitrary code), hence the broad catch; what it caught is kept for tests."""
+        try:
+            return self._handle(line)
+        except Exception as exc:  # deliberately broad, see the docstring
+            if len(self.stats.handler_errors) < 100:
+                self.stats.handler_errors.append(f'{line!r}: {type(exc).__name__}: {exc}')
+            return api.encode_error(api.ERR_INVALID_COMMAND)
 
     def _handle(self, line: bytes) -> bytes | None:
         line = line.lstrip(b'\n\x00')
@@ -361,7 +383,7 @@ class SimAurora:
         try:
             cmd = api.decode_command(line)
         except ProtocolError:
-            if b':' in line:
+            if _NAME_COLON.match(line):  # a command with a CRC, and the CRC is wrong
                 self.stats.bad_command_crc += 1
                 reply = api.encode_error(api.ERR_BAD_COMMAND_CRC)
             else:
@@ -396,12 +418,9 @@ class SimAurora:
         return handler(cmd.params)
 
     def _port(self, text: str) -> _Port | bytes:
-        try:
-            handle = int(text[:2], 16)
-        except ValueError:
-            return api.encode_error(api.ERR_INVALID_PORT_HANDLE)
-        port = self.ports.get(handle)
-        if len(text) < 2 or port is None:
+        handle = _hex(text[:2], 2)
+        port = None if handle is None else self.ports.get(handle)
+        if port is None:
             return api.encode_error(api.ERR_INVALID_PORT_HANDLE)
         return port
 
@@ -484,14 +503,11 @@ class SimAurora:
         port = self._port(params)
         if isinstance(port, bytes):
             return port
-        try:
-            address = int(params[2:6], 16)
-            data = bytes.fromhex(params[6:])
-        except ValueError:
+        address = _hex(params[2:6], 4)
+        if address is None or len(params) != 6 + 128 or _hex(params[6:], 128) is None \
+                or address % 64 or address + 64 > len(port.srom):
             return api.encode_error(api.ERR_PARAMETER_RANGE)
-        if len(params) != 6 + 128 or address % 64 or address + 64 > len(port.srom):
-            return api.encode_error(api.ERR_PARAMETER_RANGE)
-        port.srom[address:address + 64] = data
+        port.srom[address:address + 64] = bytes.fromhex(params[6:])
         return self._ok()
 
     def _cmd_phf(self, params: str) -> bytes:
@@ -528,8 +544,9 @@ class SimAurora:
             return api.encode_error(api.ERR_INVALID_MODE)
         if self.faults.tracking_error is not None:
             return api.encode_error(self.faults.tracking_error)
-        option = int(params, 16) if params else api.REPLY_TRANSFORMS
-        if params and (len(params) != 4 or not option & api.REPLY_TRANSFORMS):
+        # The reply option is 4 hex digits (none: transforms); anything else is out of range.
+        option = _hex(params, 4) if params else api.REPLY_TRANSFORMS
+        if option is None or not option & api.REPLY_TRANSFORMS:
             return api.encode_error(api.ERR_PARAMETER_RANGE)
         frames = self._current_frames()
         self.stats.frames_served += 1
@@ -581,6 +598,14 @@ class SimAurora:
                 position_mm=tuple(float(p) for p in pos),  # type: ignore[arg-type]
                 error_mm=self.error_mm, port_status=status, frame_number=frame_number))
         return out
+
+
+def _hex(text: str, digits: int) -> int | None:
+    """``text`` as exactly ``digits`` hex digits, or None (``int(text, 16)`` alone would also
+    take a sign, spaces, underscores or a ``0x`` prefix)."""
+    if len(text) != digits or not all(c in _HEX_DIGITS for c in text):
+        return None
+    return int(text, 16)
 
 
 def main(args: Sequence[str] | None = None) -> None:

@@ -15,7 +15,12 @@ The link is one state machine, :meth:`TrackerLoop.step`, driven in one of two wa
 
 Polling follows the device clock: after a request that returned a new frame the next poll is
 due 0.95 frame periods after that request; a repeated frame number (polled too early) is
-retried 2 ms later. Frame-number gaps are counted as dropped frames. ``ProtocolError`` and
+retried 2 ms later, until :data:`STALE_AFTER_PERIODS` periods after the reply that brought
+that frame (the device had it then, so the next one is due within a period). A frame number
+still repeated after that is stale: the device, or ndicapi after a truncated reply whose CRC
+was valid, hands back a frame it already gave. It counts as a bad reply and the next poll is
+a full period later, so a stuck reply never makes the loop poll faster than ``rate_hz``.
+Frame-number gaps are counted as dropped frames. ``ProtocolError`` and
 ``DeviceError`` replies (bad CRC, garbage, ``ERRORxx``) are counted and tolerated up to
 ``max_consecutive_errors`` in a row; after that, or on any disconnect/timeout, the link is
 closed and re-opened after ``reconnect_initial_s``, doubling up to ``reconnect_max_s``.
@@ -35,6 +40,12 @@ from em_tracker.core.tracking import LinkState, TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, ToolReading
 
 PoseCallback = Callable[[TipPose, float], None]
+
+EARLY_RETRY_S = 0.002
+"""Wait before polling again after a repeated frame number that may just be early, s."""
+STALE_AFTER_PERIODS = 1.5
+"""A frame number repeated this many frame periods after the reply that first brought it is
+stale (the device produces a new frame every period)."""
 
 
 class TrackerLoop:
@@ -60,6 +71,7 @@ class TrackerLoop:
         self._thread = threading.Thread(target=self._run, name='aurora_reader', daemon=True)
         self._handle: int | None = None  # tracked handle while tracking, None while not
         self._retry_at = -math.inf
+        self._last_new_at = -math.inf  # when the last new frame came (reply or clock time)
         self._delay = config.reconnect_initial_s
         self._errors = 0
         self._closed = False
@@ -108,7 +120,8 @@ class TrackerLoop:
         Returns:
             When the next step is due (same clock as ``now``): the reconnect time after a
             failure, 0.95 frame periods after a request that returned a new frame, 2 ms after
-            a repeated frame (polled too early), a quarter period after a bad reply.
+            a repeated frame (polled too early), a period after a stale frame, a quarter
+            period after a bad reply.
         """
         if self._closed:
             return math.inf
@@ -179,12 +192,26 @@ class TrackerLoop:
             new = self.health.frames.update(tool.frame_number)
             self.health.system_status = reply.system_status
         if not new:
-            return requested + 0.002
+            return self._repeated(tool.frame_number, requested, period)
         # Thread mode anchors on the request time, not the reply time, so that a slow reply
         # cannot make the poll phase drift past the next frame (which would drop it). The
-        # reply's own time stamps the pose; in clock mode both are the caller's ``now``.
-        self._accept(tool, reply.host_time if self._threaded else requested)
+        # reply's own time stamps the pose and starts the stale-frame count; in clock mode
+        # both are the caller's ``now``.
+        self._last_new_at = reply.host_time if self._threaded else requested
+        self._accept(tool, self._last_new_at)
         return requested + 0.95 * period
+
+    def _repeated(self, frame_number: int, requested: float, period: float) -> float:
+        """The reply carried the last frame number again: polled a little early, or stale."""
+        age = requested - self._last_new_at
+        if age < STALE_AFTER_PERIODS * period:
+            return requested + EARLY_RETRY_S
+        with self.lock:
+            self.health.bad_replies += 1
+            self.health.last_error = (
+                f'stale reply: expected a new frame within {STALE_AFTER_PERIODS * period:.3f} '
+                f's, found frame {frame_number} again after {age:.3f} s')
+        return requested + period
 
     def _accept(self, tool: ToolReading, host_time: float) -> None:
         with self.lock:

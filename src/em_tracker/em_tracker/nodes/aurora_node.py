@@ -301,7 +301,8 @@ class AuroraNode(LifecycleNode):
 def main(args=None) -> None:
     """Build, configure, activate and spin the node.
 
-    ``scripts/ws ros2run em_tracker aurora_node --ros-args -p port:=...``
+    ``scripts/ros2run em_tracker aurora_node --ros-args -p port:=...`` (or
+    ``scripts/ws aurora_node --ros-args -p port:=...``)
     """
     rclpy.init(args=args)
     node = None

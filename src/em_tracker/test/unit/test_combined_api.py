@@ -32,7 +32,7 @@ def test_command_round_trip():
 
 @pytest.mark.parametrize('frame,match', [
     (b'INIT:0000', 'CRC E3A5'), (b'INIT:E3', 'CRC digits'), (b'\xff\xfe', 'ASCII'),
-    (b'in it:E3A5', 'upper-case'),
+    (b'in it:E3A5', 'upper-case'), (b'TX\r', "':' or ' ' after the command name"),
 ])
 def test_decode_command_rejects(frame, match):
     with pytest.raises(ProtocolError, match=match):

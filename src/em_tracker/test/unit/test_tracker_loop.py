@@ -25,7 +25,9 @@ class Device:
         self.connect_at: list[float] = []
         self.closed = 0
         self.frame = 0
+        self.reads = 0
         self.clock = time.monotonic
+        self.reply_time = lambda: -1.0  # ignored in clock mode
 
     def connect(self):
         self.connect_at.append(self.clock())
@@ -35,12 +37,14 @@ class Device:
         return [0x0A]
 
     def read(self):
+        self.reads += 1
         item = self.replies.pop(0) if self.replies else 'new'
         if isinstance(item, Exception):
             raise item
         if item == 'new':
             self.frame += 1
-        return TrackingReply((ToolReading(frame_number=self.frame, **VALID),), 0, -1.0)
+        return TrackingReply((ToolReading(frame_number=self.frame, **VALID),), 0,
+                             self.reply_time())
 
     def close(self):
         self.closed += 1
@@ -77,6 +81,40 @@ def test_clock_mode_one_poll_per_step_stamped_with_the_callers_time() -> None:
     loop.step(5.05)
     assert got == [(5.0, pytest.approx(0.010)), (5.05, pytest.approx(0.010))]
     assert loop.health.frames.repeated == 1 and loop.health.last_frame_time == 5.05
+    assert loop.health.bad_replies == 0  # one period after the frame: early, not stale
+
+
+def test_a_stale_frame_is_a_bad_reply_and_polled_at_most_at_the_frame_rate() -> None:
+    # ndicapi hands back the last frame again (a truncated reply whose CRC was valid): the
+    # reader thread, which sleeps until each step's due time, must not poll every 2 ms.
+    got: list[float] = []
+    dev = Device(replies=['new'] + ['repeat'] * 1000)
+    loop = TrackerLoop(dev, config(), lambda pose, t: got.append(t))
+    t = loop.step(0.0)  # connected: poll at once
+    while t < 2.0:
+        t = loop.step(t)
+    # 1 new frame at 0; early retries every 2 ms from 0.95 period (23.75 ms) while under 1.5
+    # periods (37.5 ms): 7; then stale, once a period from 37.75 ms: 79 up to 2 s
+    assert dev.reads == 1 + 7 + 79
+    assert loop.health.bad_replies == 79 and loop.health.frames.repeated == 7 + 79
+    assert loop.health.last_error == ('stale reply: expected a new frame within 0.038 s, '
+                                      'found frame 1 again after 1.988 s')
+    assert loop.tracking and len(got) == 1
+    dev.replies.clear()  # the device recovers: new frames again, no more bad replies
+    t = loop.step(t)
+    assert len(got) == 2 and loop.health.bad_replies == 79
+
+
+def test_thread_mode_polls_a_stale_frame_once_a_period() -> None:
+    dev = Device(replies=['new'] + ['repeat'] * 1000)
+    dev.reply_time = time.monotonic
+    loop = TrackerLoop(dev, config(), lambda pose, t: None)
+    loop.start()
+    time.sleep(0.5)
+    loop.stop(timeout_s=10.0)
+    # at most: 1 new frame, 7 early retries, one poll a period (25 ms) for the rest of 0.5 s
+    # (ndicapi's stale frames used to be polled every 2 ms: ~250 reads)
+    assert dev.reads <= 1 + 7 + 20 and loop.health.bad_replies >= 1
 
 
 def test_bad_replies_then_reconnect() -> None:

@@ -1,0 +1,88 @@
+"""The documented ``scripts/ws <command>`` forms resolve, and package executables run through it.
+
+Needs the colcon install (``bash scripts/setup.sh``): the package executables are the console
+scripts in ``install/<pkg>/lib/<pkg>/``, which ``scripts/env.sh`` puts on ``PATH``. The
+commands run with those directories taken off the inherited ``PATH``, so that it is
+``scripts/ws`` that finds them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import re
+import subprocess
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+WS = ROOT / 'scripts' / 'ws'
+DOCUMENTED = re.compile(r'scripts/ws ([A-Za-z_][\w.-]*)')
+PROSE = {'or'}  # "run the tests through scripts/ws or scripts/test.sh"
+
+
+def _documents() -> list[Path]:
+    """README, docs, bag READMEs, scripts, benchmarks, and every package's modules/configs."""
+    files = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md')),
+             *sorted((ROOT / 'bags').rglob('README.md')),
+             *sorted(p for p in (ROOT / 'scripts').iterdir() if p.is_file()),
+             *sorted((ROOT / 'bench').glob('*.py'))]
+    for pkg in sorted(p for p in (ROOT / 'src').iterdir() if (p / p.name).is_dir()):
+        files += sorted((pkg / pkg.name).rglob('*.py')) + sorted((pkg / 'config').rglob('*.yaml'))
+    return files
+
+
+def _documented_commands() -> dict[str, list[str]]:
+    """``command -> files`` for every ``scripts/ws <command>`` shown in the documents."""
+    found: dict[str, list[str]] = {}
+    for path in _documents():
+        for command in DOCUMENTED.findall(path.read_text(errors='replace')):
+            if command not in PROSE:
+                found.setdefault(command, []).append(str(path.relative_to(ROOT)))
+    return found
+
+
+def _env_without_install_on_path() -> dict[str, str]:
+    install = str(ROOT / 'install')
+    path = [p for p in os.environ.get('PATH', '').split(os.pathsep)
+            if not os.path.realpath(p).startswith(os.path.realpath(install) + os.sep)
+            and not p.startswith(install + os.sep)]
+    return {**os.environ, 'PATH': os.pathsep.join(path)}
+
+
+def _run(argv: list[str]) -> subprocess.CompletedProcess[str]:
+    assert (ROOT / 'install' / 'setup.bash').is_file(), \
+        'expected the colcon install in install/, found none: run bash scripts/setup.sh'
+    return subprocess.run(argv, cwd=ROOT, env=_env_without_install_on_path(),
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_every_documented_scripts_ws_command_resolves() -> None:
+    commands = _documented_commands()
+    assert {'python', 'make_demos', 'aurora_node'} <= commands.keys()
+    result = _run(['bash', str(WS), 'bash', '-c',
+                   'for c in "$@"; do command -v "$c" >/dev/null || echo "$c"; done', '_',
+                   *commands])
+    missing = result.stdout.split()
+    assert result.returncode == 0 and not missing, \
+        f'expected every documented command on the PATH of scripts/ws, found missing: ' \
+        f'{ {c: commands[c] for c in missing} }'
+
+
+def test_scripts_ws_finds_the_installed_node_executable() -> None:
+    result = _run(['bash', str(WS), 'bash', '-c', 'command -v aurora_node'])
+    assert result.returncode == 0, result.stderr
+    assert os.path.samefile(result.stdout.strip(),
+                            ROOT / 'install' / 'em_tracker' / 'lib' / 'em_tracker' / 'aurora_node')
+
+
+@pytest.mark.parametrize('argv', [
+    ['scripts/ws', 'make_demos', '--help'],    # as bags/demos/README.md shows it
+    ['scripts/ws', 'sim_aurora', '--help'],
+    ['scripts/ros2run', 'em_tracker', 'sim_aurora', '--help'],
+])
+def test_package_executables_run_through_the_scripts(argv: list[str]) -> None:
+    result = _run(['bash', *argv])
+    assert result.returncode == 0, result.stderr
+    executable = argv[1] if argv[0] == 'scripts/ws' else argv[2]
+    assert result.stdout.startswith(f'usage: {executable}')
