@@ -16,6 +16,9 @@ setup(
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
         ('share/' + PACKAGE + '/config/launch', glob('config/launch/*.yaml')),
         ('share/' + PACKAGE + '/config/presets', glob('config/presets/*.yaml')),
+        # RViz2 and Foxglove views of the markers (phantom/markers, planner/markers)
+        ('share/' + PACKAGE + '/config/rviz', glob('config/rviz/*.rviz')),
+        ('share/' + PACKAGE + '/config/foxglove', glob('config/foxglove/*.json')),
         # Guidance page of gui_node; three.js comes from `npm ci` in web/ (scripts/setup.sh).
         ('share/' + PACKAGE + '/web', glob('web/*.html') + glob('web/*.js') + glob('web/*.css')
          + glob('web/package*.json')),

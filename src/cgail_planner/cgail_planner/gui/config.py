@@ -21,12 +21,15 @@ class GuiConfig:
     """Highest rate of state updates sent to one page, Hz, in (0, 240]; updates arriving
     faster are merged (newest value wins), so a 40 Hz tracker is never queued up."""
     mesh_rate_hz: float = 10.0
-    """Rate of the deformed-mesh vertex frames in dynamic mode, Hz, in (0, 60]."""
+    """Dynamic mode: highest rate of the deformed-wall frames forwarded from the phantom's
+    ``lumen`` marker (``phantom/markers``) to the page, Hz, in (0, 60]; the phantom's
+    ``marker_rate_hz`` bounds it too."""
     anatomy: str = 'default'
     """Anatomy shown: a built-in name, a prepared anatomy directory or a mesh file with its
     ``<stem>.yaml`` landmarks (:func:`cgail_planner.sim.anatomy.resolve_anatomy`); '' = none."""
     dynamic: bool = False
-    """Dynamic mode: the wall deforms with the heartbeat (PBD) and its vertices are streamed."""
+    """Dynamic mode: the wall drawn and raycast is the phantom's deforming one, taken from its
+    ``lumen`` marker on ``phantom/markers`` (the anatomy's rest shape until that arrives)."""
     max_bend_rad: float = CatheterConfig().theta_max
     """Reachable bend of the catheter tip (theta_max), rad, in (0, pi/2]; the internal view
     draws the suggested bend against it."""
@@ -66,9 +69,6 @@ class GuiConfig:
         _positive('ray_length_m', self.ray_length_m)
         if not (math.isfinite(self.ray_cone_rad) and 0.0 <= self.ray_cone_rad <= math.pi / 2):
             raise ValueError(f'ray_cone_rad must be in [0, pi/2], found {self.ray_cone_rad}')
-        if self.dynamic and not self.anatomy:
-            raise ValueError('anatomy must name an anatomy when dynamic is true, found an '
-                             'empty name')
         if self.anatomy:
             from cgail_planner.sim.anatomy import check_anatomy_spec
 

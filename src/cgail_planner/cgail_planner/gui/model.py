@@ -3,6 +3,11 @@
 The node (live topics) and the bag replay feed one model each with numpy arrays; the model
 derives the guidance (tip frame, wall distance from raycasts, trial clock) and writes
 JSON-ready items into its :class:`~cgail_planner.gui.state.GuiState`.
+
+The wall drawn and raycast is the anatomy's rest shape (:meth:`GuiModel.set_anatomy`) until a
+wall arrives as a triangle list (:meth:`GuiModel.set_lumen`: the phantom's ``lumen`` marker,
+deformed in dynamic mode); from then on that one is drawn (``mesh`` once per topology, then
+``deform`` frames of its vertices) and the rays hit it.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from cgail_planner.core.markers import index_triangles
 from cgail_planner.core.rotations import quaternion_to_matrix
 from cgail_planner.gui.config import GuiConfig
 from cgail_planner.gui.guidance import (
@@ -55,6 +61,32 @@ def _finite(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     if a.shape != shape or not np.isfinite(a).all():
         raise ValueError(f'{name} must be {shape} finite values, found shape {a.shape}')
     return a
+
+
+class MeshWall:
+    """A wall given as a mesh whose vertices move (topology fixed): rays are cast on the
+    simulator's BVH (:class:`~cgail_planner.sim.raycast.WallBVH`), refitted per update.
+
+    Args:
+        vertices: (V, 3) positions, m.
+        faces: (M, 3) triangles (all of them are wall).
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        from cgail_planner.sim.raycast import WallBVH
+
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self._bvh = WallBVH(self.vertices, faces, np.ones(len(faces), dtype=bool))
+
+    def update(self, vertices: np.ndarray) -> None:
+        """New vertex positions (same order)."""
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self._bvh.refit(self.vertices)
+
+    def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
+                ) -> np.ndarray:
+        """(R,) distance to the first hit along each ray (``max_dist`` when none)."""
+        return self._bvh.raycast(origins, directions, max_dist)
 
 
 class TrialClock:
@@ -131,6 +163,8 @@ class GuiModel:
         self.trial = TrialClock(config.trial_limit_s)
         self._lock = threading.RLock()
         self._wall: Wall | None = None
+        #: The wall from a triangle list (:meth:`set_lumen`): (faces, first, soup index, wall).
+        self._lumen: tuple[np.ndarray, np.ndarray, np.ndarray, MeshWall] | None = None
         self._tip: np.ndarray | None = None
         self._rot: np.ndarray | None = None
         self._target: np.ndarray | None = None
@@ -148,7 +182,8 @@ class GuiModel:
     # -- anatomy --------------------------------------------------------------------------
     def set_anatomy(self, name: str, vertices: np.ndarray, faces: np.ndarray,
                     wall: Wall | None) -> None:
-        """The mesh to draw (metres, frame phantom) and the wall the raycasts hit."""
+        """The mesh to draw (metres, frame phantom) and the wall the raycasts hit (ignored once
+        a wall came from :meth:`set_lumen`: that one is the current shape)."""
         v = np.asarray(vertices, dtype=float)
         f = np.asarray(faces)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -157,20 +192,42 @@ class GuiModel:
         if f.size and (f.min() < 0 or f.max() >= len(v)):
             raise ValueError(f'faces must index vertices 0..{len(v) - 1}')
         with self._lock:
+            if self._lumen is not None:
+                return
             self._wall = wall
+            self._set_mesh(name, v, f)
+
+    def _set_mesh(self, name: str, v: np.ndarray, f: np.ndarray) -> None:
         self.state.set('mesh', {'name': name, 'frame': 'phantom', 'vertex_count': len(v),
                                 'face_count': len(f), 'vertices': b64_array(v, 'f4'),
                                 'faces': b64_array(f, 'u4')})
+
+    def set_lumen(self, points: np.ndarray, t: float) -> None:
+        """The wall as a triangle list (3M, 3) m at time ``t`` s: the phantom's ``lumen``
+        marker. A new topology is indexed (:func:`~cgail_planner.core.markers.index_triangles`)
+        and sent as ``mesh``; every list goes out as a ``deform`` frame of its vertices, and
+        the raycasts hit it."""
+        p = np.asarray(points, dtype=float).reshape(-1, 3)
+        if len(p) < 3 or len(p) % 3 or not np.isfinite(p).all():
+            raise ValueError(f'lumen must be finite points, 3 per triangle, found {len(p)}')
+        with self._lock:
+            lumen = self._lumen
+            # the same topology: each triangle corner equals its vertex's first appearance
+            if lumen is not None and len(lumen[2]) == len(p) and np.array_equal(p[lumen[2]], p):
+                vertices = p[lumen[1]]
+                lumen[3].update(vertices)
+            else:
+                vertices, faces, first = index_triangles(p)
+                wall = MeshWall(vertices, faces)
+                self._lumen = (faces, first, first[faces.reshape(-1)], wall)
+                self._wall = wall
+                self._set_mesh(self.config.anatomy or 'lumen', vertices, faces)
+        self.set_deformation(vertices, t)
 
     def set_deformation(self, vertices: np.ndarray, t: float) -> None:
         """Current vertex positions of the deforming wall (same order as the mesh)."""
         self.state.set('deform', {'t': round(float(t), 4),
                                   'vertices': b64_array(np.asarray(vertices), 'f4')})
-
-    @property
-    def wall_lock(self) -> threading.RLock:
-        """Held while the wall is used (a deforming wall steps under it)."""
-        return self._lock
 
     # -- planner --------------------------------------------------------------------------
     def on_path(self, points: np.ndarray, frame: str) -> None:

@@ -25,9 +25,17 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Header
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
+from cgail_planner.core.markers import (
+    ARROW,
+    LINE_STRIP,
+    MarkerGeometry,
+    SPHERE,
+    TRIANGLE_LIST,
+)
 from cgail_planner.core.rotations import matrix_to_quaternion, quaternion_to_matrix, validate_pose
 
 SENSOR_QOS = qos_profile_sensor_data
@@ -136,6 +144,54 @@ def bend_msg(stamp: Time, alpha: float, gamma: float) -> JointState:
     """A bend JointState (``bend_alpha``, ``bend_gamma``; rad)."""
     return JointState(header=Header(stamp=stamp), name=list(BEND_JOINTS),
                       position=[float(alpha), float(gamma)])
+
+
+_MARKER_TYPES = {TRIANGLE_LIST: Marker.TRIANGLE_LIST, LINE_STRIP: Marker.LINE_STRIP,
+                 SPHERE: Marker.SPHERE, ARROW: Marker.ARROW}
+
+
+def _points(points: np.ndarray) -> list[Point]:
+    out = []
+    for x, y, z in points.tolist():  # (attribute assignment: ~4x faster than Point(x=...))
+        p = Point()
+        p.x, p.y, p.z = x, y, z
+        out.append(p)
+    return out
+
+
+def marker_msg(header: Header, geometry: MarkerGeometry) -> Marker:
+    """One ADD ``visualization_msgs/Marker`` of a :class:`MarkerGeometry` (a SPHERE's centre
+    goes in the pose, the other kinds' points in ``points``; identity orientation)."""
+    m = Marker(header=header, ns=geometry.ns, id=geometry.id,
+               type=_MARKER_TYPES[geometry.kind], action=Marker.ADD)
+    m.pose.orientation.w = 1.0
+    m.scale.x, m.scale.y, m.scale.z = (float(v) for v in geometry.scale)
+    r, g, b, a = (float(c) for c in geometry.color)
+    m.color = ColorRGBA(r=r, g=g, b=b, a=a)
+    if geometry.kind == SPHERE:
+        c = geometry.points[0]
+        m.pose.position = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+    else:
+        m.points = _points(geometry.points)
+    return m
+
+
+def marker_array_msg(stamp: Time, frame_id: str, geometries: Sequence[MarkerGeometry],
+                     prebuilt: Sequence[Marker] = ()) -> MarkerArray:
+    """A full-snapshot MarkerArray: DELETEALL, then ``prebuilt`` markers (their header is set
+    to this one) and one ADD per geometry (:mod:`cgail_planner.core.markers`)."""
+    header = Header(stamp=stamp, frame_id=frame_id)
+    out = [Marker(header=header, action=Marker.DELETEALL)]
+    for m in prebuilt:
+        m.header = header
+        out.append(m)
+    out += [marker_msg(header, g) for g in geometries]
+    return MarkerArray(markers=out)
+
+
+def marker_points(msg: Marker) -> np.ndarray:
+    """(N, 3) ``points`` of a Marker."""
+    return np.array([(p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(-1, 3)
 
 
 def joint_positions(msg: JointState, names: Sequence[str]) -> list[float]:

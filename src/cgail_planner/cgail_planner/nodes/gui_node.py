@@ -1,9 +1,12 @@
 """``gui_node``: the guidance page in the browser, live or from a bag (node name ``gui``).
 
 Serves the page (``src/cgail_planner/web``) on ``http://<host>:<port>/`` and streams the state
-over a WebSocket at ``/ws`` (:mod:`cgail_planner.gui`): anatomy mesh (and its heartbeat
-deformation in dynamic mode), planned path, tip pose, target, next waypoint, suggested bend,
-diagnostics, trial clock. The page can replay a bag from ``bags_dir``: the bag player
+over a WebSocket at ``/ws`` (:mod:`cgail_planner.gui`): anatomy mesh, planned path, tip pose,
+target, next waypoint, suggested bend, diagnostics, trial clock. In dynamic mode the wall is the
+phantom's: the ``lumen`` marker of ``phantom/markers`` (the deformed wall, a TRIANGLE_LIST) is
+indexed into a mesh once and its vertices are forwarded as deformation frames (at most
+``mesh_rate_hz``), and the wall rays hit it; the rest mesh of ``anatomy`` is shown until it
+arrives. The page can replay a bag from ``bags_dir``: the bag player
 (:class:`~cgail_planner.bags.play.BagPlayer`) publishes into a sink that decodes the messages
 and feeds a second model, so a replay never reaches the live topics and the page switches
 between the two sources. The server runs asyncio in its own thread; a port that cannot be
@@ -31,9 +34,11 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import JointState
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.play import BagPlayer, PlayerConfig
+from cgail_planner.core.markers import LUMEN_NS
 from cgail_planner.gui.bags import list_bags
 from cgail_planner.gui.config import GuiConfig
 from cgail_planner.gui.errors import ServerError
@@ -42,6 +47,7 @@ from cgail_planner.gui.protocol import ClientCommand
 from cgail_planner.gui.server import GuiServer
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import build_table, find_web_root, missing_vendor
+from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, try_shutdown
 from cgail_planner.sim.mesh_io import AnatomyError
 
@@ -51,11 +57,12 @@ _PARAMS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
     'host': (_D.host, 'bind address of the page (IP literal; loopback by default)', None),
     'port': (_D.port, 'TCP port of the page and WebSocket (0: any free port)', (0, 65535)),
     'max_rate_hz': (_D.max_rate_hz, 'highest update rate per page, Hz', (1.0, 240.0)),
-    'mesh_rate_hz': (_D.mesh_rate_hz, 'deformed-mesh frame rate in dynamic mode, Hz',
-                     (0.5, 60.0)),
+    'mesh_rate_hz': (_D.mesh_rate_hz, 'dynamic mode: highest rate of the deformed-wall frames '
+                     'forwarded from phantom/markers to the page, Hz', (0.5, 60.0)),
     'anatomy': (_D.anatomy, "anatomy drawn and raycast: a built-in name, a prepared anatomy "
                             "directory or a mesh file ('' = none)", None),
-    'dynamic': (_D.dynamic, 'beating, deforming wall (PBD heartbeat) streamed to the page', None),
+    'dynamic': (_D.dynamic, "the phantom's deforming wall (phantom/markers) streamed to the "
+                            'page', None),
     'max_bend_rad': (_D.max_bend_rad, 'reachable tip bend theta_max, rad', (0.01, math.pi / 2)),
     'trial_limit_s': (_D.trial_limit_s, 'trial time limit, s', (1.0, 3600.0)),
     'success_radius_m': (_D.success_radius_m, 'tip-target distance that ends the trial, m',
@@ -208,7 +215,6 @@ class GuiNode(Node):
         self._bags = list_bags(self.config.bags_dir)
         self._replay: dict[str, Any] = {}
         self._replay_lock = threading.Lock()
-        self._stop = threading.Event()
         self._warned: dict[str, float] = {}
         self._set_replay_item(None, 'idle', '')
         qos: dict[str, QoSProfile | int] = {
@@ -220,6 +226,9 @@ class GuiNode(Node):
                  'planner/suggested_bend': JointState, '/diagnostics': DiagnosticArray}
         for topic, handler in self._feed.handlers().items():
             self.create_subscription(types[topic], topic, handler, qos[topic])
+        self._last_lumen = -math.inf
+        if self.config.dynamic:
+            self.create_subscription(MarkerArray, 'phantom/markers', self._on_markers, _LATCHED)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._bind_error = ''
         self._next_bind = 0.0
@@ -289,10 +298,10 @@ class GuiNode(Node):
         if self._anatomy_source is None:
             return
         from cgail_planner.sim.anatomy import resolve_anatomy
-        from cgail_planner.sim.wall import DeformableWall, StaticWall
+        from cgail_planner.sim.wall import StaticWall
         try:
             anatomy = resolve_anatomy(self._anatomy_source)
-            wall = DeformableWall(anatomy) if self.config.dynamic else StaticWall(anatomy)
+            wall = StaticWall(anatomy)
             wall.raycast(anatomy.start_point[None, :], anatomy.start_direction[None, :], 0.01)
         except (AnatomyError, ValueError, OSError) as exc:
             self.get_logger().error(f'cannot load anatomy {self.config.anatomy!r}: {exc}')
@@ -304,25 +313,23 @@ class GuiNode(Node):
             model = self._replay.get('model')
         if model is not None:
             model.set_anatomy(anatomy.name, anatomy.vertices, faces, wall)
-        if self.config.dynamic:
-            self._beat(wall)
 
-    def _beat(self, wall: Any) -> None:
-        """Step the heartbeat-driven wall in real time and stream its vertices."""
-        dt = 1.0 / self.config.mesh_rate_hz
-        t0 = time.monotonic()
-        t = 0.0
-        empty = wall.vertices[:0]
-        while not self._stop.wait(max(0.0, t0 + t + dt - time.monotonic())):
-            t += dt
-            with self._model.wall_lock:
-                wall.step(t, dt, empty, 0.0)
-                vertices = wall.vertices.copy()
-            self._model.set_deformation(vertices, t)
-            with self._replay_lock:
-                model = self._replay.get('model')
-            if model is not None:
-                model.set_deformation(vertices, t)
+    def _on_markers(self, msg: MarkerArray) -> None:
+        """Dynamic mode: the phantom's deformed wall (its ``lumen`` marker) to the live page."""
+        lumen = next((m for m in msg.markers if m.ns == LUMEN_NS and m.action == Marker.ADD
+                      and m.type == Marker.TRIANGLE_LIST), None)
+        now = time.monotonic()
+        if lumen is None or now - self._last_lumen < 0.999 / self.config.mesh_rate_hz:
+            return
+        self._last_lumen = now
+        if lumen.header.frame_id not in ('', 'phantom'):
+            self._warn(f"ignored lumen marker: expected frame 'phantom', found "
+                       f'{lumen.header.frame_id!r}')
+            return
+        try:
+            self._model.set_lumen(conv.marker_points(lumen), _stamp(lumen))
+        except ValueError as exc:
+            self._warn(f'ignored lumen marker: {exc}')
 
     # -- timer ------------------------------------------------------------------------------
     def _on_timer(self) -> None:
@@ -427,8 +434,7 @@ class GuiNode(Node):
             self._set_replay_item(None, 'idle', '')
 
     def destroy_node(self) -> None:
-        """Stop the replay, the heartbeat thread and the server, then the node."""
-        self._stop.set()
+        """Stop the replay and the server, then the node."""
         with self._replay_lock:
             replay, self._replay = self._replay, {}
         if replay:

@@ -16,7 +16,12 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   ``simulate_device`` false (the launcher's ``--in-process`` mode);
 * the physics: the tip advances with the measured ``catheter/insertion_state`` and curves with
   the measured ``catheter/bend_state`` (per inserted dl the heading turns by bend * dl / L), the
-  wall (static, or deformable + heartbeat) constrains it.
+  wall (static, or deformable + heartbeat) constrains it;
+* ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
+  (TRIANGLE_LIST on the wall's current vertices: deformed in dynamic mode; decimated above
+  ``marker_max_triangles``) and the catheter body (LINE_STRIP), a full snapshot every
+  ``1 / marker_rate_hz`` s (:mod:`cgail_planner.core.markers`). Built only while someone
+  subscribes (the first one always goes out, for late joiners of the latched topic).
 
 Time, two ways:
 
@@ -50,10 +55,12 @@ from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Header, String
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
+from cgail_planner.core.markers import LumenMesh, MarkerConfig, phantom_markers
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
@@ -113,6 +120,12 @@ class PhantomNode(Node):
         pose_rate = conv.declare(self, 'pose_rate_hz', 10.0, 'rate of phantom/tip_pose (the '
                                  'true pose), Hz (sim time)', lo=0.1, hi=1000.0)
         self._pose_every = max(1, round(1.0 / (pose_rate * self.physics_dt)))
+        m = MarkerConfig()
+        self.marker_config = MarkerConfig(max_triangles=conv.declare(
+            self, 'marker_max_triangles', m.max_triangles, 'phantom/markers: the lumen is '
+            'decimated above this many triangles', lo=100, hi=100_000))
+        marker_rate = conv.declare(self, 'marker_rate_hz', 5.0, 'rate of phantom/markers '
+                                   '(lumen, catheter body), Hz', lo=0.1, hi=30.0)
         seed = conv.declare(self, 'seed', 0, 'seed of the EM noise', lo=0, hi=2**31 - 1)
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
                                    lo=0.05, hi=60.0)
@@ -136,6 +149,9 @@ class PhantomNode(Node):
             else DeformableWall(self.world.anatomy)
         self.wall: StaticWall = wall  # (a DeformableWall in dynamic mode)
         self.physics = PhantomPhysics(self.config, wall)
+        self.lumen = LumenMesh(self.world.anatomy, self.marker_config.max_triangles)
+        self._static_lumen: Marker | None = None  # (static mode: built once)
+        self._markers_sent = False
         #: Why the physics stopped (a deformable wall beyond its bound), '' while it runs.
         self.physics_error = ''
         self.rng = np.random.default_rng(seed)
@@ -172,6 +188,8 @@ class PhantomNode(Node):
         self._port_pub = self.create_publisher(String, 'phantom/aurora_port', conv.LATCHED_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
+        self._markers_pub = self.create_publisher(MarkerArray, 'phantom/markers',
+                                                  conv.LATCHED_QOS)
         self._clock_pub = self.create_publisher(ClockMsg, '/clock', 10) \
             if self.publish_clock else None
         self.create_subscription(JointState, 'catheter/insertion_state', self._on_insertion,
@@ -182,12 +200,15 @@ class PhantomNode(Node):
         self._port_pub.publish(String(data=self.aurora_port))
         self._ticks = 0
         self.publish_target()
+        self.publish_markers()
         if self.lockstep:
             self.create_timer(diag_period, self._on_diagnostics)
+            self.create_timer(1.0 / marker_rate, self.publish_markers)
         else:
             steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
             self.create_timer(diag_period, self._on_diagnostics, clock=steady)
+            self.create_timer(1.0 / marker_rate, self.publish_markers, clock=steady)
         timing = 'lockstep' if self.lockstep else (
             f'x{self.time_scale:g} time{" on /clock" if self.publish_clock else ""}')
         self.get_logger().info(
@@ -282,6 +303,23 @@ class PhantomNode(Node):
         """Publish the current target on ``phantom/target`` (latched)."""
         self._target_pub.publish(conv.point_msg(self.now_msg(), self.frame_id,
                                                 self.target_position()))
+
+    def publish_markers(self) -> None:
+        """Publish the lumen and the catheter body on ``phantom/markers`` (module docstring)."""
+        if self._markers_sent and self._markers_pub.get_subscription_count() == 0:
+            return
+        static = self.mode == 'static'
+        with self._lock:
+            geometries = phantom_markers(self.lumen, self.wall.vertices, self.physics.catheter,
+                                         self.marker_config)
+        prebuilt = []
+        if static:  # the rigid wall never moves: its (largest) marker is converted once
+            if self._static_lumen is None:
+                self._static_lumen = conv.marker_msg(Header(), geometries[0])
+            geometries, prebuilt = geometries[1:], [self._static_lumen]
+        self._markers_pub.publish(conv.marker_array_msg(self.now_msg(), self.frame_id,
+                                                        geometries, prebuilt))
+        self._markers_sent = True
 
     def _em_pose(self, t_frame: float) -> tuple[np.ndarray, np.ndarray]:
         """Pose source of the simulated Aurora: mm and (w, x, y, z), one noise draw per frame."""

@@ -11,6 +11,11 @@ workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxrunt
 * ``em_tracker/tip_pose`` (PoseStamped, sensor QoS): on every pose, with a path, publishes
   ``planner/next_waypoint`` and ``planner/suggested_bend`` (:mod:`cgail_planner.core.guidance`);
   in dynamic mode re-plans when the goal moved or the tip left the corridor around the path.
+* ``planner/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the goal
+  (SPHERE of the goal tolerance), the path (LINE_STRIP), the next waypoint (SPHERE) and the
+  suggested bend (its arc, LINE_STRIP, and the heading at the arc's end, ARROW), a full
+  snapshot at most ``marker_rate_hz`` times a second, when one of them changed and someone
+  subscribes (:mod:`cgail_planner.core.markers`).
 * ``anatomy`` is a built-in name, a prepared anatomy directory or a mesh file; one that cannot
   be loaded ends ``planner_node`` with one line and exit status 2.
 * Bad input (missing/corrupt model, goal outside the lumen or in another frame, NaN/inf or
@@ -43,9 +48,11 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
+from visualization_msgs.msg import MarkerArray
 
 from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
+from cgail_planner.core.markers import MarkerConfig, planner_markers, TipGuidance
 from cgail_planner.core.planner import (
     model_world_from_sim,
     Planner,
@@ -140,6 +147,9 @@ class PlannerNode(Node):
                                  'model wall (heartbeat) update, Hz', lo=0.1, hi=100.0)
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, 'period of /diagnostics, s',
                                    lo=0.05, hi=60.0)
+        marker_rate = conv.declare(self, 'marker_rate_hz', 10.0, 'highest rate of '
+                                   'planner/markers (sent when they changed), Hz',
+                                   lo=0.1, hi=100.0)
 
         from cgail_planner.sim.anatomy import anatomy_identity
         from cgail_planner.sim.scenarios import load_world
@@ -210,6 +220,10 @@ class PlannerNode(Node):
         self.last_plan_ms = float('nan')
         self.last_guidance_us = float('nan')
         self.path_points = 0
+        self.marker_config = MarkerConfig()
+        self.last_guidance: TipGuidance | None = None
+        self._markers_changed = True
+        self._markers_sent = False
 
         self._path_pub = self.create_publisher(Path, 'planner/path', conv.LATCHED_QOS)
         self._wp_pub = self.create_publisher(PointStamped, 'planner/next_waypoint',
@@ -218,10 +232,13 @@ class PlannerNode(Node):
                                                conv.SENSOR_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
+        self._markers_pub = self.create_publisher(MarkerArray, 'planner/markers',
+                                                  conv.LATCHED_QOS)
         self.create_subscription(PoseStamped, 'em_tracker/tip_pose', self._on_tip_pose,
                                  conv.SENSOR_QOS)
         self.create_subscription(PoseStamped, 'planner/goal', self._on_goal, conv.COMMAND_QOS)
         self.create_timer(diag_period, self._on_diagnostics)
+        self.create_timer(1.0 / marker_rate, self._on_marker_timer)
         if self.mode == 'dynamic':
             self._wall_dt = 1.0 / wall_rate
             self.create_timer(self._wall_dt, self._on_wall_timer)
@@ -258,6 +275,7 @@ class PlannerNode(Node):
             self._reject('rejected_goals', f'goal rejected: {exc}')
             return
         self.goal = goal
+        self._markers_changed = True
         if self.planned_goal is not None and self.mode == 'dynamic' and \
                 float(np.linalg.norm(goal - self.planned_goal)) \
                 <= self.replan_config.target_move_threshold:
@@ -298,6 +316,9 @@ class PlannerNode(Node):
         stamp = msg.header.stamp
         self._wp_pub.publish(conv.point_msg(stamp, self.frame_id, guide.next_waypoint))
         self._bend_pub.publish(conv.bend_msg(stamp, *guide.bend))
+        self.last_guidance = TipGuidance(position, rotation, guide.next_waypoint, guide.bend,
+                                         guide.distance_to_waypoint)
+        self._markers_changed = True
         self.counts['guidance_updates'] += 1
         self.last_guidance_us = (time.perf_counter() - t0) * 1e6
 
@@ -323,6 +344,8 @@ class PlannerNode(Node):
             self.get_logger().error(self.last_error)
             self.follower = None
             self.planned_goal = None
+            self.last_guidance = None
+            self._markers_changed = True
             return False
         self.counts['plans'] += 1
         self.last_error = ''
@@ -330,6 +353,7 @@ class PlannerNode(Node):
         self.path_points = len(result.path)
         self.follower = PathFollower(result.path, self.guidance_config)
         self.planned_goal = self.goal.copy()
+        self._markers_changed = True
         self._path_pub.publish(conv.path_msg(self.get_clock().now().to_msg(), self.frame_id,
                                              result.path))
         self.get_logger().info(
@@ -337,6 +361,22 @@ class PlannerNode(Node):
             f'{self.follower.length * 1e3:.0f} mm, {result.steps} rollout steps, '
             f'{self.last_plan_ms:.1f} ms')
         return True
+
+    def _on_marker_timer(self) -> None:
+        # nobody listening (a simulated session): the change waits for a subscriber; the
+        # first snapshot always goes out, for late joiners of the latched topic
+        if not self._markers_changed or (self._markers_sent
+                                         and self._markers_pub.get_subscription_count() == 0):
+            return
+        self._markers_changed = False
+        self._markers_sent = True
+        markers = planner_markers(
+            self.marker_config, self.config.catheter, goal=self.goal,
+            goal_radius=self.config.goal_tolerance,
+            path=self.follower.points if self.follower is not None else None,
+            guidance=self.last_guidance if self.follower is not None else None)
+        self._markers_pub.publish(conv.marker_array_msg(self.get_clock().now().to_msg(),
+                                                        self.frame_id, markers))
 
     def _reject(self, counter: str, text: str) -> None:
         self.counts[counter] += 1

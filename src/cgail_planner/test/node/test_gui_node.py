@@ -31,9 +31,10 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 
 class Running:
-    """A GuiNode plus a publisher node, spun by one executor in a background thread."""
+    """A GuiNode plus a publisher node (and ``extra`` nodes), spun by one executor in a
+    background thread."""
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, *extra: Any, **params: Any) -> None:
         overrides = [Parameter('port', value=0), Parameter('anatomy', value='')]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
         self.node = GuiNode(parameter_overrides=overrides)
@@ -50,6 +51,9 @@ class Running:
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.executor.add_node(self.pub)
+        self.extra = extra
+        for node in extra:
+            self.executor.add_node(node)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
 
@@ -80,6 +84,8 @@ class Running:
         self.thread.join(5)
         self.node.destroy_node()
         self.pub.destroy_node()
+        for node in self.extra:
+            node.destroy_node()
 
 
 @pytest.fixture
@@ -321,23 +327,40 @@ def test_port_in_use_is_an_error_not_a_crash(ros: None) -> None:
         sub.destroy_node()
 
 
-def test_dynamic_mode_streams_the_beating_wall(ros: None) -> None:
+def test_dynamic_mode_draws_the_phantoms_deforming_wall(ros: None) -> None:
+    """The page's wall is the phantom's lumen marker (phantom/markers), not a heartbeat of the
+    GUI's own: its mesh replaces the anatomy's rest mesh and its vertices stream as deform
+    frames that move with the phantom's wall."""
     import base64
 
     import numpy as np
 
-    r = Running(anatomy='default', dynamic=True, mesh_rate_hz=20.0)
+    from cgail_planner.nodes.phantom_node import PhantomNode
+
+    phantom = PhantomNode(parameter_overrides=[
+        Parameter('mode', value='dynamic'), Parameter('marker_rate_hz', value=10.0),
+        Parameter('simulate_aurora', value=False), Parameter('simulate_regulators', value=False),
+        Parameter('simulate_driver', value=False)])
+    lumen_vertices = len(np.unique(phantom.lumen.faces))      # 2420 (the mesh has 2455)
+
+    def frame(s: dict[str, Any], item: str) -> np.ndarray:
+        return np.frombuffer(base64.b64decode(s[item]['vertices']), '<f4').reshape(-1, 3)
+
+    r = Running(phantom, anatomy='default', dynamic=True, mesh_rate_hz=20.0)
     try:
         with r.ws() as ws:
-            s = recv_until(ws, lambda m, msg: 'mesh' in m and m.get('deform', {}).get('t', 0)
-                           > 0.3, timeout=30)
-            rest = np.frombuffer(base64.b64decode(s['mesh']['vertices']), '<f4').reshape(-1, 3)
-            now = np.frombuffer(base64.b64decode(s['deform']['vertices']), '<f4').reshape(-1, 3)
-            assert rest.shape == now.shape == (s['mesh']['vertex_count'], 3)
-            moved = np.linalg.norm(now - rest, axis=1)
+            s = recv_until(ws, lambda m, msg: m.get('mesh', {}).get('vertex_count')
+                           == lumen_vertices and 'deform' in m, timeout=60)
+            mesh = frame(s, 'mesh')
+            assert s['mesh']['face_count'] == len(phantom.lumen.faces)
+            t1, first = s['deform']['t'], frame(s, 'deform')
+            assert first.shape == mesh.shape
+            s = recv_until(ws, lambda m, msg: m['deform']['t'] > t1 + 0.2 and np.abs(
+                frame(m, 'deform') - first).max() > 0.001, timeout=30)
+            moved = np.linalg.norm(frame(s, 'deform') - first, axis=1)
             assert moved.max() > 0.001                      # the root moves by millimetres
             assert np.median(moved) < 0.001                 # the descending aorta barely
-            t1 = s['deform']['t']
-            s = recv_until(ws, lambda m, msg: m.get('deform', {}).get('t', 0) > t1 + 0.2)
+        # the rays hit the phantom's wall
+        assert type(r.node._model._wall).__name__ == 'MeshWall'
     finally:
         r.close()

@@ -233,7 +233,9 @@ def test_the_phantom_steps_with_the_lockstep_clock(context, tmp_path) -> None:
         assert phantom.sim_time == pytest.approx(0.5, abs=1e-12)
         # the true pose every 5th tick (10 Hz), stamped with the simulated time
         assert stamps == [100_000_000, 200_000_000, 300_000_000, 400_000_000, 500_000_000]
-        # no steady-clock stepping timer: only the diagnostics timer of the node clock
-        assert [t.timer_period_ns for t in phantom.timers] == [1_000_000_000]
+        # no steady-clock stepping timer: only the diagnostics and the markers (5 Hz) timers,
+        # of the node clock
+        assert [t.timer_period_ns for t in phantom.timers] == [1_000_000_000, 200_000_000]
+        assert all(t.clock is phantom.get_clock() for t in phantom.timers)
     finally:
         phantom.destroy_node()

@@ -79,6 +79,47 @@ def test_model_guide_from_tip_target_and_waypoint() -> None:
         model.on_tip(np.array([np.nan, 0, 0]), np.array([0, 0, 0, 1.0]), 0.0, 0.0)
 
 
+def _box(half: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed cube around the origin (inward-facing does not matter to the rays)."""
+    v = np.array([[x, y, z] for x in (-half, half) for y in (-half, half) for z in (-half, half)])
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    f = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return v, f
+
+
+def test_model_draws_and_raycasts_the_wall_from_a_triangle_list() -> None:
+    import base64
+
+    state = GuiState()
+    model = GuiModel(GuiConfig(anatomy=''), state)
+    v, f = _box(0.02)
+    model.set_anatomy('rest', v * 2.0, f, None)            # a rest mesh first
+    model.on_tip(np.zeros(3), np.array([0, 0, 0, 1.0]), 0.0, 0.0)
+    model.set_lumen(v[f].reshape(-1, 3), 1.0)              # the phantom's lumen arrives
+    mesh = state.get('mesh')
+    assert (mesh['name'], mesh['vertex_count'], mesh['face_count']) == ('lumen', 8, 12)
+    model.on_tip(np.zeros(3), np.array([0, 0, 0, 1.0]), 0.0, 0.0)
+    assert state.get('guide')['wall_ahead'] == pytest.approx(0.02)   # rays hit the lumen
+    # the same topology, moved: a deform frame (no new mesh), the rays follow it
+    version = state.changes_since({})[1]['mesh']
+    model.set_lumen((v * 1.5)[f].reshape(-1, 3), 1.2)
+    assert state.changes_since({})[1]['mesh'] == version
+    deform = state.get('deform')
+    assert deform['t'] == 1.2
+    got = np.frombuffer(base64.b64decode(deform['vertices']), '<f4').reshape(-1, 3)
+    order = np.frombuffer(base64.b64decode(mesh['vertices']), '<f4').reshape(-1, 3)
+    assert got == pytest.approx(order * 1.5)
+    model.on_tip(np.zeros(3), np.array([0, 0, 0, 1.0]), 0.0, 0.0)
+    assert state.get('guide')['wall_ahead'] == pytest.approx(0.03)
+    model.set_anatomy('rest', v * 2.0, f, None)            # the rest mesh no longer wins
+    assert state.get('mesh')['vertex_count'] == 8 and state.get('mesh')['name'] == 'lumen'
+    # another topology is indexed again
+    model.set_lumen(v[f[:6]].reshape(-1, 3), 1.4)
+    assert state.get('mesh')['face_count'] == 6
+    with pytest.raises(ValueError, match='3 per triangle, found 4'):
+        model.set_lumen(np.zeros((4, 3)), 1.5)
+
+
 @pytest.mark.parametrize('text, match', [
     ('nope', 'expected JSON'), ('[]', 'JSON object'), ('{"type": 1}', 'expected type'),
     ('{"type": "trial"}', 'trial action'), ('{"type": "replay", "action": "go"}', 'replay action'),
