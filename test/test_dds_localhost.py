@@ -43,10 +43,11 @@ def test_teleop_child_talks_over_localhost_dds(rclpy_context, tmp_path):
     from sensor_msgs.msg import JointState, Joy
 
     domain = int(os.environ.get('ROS_DOMAIN_ID', '0'))
-    spec = parse_launch({'name': 'dds', 'nodes': [{
-        'name': 'teleop', 'package': 'catheter_driver', 'executable': 'teleop_node',
-        'parameters': {'enable_button': 4, 'axis_insertion': 1, 'scale_insertion': 0.004},
-    }]}, tmp_path)
+    spec = parse_launch({'launch': [{'node': {
+        'name': 'teleop', 'pkg': 'catheter_driver', 'exec': 'teleop_node',
+        'param': [{'name': 'enable_button', 'value': 4}, {'name': 'axis_insertion', 'value': 1},
+                  {'name': 'scale_insertion', 'value': 0.004}],
+    }}]}, tmp_path, name='dds')
     log = io.StringIO()
     launcher = ProcessLauncher(spec, out=log, shutdown_timeout=5.0)
     launcher.start()

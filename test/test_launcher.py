@@ -3,6 +3,7 @@
 import io
 import os
 from pathlib import Path
+import shlex
 import signal
 import subprocess
 import sys
@@ -16,6 +17,8 @@ import yaml
 from cgail_planner.system.launch_spec import (
     LaunchSpecError,
     load_launch_file,
+    load_params_file,
+    NodeSpec,
     parse_launch,
 )
 from cgail_planner.system.launcher import build_node, main, node_command, ProcessLauncher
@@ -41,8 +44,13 @@ STUBBORN_CHILD = GOOD_CHILD.replace('signal.signal(signal.SIGINT, on)',
                                     'signal.signal(signal.SIGINT, signal.SIG_IGN)')
 
 
-def _spec(tmp_path, nodes):
-    return parse_launch({'name': 't', 'nodes': nodes}, tmp_path)
+def _spec(tmp_path, actions, arguments=None):
+    return parse_launch({'launch': actions}, tmp_path, arguments, name='t')
+
+
+def _exe(name, argv, **attrs):
+    """A plain process (``executable`` action) running ``argv``."""
+    return {'executable': {'name': name, 'cmd': shlex.join(argv), **attrs}}
 
 
 def _wait_ready(out: io.StringIO, names, timeout=15.0):
@@ -55,20 +63,48 @@ def _wait_ready(out: io.StringIO, names, timeout=15.0):
     raise AssertionError(f'children not ready: {out.getvalue()!r}')
 
 
-@pytest.mark.parametrize('nodes, match', [
+@pytest.mark.parametrize('actions, match', [
     ([], 'at least one node'),
-    ([{'name': 'a', 'package': 'p'}], 'expected package and executable'),
-    ([{'name': 'a', 'command': ['x'], 'ros': False}, {'name': 'a', 'command': ['y'],
-                                                      'ros': False}], 'duplicates'),
-    ([{'name': 'a', 'command': ['x'], 'colour': 1}], 'unknown key'),
-    ([{'name': 'bad name', 'command': ['x']}], 'identifier'),
-    ([{'name': 'a', 'package': 'p', 'executable': 'e', 'plugin': 'nocolon'}], 'module:Class'),
-    ([{'name': 'a', 'package': 'p', 'executable': 'e', 'parameters_file': 'nope.yaml'}],
-     'not found'),
+    ([{'node': {'name': 'a', 'pkg': 'p'}}], r"node 'a': expected a 'exec' attribute"),
+    ([_exe('a', ['x']), _exe('a', ['y'])], 'duplicates'),
+    ([{'executable': {'name': 'a', 'cmd': 'x', 'colour': 1}}],
+     r"executable 'a' has unknown key\(s\) \['colour'\]"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'plugin': 'p.e:E'}}],
+     r"unknown key\(s\) \['plugin'\]"),
+    ([_exe('bad name', ['x'])], 'identifier'),
+    ([{'executable': {'cmd': 'x'}}], 'expected a name'),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'param': [{'from': 'nope.yaml'}]}}],
+     r"parameters file 'nope.yaml' not found"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'param': [{'name': 'x'}]}}],
+     "parameter 'x' needs a value"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                'param': [{'name': 'x', 'value': '{k: 1}'}]}}],
+     "must read as a bool, number, string or list, found dict '{k: 1}'"),
+    ([{'group': {'scoped': True}}], r"unsupported action 'group'"),
+    ([_exe('a', ['x'], on_exit='restart')], "on_exit must be shutdown, found 'restart'"),
+    ([_exe('a', ['x'], respawn='yes')], "respawn must be true or false, found 'yes'"),
+    ([_exe('a', ['$(eval 1 + 1)'])], r"unsupported substitution '\$\(eval 1 \+ 1\)'"),
+    ([{'executable': {'name': 'a', 'cmd': "python3 'unclosed"}}],
+     "cannot split 'cmd' into words"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'remap': [{'from': 'x'}]}}],
+     r"remap\[0\]: expected exactly from and to, found \['from'\]"),
 ])
-def test_bad_specs_name_the_problem(tmp_path, nodes, match):
+def test_bad_specs_name_the_problem(tmp_path, actions, match):
     with pytest.raises(LaunchSpecError, match=match):
-        _spec(tmp_path, nodes)
+        _spec(tmp_path, actions)
+
+
+@pytest.mark.parametrize('data', [
+    {'name': 'old', 'nodes': [{'name': 'a', 'command': ['x'], 'ros': False}]},
+    [{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e'}}],
+    {'launch': {'node': {'name': 'a', 'pkg': 'p', 'exec': 'e'}}},
+])
+def test_only_the_ros2_yaml_launch_format_is_read(tmp_path, data):
+    with pytest.raises(LaunchSpecError, match=r"expected ROS 2's YAML launch format|"
+                                              r"'launch' must be a list of actions"):
+        parse_launch(data, tmp_path)
+    with pytest.raises(LaunchSpecError, match='module:Class'):
+        NodeSpec(name='a', package='p', executable='e', plugin='nocolon')
 
 
 def test_ros_node_command_has_name_params_and_remaps(tmp_path, monkeypatch):
@@ -77,20 +113,26 @@ def test_ros_node_command_has_name_params_and_remaps(tmp_path, monkeypatch):
     exe.write_text('#!/bin/sh\n')
     exe.chmod(0o755)
     monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path / 'prefix'))
-    spec = _spec(tmp_path, [{'name': 'n1', 'package': 'pkg', 'executable': 'exe',
-                             'parameters': {'rate_hz': 40.0},
-                             'remappings': {'joy': 'gamepad'}}])
-    cmd = node_command(spec.nodes[0], tmp_path)
-    assert cmd[0] == str(exe)
-    assert cmd[1:5] == ['--ros-args', '-r', '__node:=n1', '--params-file']
-    assert yaml.safe_load(Path(cmd[5]).read_text()) == {'n1': {'ros__parameters':
-                                                               {'rate_hz': 40.0}}}
-    assert cmd[-2:] == ['-r', 'joy:=gamepad']
+    (tmp_path / 'a.yaml').write_text('/**: {ros__parameters: {rate_hz: 20.0}}\n')
+    spec = _spec(tmp_path, [{'node': {
+        'name': 'n1', 'pkg': 'pkg', 'exec': 'exe', 'namespace': 'rig', 'output': 'screen',
+        'args': '--verbose "two words"', 'ros_args': '--log-level debug',
+        'param': [{'from': '$(dirname)/a.yaml'}, {'name': 'rate_hz', 'value': 40.0}],
+        'remap': [{'from': 'joy', 'to': 'gamepad'}]}}])
+    node = spec.nodes[0]
+    assert node.plugin == 'pkg.nodes.exe:Exe'
+    assert node.fully_qualified_name == '/rig/n1'
+    cmd = node_command(node, tmp_path)
+    assert cmd[:-1] == [str(exe), '--verbose', 'two words', '--ros-args', '-r', '__node:=n1',
+                        '-r', '__ns:=/rig', '-r', 'joy:=gamepad', '--log-level', 'debug',
+                        '--params-file', str(tmp_path / 'a.yaml'), '--params-file']
+    assert yaml.safe_load(Path(cmd[-1]).read_text()) == {'/**': {'ros__parameters':
+                                                                 {'rate_hz': 40.0}}}
 
 
 def test_missing_executable_is_a_clear_error(tmp_path, monkeypatch):
     monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path))
-    spec = _spec(tmp_path, [{'name': 'n1', 'package': 'pkg', 'executable': 'nope'}])
+    spec = _spec(tmp_path, [{'node': {'name': 'n1', 'pkg': 'pkg', 'exec': 'nope'}}])
     with pytest.raises(LaunchSpecError, match="executable 'nope' of package 'pkg' not found"):
         ProcessLauncher(spec)
 
@@ -98,10 +140,8 @@ def test_missing_executable_is_a_clear_error(tmp_path, monkeypatch):
 def test_sigint_is_forwarded_and_stubborn_children_get_sigterm(tmp_path):
     good, stubborn = tmp_path / 'good.txt', tmp_path / 'stubborn.txt'
     spec = _spec(tmp_path, [
-        {'name': 'good', 'command': [sys.executable, '-c', GOOD_CHILD, str(good)],
-         'ros': False},
-        {'name': 'stubborn', 'command': [sys.executable, '-c', STUBBORN_CHILD, str(stubborn)],
-         'ros': False},
+        _exe('good', [sys.executable, '-c', GOOD_CHILD, str(good)]),
+        _exe('stubborn', [sys.executable, '-c', STUBBORN_CHILD, str(stubborn)]),
     ])
     out = io.StringIO()
     launcher = ProcessLauncher(spec, out=out, shutdown_timeout=1.0)
@@ -122,12 +162,11 @@ def test_sigint_is_forwarded_and_stubborn_children_get_sigterm(tmp_path):
 def test_required_node_exit_shuts_down_the_rest(tmp_path):
     survivor = tmp_path / 'survivor.txt'
     spec = _spec(tmp_path, [
-        {'name': 'crash', 'command': [sys.executable, '-c',
-                                      'import time, sys; time.sleep(0.5); sys.exit(3)'],
-         'ros': False, 'required': True},
-        {'name': 'other', 'command': [sys.executable, '-c', GOOD_CHILD, str(survivor)],
-         'ros': False},
+        _exe('crash', [sys.executable, '-c', 'import time, sys; time.sleep(0.5); sys.exit(3)'],
+             on_exit='shutdown'),
+        _exe('other', [sys.executable, '-c', GOOD_CHILD, str(survivor)]),
     ])
+    assert [n.required for n in spec.nodes] == [True, False]
     out = io.StringIO()
     launcher = ProcessLauncher(spec, out=out, shutdown_timeout=2.0)
     launcher.start()
@@ -140,13 +179,13 @@ def test_respawn_restarts_a_crashed_node(tmp_path):
     counter = tmp_path / 'count.txt'
     script = (f'open({str(counter)!r}, "a").write("x"); import time; time.sleep(0.2); '
               'raise SystemExit(1)')
-    spec = _spec(tmp_path, [{'name': 'flaky', 'command': [sys.executable, '-c', script],
-                             'ros': False, 'respawn': True}])
+    spec = _spec(tmp_path, [_exe('flaky', [sys.executable, '-c', script], respawn=True,
+                                 respawn_delay=0.25)])
     out = io.StringIO()
     launcher = ProcessLauncher(spec, out=out, shutdown_timeout=1.0)
     launcher.start()
-    # supervise in a thread until the third start (respawn delays 0.5 s, then 1 s; each start
-    # is a Python interpreter, slow on a loaded machine), then stop it
+    # supervise in a thread until the third start (respawn_delay 0.25 s; each start is a
+    # Python interpreter, slow on a loaded machine), then stop it
     supervisor = threading.Thread(target=launcher.supervise, kwargs={'max_duration': 60.0})
     supervisor.start()
     deadline = time.monotonic() + 30.0
@@ -157,12 +196,12 @@ def test_respawn_restarts_a_crashed_node(tmp_path):
     supervisor.join(timeout=30.0)
     assert not supervisor.is_alive()
     assert len(counter.read_text()) >= 3, out.getvalue()
-    assert 'respawn #2' in out.getvalue()
+    assert 'respawn #2 in 0.2 s' in out.getvalue()
 
 
 def test_cli_refuses_without_localhost_discovery(tmp_path, monkeypatch, capsys):
     f = tmp_path / 'l.yaml'
-    f.write_text(yaml.safe_dump({'nodes': [{'name': 'a', 'command': ['true'], 'ros': False}]}))
+    f.write_text(yaml.safe_dump({'launch': [_exe('a', ['true'])]}))
     monkeypatch.delenv('ROS_AUTOMATIC_DISCOVERY_RANGE')
     assert main([str(f)]) == 2
     assert 'ROS_AUTOMATIC_DISCOVERY_RANGE is unset' in capsys.readouterr().err
@@ -171,9 +210,8 @@ def test_cli_refuses_without_localhost_discovery(tmp_path, monkeypatch, capsys):
 def test_cli_sigint_shuts_children_down_cleanly(tmp_path):
     marks = [tmp_path / f'{n}.txt' for n in ('a', 'b')]
     f = tmp_path / 'l.yaml'
-    f.write_text(yaml.safe_dump({'name': 'cli', 'nodes': [
-        {'name': m.stem, 'command': [sys.executable, '-c', GOOD_CHILD, str(m)], 'ros': False}
-        for m in marks]}))
+    f.write_text(yaml.safe_dump({'launch': [
+        _exe(m.stem, [sys.executable, '-c', GOOD_CHILD, str(m)]) for m in marks]}))
     proc = subprocess.Popen([sys.executable, '-m', 'cgail_planner.system.launcher', str(f)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
@@ -190,7 +228,7 @@ def test_cli_sigint_shuts_children_down_cleanly(tmp_path):
 
 def test_load_launch_file_reports_yaml_errors(tmp_path):
     f = tmp_path / 'bad.yaml'
-    f.write_text('nodes: [unclosed')
+    f.write_text('launch: [unclosed')
     with pytest.raises(LaunchSpecError, match='not valid YAML'):
         load_launch_file(f)
     with pytest.raises(LaunchSpecError, match='does not exist'):
@@ -198,9 +236,6 @@ def test_load_launch_file_reports_yaml_errors(tmp_path):
 
 
 def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_context):
-    from cgail_planner.system.launch_spec import NodeSpec
-    from cgail_planner.system.launcher import build_node
-
     built = []
     try:
         for lean in (False, True):
@@ -224,60 +259,113 @@ def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_co
 
 
 def test_launch_arguments_replace_var_with_their_default_or_given_value(tmp_path):
-    data = {'name': 'args', 'arguments': {'anatomy': 'default', 'rate': 40},
-            'nodes': [{'name': 'a', 'package': 'p', 'executable': 'e',
-                       'parameters': {'anatomy': '$(var anatomy)', 'rate_hz': 10.0,
-                                      'names': ['$(var anatomy)/x', 'y']},
-                       'args': ['--rate=$(var rate)'], 'env': {'ANATOMY': '$(var anatomy)'}}]}
-    spec = parse_launch(data, tmp_path)
+    data = {'launch': [
+        {'arg': {'name': 'anatomy', 'default': 'default', 'description': 'the aorta'}},
+        {'arg': {'name': 'rate', 'default': '40'}},
+        {'let': {'name': 'tag', 'value': '$(var anatomy)-$(var rate)'}},
+        {'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'args': '--rate=$(var rate)',
+                  'env': [{'name': 'ANATOMY', 'value': '$(var anatomy)'}],
+                  'param': [{'name': 'anatomy', 'value': '$(var anatomy)'},
+                            {'name': 'rate_hz', 'value': 10.0},
+                            {'name': 'names', 'value': ['$(var anatomy)/x', 'y']},
+                            {'name': 'tag', 'value': '$(var tag)'}]}}]}
+    spec = parse_launch(data, tmp_path, name='args')
     assert spec.arguments == {'anatomy': 'default', 'rate': '40'}
     node = spec.nodes[0]
     assert node.parameters == {'anatomy': 'default', 'rate_hz': 10.0,
-                               'names': ['default/x', 'y']}
+                               'names': ['default/x', 'y'], 'tag': 'default-40'}
     assert (node.args, node.env) == (('--rate=40',), {'ANATOMY': 'default'})
     node = parse_launch(data, tmp_path, {'anatomy': '/data/p 07'}).nodes[0]
     assert node.parameters['anatomy'] == '/data/p 07' and node.env['ANATOMY'] == '/data/p 07'
 
 
-@pytest.mark.parametrize('arguments, given, match', [
-    ({'anatomy': 'default'}, {'anatomy2': 'x'},
+def test_parameter_values_are_typed_as_launch_ros_types_them(tmp_path, monkeypatch):
+    """A string value is read as YAML after substitution; files come first, in order."""
+    share = tmp_path / 'prefix' / 'share' / 'pkg'
+    share.mkdir(parents=True)
+    (share / 'p.yaml').write_text('n: {ros__parameters: {a: 1, b: 1}}\n')
+    (tmp_path / 'q.yaml').write_text('/**: {ros__parameters: {b: 2}}\n')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path / 'prefix'))
+    monkeypatch.setenv('RIG_PORT', '8780')
+    monkeypatch.chdir(tmp_path)
+    spec = _spec(tmp_path, [
+        {'arg': {'name': 'empty', 'default': ''}},
+        {'node': {'name': 'n', 'pkg': 'p', 'exec': 'e', 'param': [
+            {'from': '$(find-pkg-share pkg)/p.yaml'}, {'from': 'q.yaml'},
+            {'name': 'port', 'value': '$(env RIG_PORT)'},
+            {'name': 'rate', 'value': '$(env RIG_RATE 2.5)'},
+            {'name': 'flag', 'value': 'true'}, {'name': 'policy', 'value': '$(var empty)'},
+            {'name': 'limits', 'param': [{'name': 'speed', 'value': 0.005},
+                                         {'name': 'angle', 'value': '1.5'}]}]}}])
+    node = spec.nodes[0]
+    assert node.parameters == {'port': 8780, 'rate': 2.5, 'flag': True, 'policy': '',
+                               'limits.speed': 0.005, 'limits.angle': 1.5}
+    assert node.parameters_files == (str(share / 'p.yaml'), str(tmp_path / 'q.yaml'))
+    merged = {}
+    for path in node.parameters_files:
+        merged.update(load_params_file(path, 'n'))
+    assert merged == {'a': 1, 'b': 2}
+    assert load_params_file(str(share / 'p.yaml'), 'n', namespace='rig') == {}
+
+
+@pytest.mark.parametrize('args, given, match', [
+    ([{'name': 'anatomy', 'default': 'default'}], {'anatomy2': 'x'},
      r"^launch 'args' has no argument\(s\) \['anatomy2'\]; expected some of \['anatomy'\]$"),
-    ({}, None, r"^launch 'args': nodes\[0\]\.parameters\.anatomy: \$\(var anatomy\) names no "
-               r"launch argument; expected one of \[\]$"),
-    (['anatomy'], None, r'"arguments" must be a mapping of names to defaults, found list'),
-    ({'anatomy': {'default': 'x'}}, None, r"argument 'anatomy' must have a string default"),
-    ({'my-anatomy': 'x'}, None, r"argument names must be identifiers, found 'my-anatomy'"),
+    ([], None, r"^launch 'args': node 'a'\.param\[0\]: \$\(var anatomy\) names no launch "
+               r"argument; expected one of \[\]$"),
+    ([{'name': 'anatomy', 'default': 40}], None,
+     r"'default' must be a string \(quote it in the YAML\), found int 40"),
+    ([{'name': 'my-anatomy', 'default': 'x'}], None,
+     r"argument names must be identifiers, found 'my-anatomy'"),
+    ([{'name': 'anatomy'}], None,
+     r"^launch 'args' needs the argument 'anatomy' \(it has no default\): give it as "
+     r"anatomy:=VALUE$"),
 ])
-def test_bad_launch_arguments_name_the_problem(tmp_path, arguments, given, match):
-    data = {'name': 'args', 'arguments': arguments,
-            'nodes': [{'name': 'a', 'package': 'p', 'executable': 'e',
-                       'parameters': {'anatomy': '$(var anatomy)'}}]}
+def test_bad_launch_arguments_name_the_problem(tmp_path, args, given, match):
+    data = {'launch': [*({'arg': a} for a in args),
+                       {'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                                 'param': [{'name': 'anatomy', 'value': '$(var anatomy)'}]}}]}
     with pytest.raises(LaunchSpecError, match=match):
-        parse_launch(data, tmp_path, given)
+        parse_launch(data, tmp_path, given, name='args')
 
 
 ANATOMY_NODES = ('phantom', 'planner', 'gui')
 
 
+def test_sim_rig_nodes_build_from_their_packages_node_classes():
+    """sim_rig.yaml holds only what ``ros2 launch`` reads; the in-process class of each node
+    comes from its pkg and exec, and its parameter files from next to the launch file."""
+    import importlib
+
+    spec = load_launch_file(SIM_RIG)
+    assert spec.name == 'sim_rig' and spec.arguments == {'anatomy': 'default', 'policy_path': ''}
+    for node in spec.nodes:
+        module, _, cls = node.plugin.partition(':')
+        assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
+    config = SIM_RIG.parents[1]
+    assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
+        name: (str(config / f'{name}.yaml'),) for name in ('phantom', 'planner', 'operator')}
+    assert [n.name for n in spec.nodes if n.required] == ['phantom']
+
+
 def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_and_gui(tmp_path):
     """In process mode each node gets it in its own params file, in-process as an override;
-    both come from ``parameters`` over ``parameters_file``."""
-    from cgail_planner.system.launch_spec import load_params_file
-
+    both come from the name/value ``param`` entries over the ``from`` files."""
     assert {n.name: n.parameters.get('anatomy') for n in load_launch_file(SIM_RIG).nodes
             if n.name in ANATOMY_NODES} == dict.fromkeys(ANATOMY_NODES, 'default')
     spec = load_launch_file(SIM_RIG, {'anatomy': 'runs/patients/p07',
                                       'policy_path': '/m/p07.onnx'})
     for node in spec.nodes:
-        params = load_params_file(node.parameters_file, node.name) \
-            if node.parameters_file else {}
+        params = {}
+        for path in node.parameters_files:
+            params.update(load_params_file(path, node.name))
         params.update(node.parameters)
         expected = 'runs/patients/p07' if node.name in ANATOMY_NODES else None
         assert params.get('anatomy') == expected, node.name
         if node.name in ANATOMY_NODES:
             cmd = node_command(node, tmp_path)
             assert cmd[-2] == '--params-file'
-            assert yaml.safe_load(Path(cmd[-1]).read_text())[node.name]['ros__parameters'][
+            assert yaml.safe_load(Path(cmd[-1]).read_text())['/**']['ros__parameters'][
                 'anatomy'] == expected
         if node.name == 'planner':
             assert params['policy_path'] == '/m/p07.onnx'
@@ -329,3 +417,11 @@ def test_rig_launch_refuses_a_bad_anatomy_in_one_line(tmp_path, capsys):
 def test_rig_launch_refuses_bad_launch_arguments(capsys, words, text):
     assert main([str(SIM_RIG), *words]) == 2
     assert capsys.readouterr().err == f'rig_launch: {text}\n'
+
+
+def test_launch_arguments_may_follow_the_options(capsys):
+    """As the README writes it: ``rig_launch FILE --in-process NAME:=VALUE``."""
+    assert main([str(SIM_RIG), '--in-process', '--max-duration', '1', 'anatomyy:=x']) == 2
+    assert capsys.readouterr().err == ("rig_launch: launch 'sim_rig' has no argument(s) "
+                                       "['anatomyy']; expected some of ['anatomy', "
+                                       "'policy_path']\n")

@@ -4,6 +4,9 @@
   storing each topic's offered QoS profiles in ``metadata.yaml`` exactly as rosbag2 does
   (``offered_qos_profiles``) and free-form ``custom_data`` (e.g. ``condition: cgail``).
   :meth:`BagWriter.flush` closes the pending MCAP chunk and flushes it to disk.
+* :class:`JazzyWriter` is rosbags' ``Writer`` stamping ``ros_distro: jazzy`` (what rosbag2 on
+  Jazzy writes) instead of ``ros_distro: rosbags``, in ``metadata.yaml`` and in the MCAP file's
+  ``rosbag2`` metadata record alike. Every bag this workspace writes goes through it.
 * :func:`open_bag` / :func:`iter_raw` read a bag directory or a bare ``.mcap`` file and turn
   every failure of a missing, truncated or corrupt bag into one :class:`BagError` naming the
   path and the problem.
@@ -21,16 +24,54 @@ from rosbags.interfaces import Connection, Qos
 from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
+import yaml
 
 from cgail_planner.bags.errors import BagError
 
 #: Type store of every bag written and read here.
 TYPESTORE: Typestore = get_typestore(Stores.ROS2_JAZZY)
+#: ``ros_distro`` of every bag written here: the distribution the messages belong to.
+ROS_DISTRO = 'jazzy'
 
 #: Exceptions the rosbags reader raises on broken files (wrapped into BagError).
 _READ_ERRORS = (ReaderError, struct.error, EOFError, KeyError, IndexError, ValueError,
                 UnicodeDecodeError, AssertionError, OSError, TypeError, OverflowError,
                 MemoryError)
+
+
+def _with_distro(info_yaml: str) -> str:
+    """The ``rosbag2_bagfile_information`` YAML text with ``ros_distro`` set to ``jazzy``."""
+    info = yaml.safe_load(info_yaml)
+    info['ros_distro'] = ROS_DISTRO
+    return yaml.safe_dump(info, default_flow_style=False, sort_keys=False).strip()
+
+
+class JazzyWriter(Writer):
+    """rosbags' ``Writer`` that records ``ros_distro: jazzy`` instead of ``rosbags``.
+
+    rosbags hard-codes ``ros_distro: rosbags`` into the metadata it writes at :meth:`close`:
+    into ``metadata.yaml`` and into the MCAP ``rosbag2`` metadata record (which readers of a
+    bare ``.mcap`` use). Both are rewritten to name the distribution, as ``ros2 bag record`` on
+    Jazzy does; everything else stays as rosbags wrote it, so rosbags' ``Reader`` (and rosbag2)
+    read the bag as before.
+    """
+
+    def close(self) -> None:
+        """Close the storage, writing both metadata copies with ``ros_distro: jazzy``."""
+        storage = self.storage
+        if storage is not None:
+            close_storage = storage.close
+
+            def close_with_distro(version: int, metadata: str) -> None:
+                close_storage(version, _with_distro(metadata))
+
+            storage.close = close_with_distro  # type: ignore[method-assign]
+        super().close()
+        doc = yaml.safe_load(self.metapath.read_text())
+        doc['rosbag2_bagfile_information']['ros_distro'] = ROS_DISTRO
+        tmp = self.metapath.with_suffix('.yaml.tmp')
+        tmp.write_text(yaml.safe_dump(doc, default_flow_style=False, sort_keys=False))
+        tmp.replace(self.metapath)
 
 
 class BagWriter:
@@ -46,7 +87,7 @@ class BagWriter:
     def __init__(self, path: Path | str, custom_data: dict[str, str] | None = None) -> None:
         self.path = Path(path)
         try:
-            self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            self._writer = JazzyWriter(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
             for key, value in (custom_data or {}).items():
                 self._writer.set_custom_data(key, str(value))
             self._writer.open()

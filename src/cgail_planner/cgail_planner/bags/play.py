@@ -3,12 +3,23 @@
     scripts/ros2run cgail_planner bag_play bags/fixtures/cgail_trial
     scripts/ros2run cgail_planner bag_play RUN --rate 2 --loop --start-offset 5
     scripts/ros2run cgail_planner bag_play RUN --topics em_tracker/tip_pose planner/path
+    scripts/ros2run cgail_planner bag_play RUN --clock          # /clock at 40 Hz (--clock 100)
 
 * Publishers are recreated with the QoS recorded in the bag's ``offered_qos_profiles``
   (reliable/transient-local only when every recorded publisher was), so a latched topic such as
   ``planner/path`` stays latched for late subscribers while the player runs.
 * Messages go out in log-time order with the original spacing divided by ``--rate``; serialized
   CDR bytes are published as they are (``publisher.publish(bytes)``), nothing is decoded.
+* ``--clock [HZ]`` makes the player a ROS time source, as ``ros2 bag play --clock`` does: it
+  publishes ``rosgraph_msgs/Clock`` on ``/clock`` (rclcpp's ``ClockQoS``: best effort, keep
+  last 1) at HZ ticks per second of wall time, 40 when no HZ is given. Tick ``k`` of a pass is
+  due ``k / HZ`` s after the pass started and carries the bag time ``start + k * rate / HZ``
+  (``start``: the bag's first timestamp, or ``--start-offset`` later), and it goes out before
+  every message logged at or after that bag time. Nodes with ``use_sim_time`` then run on the
+  bag's clock, sped up with ``--rate``; each ``--loop`` pass starts the clock again from
+  ``start``. The ticks stop with the last message (ros2 bag play keeps its clock running).
+  Write the bag before ``--clock`` (``bag_play RUN --clock``): in ``--clock RUN`` the bag would
+  be read as HZ. A bag that records ``/clock`` itself is refused with ``--clock``.
 * A missing, truncated or corrupt bag ends with ``bag_play: error: <path>: ...`` and exit
   status 2, not a traceback (:class:`~cgail_planner.bags.errors.BagError`).
 """
@@ -32,6 +43,11 @@ from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.qos import to_rclpy
 from cgail_planner.bags.rosutil import get_message_class
 
+#: ``/clock`` rate of ``--clock`` without a value (ros2 bag play's default).
+DEFAULT_CLOCK_HZ = 40.0
+#: The time source's topic.
+CLOCK_TOPIC = '/clock'
+
 
 @dataclass(frozen=True)
 class PlayerConfig:
@@ -49,7 +65,10 @@ class PlayerConfig:
     """Only these topics (relative names resolve to the root namespace); empty: all."""
     wait_for_subscribers: float = 0.0
     """Before publishing, wait up to this many seconds until every publisher has a matched
-    subscription (0: do not wait)."""
+    subscription (0: do not wait). The ``/clock`` publisher is not waited for."""
+    clock_hz: float = 0.0
+    """Publish the bag time on ``/clock`` at this many ticks per second of wall time, >= 0
+    (0: no clock; ``--clock`` alone: :data:`DEFAULT_CLOCK_HZ`)."""
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.rate) and self.rate > 0.0):
@@ -59,6 +78,8 @@ class PlayerConfig:
         if not self.wait_for_subscribers >= 0.0:
             raise ValueError(f'wait_for_subscribers must be >= 0 s, '
                              f'found {self.wait_for_subscribers}')
+        if not (math.isfinite(self.clock_hz) and self.clock_hz >= 0.0):
+            raise ValueError(f'clock_hz must be >= 0 Hz (0: no /clock), found {self.clock_hz}')
 
 
 class BagPlayer:
@@ -92,11 +113,27 @@ class BagPlayer:
         if not types:
             what = f'topics {sorted(wanted)}' if wanted else 'any topic'
             raise BagError(f'{config.bag}: expected {what} to play, found none')
+        if config.clock_hz > 0.0 and CLOCK_TOPIC in types:
+            raise BagError(f'{config.bag}: the bag records {CLOCK_TOPIC} itself; play it '
+                           f'without --clock (or leave {CLOCK_TOPIC} out with --topics)')
         self.publishers = {
             topic: node.create_publisher(get_message_class(msgtype), topic,
                                          to_rclpy(offered.get(topic, [])))
             for topic, msgtype in sorted(types.items())
         }
+        self.clock_publisher: Any = None
+        """The ``/clock`` publisher (``clock_hz > 0``), else None."""
+        self.clock_ticks = 0
+        """``/clock`` messages published so far."""
+        if config.clock_hz > 0.0:
+            from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+            from rosgraph_msgs.msg import Clock
+
+            self._clock_msg = Clock
+            # rclcpp::ClockQoS, what ros2 bag play offers and rclpy's time source reads
+            self.clock_publisher = node.create_publisher(Clock, CLOCK_TOPIC, QoSProfile(
+                history=HistoryPolicy.KEEP_LAST, depth=1,
+                reliability=ReliabilityPolicy.BEST_EFFORT, durability=DurabilityPolicy.VOLATILE))
 
     def wait_for_subscribers(self, timeout: float, stop: threading.Event) -> bool:
         """Wait until every publisher has a matched subscription; False on timeout/stop."""
@@ -129,18 +166,42 @@ class BagPlayer:
         published = 0
         while not halt.is_set():
             wall0 = time.monotonic()
+            tick = 0
             with open_bag(cfg.bag) as reader:
                 start = first_ns if cfg.start_offset > 0.0 else None
                 for conn, log_ns, raw in iter_raw(reader, list(self.publishers), start):
+                    if self.clock_publisher is not None:
+                        tick = self._clock_until(log_ns - first_ns, first_ns, wall0, tick, halt)
                     due = wall0 + (log_ns - first_ns) * 1e-9 / cfg.rate
-                    delay = due - time.monotonic()
-                    if delay > 0.0 and halt.wait(delay):
+                    if not _wait_until(due, halt):
                         break
                     self.publishers[conn.topic].publish(bytes(raw))
                     published += 1
             if not cfg.loop:
                 break
         return published
+
+    def _clock_until(self, elapsed_ns: int, first_ns: int, wall0: float, tick: int,
+                     halt: threading.Event) -> int:
+        """Publish the clock ticks from ``tick`` on up to bag time ``first_ns + elapsed_ns``,
+        each at its wall time; returns the next tick (stops early when ``halt`` is set)."""
+        hz, rate = self.config.clock_hz, self.config.rate
+        while (bag_ns := round(tick * rate * 1e9 / hz)) <= elapsed_ns:
+            if not _wait_until(wall0 + tick / hz, halt):
+                break
+            stamp = first_ns + bag_ns
+            msg = self._clock_msg()
+            msg.clock.sec, msg.clock.nanosec = divmod(stamp, 10**9)
+            self.clock_publisher.publish(msg)
+            self.clock_ticks += 1
+            tick += 1
+        return tick
+
+
+def _wait_until(due: float, halt: threading.Event) -> bool:
+    """Sleep until ``time.monotonic()`` reaches ``due``; False when ``halt`` was set first."""
+    delay = due - time.monotonic()
+    return not (delay > 0.0 and halt.wait(delay)) and not halt.is_set()
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,6 +215,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--topics', nargs='+', default=[], help='only these topics')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='TIMEOUT',
                         help='wait up to TIMEOUT s for a subscriber on every topic first')
+    parser.add_argument('--clock', type=float, nargs='?', const=DEFAULT_CLOCK_HZ, default=0.0,
+                        metavar='HZ',
+                        help='publish the bag time on /clock at HZ ticks per second of wall '
+                             f'time (default {DEFAULT_CLOCK_HZ:g} Hz), as a ROS time source')
     parser.add_argument('--linger', type=float, default=1.0,
                         help='seconds to keep publishers alive after the last message so '
                              'reliable/latched samples are delivered (default 1)')
@@ -173,7 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = PlayerConfig(bag=args.bag, rate=args.rate, loop=args.loop,
                               start_offset=args.start_offset, topics=tuple(args.topics),
-                              wait_for_subscribers=args.wait_for_subscribers)
+                              wait_for_subscribers=args.wait_for_subscribers,
+                              clock_hz=args.clock)
     except ValueError as exc:
         parser.error(str(exc))
     rclpy.init(args=ros_args, signal_handler_options=SignalHandlerOptions.NO)
@@ -182,8 +248,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     with stop_on_signals() as stop:
         try:
             player = BagPlayer(node, config)
+            clock = f', {CLOCK_TOPIC} at {config.clock_hz:g} Hz' if config.clock_hz else ''
             print(f'bag_play: playing {config.bag} ({", ".join(player.publishers)}) at '
-                  f'rate {config.rate:g}', flush=True)
+                  f'rate {config.rate:g}{clock}', flush=True)
             count = player.play(stop)
             print(f'bag_play: published {count} messages', flush=True)
             stop.wait(max(0.0, args.linger))

@@ -67,10 +67,11 @@ from typing import Any, NamedTuple
 import warnings
 
 import numpy as np
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import Reader, StoragePlugin
 from rosbags.rosbag2.writer import CompressionFormat, CompressionMode
 from rosbags.typesys import get_typestore, Stores
 
+from cgail_planner.bags.bagio import JazzyWriter
 from cgail_planner.learning.errors import DemoAnatomyWarning, DemoError
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
@@ -208,7 +209,7 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     Header = T['std_msgs/msg/Header']
     if path.exists():
         raise DemoError(f'demo bag already exists: {path} (remove it first)')
-    writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer = JazzyWriter(path, version=9, storage_plugin=StoragePlugin.MCAP)
     if compress:
         # zstd chunk compression inside the MCAP file (needs the zstandard package)
         writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)

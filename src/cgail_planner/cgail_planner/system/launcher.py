@@ -1,9 +1,11 @@
 """A small multi-node launcher (ROS 2 ``launch`` is not installable from PyPI).
 
-Starts a named set of nodes with their YAML parameters, either as child processes (default,
-one process per node, like ``ros2 launch``) or all in this process on one multi-threaded
-executor (``--in-process``), forwards SIGINT/SIGTERM, and shuts everything down cleanly:
-SIGINT to every child, then SIGTERM after ``--shutdown-timeout`` seconds, then SIGKILL.
+Reads a launch file in ROS 2's YAML launch format (:mod:`cgail_planner.system.launch_spec`;
+the same file works with ``ros2 launch`` on a full install) and starts its nodes with their
+parameters, either as child processes (default, one process per node, like ``ros2 launch``) or
+all in this process on one multi-threaded executor (``--in-process``), forwards SIGINT/SIGTERM,
+and shuts everything down cleanly: SIGINT to every child, then SIGTERM after
+``--shutdown-timeout`` seconds, then SIGKILL.
 
 Usage (pip-only workspace; ``ros2 run cgail_planner rig_launch ...`` on a full ROS install)::
 
@@ -69,16 +71,24 @@ def node_command(node: NodeSpec, params_dir: Path) -> list[str]:
     cmd += list(node.args)
     if not node.ros:
         return cmd
-    cmd += ['--ros-args', '-r', f'__node:={node.name}']
-    if node.parameters_file:
-        cmd += ['--params-file', node.parameters_file]
+    cmd += ['--ros-args', *_ros_arguments(node)]
+    for path in node.parameters_files:
+        cmd += ['--params-file', path]
     if node.parameters:
         pfile = params_dir / f'{node.name}.yaml'
         pfile.write_text(yaml.safe_dump(ros_params_yaml(node)))
         cmd += ['--params-file', str(pfile)]
-    for src, dst in node.remappings.items():
-        cmd += ['-r', f'{src}:={dst}']
     return cmd
+
+
+def _ros_arguments(node: NodeSpec) -> list[str]:
+    """Name, namespace, remappings and the file's ``ros_args`` (after ``--ros-args``)."""
+    words = ['-r', f'__node:={node.name}']
+    if node.namespace:
+        words += ['-r', f'__ns:=/{node.namespace.strip("/")}']
+    for src, dst in node.remappings.items():
+        words += ['-r', f'{src}:={dst}']
+    return words + list(node.ros_args)
 
 
 @dataclass
@@ -185,7 +195,9 @@ class ProcessLauncher:
                     break
                 if child.spec.respawn:
                     child.restarts += 1
-                    delay = min(0.5 * 2 ** (child.restarts - 1), 10.0)
+                    delay = child.spec.respawn_delay
+                    if delay is None:
+                        delay = min(0.5 * 2 ** (child.restarts - 1), 10.0)
                     self._emit('launch', f'{child.spec.name} exited with code {code}; '
                                f'respawn #{child.restarts} in {delay:.1f} s')
                     child.proc = None
@@ -257,9 +269,10 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
                prepare: Callable[[Any], None] | None = None) -> Any:
     """Build one ROS node of a spec in this process, configured and activated if lifecycle.
 
-    Parameters: the ``parameters_file`` first, then the inline ``parameters``, then ``extra``.
-    The node class is built as ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r',
-    '__node:=<name>'])``, so it must forward ``**kwargs`` to ``rclpy.node.Node.__init__``.
+    Parameters: the ``parameters_files`` first, then the name/value ``parameters``, then
+    ``extra``. The node class is built as ``Class(parameter_overrides=[...],
+    cli_args=['--ros-args', '-r', '__node:=<name>', ...])`` (namespace, remappings and
+    ``ros_args`` too), so it must forward ``**kwargs`` to ``rclpy.node.Node.__init__``.
 
     With ``lean`` the node offers no parameter services, no ``/rosout`` publisher and
     (lifecycle nodes) no lifecycle services: for a closed in-process rig that nothing outside
@@ -279,8 +292,8 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
     from rclpy.parameter import Parameter
 
     params: dict[str, Any] = {}
-    if spec_node.parameters_file:
-        params.update(load_params_file(spec_node.parameters_file, spec_node.name))
+    for path in spec_node.parameters_files:
+        params.update(load_params_file(path, spec_node.name, spec_node.namespace))
     params.update(spec_node.parameters)
     params.update(extra or {})
     cls = _import_plugin(spec_node.plugin)
@@ -295,7 +308,7 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
         if isinstance(cls, type) and issubclass(cls, LifecycleNode):
             options['enable_communication_interface'] = False
     node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in params.items()],
-               cli_args=['--ros-args', '-r', f'__node:={spec_node.name}'], **options)
+               cli_args=['--ros-args', *_ros_arguments(spec_node)], **options)
     if prepare is not None:
         prepare(node)
     if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
@@ -327,7 +340,7 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     children = ProcessLauncher(plain, out=out) if plain else None
     if children:
         children.start()
-    rclpy.init()
+    rclpy.init(args=[])  # not sys.argv: rcl would read NAME:=VALUE as a global remap
     executor = MultiThreadedExecutor()
     nodes = []
     code = 0
@@ -360,7 +373,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='rig_launch', description=__doc__.split('\n\n')[0],
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument('launch_file', help='launch YAML (see cgail_planner.system.launch_spec)')
+    parser.add_argument('launch_file', help="launch file in ROS 2's YAML launch format (see "
+                        'cgail_planner.system.launch_spec)')
     parser.add_argument('launch_arguments', nargs='*', metavar='NAME:=VALUE',
                         help="launch arguments over the file's defaults (e.g. anatomy:=DIR)")
     parser.add_argument('--only', nargs='+', metavar='NODE', help='start only these nodes')
@@ -376,7 +390,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    # intermixed: NAME:=VALUE may follow options (rig_launch FILE --in-process anatomy:=DIR)
+    args = build_parser().parse_intermixed_args(argv)
     if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') and \
             not args.allow_unset_discovery_range:
         print('rig_launch: ROS_AUTOMATIC_DISCOVERY_RANGE is unset, so DDS would multicast onto '

@@ -19,7 +19,7 @@ from rosbags.interfaces import QosDurability, QosReliability
 
 from cgail_planner.bags.bagio import BagWriter, iter_raw, open_bag, TYPESTORE
 from cgail_planner.bags.errors import BagError
-from cgail_planner.bags.play import BagPlayer, PlayerConfig
+from cgail_planner.bags.play import BagPlayer, build_parser, PlayerConfig
 from cgail_planner.bags.qos import COMMAND, LATCHED, SENSOR
 from cgail_planner.bags.record import BagRecorder, RecorderConfig
 
@@ -154,6 +154,67 @@ def test_rate_and_start_offset_set_the_timing(ros, tmp_path: Path) -> None:
     node.destroy_node()
 
 
+def test_clock_publishes_the_bag_time_at_the_clock_rate(ros, tmp_path: Path) -> None:
+    """``--clock 50 --rate 2``: a tick every 20 ms of wall time, 40 ms of bag time apart, from
+    the bag's start to its last played message; a ``use_sim_time`` node follows it."""
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    source = tmp_path / 'source'
+    make_source_bag(source)
+    player_node = rclpy.create_node('bag_player_clock')
+    listener = rclpy.create_node('clock_listener',
+                                 parameter_overrides=[Parameter('use_sim_time', value=True)])
+    executor = SingleThreadedExecutor()
+    executor.add_node(listener)
+    ticks: list[int] = []
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    clock_sub = listener.create_subscription(
+        Clock, '/clock', lambda m: ticks.append(m.clock.sec * 10**9 + m.clock.nanosec),
+        best_effort)
+    poses: list[bytes] = []
+    pose_sub = listener.create_subscription(PoseStamped, '/rt/pose', poses.append, 100,
+                                            raw=True)
+    player = BagPlayer(player_node, PlayerConfig(bag=source, rate=2.0, topics=('rt/pose',),
+                                                 clock_hz=50.0))
+    assert spin_until(executor, lambda: player.clock_publisher.get_subscription_count() > 0
+                      and clock_sub.get_publisher_count() > 0
+                      and pose_sub.get_publisher_count() > 0, 10.0)
+    done = threading.Event()
+    count: list[int] = []
+    thread = threading.Thread(target=lambda: (count.append(player.play()), done.set()))
+    start = time.monotonic()
+    thread.start()
+    # the bag starts at T0 (the path) and its last pose is at T0 + 0.4 s: ticks 0 .. 10
+    expected = [T0 + k * 40_000_000 for k in range(11)]
+    assert spin_until(executor, lambda: done.is_set() and len(ticks) == 11
+                      and len(poses) == 20, 15.0), (ticks, len(poses))
+    thread.join()
+    assert 0.18 <= time.monotonic() - start < 5.0
+    assert count == [20] and player.clock_ticks == 11
+    assert ticks == expected
+    assert listener.get_clock().now().nanoseconds == expected[-1]
+    player_node.destroy_node()
+    listener.destroy_node()
+
+
+def test_clock_option_defaults_to_40_hz_as_ros2_bag_play(ros, tmp_path: Path) -> None:
+    parse = build_parser().parse_args
+    assert [parse(words).clock for words in (['b'], ['b', '--clock'], ['b', '--clock', '100'])] \
+        == [0.0, 40.0, 100.0]
+    bag = tmp_path / 'clocked'
+    with BagWriter(bag) as w:
+        w.add_topic('/clock', 'rosgraph_msgs/msg/Clock', [SENSOR])
+        w.write('/clock', T0, TYPESTORE.serialize_cdr(
+            T['rosgraph_msgs/msg/Clock'](clock=header(T0).stamp), 'rosgraph_msgs/msg/Clock'))
+    node = rclpy.create_node('bag_player_clocked')
+    assert BagPlayer(node, PlayerConfig(bag=bag)).clock_publisher is None
+    with pytest.raises(BagError, match='the bag records /clock itself'):
+        BagPlayer(node, PlayerConfig(bag=bag, clock_hz=40.0))
+    node.destroy_node()
+
+
 def damaged_copy(tmp_path: Path, damage: Callable[[bytes], bytes]) -> Path:
     bag = tmp_path / 'cut'
     shutil.copytree(FIXTURE, bag)
@@ -190,6 +251,8 @@ def test_player_reports_missing_bags_and_topics(ros, tmp_path: Path) -> None:
     ('rate', 0.0, 'rate must be a positive factor'),
     ('start_offset', -1.0, 'start_offset must be >= 0'),
     ('wait_for_subscribers', -1.0, 'wait_for_subscribers must be >= 0'),
+    ('clock_hz', -40.0, r'clock_hz must be >= 0 Hz \(0: no /clock\), found -40.0'),
+    ('clock_hz', float('inf'), 'clock_hz must be >= 0 Hz'),
 ])
 def test_player_config_validation(field: str, value: float, match: str) -> None:
     with pytest.raises(ValueError, match=match):

@@ -45,6 +45,7 @@ def test_demo_bag_round_trip(tmp_path: Path, compress: bool, anatomy_hash: str |
     write_demo_bag(tmp_path / 'bag', eps, anatomy='default', mode='static', dt=0.1,
                    compress=compress, anatomy_hash=anatomy_hash)
     assert list((tmp_path / 'bag').glob('*.mcap'))
+    assert '  ros_distro: jazzy\n' in (tmp_path / 'bag' / 'metadata.yaml').read_text()
     meta, back = read_demo_bag(tmp_path / 'bag')
     if anatomy_hash is None:  # as the bags written before the hash was stored
         assert meta == {'anatomy': 'default', 'mode': 'static', 'scenario_seed': 0}
