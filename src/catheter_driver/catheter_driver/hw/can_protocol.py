@@ -104,12 +104,19 @@ class DriverCodec:
     Args:
         dbc_path: the DBC file (default :func:`default_dbc_path`).
         position_range: plausible sleeve positions (m); a status outside is a ProtocolError.
+
+    Raises:
+        ProtocolError: the DBC file is missing, unreadable or not a CAN database.
     """
 
     def __init__(self, dbc_path: Path | str | None = None, *,
                  position_range: tuple[float, float] = (-0.01, 0.2)) -> None:
         path = Path(dbc_path) if dbc_path else default_dbc_path()
-        db = cantools.database.load_file(str(path))
+        try:
+            db = cantools.database.load_file(str(path))
+        except (OSError, cantools.database.UnsupportedDatabaseFormatError) as exc:
+            raise ProtocolError(f'expected a readable CAN database (DBC) at {path}, found '
+                                f'{type(exc).__name__}: {exc}') from exc
         if not isinstance(db, Database):
             raise ProtocolError(f'expected a CAN database in {path}, found {type(db).__name__}')
         self._estop = db.get_message_by_frame_id(ESTOP_ID)

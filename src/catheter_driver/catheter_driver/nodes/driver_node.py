@@ -3,20 +3,30 @@
 Run: ``ros2 run catheter_driver driver_node`` (or ``scripts/ws driver_node`` in the pip-only
 workspace); with the defaults it drives a simulated driver on a python-can virtual bus.
 
-A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it):
+A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it
+unless ``autostart`` is false, which leaves it unconfigured for a lifecycle manager):
 
 * constructor: parameters declared and validated (bad values raise ``ValueError`` here);
-* ``on_configure``: the simulated driver (if any) starts, the CAN link is opened (a failure is
-  retried with backoff by the control timer), lifecycle publishers, the command subscription,
-  the e-stop service and the timers are created;
+* ``on_configure``: the parameters are read again, the simulated driver (if any) starts, the
+  CAN link is opened (a failure is retried with backoff by the control timer), lifecycle
+  publishers, the command subscription, the e-stop service and the timers are created;
 * ``on_activate``: insertion commands are accepted and relayed, state and diagnostics published;
 * inactive (and ``on_deactivate``): commands are ignored, the sleeve is held still with both
   grippers closed (the catheter clamped) on every control tick; nothing is published;
 * ``on_cleanup``: hold command, link closed, simulated driver stopped, entities destroyed;
 * ``on_shutdown`` / ``on_error`` / ``destroy_node``: the same safe stop and release, in any state.
+
+Parameters are read at configure: a change is accepted only while the node is unconfigured
+(validated, applied by the next configure); in any other state ``set_parameters`` answers
+``successful=False`` with the reason (:mod:`catheter_driver.nodes.params`). ``autostart`` is
+read-only.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import rclpy
@@ -41,7 +51,99 @@ from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes import RCLError, try_shutdown
-from catheter_driver.nodes.params import declare
+from catheter_driver.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard, declare
+
+_R, _S = RelayConfig(), SupervisionConfig()
+#: name: (default, description, (lo, hi) or None). Defaults equal the dataclass defaults.
+PARAMETERS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
+    'max_speed': (_R.max_speed, 'catheter speed cap, insertion and retraction, m/s',
+                  (1e-6, 0.005)),
+    'return_speed': (_R.return_speed, 'sleeve speed on the return stroke, m/s', (1e-6, 0.05)),
+    'stroke_min': (_R.stroke_min, 'sleeve back end, m', None),
+    'stroke_max': (_R.stroke_max, 'sleeve front end, m', None),
+    'position_min': (_R.position_min, 'smallest catheter insertion, m', None),
+    'position_max': (_R.position_max, 'largest catheter insertion, m', None),
+    'gripper_close_time': (_R.gripper_close_time,
+                           'nominal gripper closing time (simulation), s', None),
+    'gripper_open_time': (_R.gripper_open_time, 'nominal gripper opening time (simulation), s',
+                          None),
+    'gripper_timeout': (_R.gripper_timeout, 'handover step longer than this is a fault, s',
+                        None),
+    'control_rate_hz': (_S.control_rate_hz, 'relay control loop and state rate, Hz',
+                        (1.0, 1000.0)),
+    'command_timeout_s': (_S.command_timeout, 'watchdog: stop when commands are older, s',
+                          None),
+    'status_timeout_s': (_S.status_timeout,
+                         'device counts as disconnected after this silence, s', None),
+    'reconnect_backoff_initial_s': (_S.backoff_initial, 'first reconnect delay, s', None),
+    'reconnect_backoff_max_s': (_S.backoff_max, 'largest reconnect delay, s', None),
+    'diagnostics_period_s': (_S.diagnostics_period, '/diagnostics period, s', None),
+    'can_interface': ('virtual', "python-can interface ('virtual', 'socketcan', ...)", None),
+    'can_channel': ('sleeve_driver', 'python-can channel', None),
+    'can_bitrate': (500000, 'CAN bitrate, bit/s', (10000, 1000000)),
+    'simulate_device': (True, 'start a simulated driver on the virtual bus in this process',
+                        None),
+    'dbc_path': ('', 'DBC file; empty = the bundled driver.dbc', None),
+    'hardware_id': ('sleeve_driver', 'hardware_id in /diagnostics', None),
+    'autostart': (True, AUTOSTART_DESCRIPTION, None),
+}
+#: Parameters fixed for the node's life (the others are read at configure).
+_READ_ONLY = frozenset({'autostart'})
+_CONFIGURE_TIME = tuple(name for name in PARAMETERS if name not in _READ_ONLY)
+
+
+@dataclass(frozen=True)
+class DriverSettings:
+    """What the node builds from its parameters (:func:`build_settings`)."""
+
+    relay: RelayConfig
+    """Relay mechanism and caps."""
+    supervision: SupervisionConfig
+    """Rates, watchdog and reconnection."""
+    interface: str
+    """python-can interface."""
+    channel: str
+    """python-can channel."""
+    bitrate: int
+    """CAN bitrate, bit/s."""
+    simulate: bool
+    """Run the simulated driver in-process."""
+    hardware_id: str
+    """hardware_id in /diagnostics."""
+    codec: DriverCodec
+    """Frame codec of the DBC file."""
+
+
+def build_settings(values: Mapping[str, Any]) -> DriverSettings:
+    """The :class:`DriverSettings` of the parameter values ``{name: value}``.
+
+    Raises:
+        ValueError: a value out of range or inconsistent; ProtocolError (a ValueError) for a
+            DBC file that cannot be read.
+    """
+    relay = RelayConfig(
+        max_speed=values['max_speed'], return_speed=values['return_speed'],
+        stroke_min=values['stroke_min'], stroke_max=values['stroke_max'],
+        position_min=values['position_min'], position_max=values['position_max'],
+        gripper_close_time=values['gripper_close_time'],
+        gripper_open_time=values['gripper_open_time'],
+        gripper_timeout=values['gripper_timeout'])
+    supervision = SupervisionConfig(
+        control_rate_hz=values['control_rate_hz'],
+        command_timeout=values['command_timeout_s'],
+        status_timeout=values['status_timeout_s'],
+        backoff_initial=values['reconnect_backoff_initial_s'],
+        backoff_max=values['reconnect_backoff_max_s'],
+        diagnostics_period=values['diagnostics_period_s'])
+    interface, simulate = str(values['can_interface']), bool(values['simulate_device'])
+    if simulate and interface != 'virtual':
+        raise ValueError(f"simulate_device requires can_interface 'virtual', found "
+                         f'{interface!r}')
+    codec = DriverCodec(values['dbc_path'] or None, position_range=(
+        relay.stroke_min - 0.01, relay.stroke_max + 0.01))
+    return DriverSettings(relay=relay, supervision=supervision, interface=interface,
+                          channel=str(values['can_channel']), bitrate=int(values['can_bitrate']),
+                          simulate=simulate, hardware_id=str(values['hardware_id']), codec=codec)
 
 
 class DriverNode(LifecycleNode):
@@ -53,74 +155,30 @@ class DriverNode(LifecycleNode):
 
     def __init__(self, **kwargs) -> None:
         super().__init__('sleeve_driver', **kwargs)
-        d = RelayConfig()
-        s = SupervisionConfig()
-        self.relay_config = RelayConfig(
-            max_speed=declare(self, 'max_speed', d.max_speed,
-                              'catheter speed cap, insertion and retraction, m/s',
-                              lo=1e-6, hi=0.005),
-            return_speed=declare(self, 'return_speed', d.return_speed,
-                                 'sleeve speed on the return stroke, m/s', lo=1e-6, hi=0.05),
-            stroke_min=declare(self, 'stroke_min', d.stroke_min, 'sleeve back end, m'),
-            stroke_max=declare(self, 'stroke_max', d.stroke_max, 'sleeve front end, m'),
-            position_min=declare(self, 'position_min', d.position_min,
-                                 'smallest catheter insertion, m'),
-            position_max=declare(self, 'position_max', d.position_max,
-                                 'largest catheter insertion, m'),
-            gripper_close_time=declare(self, 'gripper_close_time', d.gripper_close_time,
-                                       'nominal gripper closing time (simulation), s'),
-            gripper_open_time=declare(self, 'gripper_open_time', d.gripper_open_time,
-                                      'nominal gripper opening time (simulation), s'),
-            gripper_timeout=declare(self, 'gripper_timeout', d.gripper_timeout,
-                                    'handover step longer than this is a fault, s'))
-        self.supervision = SupervisionConfig(
-            control_rate_hz=declare(self, 'control_rate_hz', s.control_rate_hz,
-                                    'relay control loop and state rate, Hz', lo=1.0, hi=1000.0),
-            command_timeout=declare(self, 'command_timeout_s', s.command_timeout,
-                                    'watchdog: stop when commands are older, s'),
-            status_timeout=declare(self, 'status_timeout_s', s.status_timeout,
-                                   'device counts as disconnected after this silence, s'),
-            backoff_initial=declare(self, 'reconnect_backoff_initial_s', s.backoff_initial,
-                                    'first reconnect delay, s'),
-            backoff_max=declare(self, 'reconnect_backoff_max_s', s.backoff_max,
-                                'largest reconnect delay, s'),
-            diagnostics_period=declare(self, 'diagnostics_period_s', s.diagnostics_period,
-                                       '/diagnostics period, s'))
-        self._interface = declare(self, 'can_interface', 'virtual',
-                                  "python-can interface ('virtual', 'socketcan', ...)")
-        self._channel = declare(self, 'can_channel', 'sleeve_driver', 'python-can channel')
-        self._bitrate = declare(self, 'can_bitrate', 500000, 'CAN bitrate, bit/s',
-                                lo=10000, hi=1000000)
-        self._simulate = declare(self, 'simulate_device', True,
-                                 'start a simulated driver on the virtual bus in this process')
-        dbc_path = declare(self, 'dbc_path', '', 'DBC file; empty = the bundled driver.dbc')
-        self._hardware_id = declare(self, 'hardware_id', 'sleeve_driver',
-                                    'hardware_id in /diagnostics')
-        if self._simulate and self._interface != 'virtual':
-            raise ValueError(f"simulate_device requires can_interface 'virtual', found "
-                             f'{self._interface!r}')
-        r = self.relay_config
-        self._codec = DriverCodec(dbc_path or None, position_range=(
-            r.stroke_min - 0.01, r.stroke_max + 0.01))
+        for name, (default, description, bounds) in PARAMETERS.items():
+            lo, hi = bounds if bounds is not None else (None, None)
+            declare(self, name, default, description, lo=lo, hi=hi,
+                    read_only=name in _READ_ONLY)
+        self.autostart = bool(self.get_parameter('autostart').value)
+        self._apply(build_settings(self._parameter_values()))
+        self.add_on_set_parameters_callback(
+            configure_time_guard(self, _CONFIGURE_TIME, build_settings))
         self.sim: SimulatedDriver | None = None
 
         self._link: CanDriverLink | None = None
         self._controller: RelayController | None = None
         self._feedback: DriverStatus | None = None
         self._last_known: SleeveFeedback | None = None  # kept across disconnects
-        self._backoff = Backoff(self.supervision.backoff_initial, self.supervision.backoff_max)
         self._next_attempt = 0.0
         self._last_status = 0.0
         self._link_error = 'not opened yet'
         self._position = 0.0
         self._velocity_cmd = 0.0
-        self._watchdog = Watchdog(self.supervision.command_timeout)
         self._estop = False
         self._last_stop_frame = 0.0
         self.rejected_commands = 0
         self._last_rejection = ''
         self.reconnects = 0
-        self._period = 1.0 / self.supervision.control_rate_hz
         self._active = False
         self._state_pub: LifecyclePublisher | None = None
         self._diag_pub: LifecyclePublisher | None = None
@@ -128,9 +186,25 @@ class DriverNode(LifecycleNode):
         self._srv_estop: Service | None = None
         self._timers: list[Timer] = []
 
+    def _parameter_values(self) -> dict[str, Any]:
+        return {name: self.get_parameter(name).value for name in _CONFIGURE_TIME}
+
+    def _apply(self, settings: DriverSettings) -> None:
+        """Take ``settings`` (the link is closed: constructor or unconfigured)."""
+        self.relay_config = settings.relay
+        self.supervision = settings.supervision
+        self._interface, self._channel = settings.interface, settings.channel
+        self._bitrate, self._simulate = settings.bitrate, settings.simulate
+        self._hardware_id, self._codec = settings.hardware_id, settings.codec
+        self._backoff = Backoff(self.supervision.backoff_initial, self.supervision.backoff_max)
+        self._watchdog = Watchdog(self.supervision.command_timeout)
+        self._period = 1.0 / self.supervision.control_rate_hz
+
     # -- lifecycle ---------------------------------------------------------------------------
 
     def on_configure(self, state: State) -> TransitionCallbackReturn:
+        # (valid: the guard refused any value build_settings rejects)
+        self._apply(build_settings(self._parameter_values()))
         if self._simulate:
             self.sim = SimulatedDriver(self._channel, config=self.relay_config,
                                        codec=self._codec).start()
@@ -394,13 +468,18 @@ class DriverNode(LifecycleNode):
 
 
 def main(args=None) -> None:
-    """Console script ``driver_node``: build, configure and activate the node, spin."""
+    """Console script ``driver_node``: build the node, configure and activate it (unless
+    ``autostart`` is false), spin."""
     rclpy.init(args=args)
     node = None
     try:
         node = DriverNode()
-        node.trigger_configure()
-        node.trigger_activate()
+        if node.autostart:
+            node.trigger_configure()
+            node.trigger_activate()
+        else:
+            node.get_logger().info('autostart is false: unconfigured, waiting for '
+                                   'sleeve_driver/change_state')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -13,7 +13,10 @@ import uuid
 
 import can
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 import pytest
+from rcl_interfaces.srv import SetParameters
 from rclpy.exceptions import InvalidParameterValueException
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
@@ -360,3 +363,78 @@ def test_shutdown_and_destroy_are_safe_in_every_state(harness, steps):
     if sim is not None:
         assert sim.mechanism.sleeve_velocity == 0.0
     node.destroy_node()
+
+
+# -- parameters: read at configure, changeable only while unconfigured -----------------------
+
+def _set_over_service(harness, node, **values):
+    """Call the node's ``set_parameters`` service (as ``ros2 param set`` does)."""
+    client = harness.probe.create_client(SetParameters,
+                                         f'{node.get_fully_qualified_name()}/set_parameters')
+    request = SetParameters.Request(parameters=[
+        Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+    try:
+        return harness.call(client, request).results
+    finally:
+        harness.probe.destroy_client(client)
+
+
+def test_set_parameters_refuses_a_configure_time_parameter_while_active(harness):
+    node = _node(harness)
+    [result] = _set_over_service(harness, node, max_speed=0.002)
+    assert not result.successful
+    assert 'max_speed' in result.reason and 'found the node active' in result.reason
+    assert node.relay_config.max_speed == 0.005
+    [result] = _set_over_service(harness, node, autostart=False)
+    assert not result.successful and 'read-only' in result.reason
+
+
+def test_parameter_set_while_unconfigured_takes_effect_at_configure(harness):
+    node = _node(harness)
+    diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
+    assert node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+    [inactive] = _set_over_service(harness, node, hardware_id='sleeve_rig_2')
+    assert not inactive.successful and 'found the node inactive' in inactive.reason
+    assert node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+    results = _set_over_service(harness, node, hardware_id='sleeve_rig_2', max_speed=0.002)
+    assert [r.successful for r in results] == [True, True]
+    [bad] = _set_over_service(harness, node, stroke_max=-1.0)
+    assert not bad.successful and 'stroke_max must exceed stroke_min' in bad.reason
+    [bad] = _set_over_service(harness, node, dbc_path='/nonexistent/driver.dbc')
+    assert not bad.successful and 'expected a readable CAN database' in bad.reason
+    assert node.relay_config.max_speed == 0.005  # not before configure
+    assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+    assert node.relay_config.max_speed == 0.002 and node.relay_config.stroke_max == 0.03
+    assert node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+    assert harness.spin_until(lambda: any(a.status[0].hardware_id == 'sleeve_rig_2'
+                                          for a in diags))
+
+
+def test_autostart_false_leaves_main_unconfigured_for_a_lifecycle_manager(harness):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    ns = f'/autostart_{os.getpid()}'
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from catheter_driver.nodes.driver_node import main; main()',
+         '--ros-args', '-r', f'__ns:={ns}', '-p', 'autostart:=false',
+         '-p', f'can_channel:=drv_{uuid.uuid4().hex}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ))
+    try:
+        get_state = harness.probe.create_client(GetState, f'{ns}/sleeve_driver/get_state')
+        change_state = harness.probe.create_client(ChangeState,
+                                                   f'{ns}/sleeve_driver/change_state')
+        state = harness.call(get_state, GetState.Request(), timeout=20.0).current_state
+        assert state.label == 'unconfigured'
+        configure = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
+        assert harness.call(change_state, configure).success
+        assert harness.call(get_state, GetState.Request()).current_state.label == 'inactive'
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=15.0)
+        assert rc == 0, proc.stdout.read()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -8,8 +8,9 @@ writes ``tool_transform: [tx ty tz qx qy qz qw]`` (``T_sensor_tip``, m; tip fram
 shaft towards the tip, see :mod:`em_tracker.core.calibration`) for the ``aurora`` node into the
 parameters file (other entries of an existing file are kept).
 
-Record the poses of the sensor itself: a bag of ``em_tracker/tip_pose`` qualifies while the node
-applies no tool transform (any fixed registration only moves the pivot point).
+Record the poses of the sensor itself: a bag of ``em_tracker/tip_pose`` qualifies while the
+node's ``tool_transform`` is the identity (its default; with a tool transform the topic carries
+the tip's pose, not the sensor's). Any fixed registration only moves the pivot point.
 
 Exit status: 0 written; 1 refused (residual above ``--max-residual-mm`` without ``--force``); 2
 bad input (missing or malformed file, NaN, too little rotation). Nothing is written unless the

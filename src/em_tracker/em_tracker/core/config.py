@@ -29,7 +29,11 @@ class TrackerConfig:
     rate_hz: float = 40.0
     """Device frame rate the poller follows, Hz (the Aurora produces 40 Hz)."""
     registration: Registration = field(default_factory=Registration.identity)
-    """``aurora -> phantom`` rigid transform."""
+    """``aurora -> phantom`` rigid transform (``T_phantom_aurora``)."""
+    tool_transform: Registration = field(default_factory=Registration.identity)
+    """``sensor -> tip`` rigid transform (``T_sensor_tip``, from ``pivot_calibrate``): the
+    published pose is the tip's, ``T_phantom_aurora @ T_aurora_sensor @ T_sensor_tip``; tip
+    frame origin at the tip, +y along the shaft towards the tip. Identity: the sensor's pose."""
     frame_id: str = 'phantom'
     """frame_id of the published poses."""
     max_abs_position_m: float = 1.0

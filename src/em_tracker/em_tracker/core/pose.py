@@ -3,7 +3,10 @@
 Conventions: the Aurora reports the sensor pose in the field-generator frame ``aurora`` as a
 quaternion in NDI order ``(q0, qx, qy, qz)`` (scalar first) and a position in mm. ROS wants
 ``(x, y, z, w)`` and metres. The registration ``aurora -> phantom`` is a rigid transform
-``T_phantom_aurora`` (maps points in the aurora frame to the phantom frame).
+``T_phantom_aurora`` (maps points in the aurora frame to the phantom frame); the tool transform
+``T_sensor_tip`` maps points in the tip frame (origin at the tip, +y along the shaft towards the
+tip; see :mod:`em_tracker.core.calibration`) to the sensor frame. The published tip pose is
+``T_phantom_aurora @ T_aurora_sensor @ T_sensor_tip`` (:func:`tip_pose_in_phantom`).
 """
 
 from __future__ import annotations
@@ -41,27 +44,39 @@ def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
                       .as_quat(canonical=True))
 
 
+def _rigid(matrix: object, name: str) -> np.ndarray:
+    """``matrix`` as a float 4x4 array, checked to be a rigid transform.
+
+    Raises:
+        ValueError: not a finite 4x4 matrix, last row not ``[0, 0, 0, 1]``, or a rotation
+            block that is not orthonormal with det +1; the message starts with ``name``.
+    """
+    m = np.asarray(matrix, dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise ValueError(f'{name} must be a finite 4x4 matrix, found {matrix!r}')
+    if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
+        raise ValueError(f'{name} last row must be [0, 0, 0, 1], found {m[3]}')
+    rot = m[:3, :3]
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
+        raise ValueError(f'{name} rotation must be orthonormal with det +1, '
+                         f'found {rot.tolist()}')
+    return m
+
+
 @dataclass(frozen=True)
 class Registration:
-    """Rigid registration ``aurora -> phantom`` as a 4x4 homogeneous matrix (metres).
+    """A rigid transform as a 4x4 homogeneous matrix (metres): the registration ``aurora ->
+    phantom`` (``T_phantom_aurora``), and in the same form the tool transform ``sensor -> tip``
+    (``T_sensor_tip``).
 
     Attributes:
-        matrix: ``T_phantom_aurora``; rotation block orthonormal with det +1, last row 0 0 0 1.
+        matrix: the transform; rotation block orthonormal with det +1, last row 0 0 0 1.
     """
 
     matrix: np.ndarray
 
     def __post_init__(self) -> None:
-        m = np.asarray(self.matrix, dtype=float)
-        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-            raise ValueError(f'registration must be a finite 4x4 matrix, found {self.matrix!r}')
-        if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
-            raise ValueError(f'registration last row must be [0, 0, 0, 1], found {m[3]}')
-        rot = m[:3, :3]
-        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0:
-            raise ValueError('registration rotation must be orthonormal with det +1, '
-                             f'found {rot.tolist()}')
-        object.__setattr__(self, 'matrix', m)
+        object.__setattr__(self, 'matrix', _rigid(self.matrix, 'registration'))
 
     @classmethod
     def identity(cls) -> Registration:
@@ -69,25 +84,29 @@ class Registration:
         return cls(np.eye(4))
 
     @classmethod
-    def from_flat(cls, values: Sequence[float]) -> Registration:
+    def from_flat(cls, values: Sequence[float], *, name: str = 'registration') -> Registration:
         """Build from 16 row-major values (4x4) or 7 values ``[tx ty tz qx qy qz qw]`` (m).
+
+        Args:
+            values: the 16 or 7 values.
+            name: what the values are (the parameter's name), for the error messages.
 
         Raises:
             ValueError: wrong length, non-unit quaternion or non-rigid matrix.
         """
         vals = [float(v) for v in values]
         if len(vals) == 16:
-            return cls(np.array(vals).reshape(4, 4))
+            return cls(_rigid(np.array(vals).reshape(4, 4), name))
         if len(vals) == 7:
             q = np.array(vals[3:])
             norm = float(np.linalg.norm(q))
             if not math.isfinite(norm) or abs(norm - 1.0) > 1e-3:
-                raise ValueError(f'registration quaternion must have unit norm, found {norm!r}')
+                raise ValueError(f'{name} quaternion must have unit norm, found {norm!r}')
             m = np.eye(4)
             m[:3, :3] = quat_xyzw_to_matrix(q / norm)
             m[:3, 3] = vals[:3]
-            return cls(m)
-        raise ValueError('registration must have 16 values (4x4 row-major) or 7 values '
+            return cls(_rigid(m, name))
+        raise ValueError(f'{name} must have 16 values (4x4 row-major) or 7 values '
                          f'(tx ty tz qx qy qz qw), found {len(vals)}')
 
     def apply(self, position_m: np.ndarray, quat_xyzw: np.ndarray) -> tuple[np.ndarray,
@@ -105,6 +124,34 @@ class Registration:
         return [float(v) for v in (*self.matrix[:3, 3], *quat)]
 
 
+#: Orientation variance of :func:`pose_covariance`, rad^2: the Aurora reports no orientation
+#: uncertainty, so the orientation is marked as not estimated with a variance far above any real
+#: one (a fusing filter then gives it no weight).
+ORIENTATION_VARIANCE_UNKNOWN_RAD2 = 1e6
+
+
+def pose_covariance(rms_error_m: float) -> np.ndarray:
+    """The 6x6 covariance of a tip pose from the Aurora's RMS error (``geometry_msgs``
+    layout: x, y, z, then rotation about X, Y, Z; row-major when flattened).
+
+    Model: the RMS error NDI reports with each transform (the residual of its field-model fit)
+    is taken as the RMS of the 3-D position error, ``E|e|^2 = rms^2``, isotropic with
+    uncorrelated axes: each position axis has variance ``rms^2 / 3``. An isotropic covariance is
+    unchanged by the registration's rotation, so it holds in the phantom frame too. Not included:
+    the registration's own error, and the tip offset's lever arm on the (unreported) orientation
+    error; the orientation block is :data:`ORIENTATION_VARIANCE_UNKNOWN_RAD2` on the diagonal.
+
+    Raises:
+        ValueError: ``rms_error_m`` negative or not finite.
+    """
+    if not (math.isfinite(rms_error_m) and rms_error_m >= 0.0):
+        raise ValueError(f'expected a finite, non-negative RMS error, found {rms_error_m!r} m')
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.eye(3) * rms_error_m ** 2 / 3.0
+    cov[3:, 3:] = np.eye(3) * ORIENTATION_VARIANCE_UNKNOWN_RAD2
+    return cov
+
+
 @dataclass(frozen=True)
 class TipPose:
     """A validated tip pose in the phantom frame, SI units.
@@ -120,16 +167,44 @@ class TipPose:
     rms_error_m: float
 
 
+def tip_pose_in_phantom(sensor_position_m: np.ndarray, sensor_quat_xyzw: np.ndarray,
+                        registration: Registration, tool_transform: Registration
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """The tip pose in the phantom frame, ``T_phantom_aurora @ T_aurora_sensor @ T_sensor_tip``.
+
+    With ``(R_reg, t_reg)`` the registration, ``(R_s, p_s)`` the sensor pose in the aurora
+    frame and ``(R_tool, t_tool)`` the tool transform: position ``R_reg (p_s + R_s t_tool) +
+    t_reg``, orientation ``R_reg R_s R_tool``.
+
+    Args:
+        sensor_position_m: (3,) sensor position in the aurora frame, m.
+        sensor_quat_xyzw: (4,) unit quaternion of the sensor in the aurora frame, ROS order.
+        registration: ``aurora -> phantom``.
+        tool_transform: ``sensor -> tip`` (identity: the sensor is the tip).
+
+    Returns:
+        ``(position_m, quat_xyzw)`` of the tip in the phantom frame, ``qw >= 0``.
+    """
+    rot_s = quat_xyzw_to_matrix(sensor_quat_xyzw)
+    rot_reg, t_reg = registration.matrix[:3, :3], registration.matrix[:3, 3]
+    rot_tool, t_tool = tool_transform.matrix[:3, :3], tool_transform.matrix[:3, 3]
+    position = rot_reg @ (np.asarray(sensor_position_m, dtype=float) + rot_s @ t_tool) + t_reg
+    return position, matrix_to_quat_xyzw(rot_reg @ rot_s @ rot_tool)
+
+
 def convert_sample(quat_wxyz: Sequence[float], position_mm: Sequence[float], error_mm: float,
-                   registration: Registration, *, max_abs_position_m: float) -> TipPose:
-    """Turn one NDI transform into a :class:`TipPose` in the phantom frame.
+                   registration: Registration, *, max_abs_position_m: float,
+                   tool_transform: Registration | None = None) -> TipPose:
+    """Turn one NDI transform into a :class:`TipPose` of the tip in the phantom frame.
 
     Args:
         quat_wxyz: NDI quaternion (q0, qx, qy, qz).
         position_mm: position in the field-generator frame, mm.
         error_mm: RMS error, mm.
         registration: ``aurora -> phantom``.
-        max_abs_position_m: reject positions farther than this from the field generator, m.
+        max_abs_position_m: reject sensor positions farther than this from the field
+            generator, m.
+        tool_transform: ``sensor -> tip``; ``None`` is the identity (the sensor pose).
 
     Raises:
         ValueError: NaN/inf values, a quaternion far from unit norm, or a position outside the
@@ -152,5 +227,6 @@ def convert_sample(quat_wxyz: Sequence[float], position_mm: Sequence[float], err
                          f'{p_m.tolist()}')
     if error_mm < 0:
         raise ValueError(f'expected a non-negative RMS error, found {error_mm!r} mm')
-    pos, quat = registration.apply(p_m, ndi_quat_to_ros(q / norm))
+    tool = Registration.identity() if tool_transform is None else tool_transform
+    pos, quat = tip_pose_in_phantom(p_m, ndi_quat_to_ros(q / norm), registration, tool)
     return TipPose(position_m=pos, quat_xyzw=quat, rms_error_m=float(error_mm) * MM_TO_M)

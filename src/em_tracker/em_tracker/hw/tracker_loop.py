@@ -223,7 +223,8 @@ class TrackerLoop:
             try:
                 pose = convert_sample(tool.quat_wxyz, tool.position_mm, tool.error_mm,
                                       self.config.registration,
-                                      max_abs_position_m=self.config.max_abs_position_m)
+                                      max_abs_position_m=self.config.max_abs_position_m,
+                                      tool_transform=self.config.tool_transform)
             except ValueError as exc:
                 self.health.rejected += 1
                 self.health.tool_visible = False

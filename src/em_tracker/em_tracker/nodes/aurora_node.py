@@ -1,17 +1,34 @@
 """``aurora_node``: NDI Aurora tip pose -> ``em_tracker/tip_pose`` (node name ``aurora``).
 
-A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it):
+The published pose is the catheter tip's in the ``phantom`` frame (``frame_id``):
+``T_phantom_aurora @ T_aurora_sensor @ T_sensor_tip``, with the ``registration`` (aurora ->
+phantom, from ``register_phantom``) and the ``tool_transform`` (sensor -> tip, from
+``pivot_calibrate``) parameters. Tip frame: origin at the tip, **+y along the shaft towards the
+tip** (the catheter heading), x/z the sensor's turned onto the shaft (roll not calibrated; see
+:mod:`em_tracker.core.calibration`). With the default identity ``tool_transform`` the pose is the
+sensor's. ``em_tracker/tip_pose_cov`` carries the same pose with a covariance from the
+reported RMS error (position variance ``rms^2 / 3`` per axis; orientation not estimated, see
+:func:`em_tracker.core.pose.pose_covariance`).
+
+A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it
+unless ``autostart`` is false, which leaves it unconfigured for a lifecycle manager):
 
 * constructor: parameters declared and validated into a :class:`TrackerConfig` (bad values
   raise ``ValueError`` here);
-* ``on_configure``: the device object (ndicapi, or its isolating child process) is built, the
-  lifecycle publishers, the pose guard condition and the diagnostics timer are created;
+* ``on_configure``: the parameters are read again into :attr:`AuroraNode.config`, the device
+  object (ndicapi, or its isolating child process) is built, the lifecycle publishers, the pose
+  guard condition and the diagnostics timer are created;
 * ``on_activate``: a fresh reader thread starts (INIT ... TSTART, then polling); poses and
   ``/diagnostics`` are published only while active;
 * ``on_deactivate``: the reader thread is stopped and joined (TSTOP, port closed on it);
 * ``on_cleanup``: publishers, timer, guard condition and the device are released;
 * ``on_shutdown`` / ``on_error`` / ``destroy_node``: stop the reader (TSTOP) and release, in
   any state.
+
+Parameters are read at configure: a change is accepted only while the node is unconfigured
+(validated, applied by the next configure); in any other state ``set_parameters`` answers
+``successful=False`` with the reason (:mod:`em_tracker.nodes.params`). ``autostart`` is
+read-only.
 
 The link (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) runs the start-up sequence, polls
 at the device frame rate, validates and converts, and reconnects with exponential backoff. With
@@ -25,12 +42,13 @@ simulated time only. The link state is published on ``/diagnostics``.
 from __future__ import annotations
 
 import collections
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 import threading
 import time
+from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -46,7 +64,8 @@ from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
 from em_tracker.nodes import RCLError, try_shutdown
-from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_msg
+from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_cov_msg, tip_pose_to_msg
+from em_tracker.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
 
@@ -64,6 +83,9 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
     'registration': ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
                      'aurora->phantom: 7 values [tx ty tz qx qy qz qw] (m) or 16 (4x4 row-major)',
                      None),
+    'tool_transform': ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                       'sensor->tip: 7 values [tx ty tz qx qy qz qw] (m) or 16 (4x4 row-major); '
+                       'tip frame: origin at the tip, +y along the shaft towards the tip', None),
     'frame_id': (_DEFAULTS.frame_id, 'frame_id of the published pose', None),
     'max_abs_position_m': (_DEFAULTS.max_abs_position_m,
                            'reject readings with a coordinate beyond this, m', (0.01, 10.0)),
@@ -82,12 +104,16 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
                        None),
     'poll_mode': (_DEFAULTS.poll_mode, "'thread': reader thread on the steady clock (a rig); "
                   "'clock': node-clock timer, synchronous (lockstep simulated rig)", None),
+    'autostart': (True, AUTOSTART_DESCRIPTION, None),
 }
+#: Parameters fixed for the node's life (the others are read at configure).
+_READ_ONLY = frozenset({'autostart'})
+_CONFIGURE_TIME = tuple(name for name in _PARAMS if name not in _READ_ONLY)
 
 
-def _descriptor(description: str, bounds: tuple[float, float] | None,
+def _descriptor(name: str, description: str, bounds: tuple[float, float] | None,
                 default: object) -> ParameterDescriptor:
-    desc = ParameterDescriptor(description=description)
+    desc = ParameterDescriptor(description=description, read_only=name in _READ_ONLY)
     if bounds is not None and isinstance(default, int) and not isinstance(default, bool):
         desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
                                            step=1)]
@@ -95,6 +121,29 @@ def _descriptor(description: str, bounds: tuple[float, float] | None,
         desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
                                                         to_value=float(bounds[1]), step=0.0)]
     return desc
+
+
+def build_config(values: Mapping[str, Any]) -> TrackerConfig:
+    """The :class:`TrackerConfig` of the parameter values ``{name: value}``.
+
+    Raises:
+        ValueError: a value out of range or malformed.
+    """
+    srom = tuple(e.strip() for e in str(values['srom_files']).split(',') if e.strip())
+    return TrackerConfig(
+        port=values['port'], baud=values['baud'], tool_handle=values['tool_handle'],
+        priority=values['priority'], srom_files=srom, use_bx=values['use_bx'],
+        rate_hz=values['rate_hz'],
+        registration=Registration.from_flat(list(values['registration'])),
+        tool_transform=Registration.from_flat(list(values['tool_transform']),
+                                              name='tool_transform'),
+        frame_id=values['frame_id'], max_abs_position_m=values['max_abs_position_m'],
+        reply_timeout_s=values['reply_timeout_s'],
+        max_consecutive_errors=values['max_consecutive_errors'],
+        reconnect_initial_s=values['reconnect_initial_s'],
+        reconnect_max_s=values['reconnect_max_s'], stale_after_s=values['stale_after_s'],
+        diagnostics_period_s=values['diagnostics_period_s'],
+        isolate_device=values['isolate_device'], poll_mode=values['poll_mode'])
 
 
 def default_device(config: TrackerConfig) -> AuroraDevice:
@@ -108,7 +157,7 @@ def default_device(config: TrackerConfig) -> AuroraDevice:
 
 
 class AuroraNode(LifecycleNode):
-    """Publishes the Aurora tip pose, its RMS error and diagnostics.
+    """Publishes the Aurora tip pose (also with a covariance), its RMS error and diagnostics.
 
     Args:
         device_factory: builds the device from the config (tests pass a fake).
@@ -121,8 +170,12 @@ class AuroraNode(LifecycleNode):
     def __init__(self, *, device_factory: DeviceFactory | None = None, **kwargs) -> None:
         super().__init__('aurora', **kwargs)
         for name, (default, description, bounds) in _PARAMS.items():
-            self.declare_parameter(name, default, _descriptor(description, bounds, default))
-        self.config = self._build_config()
+            self.declare_parameter(name, default, _descriptor(name, description, bounds,
+                                                              default))
+        self.autostart: bool = self.get_parameter('autostart').value
+        self.config = build_config(self._parameter_values())
+        self.add_on_set_parameters_callback(
+            configure_time_guard(self, _CONFIGURE_TIME, build_config))
         self._device_factory: DeviceFactory = device_factory or default_device
         self._device: AuroraDevice | None = None
         self._loop: TrackerLoop | None = None
@@ -130,6 +183,7 @@ class AuroraNode(LifecycleNode):
         self._health_lock = threading.Lock()
         self._queue: collections.deque[tuple[TipPose, float]] = collections.deque(maxlen=64)
         self._pose_pub: LifecyclePublisher | None = None
+        self._cov_pub: LifecyclePublisher | None = None
         self._rms_pub: LifecyclePublisher | None = None
         self._diag_pub: LifecyclePublisher | None = None
         self._guard: GuardCondition | None = None
@@ -139,9 +193,14 @@ class AuroraNode(LifecycleNode):
 
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:
+        # (valid: the guard refused any value build_config rejects)
+        self.config = build_config(self._parameter_values())
+        self._clocked = self.config.poll_mode == 'clock'
         self._device = self._device_factory(self.config)
         self._pose_pub = self.create_lifecycle_publisher(PoseStamped, 'em_tracker/tip_pose',
                                                          qos_profile_sensor_data)
+        self._cov_pub = self.create_lifecycle_publisher(
+            PoseWithCovarianceStamped, 'em_tracker/tip_pose_cov', qos_profile_sensor_data)
         self._rms_pub = self.create_lifecycle_publisher(Float64, 'em_tracker/rms_error',
                                                         qos_profile_sensor_data)
         self._diag_pub = self.create_lifecycle_publisher(DiagnosticArray, '/diagnostics',
@@ -203,10 +262,10 @@ class AuroraNode(LifecycleNode):
         if self._guard is not None:
             self.destroy_guard_condition(self._guard)
             self._guard = None
-        for pub in (self._pose_pub, self._rms_pub, self._diag_pub):
+        for pub in (self._pose_pub, self._cov_pub, self._rms_pub, self._diag_pub):
             if pub is not None:
                 self.destroy_lifecycle_publisher(pub)
-        self._pose_pub = self._rms_pub = self._diag_pub = None
+        self._pose_pub = self._cov_pub = self._rms_pub = self._diag_pub = None
         device, self._device = self._device, None
         if device is not None:
             device.close()
@@ -221,22 +280,8 @@ class AuroraNode(LifecycleNode):
     def _on_link_warning(self, message: str) -> None:
         self.get_logger().warning(message, throttle_duration_sec=5.0)
 
-    def _build_config(self) -> TrackerConfig:
-        get = self.get_parameter
-        srom = tuple(e.strip() for e in str(get('srom_files').value).split(',') if e.strip())
-        return TrackerConfig(
-            port=get('port').value, baud=get('baud').value, tool_handle=get('tool_handle').value,
-            priority=get('priority').value, srom_files=srom, use_bx=get('use_bx').value,
-            rate_hz=get('rate_hz').value,
-            registration=Registration.from_flat(list(get('registration').value)),
-            frame_id=get('frame_id').value, max_abs_position_m=get('max_abs_position_m').value,
-            reply_timeout_s=get('reply_timeout_s').value,
-            max_consecutive_errors=get('max_consecutive_errors').value,
-            reconnect_initial_s=get('reconnect_initial_s').value,
-            reconnect_max_s=get('reconnect_max_s').value,
-            stale_after_s=get('stale_after_s').value,
-            diagnostics_period_s=get('diagnostics_period_s').value,
-            isolate_device=get('isolate_device').value, poll_mode=get('poll_mode').value)
+    def _parameter_values(self) -> dict[str, Any]:
+        return {name: self.get_parameter(name).value for name in _CONFIGURE_TIME}
 
     # ------------------------------------------------------------------ executor callbacks
     def _now(self) -> float:
@@ -258,7 +303,8 @@ class AuroraNode(LifecycleNode):
         self._on_new_pose()
 
     def _on_new_pose(self) -> None:
-        if self._loop is None or self._pose_pub is None or self._rms_pub is None:
+        if (self._loop is None or self._pose_pub is None or self._cov_pub is None
+                or self._rms_pub is None):
             self._queue.clear()
             return
         now_ros = self.get_clock().now()
@@ -270,6 +316,7 @@ class AuroraNode(LifecycleNode):
             stamp = rclpy.time.Time(nanoseconds=max(0, now_ros.nanoseconds - age_ns),
                                     clock_type=now_ros.clock_type).to_msg()
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
+            self._cov_pub.publish(tip_pose_to_cov_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
             with self._health_lock:
                 self.health.published += 1
@@ -299,7 +346,7 @@ class AuroraNode(LifecycleNode):
 
 
 def main(args=None) -> None:
-    """Build, configure, activate and spin the node.
+    """Build the node, configure and activate it (unless ``autostart`` is false), spin.
 
     ``scripts/ros2run em_tracker aurora_node --ros-args -p port:=...`` (or
     ``scripts/ws aurora_node --ros-args -p port:=...``)
@@ -308,8 +355,12 @@ def main(args=None) -> None:
     node = None
     try:
         node = AuroraNode()
-        node.trigger_configure()
-        node.trigger_activate()
+        if node.autostart:
+            node.trigger_configure()
+            node.trigger_activate()
+        else:
+            node.get_logger().info('autostart is false: unconfigured, waiting for '
+                                   'aurora/change_state')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

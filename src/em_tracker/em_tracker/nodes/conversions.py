@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 
-from em_tracker.core.pose import TipPose
+from em_tracker.core.pose import pose_covariance, TipPose
 from em_tracker.core.tracking import Level
 
 LEVEL_BYTES = {
@@ -26,6 +26,18 @@ def tip_pose_to_msg(pose: TipPose, stamp: Time, frame_id: str) -> PoseStamped:
     msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in p)
     (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
      msg.pose.orientation.w) = (float(v) for v in q)
+    return msg
+
+
+def tip_pose_to_cov_msg(pose: TipPose, stamp: Time,
+                        frame_id: str) -> PoseWithCovarianceStamped:
+    """A :class:`TipPose` as ``geometry_msgs/PoseWithCovarianceStamped``, its covariance from
+    the RMS error (:func:`~em_tracker.core.pose.pose_covariance`)."""
+    stamped = tip_pose_to_msg(pose, stamp, frame_id)
+    msg = PoseWithCovarianceStamped()
+    msg.header = stamped.header
+    msg.pose.pose = stamped.pose
+    msg.pose.covariance = [float(v) for v in pose_covariance(pose.rms_error_m).ravel()]
     return msg
 
 

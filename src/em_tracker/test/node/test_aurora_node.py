@@ -6,9 +6,12 @@ import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 import numpy as np
 import pytest
+from rcl_interfaces.srv import SetParameters
 import rclpy
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import SingleThreadedExecutor
@@ -67,10 +70,13 @@ class Harness:
         self.node = node
         self.sub_node = rclpy.create_node('aurora_test_listener')
         self.poses: list[PoseStamped] = []
+        self.cov_poses: list[PoseWithCovarianceStamped] = []
         self.rms: list[float] = []
         self.diags: list[DiagnosticStatus] = []
         self.sub_node.create_subscription(PoseStamped, 'em_tracker/tip_pose', self.poses.append,
                                           qos_profile_sensor_data)
+        self.sub_node.create_subscription(PoseWithCovarianceStamped, 'em_tracker/tip_pose_cov',
+                                          self.cov_poses.append, qos_profile_sensor_data)
         self.sub_node.create_subscription(Float64, 'em_tracker/rms_error',
                                           lambda m: self.rms.append(m.data),
                                           qos_profile_sensor_data)
@@ -109,7 +115,8 @@ def make(fake, **params):
     ('baud', 1234), ('priority', 'X'), ('registration', [1.0, 2.0, 3.0]),
     ('registration', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]), ('rate_hz', 0.0),
     ('tool_handle', 300), ('srom_files', 'zz:/x.rom'), ('port', ''), ('frame_id', ''),
-    ('reconnect_max_s', 0.02), ('tool_handle', 'ten'),
+    ('reconnect_max_s', 0.02), ('tool_handle', 'ten'), ('tool_transform', [0.0, 0.01]),
+    ('tool_transform', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
 ])
 def test_bad_parameters_raise_at_construction(ros, name, value):
     with pytest.raises(BAD_PARAM):
@@ -131,6 +138,10 @@ def test_publishers_qos_and_defaults(ros):
         assert h.spin_until(lambda: all(own(t) for t in DEVICE_TOPICS), timeout=15.0)
         assert own('/em_tracker/tip_pose')[0].topic_type == 'geometry_msgs/msg/PoseStamped'
         assert own('/em_tracker/rms_error')[0].topic_type == 'std_msgs/msg/Float64'
+        assert (own('/em_tracker/tip_pose_cov')[0].topic_type
+                == 'geometry_msgs/msg/PoseWithCovarianceStamped')
+        cov_info = own('/em_tracker/tip_pose_cov')[0]
+        assert cov_info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
         assert own('/diagnostics')[0].topic_type == 'diagnostic_msgs/msg/DiagnosticArray'
         info = own('/em_tracker/tip_pose')[0]
         assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
@@ -165,6 +176,40 @@ def test_pose_units_quaternion_order_and_registration(ros):
         got = np.array([q.x, q.y, q.z, q.w])
         assert min(np.abs(got - expected).max(), np.abs(got + expected).max()) < 1e-9
         assert h.rms[-1] == pytest.approx(0.3e-3)
+    finally:
+        h.close()
+
+
+def test_tool_transform_moves_the_published_pose_to_the_tip(ros):
+    # VALID's sensor: (10, -20, -150) mm, NDI q = (.5 .5 .5 .5): 120 deg about (1, 1, 1), which
+    # takes the sensor's +y onto aurora +z. The tip 10 mm along the sensor's +y is 10 mm up z.
+    h = make(FakeDevice([VALID]), tool_transform=[0.0, 0.010, 0.0, 0.0, 0.0, 0.0, 1.0])
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 3)
+        p = h.poses[-1].pose.position
+        assert (p.x, p.y, p.z) == pytest.approx((0.010, -0.020, -0.140), abs=1e-9)
+        q = h.poses[-1].pose.orientation  # tool rotation identity: the sensor's orientation
+        assert (q.x, q.y, q.z, q.w) == pytest.approx((0.5, 0.5, 0.5, 0.5), abs=1e-9)
+        assert h.node.config.tool_transform.to_flat() == pytest.approx(
+            [0.0, 0.010, 0.0, 0.0, 0.0, 0.0, 1.0])
+    finally:
+        h.close()
+
+
+def test_tip_pose_cov_is_the_tip_pose_with_the_rms_covariance(ros):
+    h = make(FakeDevice([VALID]), tool_transform=[0.0, 0.010, 0.0, 0.0, 0.0, 0.0, 1.0])
+    try:
+        assert h.spin_until(lambda: len(h.cov_poses) >= 3 and len(h.poses) >= 3)
+        by_stamp = {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in h.poses}
+        cov_msg = h.cov_poses[-1]
+        plain = by_stamp[(cov_msg.header.stamp.sec, cov_msg.header.stamp.nanosec)]
+        assert cov_msg.header.frame_id == plain.header.frame_id == 'phantom'
+        assert cov_msg.pose.pose == plain.pose
+        cov = np.array(cov_msg.pose.covariance).reshape(6, 6)
+        # VALID reports 0.3 mm RMS: (0.3e-3)^2 / 3 m^2 per position axis, uncorrelated
+        assert np.diag(cov)[:3] == pytest.approx([(0.3e-3) ** 2 / 3.0] * 3, rel=1e-12)
+        assert np.diag(cov)[3:].tolist() == [1e6] * 3
+        assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
     finally:
         h.close()
 
@@ -344,7 +389,8 @@ def _published(node):
     return {pub.topic_name for pub in node.publishers} & set(DEVICE_TOPICS)
 
 
-DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/rms_error', '/diagnostics')
+DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/tip_pose_cov', '/em_tracker/rms_error',
+                 '/diagnostics')
 
 
 def _state(node):
@@ -398,3 +444,97 @@ def test_destroy_and_shutdown_are_safe_in_every_state(ros, steps):
     assert _state(node) == 'finalized'
     node.destroy_node()
     assert fake.closed >= (1 if steps else 0)
+
+
+# ---- parameters: read at configure, changeable only while unconfigured --------------------
+def _set_over_service(h, **values):
+    """Call ``/aurora/set_parameters`` (the real parameter service) and return its results."""
+    client = h.sub_node.create_client(SetParameters, '/aurora/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=15.0)
+        request = SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()])
+        future = client.call_async(request)
+        assert h.spin_until(future.done)
+        return future.result().results
+    finally:
+        h.sub_node.destroy_client(client)
+
+
+def test_set_parameters_refuses_a_configure_time_parameter_while_active(ros):
+    h = make(FakeDevice([VALID]))
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 1)
+        [result] = _set_over_service(h, rate_hz=5.0)
+        assert not result.successful
+        assert 'rate_hz' in result.reason and 'found the node active' in result.reason
+        assert h.node.get_parameter('rate_hz').value == 40.0 and h.node.config.rate_hz == 40.0
+        [result] = _set_over_service(h, autostart=False)
+        assert not result.successful and 'read-only' in result.reason
+    finally:
+        h.close()
+
+
+def test_parameter_set_while_unconfigured_takes_effect_at_configure(ros):
+    h = make(FakeDevice([VALID]))
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 1)
+        assert h.node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
+        [inactive] = _set_over_service(h, frame_id='aurora')
+        assert not inactive.successful and 'found the node inactive' in inactive.reason
+        assert h.node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
+        results = _set_over_service(h, frame_id='aurora', rate_hz=20.0)
+        assert [r.successful for r in results] == [True, True]
+        # validated against the whole configuration (reconnect_initial_s is 0.5)
+        [bad] = _set_over_service(h, reconnect_max_s=0.1)
+        assert not bad.successful and 'reconnect_max_s must be >=' in bad.reason
+        assert h.node.config.frame_id == 'phantom'  # not before configure
+        assert h.node.trigger_configure() == TransitionCallbackReturn.SUCCESS
+        assert h.node.config.frame_id == 'aurora' and h.node.config.rate_hz == 20.0
+        assert h.node.config.reconnect_max_s == 8.0
+        n = len(h.poses)
+        assert h.node.trigger_activate() == TransitionCallbackReturn.SUCCESS
+        assert h.spin_until(lambda: len(h.poses) >= n + 2)
+        assert h.poses[-1].header.frame_id == 'aurora'
+    finally:
+        h.close()
+
+
+def test_autostart_false_leaves_main_unconfigured_for_a_lifecycle_manager(ros):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    ns = f'/autostart_{os.getpid()}'
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from em_tracker.nodes.aurora_node import main; main()',
+         '--ros-args', '-r', f'__ns:={ns}', '-p', 'autostart:=false'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ))
+    manager = rclpy.create_node('lifecycle_manager_probe')
+    executor = SingleThreadedExecutor()
+    executor.add_node(manager)
+
+    def call(client, request):
+        assert client.wait_for_service(timeout_sec=20.0), client.srv_name
+        future = client.call_async(request)
+        executor.spin_until_future_complete(future, timeout_sec=15.0)
+        assert future.done()
+        return future.result()
+
+    try:
+        get_state = manager.create_client(GetState, f'{ns}/aurora/get_state')
+        change_state = manager.create_client(ChangeState, f'{ns}/aurora/change_state')
+        assert call(get_state, GetState.Request()).current_state.label == 'unconfigured'
+        configure = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
+        assert call(change_state, configure).success
+        assert call(get_state, GetState.Request()).current_state.label == 'inactive'
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=15.0)
+        assert rc == 0, proc.stdout.read()[-2000:]
+    finally:
+        executor.shutdown()
+        manager.destroy_node()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,12 +1,20 @@
 """pam_controller node: bend commands -> four PAM pressures over CAN, measured bend back.
 
-Lifecycle node (``main`` configures and activates it). Topics, QoS and parameters: see
+Lifecycle node (``main`` configures and activates it unless ``autostart`` is false, which leaves
+it unconfigured for a lifecycle manager). Topics, QoS and parameters: see
 ``docs/interfaces.md``. All maths and safety rules live in ``core/`` (``BendingModel``,
 ``PamSupervisor``) and the CAN protocol in ``hw/``; this file only wires them to ROS.
+
+Parameters are validated in the constructor (bad values raise ``ValueError``) and read again at
+configure: a change is accepted only while the node is unconfigured; in any other state
+``set_parameters`` answers ``successful=False`` with the reason
+(:mod:`pam_controller.nodes.params`). ``autostart`` is read-only.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass
 import math
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -37,6 +45,7 @@ from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
 from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes import conversions as conv
 from pam_controller.nodes import RCLError, try_shutdown
+from pam_controller.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -75,7 +84,11 @@ PARAMETERS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
     'hysteresis_play_count': (8, 'number of play operators', (1, 64)),
     'hysteresis_max_threshold_pa': (100e3, 'largest play threshold, Pa', (1.0, 400e3)),
     'hysteresis_density_decay': (1.0, 'exponential decay of play weights', (0.0, 20.0)),
+    'autostart': (True, AUTOSTART_DESCRIPTION, None),
 }
+#: Parameters fixed for the node's life (the others are read at configure).
+_READ_ONLY = frozenset({'autostart'})
+_CONFIGURE_TIME = tuple(name for name in PARAMETERS if name not in _READ_ONLY)
 
 
 class _Params:
@@ -117,6 +130,61 @@ class _Params:
         return value
 
 
+@dataclass(frozen=True)
+class PamSettings:
+    """What the node builds from its parameters (:func:`build_settings`)."""
+
+    model: BendingModelConfig
+    """Bending model and pressure / bend caps."""
+    supervisor: SupervisorConfig
+    """Watchdog, slew limit and vent pressure."""
+    link: LinkConfig
+    """CAN link to the regulator bank."""
+    sim: SimRegulatorConfig | None
+    """The in-process simulated bank, or None (``simulate_regulators: false``)."""
+    control_period_s: float
+    """Period of the control loop, s."""
+    diagnostics_period_s: float
+    """Period of /diagnostics, s."""
+
+
+def build_settings(values: Mapping[str, object]) -> PamSettings:
+    """The :class:`PamSettings` of the parameter values ``{name: value}``.
+
+    Raises:
+        ValueError: a value out of range or inconsistent.
+    """
+    p = _Params(dict(values))
+    hyst = HysteresisConfig(
+        gain=p.real('hysteresis_gain_rad_per_pa'),
+        hysteresis_fraction=p.real('hysteresis_fraction'),
+        play_count=p.integer('hysteresis_play_count'),
+        max_threshold=p.real('hysteresis_max_threshold_pa'),
+        density_decay=p.real('hysteresis_density_decay'))
+    model = BendingModelConfig(
+        min_pressure_pa=p.real('min_pressure_pa'), max_pressure_pa=p.real('max_pressure_pa'),
+        bias_pressure_pa=p.real('bias_pressure_pa'), max_bend_rad=p.real('max_bend_rad'),
+        hysteresis=hyst)
+    supervisor = SupervisorConfig(
+        command_timeout_s=p.real('command_timeout_s'),
+        max_pressure_rate_pa_s=p.real('max_pressure_rate_pa_s'),
+        vent_pressure_pa=p.real('vent_pressure_pa'))
+    link = LinkConfig(
+        interface=p.text('can_interface'), channel=p.text('can_channel'),
+        bitrate=p.integer('can_bitrate'), heartbeat_period_s=p.real('heartbeat_period_s'),
+        device_timeout_s=p.real('device_timeout_s'),
+        reconnect_initial_s=p.real('reconnect_initial_s'),
+        reconnect_max_s=p.real('reconnect_max_s'))
+    sim = SimRegulatorConfig(interface=link.interface, channel=link.channel,
+                             time_constant_s=p.real('sim_time_constant_s')) \
+        if p.flag('simulate_regulators') else None
+    # Checks the vent pressure against the limits now, so a bad one raises here.
+    PamSupervisor(BendingModel(model), supervisor, 0.0)
+    return PamSettings(model=model, supervisor=supervisor, link=link, sim=sim,
+                       control_period_s=1.0 / p.real('control_rate_hz'),
+                       diagnostics_period_s=p.real('diagnostics_period_s'))
+
+
 class PamNode(LifecycleNode):
     """Node ``pam_controller`` (see the module docstring).
 
@@ -126,39 +194,13 @@ class PamNode(LifecycleNode):
 
     def __init__(self, **kwargs: object) -> None:
         super().__init__('pam_controller', **kwargs)  # type: ignore[arg-type]
-        p = _Params({name: self._declare(name, *spec) for name, spec in PARAMETERS.items()})
-        hyst = HysteresisConfig(
-            gain=p.real('hysteresis_gain_rad_per_pa'),
-            hysteresis_fraction=p.real('hysteresis_fraction'),
-            play_count=p.integer('hysteresis_play_count'),
-            max_threshold=p.real('hysteresis_max_threshold_pa'),
-            density_decay=p.real('hysteresis_density_decay'))
-        self.model_config = BendingModelConfig(
-            min_pressure_pa=p.real('min_pressure_pa'), max_pressure_pa=p.real('max_pressure_pa'),
-            bias_pressure_pa=p.real('bias_pressure_pa'), max_bend_rad=p.real('max_bend_rad'),
-            hysteresis=hyst)
-        self.supervisor_config = SupervisorConfig(
-            command_timeout_s=p.real('command_timeout_s'),
-            max_pressure_rate_pa_s=p.real('max_pressure_rate_pa_s'),
-            vent_pressure_pa=p.real('vent_pressure_pa'))
-        self.link = LinkConfig(
-            interface=p.text('can_interface'), channel=p.text('can_channel'),
-            bitrate=p.integer('can_bitrate'), heartbeat_period_s=p.real('heartbeat_period_s'),
-            device_timeout_s=p.real('device_timeout_s'),
-            reconnect_initial_s=p.real('reconnect_initial_s'),
-            reconnect_max_s=p.real('reconnect_max_s'))
-        self.sim_config = SimRegulatorConfig(
-            interface=self.link.interface, channel=self.link.channel,
-            time_constant_s=p.real('sim_time_constant_s')) \
-            if p.flag('simulate_regulators') else None
-        self.control_period_s = 1.0 / p.real('control_rate_hz')
-        self.diagnostics_period_s = p.real('diagnostics_period_s')
-        # Checks the vent pressure against the limits now, so a bad one raises here.
-        self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
-                                        conv.node_seconds(self))
+        for name, spec in PARAMETERS.items():
+            self._declare(name, *spec)
+        self.autostart = bool(self.get_parameter('autostart').value)
         self.sim: SimRegulatorBank | None = None
-        self.bank = CanRegulatorBank(self.link.interface, self.link.channel, self.link.bitrate)
-        self.backoff = Backoff(self.link.reconnect_initial_s, self.link.reconnect_max_s)
+        self._apply(build_settings(self._parameter_values()))
+        self.add_on_set_parameters_callback(
+            configure_time_guard(self, _CONFIGURE_TIME, build_settings))
         self._active = False
         self._timers: list = []
         self._lifecycle_pubs: list = []
@@ -168,7 +210,8 @@ class PamNode(LifecycleNode):
 
     def _declare(self, name: str, default: object, description: str,
                  bounds: tuple[float, float] | None) -> object:
-        desc = ParameterDescriptor(name=name, description=description)
+        desc = ParameterDescriptor(name=name, description=description,
+                                   read_only=name in _READ_ONLY)
         if bounds is not None and isinstance(default, float):
             desc.floating_point_range = [FloatingPointRange(
                 from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
@@ -176,6 +219,22 @@ class PamNode(LifecycleNode):
             desc.integer_range = [IntegerRange(
                 from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
         return self.declare_parameter(name, default, desc).value
+
+    def _parameter_values(self) -> dict[str, object]:
+        return {name: self.get_parameter(name).value for name in _CONFIGURE_TIME}
+
+    def _apply(self, settings: PamSettings) -> None:
+        """Take ``settings``: configurations, supervisor, (closed) bank and backoff."""
+        self.model_config = settings.model
+        self.supervisor_config = settings.supervisor
+        self.link = settings.link
+        self.sim_config = settings.sim
+        self.control_period_s = settings.control_period_s
+        self.diagnostics_period_s = settings.diagnostics_period_s
+        self.supervisor = PamSupervisor(BendingModel(self.model_config), self.supervisor_config,
+                                        conv.node_seconds(self))
+        self.bank = CanRegulatorBank(self.link.interface, self.link.channel, self.link.bitrate)
+        self.backoff = Backoff(self.link.reconnect_initial_s, self.link.reconnect_max_s)
 
     def _reset_link_state(self) -> None:
         self.last_rx: float | None = None
@@ -189,6 +248,10 @@ class PamNode(LifecycleNode):
 
     # ---- lifecycle -----------------------------------------------------------------------
     def on_configure(self, state: State) -> TransitionCallbackReturn:
+        # (valid: the guard refused any value build_settings rejects)
+        self.bank.close()
+        self._apply(build_settings(self._parameter_values()))
+        self._reset_link_state()
         if self.sim_config is not None:
             self.sim = SimRegulatorBank(self.sim_config)
             self.sim.start()
@@ -405,13 +468,18 @@ class PamNode(LifecycleNode):
 
 
 def main(args: list[str] | None = None) -> None:
-    """Console script ``pam_node``: build, configure and activate the node, spin."""
+    """Console script ``pam_node``: build the node, configure and activate it (unless
+    ``autostart`` is false), spin."""
     rclpy.init(args=args)
     node = None
     try:
         node = PamNode()
-        node.trigger_configure()
-        node.trigger_activate()
+        if node.autostart:
+            node.trigger_configure()
+            node.trigger_activate()
+        else:
+            node.get_logger().info('autostart is false: unconfigured, waiting for '
+                                   'pam_controller/change_state')
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -17,8 +17,12 @@ from pathlib import Path
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from lifecycle_msgs.msg import Transition
+from lifecycle_msgs.srv import ChangeState, GetState
 import numpy as np
 import pytest
+from rcl_interfaces.srv import SetParameters
+import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -435,3 +439,90 @@ def test_cleanup_then_configure_again_gives_one_set_of_endpoints(harness):
              if i.node_name == 'pam_controller']
     assert len(infos) == 1
     assert len(h.node.get_subscriptions_info_by_topic(f'{ns}/catheter/bend_command')) == 1
+
+
+# ---- parameters: read at configure, changeable only while unconfigured --------------------
+def _set_over_service(h: Harness, **values: object) -> list:
+    """Call the node's ``set_parameters`` service (as ``ros2 param set`` does)."""
+    client = h.peer.create_client(SetParameters, f'{h.node.get_fully_qualified_name()}'
+                                                 '/set_parameters')
+    try:
+        assert client.wait_for_service(timeout_sec=WAIT_S)
+        future = client.call_async(SetParameters.Request(parameters=[
+            Parameter(name, value=value).to_parameter_msg() for name, value in values.items()]))
+        assert h.spin_until(future.done)
+        return future.result().results
+    finally:
+        h.peer.destroy_client(client)
+
+
+def test_set_parameters_refuses_a_configure_time_parameter_while_active(harness):
+    h = harness(namespace=f'/params{next(_channels)}')
+    [result] = _set_over_service(h, max_pressure_pa=200e3)
+    assert not result.successful
+    assert 'max_pressure_pa' in result.reason and 'found the node active' in result.reason
+    assert h.node.model_config.max_pressure_pa == 300e3
+    [result] = _set_over_service(h, autostart=False)
+    assert not result.successful and 'read-only' in result.reason
+
+
+def test_parameter_set_while_unconfigured_takes_effect_at_configure(harness):
+    h = harness(namespace=f'/params{next(_channels)}', own_bank=True)
+    h.node.trigger_deactivate()
+    [inactive] = _set_over_service(h, max_pressure_pa=200e3)
+    assert not inactive.successful and 'found the node inactive' in inactive.reason
+    h.node.trigger_cleanup()
+    results = _set_over_service(h, max_pressure_pa=200e3, bias_pressure_pa=100e3)
+    assert [r.successful for r in results] == [True, True]
+    [bad] = _set_over_service(h, vent_pressure_pa=250e3)  # above the new cap
+    assert not bad.successful and 'vent_pressure_pa must be in' in bad.reason
+    assert h.node.model_config.max_pressure_pa == 300e3  # not before configure
+    h.node.trigger_configure()
+    h.node.trigger_activate()
+    assert h.node.model_config.max_pressure_pa == 200e3
+    assert h.node.supervisor.model.config.max_pressure_pa == 200e3
+    assert h.spin_until(lambda: h.last_pressures().max() > 150e3,
+                        every=lambda: h.command(1.5, 0.0))
+    h.spin_for(0.3, every=lambda: h.command(1.5, 0.0))
+    assert h.last_pressures().max() <= 200e3 + 100.0
+
+
+def test_autostart_false_leaves_main_unconfigured_for_a_lifecycle_manager(ros):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    ns = f'/autostart_{os.getpid()}'
+    proc = subprocess.Popen(
+        [sys.executable, '-c', 'from pam_controller.nodes.pam_node import main; main()',
+         '--ros-args', '-r', f'__ns:={ns}', '-p', 'autostart:=false',
+         '-p', f'can_channel:=pam_autostart_{os.getpid()}'],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=dict(os.environ))
+    manager = rclpy.create_node('lifecycle_manager_probe')
+    executor = SingleThreadedExecutor()
+    executor.add_node(manager)
+
+    def call(client, request):
+        assert client.wait_for_service(timeout_sec=20.0), client.srv_name
+        future = client.call_async(request)
+        executor.spin_until_future_complete(future, timeout_sec=WAIT_S)
+        assert future.done()
+        return future.result()
+
+    try:
+        get_state = manager.create_client(GetState, f'{ns}/pam_controller/get_state')
+        change_state = manager.create_client(ChangeState, f'{ns}/pam_controller/change_state')
+        assert call(get_state, GetState.Request()).current_state.label == 'unconfigured'
+        configure = ChangeState.Request(transition=Transition(id=Transition.TRANSITION_CONFIGURE))
+        assert call(change_state, configure).success
+        assert call(get_state, GetState.Request()).current_state.label == 'inactive'
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=15.0)
+        assert rc == 0, proc.stdout.read()[-2000:]
+    finally:
+        executor.shutdown()
+        manager.destroy_node()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
