@@ -81,11 +81,15 @@ def _resolve(node, name: str) -> str:
 @pytest.mark.parametrize('contract', load_contracts(), ids=lambda c: c['node'])
 @pytest.mark.usefixtures('rclpy_context')
 def test_node_matches_contract(contract):
+    from rclpy.parameter import Parameter
+
     try:
         cls = _node_class(contract['package'], contract['executable'])
     except ModuleNotFoundError as exc:
         pytest.fail(f'node {contract["node"]} is in the contract but not implemented: {exc}')
-    node = cls()
+    overrides = contract.get('test_parameters') or {}  # e.g. a free port instead of a fixed one
+    node = cls(parameter_overrides=[Parameter(k, value=v) for k, v in overrides.items()]) \
+        if overrides else cls()
     try:
         if hasattr(node, 'trigger_configure'):
             node.trigger_configure()

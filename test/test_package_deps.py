@@ -78,6 +78,7 @@ PYTHON_KEYS = {
     'ndicapy': Key('python3-ndicapi-pip', 'ndicapi'),
     'ompl': Key('python3-ompl-pip', 'ompl'),  # the PyPI bindings (rosdep's ompl is the C++ lib)
     'onnxruntime': Key('python3-onnxruntime-pip', 'onnxruntime'),
+    'pyigtl': Key('python3-pyigtl-pip', 'pyigtl'),
     'rosbags': Key('python3-rosbags-pip', 'rosbags'),
 }
 #: ROS packages that the naming rule (*_msgs, *_srvs, *_interfaces) does not catch.

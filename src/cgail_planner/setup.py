@@ -47,6 +47,7 @@ setup(
             'phantom_node = cgail_planner.nodes.phantom_node:main',
             'operator_node = cgail_planner.nodes.operator_node:main',
             'gui_node = cgail_planner.nodes.gui_node:main',
+            'igtl_bridge = cgail_planner.nodes.igtl_bridge:main',
             'rig_launch = cgail_planner.system.launcher:main',
             'bag_record = cgail_planner.bags.record:main',
             'bag_play = cgail_planner.bags.play:main',
