@@ -13,7 +13,9 @@ Inputs (units are named in the file, never guessed):
   cloud) or ``.npz`` with ``vertices`` + ``faces`` or ``points``, in ``mesh_unit``.
 
 Lines starting with ``#`` in a CSV are comments. Output: a ROS 2 parameters file (see
-:func:`write_parameters`). Every failure is one :class:`InputFileError` line.
+:func:`write_parameters`). Every failure is one :class:`InputFileError` line. Recordings (the
+simulated rig's procedures, :mod:`em_tracker.sim.procedures`) are written in mm by
+:func:`write_poses` and :func:`write_fiducials`, which these readers read back.
 """
 
 from __future__ import annotations
@@ -233,6 +235,35 @@ def read_surface(path: Path, unit: str) -> LumenSurface:
     if len(verts):
         return LumenSurface.from_points(verts * scale)
     raise InputFileError(f'{path}: expected triangles or points, found an empty mesh')
+
+
+def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[object]],
+               comments: Sequence[str]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open('w', newline='') as f:
+        f.writelines(f'# {c}\n' for c in comments)
+        writer = csv.writer(f, lineterminator='\n')
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def write_poses(path: Path, positions_m: FloatArray, quats_xyzw: FloatArray,
+                comments: Sequence[str] = ()) -> None:
+    """Write sensor poses (aurora frame) as the CSV :func:`read_poses` reads: ``x_mm y_mm
+    z_mm qx qy qz qw`` (positions to 0.1 um)."""
+    rows = [[f'{v * 1e3:.4f}' for v in p] + [f'{v:.9f}' for v in q]
+            for p, q in zip(positions_m, quats_xyzw, strict=True)]
+    _write_csv(path, ['x_mm', 'y_mm', 'z_mm', 'qx', 'qy', 'qz', 'qw'], rows, comments)
+
+
+def write_fiducials(path: Path, names: Sequence[str], model_m: FloatArray,
+                    tracker_m: FloatArray, comments: Sequence[str] = ()) -> None:
+    """Write fiducial pairs as the CSV :func:`read_fiducials` reads: ``name``, the model
+    positions (phantom frame) and the touched ones (aurora frame), mm to 0.1 um."""
+    rows = [[name, *(f'{v * 1e3:.4f}' for v in (*m, *t))]
+            for name, m, t in zip(names, model_m, tracker_m, strict=True)]
+    header = ['name', *(f'{g}_{a}_mm' for g in ('model', 'tracker') for a in 'xyz')]
+    _write_csv(path, header, rows, comments)
 
 
 def _load_yaml(path: Path) -> Any:

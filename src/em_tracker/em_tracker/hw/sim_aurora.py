@@ -19,7 +19,14 @@ produces frames at ``frame_rate_hz`` from ``TSTART``; ``TX``/``BX`` return the l
 with its frame number.
 
 Pose source: a callable ``t -> (position_mm, quat_wxyz)`` (``t`` in seconds since
-``TSTART``), e.g. a :class:`ScriptedTrajectory` or a wrapper around the simulator's tip pose.
+``TSTART``), e.g. a :class:`ScriptedTrajectory` or a wrapper around the simulator's tip pose:
+the catheter tip's pose in the phantom frame.
+
+Ground truth (:class:`SimGroundTruth`, hidden from the host): where the phantom sits in the
+field generator's frame, how the sensor is mounted behind the tip, and the Aurora's noise. The
+device reports what a real Aurora would, the *sensor's* pose in the *tracker* frame,
+``T_aurora_phantom @ T_phantom_tip @ inv(T_sensor_tip)`` plus noise drawn per frame. The
+default (identity placement and mounting, no noise) reports the pose source unchanged.
 
 Faults (thread-safe setters): bad CRC on the next replies, MISSING tool, out of volume,
 partially out of volume, broken coil, extra port/system status bits, ``ERRORxx`` replies to
@@ -44,6 +51,8 @@ import time
 import tty
 
 import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from em_tracker.core.errors import ProtocolError
 from em_tracker.hw import combined_api as api
@@ -52,7 +61,114 @@ _NAME_COLON = re.compile(rb'[A-Z0-9]+:')
 _HEX_DIGITS = frozenset('0123456789ABCDEFabcdef')
 
 PoseSource = Callable[[float], tuple[Sequence[float] | np.ndarray, Sequence[float] | np.ndarray]]
-"""``t_s -> (position_mm (3,), quat_wxyz (4,))`` in the field-generator frame."""
+"""``t_s -> (position_mm (3,), quat_wxyz (4,))`` of the tip in the phantom frame (with the
+default :class:`SimGroundTruth`: what the device reports, the field-generator frame)."""
+
+
+def _placement(value: object, name: str) -> NDArray[np.float64]:
+    """``value`` as a read-only rigid 4x4 transform (translation in mm).
+
+    Raises:
+        ValueError: not a finite 4x4 matrix with last row ``0 0 0 1`` and an orthonormal
+            rotation block of det +1; the message names ``name``.
+    """
+    m = np.array(value, dtype=float)
+    ok = m.shape == (4, 4) and bool(np.all(np.isfinite(m)))
+    if ok:
+        rot = m[:3, :3]
+        ok = (np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9)
+              and np.allclose(rot @ rot.T, np.eye(3), atol=1e-6)
+              and float(np.linalg.det(rot)) > 0.0)
+    if not ok:
+        raise ValueError(f'{name} must be a rigid 4x4 transform (orthonormal rotation, det +1, '
+                         f'last row 0 0 0 1), found {value!r}')
+    m.setflags(write=False)
+    return m
+
+
+def pose_matrix(position_mm: Sequence[float] | np.ndarray,
+                quat_wxyz: Sequence[float] | np.ndarray) -> NDArray[np.float64]:
+    """The 4x4 transform (translation in mm) of a pose in NDI order."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
+    out[:3, 3] = np.asarray(position_mm, dtype=float)
+    return out
+
+
+@dataclass(frozen=True, eq=False)  # (no field-wise ==: the fields are arrays)
+class SimGroundTruth:
+    """The simulated rig's ground truth, hidden from the host (what calibration recovers).
+
+    Transforms are 4x4 with the translation in mm (device units, as everything in ``hw``);
+    ``T_a_b`` maps frame-b points into frame a, as in :mod:`em_tracker.core.pose`.
+    """
+
+    phantom_in_tracker: np.ndarray = field(default_factory=lambda: np.eye(4))
+    """``T_aurora_phantom``: the phantom's placement in the field generator's frame. The
+    ``registration`` that ``register_phantom`` should find is its inverse (in metres)."""
+    tip_in_sensor: np.ndarray = field(default_factory=lambda: np.eye(4))
+    """``T_sensor_tip``: the sensor's mounting; its translation is the tip offset in the sensor
+    frame. The ``tool_transform`` that ``pivot_calibrate`` should find (up to the roll about
+    the shaft, which a pivot does not observe)."""
+    position_noise_mm: float = 0.0
+    """3-D RMS of the position noise of each frame, mm; [0, 10] (Aurora 6DOF: 0.48,
+    :data:`em_tracker.core.registration.AURORA_POSITION_RMS_M`). Isotropic Gaussian, per-axis
+    sigma ``rms / sqrt(3)`` (the model of ``cgail_planner``'s ``TrackingNoise``)."""
+    orientation_noise_deg: float = 0.0
+    """RMS rotation angle of the orientation noise of each frame, deg; [0, 10] (Aurora 6DOF:
+    0.30). A rotation vector with per-axis sigma ``rms / sqrt(3)``, in the tracker frame."""
+    seed: int = 0
+    """Seed of the noise: frame ``k`` after the ``n``-th ``TSTART`` draws from ``(seed, n,
+    k)``, so a reading depends on neither how often nor when the host polls."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, 'phantom_in_tracker',
+                           _placement(self.phantom_in_tracker, 'phantom_in_tracker'))
+        object.__setattr__(self, 'tip_in_sensor', _placement(self.tip_in_sensor,
+                                                             'tip_in_sensor'))
+        for name in ('position_noise_mm', 'orientation_noise_deg'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and 0.0 <= value <= 10.0):
+                raise ValueError(f'{name} must be in [0, 10], found {value!r}')
+        if not (isinstance(self.seed, int) and self.seed >= 0):
+            raise ValueError(f'seed must be a non-negative integer, found {self.seed!r}')
+
+    @property
+    def passthrough(self) -> bool:
+        """Identity placement and mounting and no noise: readings are the pose source's."""
+        return (self.position_noise_mm == 0.0 and self.orientation_noise_deg == 0.0
+                and bool(np.array_equal(self.phantom_in_tracker, np.eye(4)))
+                and bool(np.array_equal(self.tip_in_sensor, np.eye(4))))
+
+    def registration_m(self) -> NDArray[np.float64]:
+        """The true ``T_phantom_aurora`` in metres (the ``registration`` parameter's form)."""
+        out = np.linalg.inv(self.phantom_in_tracker)
+        out[:3, 3] *= 1e-3
+        return out
+
+    def tool_transform_m(self) -> NDArray[np.float64]:
+        """The true ``T_sensor_tip`` in metres (the ``tool_transform`` parameter's form)."""
+        out = np.array(self.tip_in_sensor)
+        out[:3, 3] *= 1e-3
+        return out
+
+    def reading(self, tip_position_mm: Sequence[float] | np.ndarray,
+                tip_quat_wxyz: Sequence[float] | np.ndarray,
+                rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """What the Aurora reports for a tip pose in the phantom frame: the sensor's pose in
+        the tracker frame, ``(position_mm, quat_wxyz)`` with ``q0 >= 0``, plus noise drawn from
+        ``rng`` (none if ``rng`` is None)."""
+        sensor = (self.phantom_in_tracker @ pose_matrix(tip_position_mm, tip_quat_wxyz)
+                  @ np.linalg.inv(self.tip_in_sensor))
+        rot, pos = sensor[:3, :3], sensor[:3, 3]
+        if rng is not None:
+            pos = pos + rng.normal(0.0, self.position_noise_mm / math.sqrt(3.0), 3)
+            tilt = rng.normal(0.0, math.radians(self.orientation_noise_deg) / math.sqrt(3.0), 3)
+            rot = Rotation.from_rotvec(tilt).as_matrix() @ rot
+        x, y, z, w = Rotation.from_matrix(rot).as_quat(canonical=True)
+        return pos, np.array([w, x, y, z])
 
 
 class ScriptedTrajectory:
@@ -181,25 +297,31 @@ class SimAurora:
     """Simulated Aurora on a pty; start with :meth:`start`, stop with :meth:`close`.
 
     Args:
-        pose_source: ``t_s -> (position_mm, quat_wxyz)``; :func:`circle_trajectory` if None.
+        pose_source: ``t_s -> (position_mm, quat_wxyz)`` of the tip in the phantom frame;
+            :func:`circle_trajectory` if None.
         tool_handles: port handles with a sensor plugged in.
         frame_rate_hz: device frame rate (the Aurora runs at 40 Hz).
         error_mm: RMS error reported with each valid transform, mm.
         link_path: if set, a symlink to the current pty slave (stable across reconnects).
         first_frame: frame number of the first frame after TSTART.
         clock: monotonic clock, s (injectable for tests).
+        truth: the hidden placement, mounting and noise (default: none of them, the pose
+            source is reported as it is).
     """
 
     def __init__(self, pose_source: PoseSource | None = None, *,
                  tool_handles: Sequence[int] = (0x0A,), frame_rate_hz: float = 40.0,
                  error_mm: float = 0.25, link_path: str | None = None, first_frame: int = 1,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 truth: SimGroundTruth | None = None) -> None:
         if not frame_rate_hz > 0:
             raise ValueError(f'frame_rate_hz must be > 0, found {frame_rate_hz!r}')
         if not tool_handles or any(not 0 < h <= 0xFF for h in tool_handles):
             raise ValueError(f'tool_handles must be handles in 0x01..0xFF, '
                              f'found {tool_handles!r}')
         self.pose_source: PoseSource = pose_source or circle_trajectory
+        self.truth = truth or SimGroundTruth()
+        self._tstarts = 0  # TSTART count: a key of the noise draws
         self.tool_handles = tuple(tool_handles)
         self.frame_rate_hz = float(frame_rate_hz)
         self.error_mm = float(error_mm)
@@ -524,6 +646,7 @@ class SimAurora:
             return api.encode_error(api.ERR_INVALID_MODE)
         self.tracking = True
         self._t_start = self.clock()
+        self._tstarts += 1
         self._last_frame_index = -1
         return self._ok()
 
@@ -571,6 +694,11 @@ class SimAurora:
             for key in sorted(self.frame_times)[:2048]:
                 del self.frame_times[key]
         pos, quat = self.pose_source(t_frame)
+        truth = self.truth
+        if not truth.passthrough:
+            noisy = truth.position_noise_mm > 0.0 or truth.orientation_noise_deg > 0.0
+            rng = np.random.default_rng((truth.seed, self._tstarts, index)) if noisy else None
+            pos, quat = truth.reading(pos, quat, rng)
         faults = self.faults
         out = []
         for port in self.ports.values():

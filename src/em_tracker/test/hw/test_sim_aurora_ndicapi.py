@@ -5,12 +5,13 @@ from __future__ import annotations
 import time
 
 import ndicapy
+import numpy as np
 import pytest
 
 from em_tracker.core.errors import DeviceDisconnected, DeviceError, DeviceTimeout, ProtocolError
 from em_tracker.hw import combined_api as api
 from em_tracker.hw.aurora import AuroraSettings, IsolatedAurora, NdiAurora
-from em_tracker.hw.sim_aurora import ScriptedTrajectory, SimAurora
+from em_tracker.hw.sim_aurora import ScriptedTrajectory, SimAurora, SimGroundTruth
 
 HANDLE = 0x0A
 POS = (12.34, -56.78, -210.5)
@@ -289,3 +290,56 @@ def test_srom_write_failure_is_reported(sim, tmp_path):
     with pytest.raises(DeviceError, match='cannot read the SROM image'):
         device.connect()
     device.close()
+
+
+# ---------------------------------------------------------------- hidden ground truth
+#: phantom turned +90 deg about z at (100, 0, -200) mm; sensor z along the shaft, 10 mm behind
+PLACEMENT = [[0.0, -1.0, 0.0, 100.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, -200.0],
+             [0.0, 0.0, 0.0, 1.0]]
+MOUNTING = [[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 10.0],
+            [0.0, 0.0, 0.0, 1.0]]
+
+
+def _still(position_mm):
+    return ScriptedTrajectory([0.0, 1000.0], [position_mm, position_mm])
+
+
+def test_host_reads_the_sensor_pose_in_the_tracker_frame():
+    truth = SimGroundTruth(phantom_in_tracker=PLACEMENT, tip_in_sensor=MOUNTING)
+    sim = SimAurora(_still([10.0, 20.0, 30.0]), truth=truth).start()
+    device = NdiAurora(AuroraSettings(port=sim.port))
+    try:
+        device.connect()
+        tool = device.read().tools[0]
+        assert tool.position_mm == pytest.approx((90.0, 10.0, -170.0), abs=0.01)
+        assert tool.quat_wxyz == pytest.approx((0.5, -0.5, -0.5, 0.5), abs=1e-4)
+    finally:
+        device.close()
+        sim.close()
+
+
+def test_noise_is_one_draw_per_frame_from_the_seed():
+    """The same frame reads the same however often it is polled; the next frame differs; a
+    second device with the same seed reads the same frames."""
+    truth = SimGroundTruth(position_noise_mm=0.48, orientation_noise_deg=0.3, seed=7)
+    clock = [0.0]
+    readings = []
+    for _ in range(2):
+        sim = SimAurora(_still([0.0, 0.0, -200.0]), truth=truth, clock=lambda: clock[0]).start()
+        device = NdiAurora(AuroraSettings(port=sim.port, use_bx=True))
+        try:
+            clock[0] = 0.0
+            device.connect()
+            poll = []
+            for t in (0.01, 0.02, 0.04):  # frames 0, 0, 1 at 40 Hz
+                clock[0] = t
+                tool = device.read().tools[0]
+                poll.append((*tool.position_mm, *tool.quat_wxyz))
+            readings.append(poll)
+        finally:
+            device.close()
+            sim.close()
+    first, again, second = readings[0]
+    assert first == again and first != second
+    assert readings[1] == readings[0]
+    assert 0.0 < np.linalg.norm(np.subtract(first[:3], (0.0, 0.0, -200.0))) < 3.0

@@ -9,9 +9,16 @@ import time
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from em_tracker.hw import combined_api as api
-from em_tracker.hw.sim_aurora import circle_trajectory, ScriptedTrajectory, SimAurora
+from em_tracker.hw.sim_aurora import (
+    circle_trajectory,
+    pose_matrix,
+    ScriptedTrajectory,
+    SimAurora,
+    SimGroundTruth,
+)
 
 SETUP = ('INIT:', 'PINIT:0A', 'PENA:0AD', 'TSTART:')
 
@@ -205,3 +212,74 @@ def test_trajectory_interpolates_and_loops():
 
 def math_sqrt_half() -> float:
     return float(np.sqrt(0.5))
+
+
+# ---------------------------------------------------------------- hidden ground truth
+S = math_sqrt_half()
+#: phantom turned +90 deg about the tracker's z, its origin at (100, 0, -200) mm
+PLACEMENT = np.array([[0.0, -1.0, 0.0, 100.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, -200.0],
+                      [0.0, 0.0, 0.0, 1.0]])
+#: sensor z along the shaft (tip +y -> sensor +z: +90 deg about x), tip 10 mm ahead of it
+MOUNTING = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 10.0],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def test_default_truth_passes_the_pose_source_through():
+    assert SimGroundTruth().passthrough and SimAurora().truth.passthrough
+    assert not SimGroundTruth(position_noise_mm=0.1).passthrough
+    assert not SimGroundTruth(tip_in_sensor=MOUNTING).passthrough
+
+
+def test_reading_is_the_sensor_pose_in_the_tracker_frame():
+    truth = SimGroundTruth(phantom_in_tracker=PLACEMENT, tip_in_sensor=MOUNTING)
+    pos, quat = truth.reading([10.0, 20.0, 30.0], [1.0, 0.0, 0.0, 0.0])
+    # sensor 10 mm behind the tip along the tip's +y: (10, 10, 30) in the phantom, turned
+    # -90 deg about x; then the placement: (-10, 10, 30) + (100, 0, -200), Rz(90) Rx(-90)
+    assert pos == pytest.approx([90.0, 10.0, -170.0], abs=1e-12)
+    assert quat == pytest.approx([0.5, -0.5, -0.5, 0.5], abs=1e-12)
+    assert truth.registration_m() == pytest.approx(np.array(
+        [[0, 1, 0, 0.0], [-1, 0, 0, 0.1], [0, 0, 1, 0.2], [0, 0, 0, 1]]), abs=1e-12)
+    assert truth.tool_transform_m()[:3, 3] == pytest.approx([0.0, 0.0, 0.01], abs=1e-15)
+    # the tip, back from the reading with the true transforms (what calibration recovers)
+    tip = truth.registration_m() @ pose_matrix(pos * 1e-3, quat) @ truth.tool_transform_m()
+    assert tip[:3, 3] == pytest.approx([0.01, 0.02, 0.03], abs=1e-12)
+    assert tip[:3, :3] == pytest.approx(np.eye(3), abs=1e-12)
+
+
+def test_noise_has_the_stated_rms():
+    truth = SimGroundTruth(phantom_in_tracker=PLACEMENT, tip_in_sensor=MOUNTING,
+                           position_noise_mm=0.48, orientation_noise_deg=0.3)
+    clean_pos, clean_quat = truth.reading([10.0, 20.0, 30.0], [1.0, 0.0, 0.0, 0.0])
+    clean = pose_matrix(clean_pos, clean_quat)[:3, :3]
+    rng = np.random.default_rng(0)
+    pos_err, ang_err = [], []
+    for _ in range(2000):
+        pos, quat = truth.reading([10.0, 20.0, 30.0], [1.0, 0.0, 0.0, 0.0], rng)
+        pos_err.append(np.linalg.norm(pos - clean_pos))
+        ang_err.append(Rotation.from_matrix(pose_matrix(pos, quat)[:3, :3] @ clean.T)
+                       .magnitude())
+    # 2000 draws: the RMS estimates have a ~1 % standard error; 5 % is over 5 of them
+    assert np.sqrt(np.mean(np.square(pos_err))) == pytest.approx(0.48, rel=0.05)
+    assert np.degrees(np.sqrt(np.mean(np.square(ang_err)))) == pytest.approx(0.3, rel=0.05)
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'phantom_in_tracker': np.eye(3)}, 'phantom_in_tracker must be a rigid 4x4'),
+    ({'tip_in_sensor': np.diag([1.0, 1.0, -1.0, 1.0])}, 'tip_in_sensor must be a rigid 4x4'),
+    ({'tip_in_sensor': np.full((4, 4), np.nan)}, 'tip_in_sensor must be a rigid 4x4'),
+    ({'position_noise_mm': -0.1}, r'position_noise_mm must be in \[0, 10\], found -0.1'),
+    ({'orientation_noise_deg': float('inf')}, 'orientation_noise_deg must be in'),
+    ({'seed': -1}, 'seed must be a non-negative integer, found -1'),
+])
+def test_bad_truth_is_refused_with_the_field_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SimGroundTruth(**kwargs)
+
+
+def test_truth_placements_are_read_only_copies():
+    placement = PLACEMENT.copy()
+    truth = SimGroundTruth(phantom_in_tracker=placement)
+    placement[0, 3] = 0.0
+    assert truth.phantom_in_tracker[0, 3] == 100.0
+    with pytest.raises(ValueError, match='read-only'):
+        truth.phantom_in_tracker[0, 3] = 1.0
