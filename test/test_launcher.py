@@ -348,6 +348,43 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
     assert [n.name for n in spec.nodes if n.required] == ['phantom']
 
 
+def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(tmp_path):
+    """rig.yaml: every node builds from its package's class, every device talks to hardware
+    (SocketCAN, the serial port given), and the calibration file comes after the aurora's
+    defaults, so its registration and tool_transform win."""
+    import importlib
+
+    calibration = tmp_path / 'calibration.yaml'
+    calibration.write_text('aurora:\n  ros__parameters:\n    tool_transform: '
+                           '[0.0, 0.012, 0.0, 0.0, 0.0, 0.0, 1.0]\n')
+    spec = load_launch_file(SIM_RIG.with_name('rig.yaml'),
+                            {'aurora_port': '/dev/ttyUSB3', 'calibration': str(calibration),
+                             'can_channel': 'can1'})
+    nodes = {n.name: n for n in spec.nodes}
+    assert set(nodes) == {'aurora', 'pam_controller', 'sleeve_driver', 'joy', 'teleop',
+                          'planner', 'gui', 'igtl_bridge'}
+    for node in spec.nodes:
+        module, _, cls = node.plugin.partition(':')
+        assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
+        for path in node.parameters_files:
+            assert Path(path).is_file(), (node.name, path)
+
+    def params(name):
+        out = {}
+        for path in nodes[name].parameters_files:
+            out.update(load_params_file(path, name))
+        return out | nodes[name].parameters
+
+    aurora = params('aurora')
+    assert aurora['port'] == '/dev/ttyUSB3'
+    assert aurora['tool_transform'] == [0.0, 0.012, 0.0, 0.0, 0.0, 0.0, 1.0]
+    for name, sim in (('pam_controller', 'simulate_regulators'),
+                      ('sleeve_driver', 'simulate_device')):
+        assert (params(name)['can_interface'], params(name)['can_channel'],
+                params(name)[sim]) == ('socketcan', 'can1', False), name
+    assert params('igtl_bridge')['host'] == '127.0.0.1'
+
+
 def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_and_gui(tmp_path):
     """In process mode each node gets it in its own params file, in-process as an override;
     both come from the name/value ``param`` entries over the ``from`` files."""
