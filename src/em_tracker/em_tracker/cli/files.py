@@ -20,12 +20,14 @@ simulated rig's procedures, :mod:`em_tracker.sim.procedures`) are written in mm 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import argparse
+from collections.abc import Callable, Sequence
 import csv
 import math
 import os
 from pathlib import Path
 import struct
+import sys
 import tempfile
 from typing import Any
 
@@ -34,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 import yaml
 
-from em_tracker.core.errors import InputFileError
+from em_tracker.core.errors import CalibrationError, InputFileError
 from em_tracker.core.registration import LumenSurface
 
 FloatArray = NDArray[np.float64]
@@ -321,3 +323,20 @@ def write_parameters(path: Path, node: str, values: dict[str, Sequence[float]],
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def run_command(prog: str, parser: argparse.ArgumentParser, args: argparse.Namespace,
+                make_config: Callable[[], Any],
+                run: Callable[[argparse.Namespace, Any], int]) -> int:
+    """The calibration commands' common ending: build the config from the arguments (a bad
+    value is a usage error, exit 2 through ``parser.error``), then ``run(args, config)``;
+    a bad input file or a refused calibration prints one line and returns 2."""
+    try:
+        config = make_config()
+    except ValueError as exc:
+        parser.error(str(exc))
+    try:
+        return run(args, config)
+    except (InputFileError, CalibrationError) as exc:
+        print(f'{prog}: error: {exc}', file=sys.stderr)
+        return 2

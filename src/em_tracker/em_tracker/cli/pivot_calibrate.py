@@ -27,9 +27,9 @@ import sys
 
 import numpy as np
 
-from em_tracker.cli.files import read_poses, write_parameters
+from em_tracker.cli.files import read_poses, run_command, write_parameters
 from em_tracker.core.calibration import pivot_calibration, PivotConfig, sensor_to_tip_transform
-from em_tracker.core.errors import CalibrationError, InputFileError
+from em_tracker.core.errors import CalibrationError
 from em_tracker.core.pose import Registration
 
 PROG = 'pivot_calibrate'
@@ -117,16 +117,9 @@ def run(args: argparse.Namespace, config: PivotConfig) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    try:
-        config = PivotConfig(min_spread_rad=math.radians(args.min_spread_deg),
-                             max_residual_rms_m=args.max_residual_mm * 1e-3)
-    except ValueError as exc:
-        parser.error(str(exc))
-    try:
-        return run(args, config)
-    except (InputFileError, CalibrationError) as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 2
+    return run_command(PROG, parser, args, lambda: PivotConfig(
+        min_spread_rad=math.radians(args.min_spread_deg),
+        max_residual_rms_m=args.max_residual_mm * 1e-3), run)
 
 
 if __name__ == '__main__':

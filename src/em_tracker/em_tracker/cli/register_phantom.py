@@ -27,10 +27,10 @@ from em_tracker.cli.files import (
     read_fiducials,
     read_surface,
     read_trajectory,
+    run_command,
     UNITS,
     write_parameters,
 )
-from em_tracker.core.errors import CalibrationError, InputFileError
 from em_tracker.core.registration import PairedPointConfig, refine_icp, register_paired_points
 
 PROG = 'register_phantom'
@@ -111,16 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if (args.trajectory is None) != (args.mesh is None):
         parser.error('--trajectory and --mesh go together')
-    try:
-        config = PairedPointConfig(min_line_distance_m=args.min_line_distance_mm * 1e-3,
-                                   max_fre_m=args.max_fre_mm * 1e-3)
-    except ValueError as exc:
-        parser.error(str(exc))
-    try:
-        return run(args, config)
-    except (InputFileError, CalibrationError) as exc:
-        print(f'{PROG}: error: {exc}', file=sys.stderr)
-        return 2
+    return run_command(PROG, parser, args, lambda: PairedPointConfig(
+        min_line_distance_m=args.min_line_distance_mm * 1e-3,
+        max_fre_m=args.max_fre_mm * 1e-3), run)
 
 
 if __name__ == '__main__':
