@@ -99,12 +99,14 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     t0 = time.monotonic()
     pool = [sample_anatomy(s) for s in train_seeds] + [
         resolve_anatomy(name) for name in population.include]
-    evals = [sample_anatomy(s) for s in eval_seeds]
+    evals = [sample_anatomy(s) for s in eval_seeds] + (
+        pool[len(train_seeds):] if population.eval_include else [])
     if report is not None:
         also = f' and {", ".join(population.include)}' if population.include else ''
         report(f'{len(pool)} training anatomies (population seeds {train_seeds[0]}-'
                f'{train_seeds[-1]}{also}) and {len(evals)} evaluation anatomies (seeds '
-               f'{eval_seeds[0]}-{eval_seeds[-1]}) ready in {time.monotonic() - t0:.0f} s')
+               f'{eval_seeds[0]}-{eval_seeds[-1]}{also if population.eval_include else ""})'
+               f' ready in {time.monotonic() - t0:.0f} s')
 
     def config(a: Any) -> EnvConfig:
         return EnvConfig.from_options(env_options, mode=mode, anatomy=a)
@@ -119,7 +121,8 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
                           'eval_seeds': [eval_seeds[0], eval_seeds[-1] + 1],
                           'redraw_every': population.redraw_every,
                           'include': list(population.include),
-                          'include_weight': population.include_weight}
+                          'include_weight': population.include_weight,
+                          'eval_include': population.eval_include}
     return env, eval_env, meta
 
 

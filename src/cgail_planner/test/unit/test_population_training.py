@@ -1,6 +1,8 @@
 """Training across the population: the disjoint seed split, the per-worker anatomy env, the
 generalist preset."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -246,6 +248,25 @@ def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:
     assert [a.name for a in env.anatomies] == ["default", "default", "elongated"]
     assert meta["population"]["include"] == ["elongated"]
     np.testing.assert_allclose(env._p, [1 / 6, 1 / 6, 4 / 6])
+
+
+def test_the_selection_can_run_the_included_built_in_anatomies_too(monkeypatch) -> None:
+    from cgail_planner.learning.train import make_envs
+    from cgail_planner.sim.anatomy import resolve_anatomy
+    import cgail_planner.sim.population as population
+
+    monkeypatch.setattr(population, "sample_anatomy", lambda s: resolve_anatomy("default"))
+    cfg = PopulationConfig(anatomies=2, eval_anatomies=1, include=("elongated",))
+    _, plain, _ = make_envs("static", "default", 2, "sphere_targets", cfg)
+    _, both, meta = make_envs("static", "default", 2, "sphere_targets",
+                              dataclasses.replace(cfg, eval_include=True))
+    assert [e.config.anatomy.name for e in plain.envs] == ["default"]
+    assert [e.config.anatomy.name for e in both.envs] == ["default", "elongated"]
+    both.reset(seed=7)  # odd evaluation seeds run elongated
+    assert both._env is both.envs[1] and meta["population"]["eval_include"] is True
+    with pytest.raises(ValueError, match=r"population.eval_include must be false without "
+                                         r"population.include, found True"):
+        PopulationConfig(anatomies=2, eval_include=True)
 
 
 def test_demonstrations_refuse_a_held_out_anatomy() -> None:
