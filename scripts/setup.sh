@@ -56,10 +56,13 @@ fi
 if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
     # shellcheck disable=SC1091
     source scripts/env.sh
+    # The interface packages (tf2_msgs: no wheel has it) first, with the rosidl tools.
+    bash scripts/build_interfaces.sh
     log "colcon build"
     # colcon reads tests_require to find pytest; setuptools warns it is unknown: silence that.
     PYTHONWARNINGS="ignore:Unknown distribution option" \
         colcon --log-base log build --symlink-install --event-handlers console_cohesion- summary+ \
+            --packages-skip tf2_msgs \
         2>&1 | grep -v -E '^(Starting >>>|Finished <<<)' >&2
     # 6. numba kernels and built-in anatomies into their disk caches (~1 min on a fresh clone,
     #    a few seconds after that), so no test deadline or first trial pays the compile.

@@ -79,6 +79,55 @@ def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
     _assert_both_trials_reached(out)
     assert (out / 'metrics_boxplot.png').is_file()
     assert sorted(p.name for p in (out / 'bags').iterdir()) == ['centerline', 'cgail']
+    _assert_tf_and_markers_recorded(out / 'bags' / 'cgail' / 'cgail_01')
+
+
+def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path) -> None:
+    """The default suite's session run: one centerline trial cut at 8 simulated seconds,
+    dynamic (the wall deforms), and what its bag holds besides the metrics' topics."""
+    out = tmp_path / 'session'
+    assert main(['--trials', '1', '--conditions', 'centerline', '--mode', 'dynamic',
+                 '--time-limit', '8', '--out', str(out)]) == 0
+    _assert_tf_and_markers_recorded(out / 'bags' / 'centerline' / 'centerline_01')
+
+
+def _assert_tf_and_markers_recorded(bag: Path) -> None:
+    """The trial's bag carries TF (aurora -> phantom latched, phantom -> catheter_tip with
+    every tip pose), the tip with its covariance and both marker arrays, as Foxglove and RViz2
+    read them."""
+    from rosbags.highlevel import AnyReader
+
+    from cgail_planner.system.session import RECORDED_LUMEN_TRIANGLES
+
+    msgs: dict[str, list] = {}
+    types: dict[str, str] = {}
+    with AnyReader([bag]) as reader:
+        for conn, _, raw in reader.messages():
+            msgs.setdefault(conn.topic, []).append(reader.deserialize(raw, conn.msgtype))
+            types[conn.topic] = conn.msgtype
+    assert types['/tf'] == types['/tf_static'] == 'tf2_msgs/msg/TFMessage'
+    assert types['/phantom/markers'] == 'visualization_msgs/msg/MarkerArray'
+    [static] = msgs['/tf_static']
+    assert [(t.header.frame_id, t.child_frame_id) for t in static.transforms] == [
+        ('aurora', 'phantom')]
+    tips = {(t.header.stamp.sec, t.header.stamp.nanosec): t.transform.translation
+            for m in msgs['/tf'] for t in m.transforms
+            if (t.header.frame_id, t.child_frame_id) == ('phantom', 'catheter_tip')}
+    poses = msgs['/em_tracker/tip_pose']
+    assert len(tips) == len(poses) > 100 and len(msgs['/em_tracker/tip_pose_cov']) == len(poses)
+    last = poses[-1]
+    tr = tips[(last.header.stamp.sec, last.header.stamp.nanosec)]
+    assert (tr.x, tr.y, tr.z) == (last.pose.position.x, last.pose.position.y,
+                                  last.pose.position.z)
+    lumen = [m for a in msgs['/phantom/markers'] for m in a.markers if m.ns == 'lumen']
+    assert len(lumen) >= 10 and lumen[0].type == 11  # TRIANGLE_LIST, refreshed
+    assert 0 < len(lumen[0].points) <= 3 * RECORDED_LUMEN_TRIANGLES * 1.2
+    assert {m.ns for a in msgs['/phantom/markers'] for m in a.markers} >= {'lumen',
+                                                                              'catheter_body'}
+    assert {m.ns for a in msgs['/planner/markers'] for m in a.markers} >= {'target', 'path'}
+    first, last_wall = lumen[0].points, lumen[-1].points  # dynamic: the wall moved
+    assert max(abs(a.x - b.x) + abs(a.y - b.y) + abs(a.z - b.z)
+               for a, b in zip(first, last_wall, strict=True)) > 1e-5
 
 
 @pytest.mark.slow

@@ -54,9 +54,18 @@ import tempfile
 import time
 from typing import Any
 
+#: Recorded in every trial's bag: what the metrics read, and what RViz2 / Foxglove show (TF, the
+#: tip with its covariance, the markers: the wall as it deforms, the catheter body, the plan).
 TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
-          'planner/suggested_bend', 'phantom/tip_pose')
+          'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
+          '/tf_static', 'phantom/markers', 'planner/markers')
 CONDITIONS = ('cgail', 'centerline')
+#: The lumen on ``phantom/markers`` in a trial's bag: decimated to this many triangles and
+#: refreshed at ``RECORDED_MARKER_RATE_HZ`` (above twice the 70-bpm heartbeat, so the replayed
+#: wall does not alias): about 10 MB of a 75 s dynamic trial's bag. At the rig's live defaults
+#: (6000 triangles, 5 Hz) the same trial's bag held 134 MB of markers.
+RECORDED_LUMEN_TRIANGLES = 600
+RECORDED_MARKER_RATE_HZ = 3.0
 #: Simulated seconds between the rig's start and the goal (the tracker connects, poses flow).
 SETTLE_S = 1.0
 #: Simulated seconds recorded after the operator stopped.
@@ -233,7 +242,9 @@ class TrialRig:
         return {
             'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
                         'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
-                        'start_id': spec.start_id, 'target_id': spec.target_id},
+                        'start_id': spec.start_id, 'target_id': spec.target_id,
+                        'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
+                        'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
             'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
             'pam_controller': {'control_rate_hz': control},
             'sleeve_driver': {'control_rate_hz': control},

@@ -36,6 +36,14 @@ class TrackerConfig:
     frame origin at the tip, +y along the shaft towards the tip. Identity: the sensor's pose."""
     frame_id: str = 'phantom'
     """frame_id of the published poses."""
+    tracker_frame_id: str = 'aurora'
+    """The field generator's frame: parent of ``frame_id`` on ``/tf_static`` (the inverse of
+    the registration)."""
+    tip_frame_id: str = 'catheter_tip'
+    """The tip frame: child of ``frame_id`` on ``/tf``, one transform per published pose."""
+    publish_tf: bool = True
+    """Publish ``tracker_frame_id -> frame_id`` on ``/tf_static`` and ``frame_id ->
+    tip_frame_id`` on ``/tf``."""
     max_abs_position_m: float = 1.0
     """Readings with a coordinate beyond this distance from the field generator are rejected."""
     reply_timeout_s: float = 7.0
@@ -90,5 +98,7 @@ class TrackerConfig:
         if not 1 <= self.max_consecutive_errors <= 1000:
             raise ValueError(f'max_consecutive_errors must be in [1, 1000], found '
                              f'{self.max_consecutive_errors!r}')
-        if not self.frame_id:
-            raise ValueError(f'frame_id must be non-empty, found {self.frame_id!r}')
+        frames = (self.tracker_frame_id, self.frame_id, self.tip_frame_id)
+        if not all(frames) or len(set(frames)) != 3:
+            raise ValueError(f'tracker_frame_id, frame_id and tip_frame_id must be non-empty and '
+                             f'distinct, found {list(frames)!r}')

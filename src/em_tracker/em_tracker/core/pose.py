@@ -117,6 +117,14 @@ class Registration:
         quat = matrix_to_quat_xyzw(rot @ quat_xyzw_to_matrix(quat_xyzw))
         return pos, quat
 
+    def inverse(self) -> Registration:
+        """The inverse transform (``phantom -> aurora`` of a registration)."""
+        rot = self.matrix[:3, :3]
+        m = np.eye(4)
+        m[:3, :3] = rot.T
+        m[:3, 3] = -rot.T @ self.matrix[:3, 3]
+        return Registration(m)
+
     def to_flat(self) -> list[float]:
         """The 7 values ``[tx ty tz qx qy qz qw]`` (m, quaternion with ``qw >= 0``) that
         :meth:`from_flat` reads back: the form of the ``registration`` parameter."""

@@ -10,6 +10,13 @@ sensor's. ``em_tracker/tip_pose_cov`` carries the same pose with a covariance fr
 reported RMS error (position variance ``rms^2 / 3`` per axis; orientation not estimated, see
 :func:`em_tracker.core.pose.pose_covariance`).
 
+TF (``publish_tf``, default on): the node owns the registration and the tip, so it publishes
+both: ``aurora -> phantom`` (``tracker_frame_id -> frame_id``, the inverse of the registration)
+on ``/tf_static`` (transient local, so a late tf listener or recorder gets it) at every
+configure, and ``phantom -> catheter_tip`` (``frame_id -> tip_frame_id``) on ``/tf`` with every
+published pose, with the pose's stamp. The messages are ``tf2_msgs/msg/TFMessage`` from the
+workspace's interface package (``src/interfaces/tf2_msgs``).
+
 A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it
 unless ``autostart`` is false, which leaves it unconfigured for a lifecycle manager):
 
@@ -54,9 +61,10 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
-from rclpy.qos import qos_profile_sensor_data, QoSProfile
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.timer import Timer
 from std_msgs.msg import Float64
+from tf2_msgs.msg import TFMessage
 
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.pose import Registration, TipPose
@@ -64,7 +72,13 @@ from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
 from em_tracker.nodes import RCLError, try_shutdown
-from em_tracker.nodes.conversions import diagnostic_status, tip_pose_to_cov_msg, tip_pose_to_msg
+from em_tracker.nodes.conversions import (
+    diagnostic_status,
+    registration_tf,
+    tip_pose_to_cov_msg,
+    tip_pose_to_msg,
+    tip_tf,
+)
 from em_tracker.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
@@ -87,6 +101,11 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
                        'sensor->tip: 7 values [tx ty tz qx qy qz qw] (m) or 16 (4x4 row-major); '
                        'tip frame: origin at the tip, +y along the shaft towards the tip', None),
     'frame_id': (_DEFAULTS.frame_id, 'frame_id of the published pose', None),
+    'tracker_frame_id': (_DEFAULTS.tracker_frame_id, "the field generator's frame: parent of "
+                         'frame_id on /tf_static', None),
+    'tip_frame_id': (_DEFAULTS.tip_frame_id, 'the tip frame: child of frame_id on /tf', None),
+    'publish_tf': (_DEFAULTS.publish_tf, 'publish tracker_frame_id -> frame_id on /tf_static and '
+                   'frame_id -> tip_frame_id on /tf', None),
     'max_abs_position_m': (_DEFAULTS.max_abs_position_m,
                            'reject readings with a coordinate beyond this, m', (0.01, 10.0)),
     'reply_timeout_s': (_DEFAULTS.reply_timeout_s, 'longest wait for a reply, s', (0.1, 60.0)),
@@ -137,7 +156,9 @@ def build_config(values: Mapping[str, Any]) -> TrackerConfig:
         registration=Registration.from_flat(list(values['registration'])),
         tool_transform=Registration.from_flat(list(values['tool_transform']),
                                               name='tool_transform'),
-        frame_id=values['frame_id'], max_abs_position_m=values['max_abs_position_m'],
+        frame_id=values['frame_id'], tracker_frame_id=values['tracker_frame_id'],
+        tip_frame_id=values['tip_frame_id'], publish_tf=values['publish_tf'],
+        max_abs_position_m=values['max_abs_position_m'],
         reply_timeout_s=values['reply_timeout_s'],
         max_consecutive_errors=values['max_consecutive_errors'],
         reconnect_initial_s=values['reconnect_initial_s'],
@@ -186,6 +207,8 @@ class AuroraNode(LifecycleNode):
         self._cov_pub: LifecyclePublisher | None = None
         self._rms_pub: LifecyclePublisher | None = None
         self._diag_pub: LifecyclePublisher | None = None
+        self._tf_pub: LifecyclePublisher | None = None
+        self._tf_static_pub: Any = None
         self._guard: GuardCondition | None = None
         self._diag_timer: Timer | None = None
         self._poll_timer: Timer | None = None
@@ -205,6 +228,15 @@ class AuroraNode(LifecycleNode):
                                                         qos_profile_sensor_data)
         self._diag_pub = self.create_lifecycle_publisher(DiagnosticArray, '/diagnostics',
                                                          QoSProfile(depth=10))
+        if self.config.publish_tf:
+            # tf2's QoS: /tf reliable, depth 100; /tf_static reliable and transient local
+            self._tf_pub = self.create_lifecycle_publisher(TFMessage, '/tf', QoSProfile(depth=100))
+            self._tf_static_pub = self.create_publisher(TFMessage, '/tf_static', QoSProfile(
+                depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            self._tf_static_pub.publish(registration_tf(
+                self.config.registration, self.get_clock().now().to_msg(),
+                self.config.tracker_frame_id, self.config.frame_id))
         if self._clocked:
             self._poll_timer = self.create_timer(1.0 / self.config.rate_hz, self._on_poll_timer)
         else:
@@ -262,10 +294,13 @@ class AuroraNode(LifecycleNode):
         if self._guard is not None:
             self.destroy_guard_condition(self._guard)
             self._guard = None
-        for pub in (self._pose_pub, self._cov_pub, self._rms_pub, self._diag_pub):
+        for pub in (self._pose_pub, self._cov_pub, self._rms_pub, self._diag_pub, self._tf_pub):
             if pub is not None:
                 self.destroy_lifecycle_publisher(pub)
-        self._pose_pub = self._cov_pub = self._rms_pub = self._diag_pub = None
+        self._pose_pub = self._cov_pub = self._rms_pub = self._diag_pub = self._tf_pub = None
+        if self._tf_static_pub is not None:
+            self.destroy_publisher(self._tf_static_pub)
+            self._tf_static_pub = None
         device, self._device = self._device, None
         if device is not None:
             device.close()
@@ -318,6 +353,9 @@ class AuroraNode(LifecycleNode):
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
             self._cov_pub.publish(tip_pose_to_cov_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
+            if self._tf_pub is not None:
+                self._tf_pub.publish(tip_tf(pose, stamp, self.config.frame_id,
+                                            self.config.tip_frame_id))
             with self._health_lock:
                 self.health.published += 1
 

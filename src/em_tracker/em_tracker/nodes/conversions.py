@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
+import numpy as np
+from tf2_msgs.msg import TFMessage
 
-from em_tracker.core.pose import pose_covariance, TipPose
+from em_tracker.core.pose import pose_covariance, Registration, TipPose
 from em_tracker.core.tracking import Level
 
 LEVEL_BYTES = {
@@ -39,6 +41,35 @@ def tip_pose_to_cov_msg(pose: TipPose, stamp: Time,
     msg.pose.pose = stamped.pose
     msg.pose.covariance = [float(v) for v in pose_covariance(pose.rms_error_m).ravel()]
     return msg
+
+
+def transform_msg(stamp: Time, parent: str, child: str, translation_m: np.ndarray,
+                  quat_xyzw: np.ndarray) -> TransformStamped:
+    """``geometry_msgs/TransformStamped``: the pose of ``child`` in ``parent`` (tf2's
+    convention: ``header.frame_id`` the parent, ``child_frame_id`` the child)."""
+    msg = TransformStamped()
+    msg.header.stamp = stamp
+    msg.header.frame_id = parent
+    msg.child_frame_id = child
+    t, q = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in translation_m)
+    q.x, q.y, q.z, q.w = (float(v) for v in quat_xyzw)
+    return msg
+
+
+def registration_tf(registration: Registration, stamp: Time, tracker_frame: str,
+                    phantom_frame: str) -> TFMessage:
+    """The ``/tf_static`` message ``tracker_frame -> phantom_frame``: the phantom's pose in the
+    field generator's frame, i.e. the inverse of the registration (``T_phantom_aurora``)."""
+    flat = registration.inverse().to_flat()
+    return TFMessage(transforms=[transform_msg(stamp, tracker_frame, phantom_frame,
+                                               np.array(flat[:3]), np.array(flat[3:]))])
+
+
+def tip_tf(pose: TipPose, stamp: Time, phantom_frame: str, tip_frame: str) -> TFMessage:
+    """The ``/tf`` message ``phantom_frame -> tip_frame``: the tip pose (as ``tip_pose``)."""
+    return TFMessage(transforms=[transform_msg(stamp, phantom_frame, tip_frame,
+                                               pose.position_m, pose.quat_xyzw)])
 
 
 def diagnostic_status(name: str, hardware_id: str, level: Level, message: str,

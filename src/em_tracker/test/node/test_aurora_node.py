@@ -17,8 +17,9 @@ from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValu
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.lifecycle import TransitionCallbackReturn
 from rclpy.parameter import Parameter
-from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64
+from tf2_msgs.msg import TFMessage
 
 from em_tracker.core.errors import DeviceDisconnected, DeviceError, ProtocolError
 from em_tracker.hw.aurora import ToolReading, TrackingReply
@@ -117,6 +118,7 @@ def make(fake, **params):
     ('tool_handle', 300), ('srom_files', 'zz:/x.rom'), ('port', ''), ('frame_id', ''),
     ('reconnect_max_s', 0.02), ('tool_handle', 'ten'), ('tool_transform', [0.0, 0.01]),
     ('tool_transform', [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0]),
+    ('tip_frame_id', 'phantom'), ('tracker_frame_id', ''), ('publish_tf', 'yes'),
 ])
 def test_bad_parameters_raise_at_construction(ros, name, value):
     with pytest.raises(BAD_PARAM):
@@ -210,6 +212,52 @@ def test_tip_pose_cov_is_the_tip_pose_with_the_rms_covariance(ros):
         assert np.diag(cov)[:3] == pytest.approx([(0.3e-3) ** 2 / 3.0] * 3, rel=1e-12)
         assert np.diag(cov)[3:].tolist() == [1e6] * 3
         assert np.count_nonzero(cov - np.diag(np.diag(cov))) == 0
+    finally:
+        h.close()
+
+
+def _matrix(t):
+    from em_tracker.core.pose import Registration
+
+    tr, q = t.transform.translation, t.transform.rotation
+    return Registration.from_flat([tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w]).matrix
+
+
+def test_tf_static_registration_and_tip_tf_compose_to_the_sensor_in_the_tracker_frame(ros):
+    # Registration +90 deg about z then (1, 2, 3) m; the tip 10 mm along the sensor's +y.
+    s = math.sqrt(0.5)
+    h = make(FakeDevice([VALID]), registration=[1.0, 2.0, 3.0, 0.0, 0.0, s, s],
+             tool_transform=[0.0, 0.010, 0.0, 0.0, 0.0, 0.0, 1.0])
+    tf, static = [], []
+    # subscribed after the node configured: /tf_static is latched, so it still arrives
+    h.sub_node.create_subscription(TFMessage, '/tf_static', static.append, QoSProfile(
+        depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    h.sub_node.create_subscription(TFMessage, '/tf', tf.append, QoSProfile(depth=100))
+    try:
+        assert h.spin_until(lambda: static and len(tf) >= 3 and len(h.poses) >= 3)
+        (reg,) = static[-1].transforms
+        assert (reg.header.frame_id, reg.child_frame_id) == ('aurora', 'phantom')
+        tip = tf[-1].transforms[0]
+        assert (tip.header.frame_id, tip.child_frame_id) == ('phantom', 'catheter_tip')
+        pose = {(m.header.stamp.sec, m.header.stamp.nanosec): m.pose for m in h.poses}[
+            (tip.header.stamp.sec, tip.header.stamp.nanosec)]  # one transform per pose
+        assert (tip.transform.translation.x, tip.transform.translation.y,
+                tip.transform.translation.z) == (pose.position.x, pose.position.y,
+                                                 pose.position.z)
+        # aurora -> phantom -> catheter_tip: the tip in the tracker frame, 10 mm above the
+        # sensor's (10, -20, -150) mm along aurora +z (VALID turns the sensor's +y onto +z)
+        tip_in_aurora = _matrix(reg) @ _matrix(tip)
+        assert tip_in_aurora[:3, 3] == pytest.approx((0.010, -0.020, -0.140), abs=1e-9)
+    finally:
+        h.close()
+
+
+def test_publish_tf_false_publishes_no_tf(ros):
+    h = make(FakeDevice([VALID]), publish_tf=False)
+    try:
+        assert h.spin_until(lambda: len(h.poses) >= 3)
+        assert not {'/tf', '/tf_static'} & {p.topic_name for p in h.node.publishers}
     finally:
         h.close()
 
@@ -390,7 +438,7 @@ def _published(node):
 
 
 DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/tip_pose_cov', '/em_tracker/rms_error',
-                 '/diagnostics')
+                 '/diagnostics', '/tf', '/tf_static')
 
 
 def _state(node):
@@ -480,22 +528,22 @@ def test_parameter_set_while_unconfigured_takes_effect_at_configure(ros):
     try:
         assert h.spin_until(lambda: len(h.poses) >= 1)
         assert h.node.trigger_deactivate() == TransitionCallbackReturn.SUCCESS
-        [inactive] = _set_over_service(h, frame_id='aurora')
+        [inactive] = _set_over_service(h, frame_id='phantom_b')
         assert not inactive.successful and 'found the node inactive' in inactive.reason
         assert h.node.trigger_cleanup() == TransitionCallbackReturn.SUCCESS
-        results = _set_over_service(h, frame_id='aurora', rate_hz=20.0)
+        results = _set_over_service(h, frame_id='phantom_b', rate_hz=20.0)
         assert [r.successful for r in results] == [True, True]
         # validated against the whole configuration (reconnect_initial_s is 0.5)
         [bad] = _set_over_service(h, reconnect_max_s=0.1)
         assert not bad.successful and 'reconnect_max_s must be >=' in bad.reason
         assert h.node.config.frame_id == 'phantom'  # not before configure
         assert h.node.trigger_configure() == TransitionCallbackReturn.SUCCESS
-        assert h.node.config.frame_id == 'aurora' and h.node.config.rate_hz == 20.0
+        assert h.node.config.frame_id == 'phantom_b' and h.node.config.rate_hz == 20.0
         assert h.node.config.reconnect_max_s == 8.0
         n = len(h.poses)
         assert h.node.trigger_activate() == TransitionCallbackReturn.SUCCESS
         assert h.spin_until(lambda: len(h.poses) >= n + 2)
-        assert h.poses[-1].header.frame_id == 'aurora'
+        assert h.poses[-1].header.frame_id == 'phantom_b'
     finally:
         h.close()
 
