@@ -258,6 +258,17 @@ def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_co
             node.destroy_node()
 
 
+def test_in_process_lifecycle_nodes_wait_for_a_manager_when_autostart_is_false(rclpy_context):
+    spec = NodeSpec(name='sleeve_driver', package='catheter_driver', executable='driver_node',
+                    plugin='catheter_driver.nodes.driver_node:DriverNode',
+                    parameters={'autostart': False})
+    node = build_node(spec, {'can_channel': 'autostart_off'})
+    try:
+        assert node._state_machine.current_state[1] == 'unconfigured'
+    finally:
+        node.destroy_node()
+
+
 def test_launch_arguments_replace_var_with_their_default_or_given_value(tmp_path):
     data = {'launch': [
         {'arg': {'name': 'anatomy', 'default': 'default', 'description': 'the aorta'}},

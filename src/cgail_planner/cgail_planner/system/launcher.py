@@ -311,7 +311,10 @@ def build_node(spec_node: NodeSpec, extra: dict[str, Any] | None = None,
                cli_args=['--ros-args', *_ros_arguments(spec_node)], **options)
     if prepare is not None:
         prepare(node)
-    if hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate'):
+    # a lifecycle node starts itself unless its ``autostart`` is false (the device nodes'
+    # parameter, as in their standalone main): then a lifecycle manager drives it
+    if (hasattr(node, 'trigger_configure') and hasattr(node, 'trigger_activate')
+            and getattr(node, 'autostart', True)):
         node.trigger_configure()
         node.trigger_activate()
     return node
@@ -324,7 +327,7 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
     Plain (``ros: false``) processes are still started as children. Node classes are built as
     ``Class(parameter_overrides=[...], cli_args=['--ros-args', '-r', '__node:=<name>'])``, so a
     node class must forward ``**kwargs`` to ``rclpy.node.Node.__init__``. Lifecycle nodes are
-    configured and activated.
+    configured and activated, unless their ``autostart`` parameter is false.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
