@@ -21,7 +21,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 CONTRACT_RE = re.compile(r'```contract\n(.*?)```', re.S)
 TYPE_RE = re.compile(r'^\s*([\w/]+)\s*(?:\[(\w+)\])?\s*$')
-QOS_NAMES = {'sensor', 'command', 'latched', 'diagnostics'}
+QOS_NAMES = {'sensor', 'command', 'latched', 'diagnostics', 'tf'}
 IGNORED_TOPICS = {'/parameter_events', '/rosout'}
 IGNORED_TOPIC_SUFFIXES = ('/transition_event',)  # lifecycle nodes publish it
 IGNORED_SERVICE_SUFFIXES = (
@@ -127,5 +127,8 @@ def test_node_matches_contract(contract):
                 assert profile.reliability == ReliabilityPolicy.BEST_EFFORT, topic
             elif qos in ('command', 'diagnostics'):
                 assert profile.reliability == ReliabilityPolicy.RELIABLE, topic
+            elif qos == 'tf':  # tf2's /tf: reliable, volatile
+                assert profile.reliability == ReliabilityPolicy.RELIABLE, topic
+                assert profile.durability == DurabilityPolicy.VOLATILE, topic
     finally:
         node.destroy_node()

@@ -82,9 +82,11 @@ def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
     _assert_tf_and_markers_recorded(out / 'bags' / 'cgail' / 'cgail_01')
 
 
-def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path) -> None:
+def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path,
+                                                                     monkeypatch) -> None:
     """The default suite's session run: one centerline trial cut at 8 simulated seconds,
     dynamic (the wall deforms), and what its bag holds besides the metrics' topics."""
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)  # the test run holds its own: pick one
     out = tmp_path / 'session'
     assert main(['--trials', '1', '--conditions', 'centerline', '--mode', 'dynamic',
                  '--time-limit', '8', '--out', str(out)]) == 0

@@ -239,7 +239,10 @@ class PhantomNode(Node):
     def now_msg(self):
         """Stamp of the simulated time (the node clock in lockstep)."""
         if self.lockstep:
-            return self.get_clock().now().to_msg()
+            clock = self.get_clock()
+            # the constructor's latched messages go out before the lockstep executor adopts
+            # the node, while its clock is still the wall clock: they are simulated time 0
+            return clock.now().to_msg() if clock.ros_time_is_active else Time().to_msg()
         return Time(nanoseconds=int((self.sim_time + self._clock_offset) * 1e9)).to_msg()
 
     # ------------------------------------------------------------------ callbacks

@@ -206,6 +206,24 @@ class LockstepExecutor:
         self._sweep()
         self._check_synchronous_delivery(want)
 
+    def settle(self, predicate: Callable[[], bool], timeout_s: float = 30.0) -> None:
+        """Handle what arrives from outside the instrumented publishes (latched samples that
+        reach late joiners on matching, asynchronously) until ``predicate()`` holds, with no
+        simulated time passing: what a graph must have before its first tick, however slowly
+        the middleware delivers it on a loaded machine.
+
+        Raises:
+            LockstepError: ``predicate()`` still false after ``timeout_s`` wall seconds.
+        """
+        deadline = time.monotonic() + timeout_s
+        self._sweep()
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise LockstepError(f'expected the latched samples of the graph delivered '
+                                    f'within {timeout_s} s, found them missing')
+            time.sleep(0.002)
+            self._sweep()
+
     def _check_synchronous_delivery(self, want: Iterable[tuple[Any, int]]) -> None:
         """Refuse a middleware that does not deliver inside ``publish`` (checked once, on a
         private topic, so the graph's own topics see nothing)."""

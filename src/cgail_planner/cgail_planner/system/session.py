@@ -60,6 +60,9 @@ TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_w
           'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
           '/tf_static', 'phantom/markers', 'planner/markers')
 CONDITIONS = ('cgail', 'centerline')
+#: Recorded latched topics with a sample before the trial starts (published while the rig is
+#: built, before the recorder subscribes): the recorder must hold them before the first tick.
+LATCHED_AT_START = ('/tf_static', '/phantom/markers')
 #: The lumen on ``phantom/markers`` in a trial's bag: decimated to this many triangles and
 #: refreshed at ``RECORDED_MARKER_RATE_HZ`` (above twice the 70-bpm heartbeat, so the replayed
 #: wall does not alias): about 10 MB of a 75 s dynamic trial's bag. At the rig's live defaults
@@ -273,6 +276,12 @@ class TrialRig:
             time.sleep(0.01)
             self.recorder.discover()
         self.executor.seal()
+        # the latched samples published before the recorder subscribed (aurora's /tf_static
+        # at configure, the phantom's first markers) reach it asynchronously: wait for them
+        # at simulated time 0, or a loaded machine would log them at a later tick
+        recorder = self.recorder
+        self.executor.settle(lambda: all(recorder.counts.get(t, 0) >= 1
+                                         for t in LATCHED_AT_START))
 
     def publish_goal(self) -> None:
         """Publish the phantom's current target on ``planner/goal``, stamped now."""
