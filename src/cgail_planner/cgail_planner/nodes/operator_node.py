@@ -6,8 +6,10 @@ operator_node``). Behaviour: :mod:`cgail_planner.core.operator`.
 * Starts a trial when a ``planner/path`` arrives while idle (the clinician begins once the path
   is shown); ``operator/reset`` (std_srvs/Trigger) makes it idle again for the next trial.
 * Sees ``planner/suggested_bend``, ``planner/next_waypoint`` (the heading error towards it), the
-  target (``planner/goal``) and the tip (``em_tracker/tip_pose``); acts ``reaction_delay_s``
-  later.
+  path (``planner/path``: aims ``look_ahead`` m beyond the waypoint), the target
+  (``planner/goal``) and the tip (``em_tracker/tip_pose``); acts after its reaction delay.
+* ``skill`` (the session sets it per trial from the practice trials before it) blends the
+  ``novice_`` parameters into the practised ones.
 * Publishes ``joy`` (sensor_msgs/Joy, ``teleop_node``'s layout: deadman button
   ``enable_button`` held while running, insertion on ``axis_insertion``, bend on
   ``axis_bend_alpha``/``axis_bend_gamma`` for teleop's ``position`` bend mode) at ``rate_hz``,
@@ -30,7 +32,8 @@ from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 
 from cgail_planner.core.errors import InvalidInputError
-from cgail_planner.core.operator import OperatorConfig, Percept, ScriptedOperator
+from cgail_planner.core.guidance import PathFollower
+from cgail_planner.core.operator import aimed_bend, OperatorConfig, Percept, ScriptedOperator
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, try_shutdown
 
@@ -43,11 +46,36 @@ class OperatorNode(Node):
         d = OperatorConfig()
         self.config = OperatorConfig(
             reaction_delay_s=conv.declare(self, 'reaction_delay_s', d.reaction_delay_s,
-                                          'delay between display and action, s', lo=0.0, hi=2.0),
+                                          'practised delay between display and action, s',
+                                          lo=0.0, hi=2.0),
+            novice_reaction_delay_s=conv.declare(
+                self, 'novice_reaction_delay_s', d.novice_reaction_delay_s,
+                'first-trial reaction delay, s', lo=0.0, hi=2.0),
             max_stick_rate=conv.declare(self, 'max_stick_rate', d.max_stick_rate,
                                         'largest stick speed, deflections/s', lo=0.01, hi=100.0),
             stick_noise=conv.declare(self, 'stick_noise', d.stick_noise,
-                                     'stick noise standard deviation', lo=0.0, hi=0.5),
+                                     'practised stick noise standard deviation', lo=0.0, hi=0.5),
+            novice_stick_noise=conv.declare(self, 'novice_stick_noise', d.novice_stick_noise,
+                                            'first-trial stick noise', lo=0.0, hi=0.5),
+            look_ahead=conv.declare(self, 'look_ahead', d.look_ahead,
+                                    'aim this arc length beyond the next waypoint, m',
+                                    lo=0.0, hi=0.1),
+            correction_gain=conv.declare(self, 'correction_gain', d.correction_gain,
+                                         'practised fraction of the aimed bend', lo=0.0, hi=2.0),
+            novice_correction_gain=conv.declare(
+                self, 'novice_correction_gain', d.novice_correction_gain,
+                'first-trial correction gain', lo=0.0, hi=2.0),
+            stick_frequency=conv.declare(self, 'stick_frequency', d.stick_frequency,
+                                         'natural frequency of the bend stick response, rad/s '
+                                         '(0: none)', lo=0.0, hi=100.0),
+            stick_damping=conv.declare(self, 'stick_damping', d.stick_damping,
+                                       'practised damping ratio of the bend stick response',
+                                       lo=0.01, hi=0.99),
+            novice_stick_damping=conv.declare(self, 'novice_stick_damping',
+                                              d.novice_stick_damping,
+                                              'first-trial damping ratio', lo=0.01, hi=0.99),
+            skill=conv.declare(self, 'skill', d.skill,
+                               'skill level: 0 novice, 1 practised', lo=0.0, hi=1.0),
             max_insertion_fraction=conv.declare(
                 self, 'max_insertion_fraction', d.max_insertion_fraction,
                 'largest insertion stick deflection', lo=0.01, hi=1.0),
@@ -86,7 +114,9 @@ class OperatorNode(Node):
         self.goal: np.ndarray | None = None
         self.tip: np.ndarray | None = None
         self.heading: np.ndarray | None = None
+        self.rotation: np.ndarray | None = None
         self.waypoint: np.ndarray | None = None
+        self.path: PathFollower | None = None
         self._n_axes = max(self.axes) + 1
         self._n_buttons = self.enable_button + 1
         self._was_running = False
@@ -115,6 +145,7 @@ class OperatorNode(Node):
         self.goal = None
         self.tip = None
         self.waypoint = None
+        self.path = None
         self._was_running = False
         self._done_pub.publish(Bool(data=False))
 
@@ -131,6 +162,10 @@ class OperatorNode(Node):
 
     # ------------------------------------------------------------------ inputs
     def _on_path(self, msg: Path) -> None:
+        try:
+            self.path = PathFollower(conv.path_points(msg))
+        except ValueError:  # empty or degenerate: aim at the suggested bend as shown
+            self.path = None
         if self.operator.state == 'idle' and msg.poses:
             self.operator.start(self._now())
             self.get_logger().info('path shown: operator starts the trial')
@@ -145,6 +180,7 @@ class OperatorNode(Node):
             self.tip, rotation = conv.pose_from_msg(msg)
         except InvalidInputError:
             return
+        self.rotation = rotation
         self.heading = rotation[:, 1]
 
     def _on_bend(self, msg: JointState) -> None:
@@ -157,12 +193,16 @@ class OperatorNode(Node):
                                       throttle_duration_sec=2.0)
             return
         heading_error = 0.0
+        bend = (alpha, gamma)
+        if self.waypoint is not None and self.path is not None and self.rotation is not None:
+            bend = aimed_bend(self.path, self.tip, self.rotation, self.waypoint, bend,
+                              self.config.look_ahead)
         if self.waypoint is not None and self.heading is not None:
             to_wp = self.waypoint - self.tip
             n = float(np.linalg.norm(to_wp))
             if n > 1e-9:
                 heading_error = math.acos(max(-1.0, min(1.0, float(self.heading @ to_wp) / n)))
-        self.operator.perceive(Percept(t=self._now(), bend=(alpha, gamma),
+        self.operator.perceive(Percept(t=self._now(), bend=bend,
                                        heading_error=heading_error,
                                        distance=float(np.linalg.norm(self.goal - self.tip))))
 

@@ -15,6 +15,16 @@ reached, or closest approach passed) or at the 3-minute limit, and is recorded t
 Then the offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro
 numbers side by side and write the box plots.
 
+**Operator practice** (:mod:`cgail_planner.core.operator`). The paper's participant did 10
+pre-training trials per condition before its 10 measured ones. The scripted operator's skill
+follows a learning curve of the number of trials it did before (the power law of practice), so
+``--pretrain N`` (default 10) starts trial ``k`` of each condition at the skill after ``N + k``
+trials of that condition (each condition pre-trained on its own, as in the paper, and never
+favoured by the order the conditions run in). The pre-training trials are modelled, not run:
+the skill depends on their number only, not on their outcome, so running them could not change
+a measured trial (a trial is a function of the session seed and its index). To watch the
+learning curve itself, record the pre-training too: ``--pretrain 0 --trials 20``.
+
 **Simulated time is the only time** (:mod:`cgail_planner.system.lockstep`). The rig's nodes run
 on one lockstep executor that owns their clocks: a tick advances the simulated clock by
 ``1 / --physics-rate`` s, steps the phantom, fires the due timers and returns only when every
@@ -141,6 +151,10 @@ class TrialSpec:
     seed: int
     """Seed of the EM noise and of the operator's stick noise of this trial."""
     bag: str
+    practice: int = 0
+    """Trials of this condition the operator did before this one (pre-training included)."""
+    skill: float = 1.0
+    """The operator's skill level in this trial (``skill_after(practice)``; 1: practised)."""
 
     @property
     def label(self) -> str:
@@ -179,10 +193,14 @@ def trial_seed(seed: int, condition: str, index: int) -> int:
 
 
 def plan_trials(conditions: Sequence[str], trials: int, seed: int, bags_dir: Path,
-                n_starts: int = 3, n_targets: int = 5) -> list[TrialSpec]:
-    """The session's trials in protocol order."""
+                n_starts: int = 3, n_targets: int = 5, pretrain: int = 10) -> list[TrialSpec]:
+    """The session's trials in protocol order; trial ``k`` of a condition follows ``pretrain``
+    pre-training trials and ``k`` measured ones (``practice``, ``skill``)."""
+    from cgail_planner.core.operator import skill_after
+
     return [TrialSpec(condition, k, k % n_starts, k % n_targets, trial_seed(seed, condition, k),
-                      str(bags_dir / condition / f'{condition}_{k + 1:02d}'))
+                      str(bags_dir / condition / f'{condition}_{k + 1:02d}'),
+                      practice=pretrain + k, skill=skill_after(pretrain + k))
             for condition in conditions for k in range(trials)]
 
 
@@ -253,7 +271,7 @@ class TrialRig:
             'sleeve_driver': {'control_rate_hz': control},
             'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,
                         'planner_type': spec.condition},
-            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed},
+            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill},
             'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
         }
 
@@ -450,6 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='invitro_session', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument('--trials', type=int, default=10, help='trials per condition (paper: 10)')
+    p.add_argument('--pretrain', type=int, default=10,
+                   help="the operator's pre-training trials per condition before the measured "
+                        'ones (paper: 10); modelled by its skill, not run')
     p.add_argument('--anatomy', default='default',
                    help="built-in anatomy name ('default', 'elongated'), prepared anatomy "
                         'directory or mesh file with its <stem>.yaml landmarks (a path needs '
@@ -512,6 +533,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     if args.trials < 1:
         return fail(f'--trials must be >= 1, found {args.trials}')
+    if args.pretrain < 0:
+        return fail(f'--pretrain must be >= 0, found {args.pretrain}')
     if args.jobs is not None and args.jobs < 1:
         return fail(f'--jobs must be >= 1, found {args.jobs}')
     if args.time_scale is not None and not args.time_scale >= 0.0:
@@ -548,7 +571,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         user_domain = requested_domain()
     except DomainError as exc:
         return fail(str(exc))
-    specs = plan_trials(args.conditions, args.trials, args.seed, bags_dir)
+    specs = plan_trials(args.conditions, args.trials, args.seed, bags_dir,
+                        pretrain=args.pretrain)
     jobs = args.jobs or os.cpu_count() or 1
     jobs = max(1, min(jobs, len(specs)))
     notes = []
