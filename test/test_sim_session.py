@@ -36,6 +36,24 @@ def test_default_policy_is_the_committed_cgail_model_of_the_anatomy_and_mode() -
     assert not default_policy('nonexistent', 'static').is_file()
 
 
+def test_plant_option_goes_to_the_phantom(capsys) -> None:
+    """--plant true (default) | ideal becomes the phantom's ``plant`` parameter."""
+    from types import SimpleNamespace
+
+    from cgail_planner.system.session import build_parser, SessionSettings, TrialRig, TrialSpec
+
+    assert build_parser().parse_args([]).plant == 'true'
+    assert build_parser().parse_args(['--plant', 'ideal']).plant == 'ideal'
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(['--plant', 'perfect'])
+    assert "invalid choice: 'perfect'" in capsys.readouterr().err
+    spec = TrialSpec('centerline', 0, 0, 0, 7, 'bag')
+    for plant in ('true', 'ideal'):
+        rig = SimpleNamespace(settings=SessionSettings(plant=plant), spec=spec)
+        overrides = TrialRig._overrides(rig, Path('aurora'))  # type: ignore[arg-type]
+        assert overrides['phantom']['plant'] == plant
+
+
 def test_refuses_to_mix_with_existing_bags(tmp_path, capsys) -> None:
     (tmp_path / 'bags' / 'cgail').mkdir(parents=True)
     (tmp_path / 'bags' / 'cgail' / 'old').mkdir()

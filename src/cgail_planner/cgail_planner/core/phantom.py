@@ -1,15 +1,19 @@
 """The simulated phantom's physics: a follow-the-leader catheter driven by the rig's actuators.
 
 Pure numpy (with the simulator's wall); no rclpy. :mod:`cgail_planner.nodes.phantom_node` feeds
-it the driver's measured insertion and the PAMs' measured bend and sends the resulting tip pose
-to the simulated Aurora.
+it the catheter's position at the sleeve driver's gripper and the bend its true plant
+(:mod:`cgail_planner.core.plant`) makes of the regulator pressures, and sends the resulting tip
+pose to the simulated Aurora.
 
 * **Insertion.** The catheter body is a :class:`~cgail_planner.sim.ftl_model.CatheterBatch`
-  chain. A measured insertion increase ``dl`` advances the tip along its heading in sub-steps of
+  chain. An insertion increase ``dl`` advances the tip along its heading in sub-steps of
   at most ``max_substep``; a decrease retracts it along its own body (follow-the-leader).
-  A measured change faster than the driver's cap (``max_insertion_speed * dt + max_jump``) is a
+  A change faster than the driver's cap (``max_insertion_speed * dt + max_jump``) is a
   re-homed driver (its position restarted), counted in ``insertion_jumps``, not motion.
-* **Bend.** The measured bend ``(alpha, gamma)`` (rad) is the bend of the whole steerable
+  With a plant, ``dl`` is what the plant's slip and backlash leave of the gripper's advance
+  (:meth:`~cgail_planner.core.plant.CatheterPlant.advance`, under the last contact's load);
+  without one, the tip advances as the given position.
+* **Bend.** The bend ``(alpha, gamma)`` (rad) is the bend of the whole steerable
   segment, an arc of constant curvature ``|bend| / L``: per inserted ``dl`` the heading turns by
   ``alpha dl / L`` about ``x_A`` and ``gamma dl / L`` about ``z_A``
   (:func:`cgail_planner.sim.ftl_model.segment_bend_step`), so the tip curves only while it
@@ -18,7 +22,9 @@ to the simulated Aurora.
 * **Wall.** After each step the tip sphere (catheter radius) is tested against the wall (static,
   or the deformable wall stepped with the heartbeat and the body): a penetrating tip is pushed
   back into the lumen along the wall normal and its heading loses its outward component (it slides
-  along the wall). ``contacts`` counts those events.
+  along the wall). With a plant, the compliant tip also turns away from the wall, inwards by
+  the plant's :meth:`~cgail_planner.core.plant.CatheterPlant.tip_deflection` (bounded), and the
+  contact's load slows the next insertion. ``contacts`` counts those events.
 * **Target.** Attached to a wall particle: in dynamic mode it moves with the wall.
 """
 
@@ -31,6 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_planner.core.plant import Plant
 from cgail_planner.core.rotations import rotate_onto
 from cgail_planner.sim.ftl_model import (
     bend_rotation,
@@ -88,9 +95,13 @@ class PhantomPhysics:
             wall, free space).
     """
 
-    def __init__(self, config: PhantomConfig, wall: Any | None = None) -> None:
+    def __init__(self, config: PhantomConfig, wall: Any | None = None,
+                 plant: Plant | None = None) -> None:
         self.config = config
         self.wall = wall
+        #: The true plant's insertion and tip compliance (None: a kinematic catheter that
+        #: advances exactly as the given position).
+        self.plant = plant
         self.radius = config.catheter.radius
         self.catheter = CatheterBatch(1, config.catheter, capacity=4096,
                                       max_step=config.max_substep)
@@ -100,6 +111,8 @@ class PhantomPhysics:
         self.inserted = 0.0
         self._last_insertion: float | None = None
         self._wall_pending = 0.0
+        #: Axial load of the last wall contact on the tip, N (0 without contact or plant).
+        self.load = 0.0
 
     def reset(self, position: FloatArray, rotation: FloatArray,
               introducer: FloatArray) -> None:
@@ -122,6 +135,9 @@ class PhantomPhysics:
         self.inserted = 0.0
         self._last_insertion = None
         self._wall_pending = 0.0
+        self.load = 0.0
+        if self.plant is not None:
+            self.plant.reset()
 
     @property
     def tip_position(self) -> FloatArray:
@@ -139,9 +155,9 @@ class PhantomPhysics:
 
         Args:
             dt: time step, s (> 0).
-            insertion_position: the driver's measured catheter position, m (None: no reading
-                yet; the first reading is the reference, no motion).
-            bend: the PAMs' measured ``(alpha, gamma)``, rad.
+            insertion_position: the catheter's position at the driver's gripper, m (None: no
+                reading yet; the first reading is the reference, no motion).
+            bend: the segment's real ``(alpha, gamma)``, rad (the plant's bend).
         """
         if not (math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a positive number of seconds, found {dt!r}")
@@ -156,6 +172,9 @@ class PhantomPhysics:
                 # a re-homed or replaced driver: its position restarted, the catheter did not
                 self.insertion_jumps += 1
             else:
+                if self.plant is not None:
+                    delta = self.plant.advance(delta, self.load)
+                self.load = 0.0  # (set again by the contacts of this move)
                 self.move(delta, bend)
         if isinstance(self.wall, DeformableWall):
             self._wall_pending += dt
@@ -198,11 +217,19 @@ class PhantomPhysics:
         rot = self.catheter.rotations[0, i]
         heading = rot[:, 1]
         outward = float(heading @ normal)
-        if outward > 0.0:
-            new_heading = heading - outward * normal
-            n2 = float(np.linalg.norm(new_heading))
+        deflection = 0.0
+        if self.plant is not None:
+            self.load = max(self.load, self.plant.contact_load(contact.penetration,
+                                                               contact.force))
+            deflection = self.plant.tip_deflection(contact.penetration, contact.force)
+        # the compliant tip leaves the wall at ``deflection`` inwards at least (0: it slides)
+        if outward > -math.sin(deflection):
+            tangent = heading - outward * normal
+            n2 = float(np.linalg.norm(tangent))
             if n2 > 1e-9:
-                self.catheter.rotations[0, i] = rotate_onto(heading, new_heading / n2) @ rot
+                new_heading = (math.cos(deflection) * tangent / n2
+                               - math.sin(deflection) * normal)
+                self.catheter.rotations[0, i] = rotate_onto(heading, new_heading) @ rot
 
     def measured_pose(self, rng: np.random.Generator) -> tuple[FloatArray, FloatArray]:
         """The tip pose as the EM tracker sees it: position and small-angle orientation noise."""

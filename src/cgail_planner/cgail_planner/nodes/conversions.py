@@ -25,7 +25,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 from sensor_msgs.msg import JointState
-from std_msgs.msg import ColorRGBA, Header
+from std_msgs.msg import ColorRGBA, Float64MultiArray, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
@@ -212,6 +212,19 @@ def joint_positions(msg: JointState, names: Sequence[str]) -> list[float]:
             raise InvalidInputError(f'{name} must be finite, found {value}')
         out.append(value)
     return out
+
+
+def chamber_pressures(msg: Float64MultiArray) -> np.ndarray:
+    """The four chamber pressures (Pa) of a ``pam/pressures`` message.
+
+    Raises:
+        InvalidInputError: not 4 values, or a non-finite one.
+    """
+    p = np.asarray(msg.data, dtype=np.float64)
+    if p.shape != (4,) or not np.all(np.isfinite(p)):
+        raise InvalidInputError(f'pam/pressures must carry 4 finite pressures, found '
+                                f'{list(msg.data)}')
+    return p
 
 
 def diagnostics(stamp: Time, name: str, hardware_id: str, level: bytes, message: str,

@@ -14,9 +14,18 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   (``pam_channel``, ``driver_channel``): a virtual bus only connects objects of one process, so
   ``pam_node`` and ``driver_node`` must run in this process with ``simulate_regulators`` /
   ``simulate_device`` false (the launcher's ``--in-process`` mode);
-* the physics: the tip advances with the measured ``catheter/insertion_state`` and curves with
-  the measured ``catheter/bend_state`` (per inserted dl the heading turns by bend * dl / L), the
-  wall (static, or deformable + heartbeat) constrains it;
+* the true catheter plant (:mod:`cgail_planner.core.plant`, parameter ``plant``): it reads only
+  what a real catheter feels, the pressures the bank holds and the catheter's motion at the
+  driver's gripper, and turns them into the real bend (dead zone, McKibben pair, Bouc-Wen
+  hysteresis, cross-coupling, lag) and the tip's real advance (slip under load, backlash).
+  ``'true'`` draws it from its sourced ranges with ``plant_seed``; ``'ideal'`` is the old world
+  (the PAM controller's nominal model on the true pressures, the tip advances as the gripper).
+  The phantom never reads a controller's estimate (no ``catheter/bend_state``); without a
+  hosted bank it reads the measured ``pam/pressures``, without a hosted driver the driver's
+  ``catheter/insertion_state``;
+* the physics: the tip advances by the plant's advance and curves with its bend (per inserted
+  dl the heading turns by bend * dl / L), the wall (static, or deformable + heartbeat)
+  constrains it and the compliant tip turns away from it;
 * ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
   (TRIANGLE_LIST on the wall's current vertices: deformed in dynamic mode; decimated above
   ``marker_max_triangles``) and the catheter body (LINE_STRIP), a full snapshot every
@@ -55,13 +64,14 @@ from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Header, String
+from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LumenMesh, MarkerConfig, phantom_markers
 from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
+from cgail_planner.core.plant import make_plant
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, try_shutdown
@@ -127,6 +137,16 @@ class PhantomNode(Node):
         marker_rate = conv.declare(self, 'marker_rate_hz', 5.0, 'rate of phantom/markers '
                                    '(lumen, catheter body), Hz', lo=0.1, hi=30.0)
         seed = conv.declare(self, 'seed', 0, 'seed of the EM noise', lo=0, hi=2**31 - 1)
+        self.plant_kind = conv.declare(self, 'plant', 'true', "the catheter plant: 'true' "
+                                       "(drawn from its sourced ranges with plant_seed), "
+                                       "'nominal' (its nominal values) or 'ideal' (the PAM "
+                                       "controller's nominal model, the old world)")
+        if self.plant_kind not in ('true', 'nominal', 'ideal'):
+            raise ValueError(f"plant must be 'true', 'nominal' or 'ideal', found "
+                             f"{self.plant_kind!r}")
+        plant_seed = conv.declare(self, 'plant_seed', -1, "seed of the true plant's draw "
+                                  "(-1: the 'seed' parameter)", lo=-1, hi=2**31 - 1)
+        self.plant_seed = seed if plant_seed < 0 else plant_seed
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
                                    lo=0.05, hi=60.0)
 
@@ -148,7 +168,9 @@ class PhantomNode(Node):
         wall = StaticWall(self.world.anatomy) if self.mode == 'static' \
             else DeformableWall(self.world.anatomy)
         self.wall: StaticWall = wall  # (a DeformableWall in dynamic mode)
-        self.physics = PhantomPhysics(self.config, wall)
+        self.plant = make_plant(self.plant_kind, self.plant_seed,
+                                segment_length=self.config.catheter.segment_length)
+        self.physics = PhantomPhysics(self.config, wall, self.plant)
         self.lumen = LumenMesh(self.world.anatomy, self.marker_config.max_triangles)
         self._static_lumen: Marker | None = None  # (static mode: built once)
         self._markers_sent = False
@@ -157,6 +179,7 @@ class PhantomNode(Node):
         self.rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self.insertion: float | None = None
+        self.pressures = np.zeros(4)
         self.bend = (0.0, 0.0)
         self.sim_time = 0.0
         # free-running: simulated time starts at the wall-clock time of construction (stamps
@@ -192,10 +215,12 @@ class PhantomNode(Node):
                                                   conv.LATCHED_QOS)
         self._clock_pub = self.create_publisher(ClockMsg, '/clock', 10) \
             if self.publish_clock else None
-        self.create_subscription(JointState, 'catheter/insertion_state', self._on_insertion,
-                                 conv.SENSOR_QOS)
-        self.create_subscription(JointState, 'catheter/bend_state', self._on_bend,
-                                 conv.SENSOR_QOS)
+        if self.driver is None:  # (a hosted driver's gripper is read directly)
+            self.create_subscription(JointState, 'catheter/insertion_state',
+                                     self._on_insertion, conv.SENSOR_QOS)
+        if self.bank is None:  # (a hosted bank's pressures are read directly)
+            self.create_subscription(Float64MultiArray, 'pam/pressures', self._on_pressures,
+                                     conv.SENSOR_QOS)
         self.create_service(Trigger, 'phantom/reset', self._on_reset)
         self._port_pub.publish(String(data=self.aurora_port))
         self._ticks = 0
@@ -253,13 +278,11 @@ class PhantomNode(Node):
             self.get_logger().warning(f'insertion state ignored: {exc}',
                                       throttle_duration_sec=2.0)
 
-    def _on_bend(self, msg: JointState) -> None:
+    def _on_pressures(self, msg: Float64MultiArray) -> None:
         try:
-            alpha, gamma = conv.joint_positions(msg, conv.BEND_JOINTS)
+            self.pressures = conv.chamber_pressures(msg)
         except InvalidInputError as exc:
-            self.get_logger().warning(f'bend state ignored: {exc}', throttle_duration_sec=2.0)
-            return
-        self.bend = (alpha, gamma)
+            self.get_logger().warning(f'pressures ignored: {exc}', throttle_duration_sec=2.0)
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response):
         self.reset_trial(self.start_id, self.target_id)
@@ -281,6 +304,11 @@ class PhantomNode(Node):
         if self.driver is not None:
             self.driver.step(dt)
         with self._lock:
+            if self.bank is not None:
+                self.pressures = self.bank.pressures_pa.copy()
+            if self.driver is not None:
+                self.insertion = self.driver.mechanism.catheter_position
+            self.bend = self.plant.bend(self.pressures, dt)
             if not self.physics_error:
                 try:
                     self.physics.step(dt, self.insertion, self.bend)
@@ -346,8 +374,11 @@ class PhantomNode(Node):
                   ('wall_contacts', self.physics.contacts),
                   ('insertion_jumps', self.physics.insertion_jumps),
                   ('aurora_port', self.aurora_port),
+                  ('plant', self.plant_kind), ('plant_seed', self.plant_seed),
+                  ('pressures_kpa', np.round(self.pressures / 1e3, 1).tolist()),
                   ('bend_rad', [round(b, 4) for b in self.bend]),
-                  ('insertion_m', self.insertion)]
+                  ('insertion_m', self.insertion),
+                  ('tip_advance_m', round(self.plant.tip, 6))]
         level = DiagnosticStatus.OK if self.insertion is not None else DiagnosticStatus.WARN
         message = 'simulating' if self.insertion is not None else 'no insertion state yet'
         if self.physics_error:

@@ -137,6 +137,9 @@ class SessionSettings:
     """Also run the guidance GUI (gui_node) in the rig."""
     gui_port: int = 8780
     """Port of the guidance GUI."""
+    plant: str = 'true'
+    """The phantom's catheter plant: 'true' (drawn from its sourced ranges with each trial's
+    seed) or 'ideal' (the PAM controller's nominal model, :mod:`cgail_planner.core.plant`)."""
 
 
 @dataclass(frozen=True)
@@ -263,6 +266,7 @@ class TrialRig:
         return {
             'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
                         'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
+                        'plant': s.plant,
                         'start_id': spec.start_id, 'target_id': spec.target_id,
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
                         'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
@@ -506,6 +510,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='also start the guidance GUI (gui_node) and print its URL (one trial '
                         'at a time, paced at --time-scale 1 unless given)')
     p.add_argument('--gui-port', type=int, default=8780, help='port of the guidance GUI')
+    p.add_argument('--plant', choices=('true', 'ideal'), default='true',
+                   help="the phantom's catheter plant: 'true' (its own actuator model, drawn "
+                        "per trial from sourced ranges) or 'ideal' (the PAM controller's "
+                        'nominal model, for comparison)')
     return p
 
 
@@ -588,7 +596,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
-        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port)
+        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, plant=args.plant)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)
