@@ -138,8 +138,13 @@ class SessionSettings:
     gui_port: int = 8780
     """Port of the guidance GUI."""
     plant: str = 'true'
-    """The phantom's catheter plant: 'true' (drawn from its sourced ranges with each trial's
-    seed) or 'ideal' (the PAM controller's nominal model, :mod:`cgail_planner.core.plant`)."""
+    """The phantom's catheter plant: 'true' (drawn from its sourced ranges with
+    ``plant_seed``) or 'ideal' (the PAM controller's nominal model,
+    :mod:`cgail_planner.core.plant`)."""
+    plant_seed: int = 0
+    """Seed of the true plant's draw: the session's ``--seed``, so every trial of a session,
+    in both conditions, runs the same catheter (a rig has one), which the controller's nominal
+    model misses by the same amount."""
 
 
 @dataclass(frozen=True)
@@ -266,7 +271,7 @@ class TrialRig:
         return {
             'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
                         'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
-                        'plant': s.plant,
+                        'plant': s.plant, 'plant_seed': s.plant_seed,
                         'start_id': spec.start_id, 'target_id': spec.target_id,
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
                         'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
@@ -505,7 +510,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='EM tracker frame rate in simulated time, Hz (the Aurora: 40)')
     p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
     p.add_argument('--seed', type=int, default=0,
-                   help='session seed (each trial gets its own from it: EM and stick noise)')
+                   help='session seed: the true plant (one catheter for the session) and each '
+                        "trial's own seed (EM and stick noise)")
     p.add_argument('--gui', action='store_true',
                    help='also start the guidance GUI (gui_node) and print its URL (one trial '
                         'at a time, paced at --time-scale 1 unless given)')
@@ -596,7 +602,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
-        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, plant=args.plant)
+        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, plant=args.plant,
+        plant_seed=args.seed)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)
