@@ -24,6 +24,12 @@ mesh the episodes were recorded in, and ``numpy_simd``, the numpy SIMD targets o
 recording process; a bag recorded in a path anatomy also holds ``anatomy_path``, the absolute
 path it was loaded from, which :func:`replay_demo_bag` re-simulates in unless told otherwise.
 
+A bag converted from teleoperated session bags (``make_demos --from-bags``,
+:mod:`cgail_planner.learning.teleop_demos`) has the same topics; its custom data also holds
+``source``: the bags, the conversion's settings and how much of the recorded motion the
+catheter model could not follow (clipped steps, deviation). Its ``demo/tip_pose`` are the
+simulated poses of the conversion, so it replays under the same tolerance.
+
 A **population bag** (``make_demos --population N``; custom data ``population: true``) holds
 episodes of many population anatomies: each episode's ``demo/episode`` JSON names its anatomy
 (``population-<seed>``) and its content hash, and :func:`replay_demo_bag` rebuilds each
@@ -188,7 +194,7 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
                    dt: float, compress: bool | None = None,
                    anatomy_hash: str | None = None, anatomy_path: str | None = None,
                    scenario_seed: int = 0, env_options: str = 'ours',
-                   population: bool = False) -> Path:
+                   population: bool = False, source: dict[str, Any] | None = None) -> Path:
     """Write ``episodes`` to a new MCAP bag directory ``path`` (must not exist).
 
     ``compress`` (default: when ``zstandard`` is installed) zstd-compresses the MCAP chunks,
@@ -202,6 +208,9 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     episodes each ran in their own population anatomy (``DemoEpisode.anatomy``, written into
     each episode's ``demo/episode`` JSON with its content hash); ``anatomy`` is then the
     population's label and ``anatomy_hash`` :func:`population_hash` of the episodes'.
+    ``source`` (JSON-ready) says where episodes not recorded by the scripted expert come from
+    (``make_demos --from-bags``: the session bags, the conversion's settings, clipping and
+    deviation; :mod:`cgail_planner.learning.teleop_demos`); stored as is, informational.
     """
     if compress is None:
         compress = zstd_available()
@@ -235,6 +244,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
                             f'(population-<seed>) or a built-in one {sorted(ANATOMY_NAMES)}, '
                             f'found episodes {missing[:5]} without one')
         info['population'] = True
+    if source is not None:
+        info['source'] = source
     writer.set_custom_data(CUSTOM_DATA_KEY, json.dumps(info))
     with writer:
         c_ep = writer.add_connection('demo/episode', 'std_msgs/msg/String', typestore=TYPESTORE)

@@ -22,6 +22,19 @@ re-simulates each in its own anatomy::
 
 ``--include default elongated`` adds built-in anatomies after the population's (episode k runs
 in anatomy ``k % (N + 2)``), named by their built-in names in the episodes' JSON.
+
+From session bags (``--from-bags``): teleoperated trial bags (the simulated in-vitro session's,
+``invitro_session``, or a rig's) become demonstrations of ``--anatomy`` (the one they were
+recorded in), one episode per goal, with actions inferred from the tip motion by closed-loop
+inverse kinematics of the catheter model (:mod:`cgail_planner.learning.teleop_demos`)::
+
+    scripts/ws make_demos --from-bags runs/invitro/bags/centerline --out bags/demos/teleop
+
+A BAG is a trial bag or a directory of them. One line per episode (steps, how it ended,
+clipped steps, deviation from the recorded tip) and per input that could not be converted
+goes to stderr, then the JSON report to stdout; the bag is replayed as ``train`` will
+(:func:`~cgail_planner.learning.demo_bags.replay_demo_bag`) before the command succeeds.
+Exit status 2 when no episode could be converted or the replay fails.
 """
 
 from __future__ import annotations
@@ -119,7 +132,27 @@ def main(argv: list[str] | None = None) -> int:
                         "episodes too, after the population's (the pool of a preset's "
                         '`population.include`)')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
+    g = p.add_argument_group('from session bags (module docstring)')
+    g.add_argument('--from-bags', nargs='+', type=Path, default=None, metavar='BAG',
+                   help='convert teleoperated trial bags (or directories of them) recorded in '
+                        '--anatomy instead of running the scripted expert')
+    g.add_argument('--tip-topic', default='auto',
+                   help="tip poses to read: 'auto' (phantom/tip_pose where recorded, else "
+                        "em_tracker/tip_pose) or a topic name")
+    g.add_argument('--smooth-s', type=float, default=None,
+                   help='half-window of the local linear fit of the tip positions, s (default: '
+                        '0.4 for em_tracker/tip_pose, 0 for phantom/tip_pose)')
+    g.add_argument('--max-deviation-mm', type=float, default=5.0,
+                   help='cut an episode where the simulated tip strays farther from the '
+                        'recorded one, mm')
+    g.add_argument('--start-tolerance-mm', type=float, default=3.0,
+                   help="largest distance of an episode's first tip position from a scenario "
+                        'start, mm')
+    g.add_argument('--target-tolerance-mm', type=float, default=5.0,
+                   help='largest distance of a goal from a scenario target, mm')
     args = p.parse_args(argv)
+    if args.from_bags is not None:
+        return _from_bags_main(args)
     if args.include and not args.population:
         print('make_demos: error: --include: expected --population N beside it (it adds '
               'built-in anatomies to a population bag)', file=sys.stderr)
@@ -151,6 +184,83 @@ def main(argv: list[str] | None = None) -> int:
         print(f'make_demos: error: {exc}', file=sys.stderr)
         return 2
     print(json.dumps({'anatomy': label, 'env_options': args.env_options, **stats}))
+    return 0
+
+
+def _from_bags_main(args: argparse.Namespace) -> int:
+    """``make_demos --from-bags BAG [BAG ...]`` (module docstring)."""
+    from dataclasses import asdict
+
+    from cgail_planner.bags.errors import BagError
+    from cgail_planner.bags.reader import find_trials
+    from cgail_planner.learning.demo_bags import replay_demo_bag
+    from cgail_planner.learning.teleop_demos import ConversionConfig, convert_bags
+    from cgail_planner.sim.anatomy import anatomy_label, is_named
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    def fail(text: str) -> int:
+        print(f'make_demos: error: {text}', file=sys.stderr)
+        return 2
+
+    def log(text: str) -> None:
+        print(f'make_demos: {text}', file=sys.stderr, flush=True)
+
+    if args.population or args.include:
+        return fail('--from-bags: expected no --population or --include (the bags were '
+                    'recorded in one anatomy, --anatomy)')
+    if args.out.exists():
+        return fail(f'--out: expected a new bag directory, found {args.out} (remove it first)')
+    try:
+        config = ConversionConfig(
+            tip_topic=args.tip_topic, smooth_s=args.smooth_s,
+            max_deviation_m=args.max_deviation_mm * 1e-3,
+            start_tolerance_m=args.start_tolerance_mm * 1e-3,
+            target_tolerance_m=args.target_tolerance_mm * 1e-3)
+        env = CatheterNavEnv(EnvConfig.from_options(args.env_options, mode='static',
+                                                    anatomy=args.anatomy,
+                                                    scenario_seed=args.scenario_seed))
+    except ValueError as exc:
+        return fail(str(exc))
+    bags: list[Path] = []
+    unread: list[str] = []
+    for item in args.from_bags:
+        try:
+            bags += [bag for bag, _ in find_trials([item])]
+        except BagError as exc:
+            unread.append(str(exc))
+            log(str(exc))
+    t0 = time.monotonic()
+    episodes, report = convert_bags(bags, env, config, log=log)
+    report.bags += len(unread)
+    report.skipped[:0] = unread
+    stats = report.to_dict()
+    if not episodes:
+        return fail(f'no episode could be converted from {report.bags} bag(s) '
+                    f'({len(report.skipped)} problem(s) above)')
+    label = anatomy_label(args.anatomy)
+    source = {'from_bags': [str(b) for b in bags], 'config': asdict(config),
+              **{k: v for k, v in stats.items() if k not in ('per_episode', 'skipped')}}
+    try:
+        write_demo_bag(args.out, episodes, anatomy=label, mode='static', dt=env.config.dt,
+                       anatomy_hash=env.anatomy.content_hash,
+                       anatomy_path=None if is_named(args.anatomy)
+                       else str(Path(args.anatomy).expanduser().resolve()),
+                       scenario_seed=args.scenario_seed, env_options=args.env_options,
+                       source=source)
+        if stats['successful']:
+            replay = replay_demo_bag(args.out, env_options=args.env_options).report
+            stats['replay'] = {'episodes': replay.episodes, 'steps': replay.steps,
+                               'max_drift_mm': round(replay.max_drift_m * 1e3, 6),
+                               'tolerance_mm': replay.tolerance_m * 1e3}
+        else:
+            log('no converted episode reached its target: the bag holds no episode that '
+                'train replays (it replays the successful ones)')
+    except (LearningError, ValueError) as exc:
+        return fail(str(exc))
+    stats['wall_s'] = round(time.monotonic() - t0, 2)
+    print(json.dumps({'anatomy': label, 'env_options': args.env_options, 'dt': env.config.dt,
+                      **stats}))
     return 0
 
 
