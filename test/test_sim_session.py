@@ -111,6 +111,57 @@ def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path,
     _assert_tf_and_markers_recorded(out / 'bags' / 'centerline' / 'centerline_01')
 
 
+def test_slicer_follows_a_simulated_trial_over_openigtlink(tmp_path, monkeypatch) -> None:
+    """A pyigtl client stands in for 3D Slicer while a trial runs with --igtl: it receives
+    the tip TRANSFORM as it moves, the planned path and the lumen (RAS mm)."""
+    import socket
+    import threading
+
+    import numpy as np
+    import pyigtl
+    import pyigtl.messages
+
+    from cgail_planner.core import igtl
+    from cgail_planner.hw.igtl_server import PolyDataReader
+
+    monkeypatch.setitem(pyigtl.messages.message_type_to_class_constructor, 'POLYDATA',
+                        PolyDataReader)  # as Slicer reads them
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)
+    with socket.socket() as probe:
+        probe.bind(('127.0.0.1', 0))
+        port = probe.getsockname()[1]
+    got: dict[str, list] = {}
+    stop = threading.Event()
+
+    def slicer() -> None:
+        client = pyigtl.OpenIGTLinkClient(host='127.0.0.1', port=port, start_now=True)
+        try:
+            while not stop.is_set():
+                for device in (igtl.TIP_DEVICE, igtl.PATH_DEVICE, igtl.LUMEN_DEVICE):
+                    message = client.wait_for_message(device, timeout=0.05)
+                    if message is not None:
+                        got.setdefault(device, []).append(message)
+        finally:
+            client.stop()
+
+    thread = threading.Thread(target=slicer, daemon=True)
+    thread.start()
+    try:
+        assert main(['--trials', '1', '--conditions', 'centerline', '--time-limit', '8',
+                     '--time-scale', '2', '--igtl', '--igtl-port', str(port),
+                     '--out', str(tmp_path / 'session')]) == 0
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+    tips = got.get(igtl.TIP_DEVICE, [])
+    assert len(tips) >= 5, {k: len(v) for k, v in got.items()}
+    first, last = (np.asarray(t.matrix, dtype=float)[:3, 3] for t in (tips[0], tips[-1]))
+    assert np.linalg.norm(last - first) > 1.0  # mm: the tip moved during the trial
+    path = got[igtl.PATH_DEVICE][-1]
+    assert path.message_type == 'POLYDATA' and len(path.points) >= 2
+    assert len(got[igtl.LUMEN_DEVICE][-1].polygons) > 0
+
+
 def _assert_tf_and_markers_recorded(bag: Path) -> None:
     """The trial's bag carries TF (aurora -> phantom latched, phantom -> catheter_tip with
     every tip pose), the tip with its covariance and both marker arrays, as Foxglove and RViz2

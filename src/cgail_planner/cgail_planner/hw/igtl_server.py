@@ -213,3 +213,33 @@ def polydata_message(device: str, points: NDArray[np.float64], timestamp: float,
                            lines=lines if lines is not None and len(lines) else None,
                            polygons=polygons if polygons is not None and len(polygons) else None,
                            timestamp=timestamp, device_name=device)
+
+
+class PolyDataReader(MessageBase):
+    """POLYDATA as a Python client reads it: pyigtl 0.3.4 packs POLYDATA but cannot unpack it
+    (3D Slicer can). :func:`read_polydata_in_clients` registers it with pyigtl's parser, after
+    which a ``pyigtl.OpenIGTLinkClient`` hands out POLYDATA messages with ``points`` (N, 3) and
+    the VTK cell arrays ``vertices``, ``lines``, ``polygons`` and ``strips``."""
+
+    def __init__(self, timestamp: float | None = None, device_name: str | None = None) -> None:
+        super().__init__(timestamp=timestamp, device_name=device_name)
+        self._message_type = 'POLYDATA'
+        self._valid_message = True
+
+    def _unpack_content(self, content: bytes) -> None:
+        head = struct.unpack('>10I', content[:40])
+        n, offset = head[0], 40
+        self.points = np.frombuffer(content[offset:offset + 12 * n], '>f4').reshape(n, 3)
+        offset += 12 * n
+        cells = []
+        for size in head[2:9:2]:  # vertices, lines, polygons, strips
+            cells.append(np.frombuffer(content[offset:offset + size], '>u4').astype(np.int64))
+            offset += size
+        self.vertices, self.lines, self.polygons, self.strips = cells
+
+
+def read_polydata_in_clients() -> None:
+    """Let pyigtl's clients in this process unpack POLYDATA (:class:`PolyDataReader`)."""
+    import pyigtl.messages
+
+    pyigtl.messages.message_type_to_class_constructor['POLYDATA'] = PolyDataReader

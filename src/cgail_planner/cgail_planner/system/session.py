@@ -137,6 +137,10 @@ class SessionSettings:
     """Also run the guidance GUI (gui_node) in the rig."""
     gui_port: int = 8780
     """Port of the guidance GUI."""
+    igtl: bool = False
+    """Also run ``igtl_bridge`` (3D Slicer over OpenIGTLink) in the rig."""
+    igtl_port: int = 18944
+    """Port of ``igtl_bridge``'s server (loopback)."""
     plant: str = 'true'
     """The phantom's catheter plant: 'true' (drawn from its sourced ranges with
     ``plant_seed``) or 'ideal' (the PAM controller's nominal model,
@@ -247,8 +251,9 @@ class TrialRig:
                                                  if k in launch.arguments})
             overrides = self._overrides(Path(self._tmp) / 'aurora')
             for spec_node in launch.nodes:
-                if spec_node.name == 'gui' and not settings.gui:
-                    continue
+                if not {'gui': settings.gui, 'igtl_bridge': settings.igtl}.get(spec_node.name,
+                                                                                True):
+                    continue  # started only when asked for
                 self.nodes[spec_node.name] = build_node(
                     spec_node, overrides.get(spec_node.name, {}), lean=True,
                     context=self.context, prepare=self.executor.add_node)
@@ -282,6 +287,7 @@ class TrialRig:
                         'planner_type': spec.condition},
             'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill},
             'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
+            'igtl_bridge': {'anatomy': s.anatomy, 'port': s.igtl_port},
         }
 
     def _start_recorder(self) -> None:
@@ -516,6 +522,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help='also start the guidance GUI (gui_node) and print its URL (one trial '
                         'at a time, paced at --time-scale 1 unless given)')
     p.add_argument('--gui-port', type=int, default=8780, help='port of the guidance GUI')
+    p.add_argument('--igtl', action='store_true',
+                   help='also start igtl_bridge: 3D Slicer follows the trial over OpenIGTLink '
+                        '(one trial at a time)')
+    p.add_argument('--igtl-port', type=int, default=18944,
+                   help="port of igtl_bridge (Slicer's default 18944)")
     p.add_argument('--plant', choices=('true', 'ideal'), default='true',
                    help="the phantom's catheter plant: 'true' (its own actuator model, drawn "
                         "per trial from sourced ranges) or 'ideal' (the PAM controller's "
@@ -590,9 +601,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     jobs = args.jobs or os.cpu_count() or 1
     jobs = max(1, min(jobs, len(specs)))
     notes = []
-    if args.gui and jobs > 1:
-        jobs = 1
-        notes.append('--gui: one trial at a time')
+    for flag, on in (('--gui', args.gui), ('--igtl', args.igtl)):
+        if on and jobs > 1:
+            jobs = 1
+            notes.append(f'{flag}: one trial at a time')
     if user_domain is not None and jobs > 1:
         jobs = 1
         notes.append(f'ROS_DOMAIN_ID={user_domain} is set: one trial at a time on it (unset it '
@@ -602,7 +614,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
-        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, plant=args.plant,
+        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, igtl=args.igtl,
+        igtl_port=args.igtl_port, plant=args.plant,
         plant_seed=args.seed)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -627,6 +640,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.gui:
         log(f'invitro_session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '
             f'runs')
+    if args.igtl:
+        log(f'invitro_session: OpenIGTLink server on 127.0.0.1:{args.igtl_port} while a trial '
+            f'runs (3D Slicer: OpenIGTLinkIF, a client connector to that port)')
     done = [0]
 
     def on_result(result: TrialResult) -> None:

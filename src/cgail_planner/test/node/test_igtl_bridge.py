@@ -7,7 +7,6 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from pathlib import Path
 import socket
-import struct
 import time
 
 from geometry_msgs.msg import PoseStamped
@@ -27,6 +26,7 @@ import yaml
 
 from cgail_planner.core import igtl
 from cgail_planner.core.markers import LumenMesh
+from cgail_planner.hw import igtl_server as srv
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.igtl_bridge import IgtlBridge
 from cgail_planner.sim.anatomy import resolve_anatomy
@@ -38,29 +38,10 @@ TIP_ROTATION = Rotation.from_euler('xyz', [20.0, -35.0, 110.0], degrees=True).as
 CT_T = np.array([12.5, -140.0, 1020.25])  # the prepared anatomy's record: t_input_mm
 
 
-class PolyData(pyigtl.MessageBase):
-    """POLYDATA as a client reads it (pyigtl 0.3.4 packs POLYDATA but cannot unpack it)."""
-
-    def __init__(self, timestamp=None, device_name=None) -> None:
-        super().__init__(timestamp=timestamp, device_name=device_name)
-        self._message_type = 'POLYDATA'
-        self._valid_message = True
-
-    def _unpack_content(self, content: bytes) -> None:
-        head = struct.unpack('>10I', content[:40])
-        n, offset = head[0], 40
-        self.points = np.frombuffer(content[offset:offset + 12 * n], '>f4').reshape(n, 3)
-        offset += 12 * n
-        cells = []
-        for size in head[2:9:2]:  # vertices, lines, polygons, strips
-            cells.append(np.frombuffer(content[offset:offset + size], '>u4').astype(np.int64))
-            offset += size
-        self.vertices, self.lines, self.polygons, self.strips = cells
-
-
 @pytest.fixture(autouse=True)
 def polydata_decoder(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(pyigtl.messages.message_type_to_class_constructor, 'POLYDATA', PolyData)
+    monkeypatch.setitem(pyigtl.messages.message_type_to_class_constructor, 'POLYDATA',
+                        srv.PolyDataReader)
 
 
 def spin_until(executor, predicate: Callable[[], bool], timeout: float = TIMEOUT) -> bool:
