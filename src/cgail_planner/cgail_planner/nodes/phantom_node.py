@@ -58,7 +58,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PoseStamped
 import numpy as np
 import rclpy
-from rclpy.clock import Clock, ClockType
+from rclpy.clock import Clock, ClockType, ROSClock
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.time import Time
@@ -267,7 +267,9 @@ class PhantomNode(Node):
             clock = self.get_clock()
             # the constructor's latched messages go out before the lockstep executor adopts
             # the node, while its clock is still the wall clock: they are simulated time 0
-            return clock.now().to_msg() if clock.ros_time_is_active else Time().to_msg()
+            if isinstance(clock, ROSClock) and not clock.ros_time_is_active:
+                return Time().to_msg()
+            return clock.now().to_msg()
         return Time(nanoseconds=int((self.sim_time + self._clock_offset) * 1e9)).to_msg()
 
     # ------------------------------------------------------------------ callbacks
