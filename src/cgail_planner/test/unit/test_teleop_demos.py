@@ -237,7 +237,6 @@ def test_nothing_convertible_exits_2(tmp_path) -> None:
     assert not (tmp_path / 'd').exists()
 
 
-@pytest.mark.slow
 def test_a_short_training_run_accepts_the_converted_demonstrations(converted, tmp_path) -> None:
     from cgail_planner.learning.train import main as train
 
