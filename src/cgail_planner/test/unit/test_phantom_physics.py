@@ -2,6 +2,7 @@
 
 import math
 
+from flat_wall import FlatWall
 import numpy as np
 import pytest
 
@@ -68,21 +69,6 @@ def test_retraction_slides_back_along_a_bent_introducer() -> None:
     assert ph.tip_position == pytest.approx(intro[2] + 0.005 * seg, abs=1e-12)
     ph.move(-0.1, (0.0, 0.0))
     assert ph.tip_position == pytest.approx(intro[0], abs=1e-12)
-
-
-class FlatWall:
-    """Wall plane z = 0.002 with the lumen below (outward normal +z)."""
-
-    def reset(self) -> None:
-        pass
-
-    def tip_contact(self, tip, radius, dt):
-        from cgail_planner.sim.contact import Contact
-
-        depth = tip[2] + radius - 0.002
-        pen = max(depth, 0.0)
-        return Contact(penetration=pen, force=0.0, normal=np.array([0.0, 0.0, 1.0]),
-                       in_contact=pen > 0, clearance=max(-depth, 0.0))
 
 
 def test_wall_pushes_the_tip_back_and_the_heading_slides_along_it() -> None:

@@ -2,6 +2,7 @@
 
 import math
 
+from flat_wall import FlatWall
 import numpy as np
 import pytest
 
@@ -156,21 +157,6 @@ def test_tip_deflection_is_the_cantilever_slope_and_bounded() -> None:
     assert pl.tip_deflection(0.0, 0.1) == pytest.approx(0.1 * 0.05 ** 2 / 5e-3, rel=1e-9)
     assert pl.tip_deflection(0.1, 10.0) == 0.35
     assert pl.contact_load(1e-3, 0.2) == pytest.approx(0.2 + 3 * 2.5e-3 / 0.05 ** 3 * 1e-3)
-
-
-class FlatWall:
-    """Wall plane z = 0.002 with the lumen below (outward normal +z)."""
-
-    def reset(self) -> None:
-        pass
-
-    def tip_contact(self, tip, radius, dt):
-        from cgail_planner.sim.contact import Contact
-
-        depth = tip[2] + radius - 0.002
-        pen = max(depth, 0.0)
-        return Contact(penetration=pen, force=0.0, normal=np.array([0.0, 0.0, 1.0]),
-                       in_contact=pen > 0, clearance=max(-depth, 0.0))
 
 
 def test_a_compliant_tip_turns_away_from_the_wall_within_its_bound() -> None:
