@@ -58,6 +58,7 @@ setup(
             'synthetic_ct = cgail_planner.patient.synthetic:main',
             'plan_patient = cgail_planner.patient.plan:main',
             'make_demos = cgail_planner.learning.demos_cli:main',
+            'record_demos = cgail_planner.system.record_demos:main',
             'train = cgail_planner.learning.train:main',
             'evaluate = cgail_planner.learning.evaluate:main',
             'export_onnx = cgail_planner.learning.export:main',

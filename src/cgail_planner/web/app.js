@@ -1,4 +1,6 @@
 // Guidance page of cgail_planner gui_node: external 3D view, internal tip view, status, replay.
+// Also the page of record_demos: with a "record" item there is no planned path, a recording
+// panel shows the episode, and the keyboard is a gamepad (sent as "joy" messages).
 // State arrives over the WebSocket /ws as JSON "state" messages (see cgail_planner/gui/protocol.py):
 // positions in metres (frame phantom), angles in rad. The scene is drawn in millimetres and
 // every readout is in mm and degrees. Messages only merge into `S` and mark it dirty; drawing
@@ -22,6 +24,7 @@ const G = window.gui = {
   latencies: [],  // [tip seq, ms from the pose's header stamp to the frame that drew it]
   renderMs: [],     // [external, internal] WebGL render call durations, ms
   rxLatencies: [],  // [tip seq, ms from the pose's header stamp to its WebSocket message]
+  keyboard: { sent: 0, held: [], discards: 0 },  // record_demos: what the keyboard sent
   send: (obj) => ws && ws.readyState === 1 && ws.send(typeof obj === 'string' ? obj : JSON.stringify(obj)),
 };
 
@@ -59,6 +62,7 @@ function connect() {
         if (G.rxLatencies.length > 5000) G.rxLatencies.splice(0, 1000);
       }
       if (k === 'trial' && v) v.receivedAt = now_s();
+      if (k === 'record' && v && G.recordSerial !== v.serial) { G.recordSerial = v.serial; trail.length = 0; dirty.add('trail'); }
     }
   };
 }
@@ -397,6 +401,10 @@ function timer() {
 }
 function tracker() {
   const el = $('tracker'), d = S.diagnostics, stale = ((S.config && S.config.stale_after_s) || 0.5);
+  if (S.record) {  // record_demos: the tip comes from the simulator, sent when it moves
+    el.textContent = `Simulator \u00b7 ${S.record.mode}`; el.title = 'record_demos'; el.className = 'badge ok';
+    return;
+  }
   const age = G.lastTipReceived ? now_s() - G.lastTipReceived : Infinity;
   let level = 'ERROR', text = 'Tracker: no data';
   const st = d && d.tracker ? d.statuses[d.tracker] : null;
@@ -429,6 +437,67 @@ function replayPanel() {
   }
   $('replay-status').textContent = r.phase === 'idle' ? `${r.bags.length} bag(s) available` : `${r.phase} ${r.bag || ''} ${r.message || ''}`;
 }
+
+// ------------------------------------------------------------------ recording (record_demos)
+const OUTCOMES = { success: 'TARGET REACHED', collision: 'COLLISION', exited: 'LEFT THE ANATOMY',
+  timeout: 'TIME LIMIT', discarded: 'DISCARDED' };
+function recordPanel() {
+  const r = S.record, on = !!r;
+  document.body.classList.toggle('recording', on);
+  $('record-panel').hidden = !on;
+  if (!on) return;
+  $('title').innerHTML = 'Record demonstrations <span class="sub">no planned path: navigate to the target</span>';
+  $('ro-bend-k').textContent = 'Commanded bend';
+  $('rec-episode').textContent = `Episode ${r.episode} of ${r.episodes} \u00b7 start ${r.start} \u2192 target ${r.target} \u00b7 ${r.mode}`;
+  const last = r.last, el = $('rec-phase');
+  let text = '', cls = '';
+  if (r.phase === 'waiting') { text = 'Waiting for the first insertion'; cls = 'waiting'; }
+  else if (r.phase === 'running') text = `Recording \u00b7 ${clock(r.time_left_s)} left`;
+  else if (last) {
+    text = `${OUTCOMES[last.outcome] || last.outcome}${last.saved ? ' \u00b7 saved' : ''}`;
+    cls = last.outcome === 'success' && !last.note ? 'success' : 'fail';
+    if (r.phase === 'pause') text += ` \u00b7 next episode in ${Math.ceil(r.pause_left_s)} s`;
+    if (r.phase === 'done') text += ' \u00b7 all episodes recorded';
+  }
+  el.textContent = text; el.className = 'rec-phase ' + cls;
+  $('rec-counts').textContent = `saved ${r.saved} (${r.successes} successful) \u00b7 discarded ${r.discarded} \u00b7 by ${r.who || '?'} \u00b7 driver ${r.driver} \u00b7 ${r.out}`;
+  $('rec-device').textContent = G.keyboard.held.length ? `keyboard: ${G.keyboard.held.join(' + ')}` : '';
+}
+// The keyboard as a gamepad, in teleop's layout (the "layout" of the record item).
+const KEYMAP = { ' ': 'deadman', e: 'insert', q: 'retract', w: 'up', arrowup: 'up', s: 'down',
+  arrowdown: 'down', a: 'left', arrowleft: 'left', d: 'right', arrowright: 'right' };
+const held = new Set();
+function sendKeys() {
+  const r = S.record; if (!r || !r.layout) return;
+  const L = r.layout, axes = new Array(L.n_axes).fill(0), buttons = new Array(L.n_buttons).fill(0);
+  const k = (name) => (held.has(name) ? 1 : 0);
+  axes[L.axis_insertion] = k('insert') - k('retract');
+  axes[L.axis_bend_alpha] = k('up') - k('down');
+  axes[L.axis_bend_gamma] = k('left') - k('right');
+  buttons[L.enable_button] = k('deadman');
+  if (G.connected) { G.send({ type: 'joy', axes, buttons }); G.keyboard.sent += 1; }
+  G.keyboard.held = [...held].sort();
+  dirty.add('record');
+}
+function discard() {
+  if (S.record && G.connected) { G.send({ type: 'record', action: 'discard' }); G.keyboard.discards += 1; }
+}
+window.addEventListener('keydown', (ev) => {
+  if (!S.record || ev.ctrlKey || ev.metaKey || ev.altKey) return;
+  const key = ev.key.toLowerCase();
+  if (key === 'escape' || key === 'backspace') { ev.preventDefault(); if (!ev.repeat) discard(); return; }
+  const name = KEYMAP[key]; if (!name) return;
+  ev.preventDefault();
+  if (!held.has(name)) { held.add(name); sendKeys(); }
+});
+window.addEventListener('keyup', (ev) => {
+  const name = KEYMAP[ev.key.toLowerCase()];
+  if (name && held.delete(name)) sendKeys();
+});
+window.addEventListener('blur', () => { if (held.size) { held.clear(); sendKeys(); } });
+// while a key is held the state is repeated: the recorder drops a state older than 0.5 s
+setInterval(() => { if (held.size) sendKeys(); }, 100);
+$('rec-discard').onclick = discard;
 
 // ------------------------------------------------------------------ frame loop
 // Software WebGL is fill-rate bound: while frames come slower than 12 per second the 3D views
@@ -468,6 +537,7 @@ function frame() {
   if (has('trail')) drawTrail();
   if (has('diagnostics')) diagnostics();
   if (has('replay') || has('source')) replayPanel();
+  if (has('record')) recordPanel();
   timer(); tracker();
   let render = dirty.size > 0;
   const t = performance.now();

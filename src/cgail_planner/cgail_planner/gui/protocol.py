@@ -22,6 +22,10 @@ Page -> node (anything else is ignored with a log line)::
     {"type": "replay", "action": "start", "bag": "<name from the replay item>",
      "rate": 0.1..10 (default 1), "loop": bool (default false)}
     {"type": "replay", "action": "stop"}
+    {"type": "joy", "axes": [float in [-1, 1], ...], "buttons": [0|1, ...]}
+                          (the page's keyboard as a gamepad, ``record_demos``: at most
+                           MAX_JOY_AXES axes and MAX_JOY_BUTTONS buttons)
+    {"type": "record", "action": "discard"}   (``record_demos``: drop the episode)
 """
 
 from __future__ import annotations
@@ -35,6 +39,10 @@ from cgail_planner.gui.errors import ProtocolError
 
 MAX_CLIENT_MESSAGE = 4096
 """Largest client message accepted, bytes (the server drops bigger frames)."""
+MAX_JOY_AXES = 16
+"""Most axes a page's ``joy`` message may carry."""
+MAX_JOY_BUTTONS = 32
+"""Most buttons a page's ``joy`` message may carry."""
 
 
 @dataclass(frozen=True)
@@ -42,15 +50,20 @@ class ClientCommand:
     """A validated page command."""
 
     kind: str
-    """``ack``, ``resync``, ``trial`` or ``replay``."""
+    """``ack``, ``resync``, ``trial``, ``replay``, ``joy`` or ``record``."""
     action: str = ''
-    """``start``/``stop``/``reset`` (trial), ``start``/``stop`` (replay); '' for resync."""
+    """``start``/``stop``/``reset`` (trial), ``start``/``stop`` (replay), ``discard``
+    (record); '' for resync and joy."""
     bag: str = ''
     """Bag name for ``replay start``."""
     rate: float = 1.0
     """Playback rate for ``replay start``."""
     loop: bool = False
     """Loop the bag for ``replay start``."""
+    axes: tuple[float, ...] = ()
+    """``joy``: the axes, each finite in [-1, 1]."""
+    buttons: tuple[int, ...] = ()
+    """``joy``: the buttons, each 0 or 1."""
 
 
 def encode_state(items: dict[str, Any], *, full: bool, source: str, epoch: int) -> str:
@@ -101,4 +114,28 @@ def parse_client_message(data: str | bytes) -> ClientCommand:
         if not isinstance(loop, bool):
             raise ProtocolError(f'expected replay loop true or false, found {loop!r}')
         return ClientCommand('replay', 'start', bag=bag, rate=float(rate), loop=loop)
-    raise ProtocolError(f'expected type ack, resync, trial or replay, found {kind!r}')
+    if kind == 'joy':
+        return _joy_command(msg)
+    if kind == 'record':
+        if action != 'discard':
+            raise ProtocolError(f'expected record action discard, found {action!r}')
+        return ClientCommand('record', 'discard')
+    raise ProtocolError(f'expected type ack, resync, trial, replay, joy or record, found '
+                        f'{kind!r}')
+
+
+def _joy_command(msg: dict[str, Any]) -> ClientCommand:
+    """A page ``joy`` message: axes finite in [-1, 1], buttons 0 or 1 (JSON's NaN included:
+    Python's parser accepts it)."""
+    axes, buttons = msg.get('axes'), msg.get('buttons')
+    if not isinstance(axes, list) or len(axes) > MAX_JOY_AXES or not all(
+            isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a)
+            and -1.0 <= a <= 1.0 for a in axes):
+        raise ProtocolError(f'expected joy axes: at most {MAX_JOY_AXES} finite numbers in '
+                            f'[-1, 1], found {str(axes)[:80]}')
+    if not isinstance(buttons, list) or len(buttons) > MAX_JOY_BUTTONS or not all(
+            b in (0, 1) and not isinstance(b, float) for b in buttons):
+        raise ProtocolError(f'expected joy buttons: at most {MAX_JOY_BUTTONS} values 0 or 1, '
+                            f'found {str(buttons)[:80]}')
+    return ClientCommand('joy', axes=tuple(float(a) for a in axes),
+                         buttons=tuple(int(b) for b in buttons))

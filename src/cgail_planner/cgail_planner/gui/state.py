@@ -14,7 +14,7 @@ import threading
 from typing import Any
 
 ITEMS = ('config', 'mesh', 'deform', 'path', 'target', 'tip', 'guide', 'waypoint', 'bend',
-         'diagnostics', 'trial', 'replay')
+         'diagnostics', 'trial', 'replay', 'record')
 """Known item names, in the order a full state lists them."""
 
 
