@@ -36,22 +36,42 @@ def test_default_policy_is_the_committed_cgail_model_of_the_anatomy_and_mode() -
     assert not default_policy('nonexistent', 'static').is_file()
 
 
-def test_plant_option_goes_to_the_phantom(capsys) -> None:
-    """--plant true (default) | ideal becomes the phantom's ``plant`` parameter."""
+def test_plant_option_goes_to_the_phantom_and_the_controller(capsys, tmp_path) -> None:
+    """--plant nominal (default) | identified | ideal: the phantom's ``plant`` parameter, and
+    for 'identified' the cached identified model over pam_controller's parameters."""
     from types import SimpleNamespace
 
-    from cgail_planner.system.session import build_parser, SessionSettings, TrialRig, TrialSpec
+    from cgail_planner.system.session import (
+        build_parser,
+        identified_pam_parameters,
+        SessionSettings,
+        TrialRig,
+        TrialSpec,
+    )
 
-    assert build_parser().parse_args([]).plant == 'true'
-    assert build_parser().parse_args(['--plant', 'ideal']).plant == 'ideal'
+    assert build_parser().parse_args([]).plant == 'nominal'
+    assert build_parser().parse_args(['--plant', 'identified']).plant == 'identified'
     with pytest.raises(SystemExit):
-        build_parser().parse_args(['--plant', 'perfect'])
-    assert "invalid choice: 'perfect'" in capsys.readouterr().err
+        build_parser().parse_args(['--plant', 'true'])
+    assert "invalid choice: 'true'" in capsys.readouterr().err
     spec = TrialSpec('centerline', 0, 0, 0, 7, 'bag')
     for plant in ('true', 'ideal'):
         rig = SimpleNamespace(settings=SessionSettings(plant=plant), spec=spec)
         overrides = TrialRig._overrides(rig, Path('aurora'))  # type: ignore[arg-type]
         assert overrides['phantom']['plant'] == plant
+        assert overrides['pam_controller'] == {'control_rate_hz': 20.0}
+    cached = tmp_path / 'plant_seed_4'
+    cached.mkdir()
+    (cached / 'pam_identified.yaml').write_text(
+        'pam_controller:\n  ros__parameters:\n    can_channel: pam0\n'
+        '    hysteresis_gain_rad_per_pa: 5.0e-06\n    hysteresis_fraction: 0.75\n'
+        '    hysteresis_density_decay: 3.0\n    hysteresis_max_threshold_pa: 50000.0\n')
+    params = identified_pam_parameters(tmp_path, 4, print)  # cached: no bench run
+    assert params == (('hysteresis_gain_rad_per_pa', 5e-6), ('hysteresis_fraction', 0.75),
+                      ('hysteresis_density_decay', 3.0), ('hysteresis_max_threshold_pa', 5e4))
+    rig = SimpleNamespace(settings=SessionSettings(pam_parameters=params), spec=spec)
+    overrides = TrialRig._overrides(rig, Path('aurora'))  # type: ignore[arg-type]
+    assert overrides['pam_controller'] == {'control_rate_hz': 20.0, **dict(params)}
 
 
 def test_refuses_to_mix_with_existing_bags(tmp_path, capsys) -> None:

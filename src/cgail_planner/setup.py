@@ -63,6 +63,7 @@ setup(
             'evaluate = cgail_planner.learning.evaluate:main',
             'export_onnx = cgail_planner.learning.export:main',
             'invitro_session = cgail_planner.system.session:main',
+            'identify_pam = cgail_planner.system.identify_pam:main',
         ],
     },
 )

@@ -26,6 +26,12 @@ pose to the simulated Aurora.
   the plant's :meth:`~cgail_planner.core.plant.CatheterPlant.tip_deflection` (bounded), and the
   contact's load slows the next insertion. ``contacts`` counts those events.
 * **Target.** Attached to a wall particle: in dynamic mode it moves with the wall.
+* **Bench fixture** (``fixture: 'bench'``, for ``identify_pam``). The catheter is clamped at
+  the base of its steerable segment, in free air, as a rig team identifies the actuators: the
+  base is the start pose, the insertion is ignored, there is no wall, and the tip is the base
+  composed with the constant-curvature arc of the plant's current bend
+  (:func:`bench_tip_pose`: the catheter model's own kinematics, the segment inserted ``L`` at
+  that bend). So the EM orientation shows the bend without any advance.
 """
 
 from __future__ import annotations
@@ -40,6 +46,7 @@ from numpy.typing import NDArray
 from cgail_planner.core.plant import Plant
 from cgail_planner.core.rotations import rotate_onto
 from cgail_planner.sim.ftl_model import (
+    advance_pose,
     bend_rotation,
     CatheterBatch,
     CatheterConfig,
@@ -48,6 +55,32 @@ from cgail_planner.sim.ftl_model import (
 from cgail_planner.sim.wall import DeformableWall
 
 FloatArray = NDArray[np.float64]
+
+#: Fixtures of the phantom: ``'none'`` (the catheter in the aorta) or ``'bench'`` (clamped at
+#: the base of the steerable segment, in free air).
+FIXTURES = ('none', 'bench')
+
+
+def bench_tip_pose(position: FloatArray, rotation: FloatArray, bend: tuple[float, float],
+                   catheter: CatheterConfig, max_step: float) -> tuple[FloatArray, FloatArray]:
+    """Tip pose of a segment clamped at ``(position, rotation)`` and bent by ``bend`` (rad).
+
+    The catheter model's constant-curvature arc: the segment's length ``L`` inserted from the
+    base in equal steps of at most ``max_step`` at the step bends of
+    :func:`~cgail_planner.sim.ftl_model.segment_bend_step` (the bend saturates at
+    ``theta_max``), each by :func:`~cgail_planner.sim.ftl_model.advance_pose`. The tip's
+    rotation relative to the base is the rotation vector ``(alpha, ~0, gamma)``: the product
+    of equal steps ``Rx(a) Rz(g)``, so its y part is ``O(alpha gamma / n)``.
+    """
+    length = catheter.segment_length
+    n = max(1, math.ceil(length / max_step - 1e-9))
+    dl = length / n
+    alpha, gamma = segment_bend_step(bend, dl, catheter.theta_max, length)
+    p = np.asarray(position, dtype=np.float64).copy()
+    r = np.asarray(rotation, dtype=np.float64).copy()
+    for _ in range(n):
+        p, r = advance_pose(p, r, alpha, gamma, dl)
+    return p, r
 
 
 @dataclass(frozen=True)
@@ -69,6 +102,9 @@ class PhantomConfig:
     wall_dt: float = 0.05
     """Step of the deformable wall (PBD + heartbeat), s; the physics steps it once this much
     time has accumulated; [1 ms, 0.2 s]."""
+    fixture: str = 'none'
+    """``'none'`` (the catheter in the aorta) or ``'bench'`` (clamped at the base of the
+    steerable segment in free air: module docstring)."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.catheter, CatheterConfig):
@@ -84,6 +120,8 @@ class PhantomConfig:
             if not ok:
                 raise ValueError(f"{name} must be in {'(' if low_open else '['}{low}, {high}], "
                                  f"found {value!r}")
+        if self.fixture not in FIXTURES:
+            raise ValueError(f"fixture must be one of {FIXTURES}, found {self.fixture!r}")
 
 
 class PhantomPhysics:
@@ -113,6 +151,9 @@ class PhantomPhysics:
         self._wall_pending = 0.0
         #: Axial load of the last wall contact on the tip, N (0 without contact or plant).
         self.load = 0.0
+        #: Bench fixture: the clamped base pose and the tip pose of the current bend.
+        self._base: tuple[FloatArray, FloatArray] | None = None
+        self._bench: tuple[FloatArray, FloatArray] | None = None
 
     def reset(self, position: FloatArray, rotation: FloatArray,
               introducer: FloatArray) -> None:
@@ -138,15 +179,24 @@ class PhantomPhysics:
         self.load = 0.0
         if self.plant is not None:
             self.plant.reset()
+        if self.config.fixture == 'bench':
+            self._base = (self.catheter.tip_position[0].copy(),
+                          self.catheter.tip_rotation[0].copy())
+            self._bench = bench_tip_pose(*self._base, (0.0, 0.0), self.config.catheter,
+                                         self.config.max_substep)
 
     @property
     def tip_position(self) -> FloatArray:
         """(3,) true tip position, m."""
+        if self._bench is not None:
+            return self._bench[0].copy()
         return self.catheter.tip_position[0].copy()
 
     @property
     def tip_rotation(self) -> FloatArray:
         """(3, 3) true tip rotation."""
+        if self._bench is not None:
+            return self._bench[1].copy()
         return self.catheter.tip_rotation[0].copy()
 
     def step(self, dt: float, insertion_position: float | None,
@@ -162,6 +212,10 @@ class PhantomPhysics:
         if not (math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a positive number of seconds, found {dt!r}")
         self.time += dt
+        if self._base is not None:  # bench fixture: clamped, in free air
+            self._bench = bench_tip_pose(*self._base, bend, self.config.catheter,
+                                         self.config.max_substep)
+            return
         if insertion_position is not None and math.isfinite(insertion_position):
             if self._last_insertion is None:
                 self._last_insertion = insertion_position

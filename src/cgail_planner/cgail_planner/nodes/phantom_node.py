@@ -25,7 +25,10 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   ``catheter/insertion_state``;
 * the physics: the tip advances by the plant's advance and curves with its bend (per inserted
   dl the heading turns by bend * dl / L), the wall (static, or deformable + heartbeat)
-  constrains it and the compliant tip turns away from it;
+  constrains it and the compliant tip turns away from it. With ``fixture: bench`` the catheter
+  is clamped at the base of its steerable segment (the start pose) in free air instead, and
+  the tip is the arc of the plant's current bend (``identify_pam`` identifies the actuators
+  so, as a rig team does on the bench);
 * ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
   (TRIANGLE_LIST on the wall's current vertices: deformed in dynamic mode; decimated above
   ``marker_max_triangles``) and the catheter body (LINE_STRIP), a full snapshot every
@@ -47,6 +50,7 @@ Time, two ways:
 
 from __future__ import annotations
 
+from dataclasses import replace
 import os
 from pathlib import Path
 import sys
@@ -70,7 +74,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LumenMesh, MarkerConfig, phantom_markers
-from cgail_planner.core.phantom import PhantomConfig, PhantomPhysics
+from cgail_planner.core.phantom import FIXTURES, PhantomConfig, PhantomPhysics
 from cgail_planner.core.plant import make_plant
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
@@ -97,6 +101,13 @@ class PhantomNode(Node):
                                             lo=0.0, hi=0.1),
             wall_dt=conv.declare(self, 'wall_dt_s', d.wall_dt, 'dynamic mode: step of the '
                                  'deformable wall (PBD + heartbeat), s', lo=1e-3, hi=0.2))
+        fixture = conv.declare(self, 'fixture', d.fixture, "'none' (the catheter in the "
+                               "aorta) or 'bench' (clamped at the base of the steerable segment, "
+                               'in free air: the tip is the arc of the bend, the insertion is '
+                               'ignored; identify_pam)')
+        if fixture not in FIXTURES:
+            raise ValueError(f'fixture must be one of {FIXTURES}, found {fixture!r}')
+        self.config = replace(self.config, fixture=fixture)
         anatomy = conv.declare(self, 'anatomy', 'default', "the phantom's anatomy: a built-in "
                                "name ('default', 'elongated'), a prepared anatomy directory or a "
                                'mesh file with its <stem>.yaml landmarks')
@@ -383,6 +394,8 @@ class PhantomNode(Node):
                   ('tip_advance_m', round(self.plant.tip, 6))]
         level = DiagnosticStatus.OK if self.insertion is not None else DiagnosticStatus.WARN
         message = 'simulating' if self.insertion is not None else 'no insertion state yet'
+        if self.config.fixture == 'bench':
+            level, message = DiagnosticStatus.OK, 'bench fixture: clamped at the segment base'
         if self.physics_error:
             level, message = DiagnosticStatus.ERROR, self.physics_error
         return conv.diagnostics(self.now_msg(), 'phantom: simulated rig', 'phantom', level,

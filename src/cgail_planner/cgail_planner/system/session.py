@@ -70,6 +70,9 @@ TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_w
           'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
           '/tf_static', 'phantom/markers', 'planner/markers')
 CONDITIONS = ('cgail', 'centerline')
+#: ``--plant``: the true plant with the controller's nominal model, the true plant with the
+#: model identified on it, or the controller's own model as the plant.
+PLANTS = ('nominal', 'identified', 'ideal')
 #: Recorded latched topics with a sample before the trial starts (published while the rig is
 #: built, before the recorder subscribes): the recorder must hold them before the first tick.
 LATCHED_AT_START = ('/tf_static', '/phantom/markers')
@@ -145,6 +148,9 @@ class SessionSettings:
     """The phantom's catheter plant: 'true' (drawn from its sourced ranges with
     ``plant_seed``) or 'ideal' (the PAM controller's nominal model,
     :mod:`cgail_planner.core.plant`)."""
+    pam_parameters: tuple[tuple[str, float], ...] = ()
+    """pam_controller parameters over the rig's (``--plant identified``: the bending model
+    identified on this plant, ``identify_pam``); empty: its nominal model."""
     plant_seed: int = 0
     """Seed of the true plant's draw: the session's ``--seed``, so every trial of a session,
     in both conditions, runs the same catheter (a rig has one), which the controller's nominal
@@ -281,7 +287,7 @@ class TrialRig:
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
                         'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
             'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
-            'pam_controller': {'control_rate_hz': control},
+            'pam_controller': {'control_rate_hz': control, **dict(s.pam_parameters)},
             'sleeve_driver': {'control_rate_hz': control},
             'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,
                         'planner_type': spec.condition},
@@ -527,11 +533,37 @@ def build_parser() -> argparse.ArgumentParser:
                         '(one trial at a time)')
     p.add_argument('--igtl-port', type=int, default=18944,
                    help="port of igtl_bridge (Slicer's default 18944)")
-    p.add_argument('--plant', choices=('true', 'ideal'), default='true',
-                   help="the phantom's catheter plant: 'true' (its own actuator model, drawn "
-                        "per trial from sourced ranges) or 'ideal' (the PAM controller's "
-                        'nominal model, for comparison)')
+    p.add_argument('--plant', choices=PLANTS, default='nominal',
+                   help="'nominal': the phantom's true plant (its own actuator model, drawn "
+                        'from sourced ranges with --seed) and the PAM controller with its '
+                        "nominal model; 'identified': the same plant, and the controller with "
+                        'the model identify_pam identified on it (run first on the simulated '
+                        "bench, cached in <out>/identification/); 'ideal': the plant is the "
+                        "controller's own nominal model (for comparison)")
     return p
+
+
+def identified_pam_parameters(directory: Path, plant_seed: int,
+                              log: Callable[[str], None]) -> tuple[tuple[str, float], ...]:
+    """The pam_controller model identified on the true plant of ``plant_seed``: read from
+    ``<directory>/plant_seed_<seed>/pam_identified.yaml``, after running ``identify_pam``'s
+    simulated bench there if it is not cached yet."""
+    import yaml
+
+    from cgail_planner.system.identify_pam import identify_sim
+    from pam_controller.core.identification import IDENTIFIED_KEYS
+
+    where = directory / f'plant_seed_{plant_seed}'
+    path = where / 'pam_identified.yaml'
+    if not path.is_file():
+        log(f'invitro_session: identifying the PAM model on plant seed {plant_seed} '
+            f'(identify_pam --sim, {where})')
+        result = identify_sim(where, plant_seed=plant_seed)
+        e = result.errors
+        log(f'invitro_session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
+            f'{e["identified"]["all"]:.4f} rad')
+    values = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters']
+    return tuple((key, float(values[key])) for key in IDENTIFIED_KEYS)
 
 
 def _trial_line(done: int, total: int, r: TrialResult) -> str:
@@ -610,13 +642,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         notes.append(f'ROS_DOMAIN_ID={user_domain} is set: one trial at a time on it (unset it '
                      f'to run trials in parallel on free domains)')
     time_scale = args.time_scale if args.time_scale is not None else (1.0 if args.gui else 0.0)
+    pam_parameters: tuple[tuple[str, float], ...] = ()
+    if args.plant == 'identified':
+        try:
+            pam_parameters = identified_pam_parameters(args.out / 'identification', args.seed,
+                                                       print)
+        except (OSError, ValueError, RuntimeError) as exc:  # bag, fit, domain, bench
+            return fail(f'identification of plant seed {args.seed} failed: {exc}')
     settings = SessionSettings(
         anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
         time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, igtl=args.igtl,
-        igtl_port=args.igtl_port, plant=args.plant,
-        plant_seed=args.seed)
+        igtl_port=args.igtl_port, plant='ideal' if args.plant == 'ideal' else 'true',
+        plant_seed=args.seed, pam_parameters=pam_parameters)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)

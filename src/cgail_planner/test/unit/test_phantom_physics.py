@@ -147,3 +147,31 @@ def test_deformable_wall_is_stepped_every_wall_dt_with_the_body() -> None:
     # 10 x 20 ms: stepped at 60, 120 and 180 ms, each with the 3 accumulated ticks
     assert [c[:2] for c in wall.calls] == [(0.06, 0.06), (0.12, 0.06), (0.18, 0.06)]
     assert all(c[2] >= 2 and c[3] == pytest.approx(0.0035) for c in wall.calls)
+
+
+@pytest.mark.parametrize('bend', [(0.5, -0.3), (0.0, 1.2), (-1.0, 0.0)])
+def test_bench_fixture_tip_is_the_arc_of_the_bend_without_insertion(bend) -> None:
+    """Clamped at the segment base: the tip is the constant-curvature arc of the bend (the
+    model's own insertion of L at that bend), whatever the insertion; the rotation relative
+    to the base is the rotation vector (alpha, ~0, gamma) that identify_pam reads."""
+    from pam_controller.core.identification import bend_from_rotations
+
+    base_r = rotate_onto(np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.6, 0.8]))
+    ph = PhantomPhysics(PhantomConfig(fixture='bench'))
+    ph.reset(np.array([0.01, 0.0, 0.0]), base_r, np.array([0.01, -0.02, 0.0]))
+    assert ph.tip_position == pytest.approx([0.01, 0.6 * L, 0.8 * L], abs=1e-12)  # straight
+    ph.step(0.02, 0.0, bend)
+    ph.step(0.02, 0.004, bend)                  # an insertion is ignored on the bench
+    assert ph.inserted == 0.0
+    free = PhantomPhysics(PhantomConfig())
+    free.reset(np.array([0.01, 0.0, 0.0]), base_r, np.array([0.01, -0.02, 0.0]))
+    free.move(L, bend)                          # the same arc, inserted in free space
+    assert ph.tip_position == pytest.approx(free.tip_position, abs=1e-12)
+    np.testing.assert_allclose(ph.tip_rotation, free.tip_rotation, atol=1e-12)
+    read = bend_from_rotations(base_r, ph.tip_rotation[None])[0]
+    assert read == pytest.approx(bend, abs=1e-3 * max(1.0, abs(bend[0] * bend[1]) * 10))
+
+
+def test_fixture_must_be_known() -> None:
+    with pytest.raises(ValueError, match="fixture must be one of"):
+        PhantomConfig(fixture='clamp')
