@@ -188,7 +188,7 @@ def _record(args: argparse.Namespace, config: Any, anatomy: Any) -> int:
         GuiConfig(port=args.port, anatomy='', dynamic=args.mode == 'dynamic',
                   trial_limit_s=config.time_limit_s,
                   success_radius_m=env.config.reward.epsilon, bags_dir=''),
-        env.anatomy, env.unwrapped.engine.walls[0],
+        env.anatomy, env.unwrapped.engine.walls[0],  # type: ignore[attr-defined]
         lambda level, text: None if level == 'info' else log(text))
     if page.missing:
         log(f'three.js is not installed ({page.missing} missing): run npm ci in '
@@ -206,7 +206,7 @@ def _record(args: argparse.Namespace, config: Any, anatomy: Any) -> int:
     nodes: list[Any] = []
     errors: list[str] = []
     executor = LockstepExecutor(period_s=env.config.dt, on_error=errors.append)
-    lean = {'start_parameter_services': False, 'enable_rosout': False}
+    lean: dict[str, Any] = {'start_parameter_services': False, 'enable_rosout': False}
     try:
         from rclpy.parameter import Parameter
 

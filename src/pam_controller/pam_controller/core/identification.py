@@ -205,9 +205,10 @@ def excitation_schedule(config: ExcitationConfig, dt: float) -> ExcitationSchedu
         n = round(config.multisine_periods / (config.multisine_f0_hz * dt))
         parts.append((multisine(config, np.arange(n) * dt), MULTISINE))
     hold(config.settle_s, SETTLE)
-    dp = np.concatenate([p for p, _ in parts])
+    dp = np.concatenate([p for p, _ in parts]).astype(np.float64)
     segment = np.concatenate([np.full(len(p), s, dtype=np.int64) for p, s in parts])
-    return ExcitationSchedule(t=np.arange(dp.shape[0]) * dt, dp=dp, segment=segment)
+    return ExcitationSchedule(t=(np.arange(dp.shape[0]) * dt).astype(np.float64), dp=dp,
+                              segment=segment)
 
 
 # ---------------------------------------------------------------------- bend from the EM pose
