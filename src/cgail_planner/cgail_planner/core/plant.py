@@ -77,7 +77,7 @@ PARAM_RANGES: dict[str, tuple[float, float]] = {
     'braid_angle_rad': (math.radians(17.0), math.radians(25.0)),
     'contraction_per_rad': (0.03, 0.07),
     'hysteresis_half_width_rad': (0.08, 0.25),
-    'hysteresis_rate_per_rad': (4.0, 15.0),
+    'hysteresis_turn': (0.5, 0.95),
     'hysteresis_shape': (0.6, 1.5),
     'lag_s': (0.05, 0.3),
     'insertion_efficiency': (0.85, 1.0),
@@ -97,7 +97,7 @@ _LIMITS: dict[str, tuple[float, float]] = {
     'braid_angle_rad': (math.radians(5.0), math.radians(50.0)),
     'contraction_per_rad': (0.0, 0.2),
     'hysteresis_half_width_rad': (0.0, 0.5),
-    'hysteresis_rate_per_rad': (0.1, 100.0),
+    'hysteresis_turn': (0.01, 1.0),
     'hysteresis_shape': (0.5, 5.0),
     'lag_s': (0.0, 5.0),
     'insertion_efficiency': (0.01, 1.0),
@@ -152,11 +152,18 @@ class PlantParams:
     it with Maxwell-slip elements); Wu et al. 2021 (IEEE RA-L) model this PAM catheter's with an
     LSTM and publish no width a model could use. Estimate, the order of the controller's own
     PI loop (about 0.3 rad); sampled in [0.08, 0.25] rad (loops 5-16 % of the range)."""
-    hysteresis_rate_per_rad: float = 8.0
-    """Bouc-Wen ``rho``, 1/rad of anhysteretic bend: after a reversal ``w`` recovers 95 % of
-    its saturation within ``3 / rho`` (0.4 rad). Estimate, of the order identified with
-    Bouc-Wen models on tendon-sheath surgical robots (Do et al. 2014, Mechatronics). Sampled in
-    [4, 15] /rad."""
+    hysteresis_turn: float = 0.8
+    """``c`` in (0, 1]: how sharply a branch turns after a reversal, as a share of the sharpest
+    turn that keeps the bend monotone in the pressure. It sets Bouc-Wen's ``rho = c / (2 sigma
+    H)`` (:attr:`hysteresis_rate_per_rad`): right after a reversal the bend moves at ``1 - c``
+    times the anhysteretic rate, the way it does in the same direction as the pressure (a
+    friction-dominated muscle stalls at a reversal, Chou & Hannaford 1996; it never moves back).
+    A free ``rho`` did not: with ``2 sigma rho H > 1`` (the first draft: ``rho`` 8 /rad, ``H``
+    0.15 rad) the bend kept rising for ~20 kPa after the pressure turned down, which no
+    physical muscle does and no play-operator model can follow. ``c = 1`` is the stall of a
+    play operator; estimate 0.8, sampled in [0.5, 0.95] (``rho`` 2.7 /rad at the nominal ``H``
+    and ``sigma``: 95 % of the turn within ``3 / rho`` = 1.1 rad of anhysteretic bend, loops
+    smoother than the controller's piecewise-linear ones)."""
     hysteresis_shape: float = 1.0
     """Bouc-Wen ``sigma`` (>= 1/2, Ikhouane & Rodellar 2007): above 1/2 a branch turns faster
     right after a reversal. Estimate; sampled in [0.6, 1.5]."""
@@ -261,6 +268,12 @@ class PlantParams:
         values['muscle_gain'] = tuple(float(g) for g in rng.uniform(*MUSCLE_GAIN_RANGE, 4))
         values['misalignment_rad'] = tuple(float(p) for p in rng.uniform(*MISALIGNMENT_RANGE, 2))
         return cls(**values)
+
+    @property
+    def hysteresis_rate_per_rad(self) -> float:
+        """Bouc-Wen ``rho`` (1/rad of anhysteretic bend) from :attr:`hysteresis_turn`."""
+        return self.hysteresis_turn / (2.0 * self.hysteresis_shape
+                                       * max(self.hysteresis_half_width_rad, 1e-9))
 
     def with_values(self, **changes: Any) -> PlantParams:
         """A copy with some fields changed (validated)."""

@@ -35,8 +35,9 @@ def test_a_slow_sweep_gives_a_major_loop_2h_wide_with_the_bouc_wen_area() -> Non
     """Two slow cycles of +-220 kPa differential (both chambers above the dead zone): the
     second loop is 2 H wide at zero pressure and its area in the (anhysteretic bend, bend)
     plane is 2 H (2 X - 2 / rho) for sigma = 1 (X: the anhysteretic amplitude)."""
-    h, rho = 0.15, 8.0
-    pl = plant(hysteresis_half_width_rad=h, hysteresis_rate_per_rad=rho, hysteresis_shape=1.0,
+    h, turn = 0.08, 0.95
+    rho = turn / (2 * h)  # a sharp turn, so the branches saturate well inside the sweep
+    pl = plant(hysteresis_half_width_rad=h, hysteresis_turn=turn, hysteresis_shape=1.0,
                lag_s=0.0)
     up = np.linspace(-220e3, 220e3, 2001)
     cycle = np.concatenate([up, up[::-1][1:], up[1:]])
@@ -213,3 +214,20 @@ def test_make_plant() -> None:
     assert make_plant('true', 7).params == PlantParams.sample(np.random.default_rng(7))
     with pytest.raises(ValueError, match="plant must be 'true', 'nominal' or 'ideal'"):
         make_plant('perfect', 0)
+
+
+@pytest.mark.parametrize('turn,sigma,h', [(0.8, 1.0, 0.15), (0.95, 1.5, 0.25), (0.5, 0.6, 0.08)])
+def test_the_bend_never_moves_against_the_pressure_after_a_reversal(turn, sigma, h) -> None:
+    """Up to +220 kPa, then down: the hysteretic bend follows the anhysteretic one's direction
+    at every step (the first draft's free rho let it keep rising after the reversal)."""
+    pl = plant(hysteresis_half_width_rad=h, hysteresis_turn=turn, hysteresis_shape=sigma,
+               lag_s=0.0)
+    sweep = np.concatenate([np.linspace(-220e3, 220e3, 801), np.linspace(220e3, -220e3, 801)])
+    prev_s = prev_h = None
+    for d in sweep:
+        pl.bend(pair(d), 0.01)
+        s, hb = float(pl.static_bend[0]), float(pl.hysteretic_bend[0])
+        if prev_s is not None:
+            assert (hb - prev_h) * (s - prev_s) >= -1e-12
+        prev_s, prev_h = s, hb
+    assert pl.params.hysteresis_rate_per_rad == pytest.approx(turn / (2 * sigma * h))
