@@ -32,7 +32,15 @@ def test_deadman_drives_the_simulated_sleeve_and_release_stops_it(harness):
     assert harness.spin_until(lambda: mech.catheter_position > 0.002)
     assert abs(mech.catheter_velocity) <= 0.005 + 1e-9
     pad.set(buttons=[False] * 8)  # release: one stop, then the sleeve stays put
-    assert harness.spin_until(lambda: mech.sleeve_velocity == 0.0)
+
+    def held_still() -> bool:
+        # the sleeve also pauses while the grippers regrip (sleeve_velocity 0 for a moment):
+        # stopped means no motion over a window longer than a regrip
+        before = mech.catheter_position
+        harness.spin_for(0.3)
+        return mech.sleeve_velocity == 0.0 and mech.catheter_position == before
+
+    assert harness.spin_until(held_still)
     stopped_at = mech.catheter_position
     harness.spin_for(0.5)
     assert mech.catheter_position == stopped_at
