@@ -23,8 +23,37 @@ class Demos(NamedTuple):
     ``.npz`` source does not say."""
 
 
+def demo_source(path: Path) -> str:
+    """Who made the demonstrations of ``path``: ``record_demos`` (with the device and who
+    recorded them), teleoperated session bags (``make_demos --from-bags``), the scripted
+    expert (``make_demos``), or ``.npz`` arrays."""
+    import json
+
+    import yaml
+
+    if path.suffix == '.npz':
+        return 'npz arrays'
+    try:
+        doc = yaml.safe_load((path / 'metadata.yaml').read_text())
+        custom = doc['rosbag2_bagfile_information'].get('custom_data') or {}
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return 'unknown (no readable metadata.yaml)'
+    if 'cgail_planner.record_demos' in custom:
+        rec = json.loads(custom['cgail_planner.record_demos'])
+        return (f"record_demos ({rec.get('driver', '?')} driver, by "
+                f"{rec.get('who', '?')})")
+    try:
+        info = json.loads(custom.get('cgail_planner.demos') or '{}')
+    except json.JSONDecodeError:
+        info = {}
+    if info.get('source'):
+        return 'teleoperated session bags (make_demos --from-bags)'
+    return 'scripted expert (make_demos)'
+
+
 def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None,
-               anatomy: Any = None, env_options: str = 'ours') -> Demos:
+               anatomy: Any = None, env_options: str = 'ours',
+               sources: list[dict[str, Any]] | None = None) -> Demos:
     """Concatenate the (obs, act) pairs of every demonstration source in ``paths``.
 
     A source is an ``.npz`` with ``obs`` (M, D) and ``act`` (M, 3) arrays (and optionally
@@ -41,6 +70,8 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
         env_options: the env option set demo bags are re-simulated in, so that their
             observations are the trained policy's (``.npz`` sources are taken as they are and
             must have its observation size).
+        sources: if given, one ``{'path', 'source', 'episodes'}`` per path is appended
+            (:func:`demo_source`: scripted, teleoperated, recorded with a gamepad ...).
 
     Raises:
         DemoError: no path given, a path missing, or no samples.
@@ -66,6 +97,8 @@ def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = Non
                 report(replay.summary())
             n_ep = replay.episodes
         episodes = None if episodes is None or n_ep is None else episodes + n_ep
+        if sources is not None:
+            sources.append({'path': str(path), 'source': demo_source(path), 'episodes': n_ep})
         obs_l.append(np.asarray(obs, np.float32))
         act_l.append(np.asarray(act, np.float32))
     obs_all, act_all = np.concatenate(obs_l), np.concatenate(act_l)

@@ -271,17 +271,26 @@ def main(argv: list[str] | None = None) -> int:
         from cgail_planner.learning.demos import load_demos
 
         demo_obs = demo_act = demo_episodes = None
+        sources: list[dict[str, Any]] = []
         if cfg.needs_demos:
             demo_obs, demo_act, demo_episodes = load_demos(
                 [Path(d) for d in args.demos],
                 report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
                 anatomy=None if is_builtin(args.anatomy) or cfg.population.enabled
                 else args.anatomy,
-                env_options=cfg.env_options)
+                env_options=cfg.env_options, sources=sources)
+            by_source: dict[str, int] = {}
+            for src in sources:
+                by_source[src['source']] = by_source.get(src['source'], 0) + (src['episodes']
+                                                                               or 0)
+            print('train: demonstrations by source: ' + '; '.join(
+                f'{k}: {v} episodes' for k, v in by_source.items()), file=sys.stderr)
         env, eval_env, meta = make_envs(
             args.mode, args.anatomy, cfg.num_envs, cfg.env_options, cfg.population,
             report=lambda line: print(f'train: population: {line}', file=sys.stderr))
         meta['preset'] = cfg.name
+        if sources:
+            meta['demonstrations'] = sources
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=args.seed,
                           metadata=meta, demo_episodes=demo_episodes)
         if args.init_from is not None:

@@ -332,6 +332,35 @@ def test_replay_warns_when_the_anatomy_hash_differs(tmp_path: Path, recording):
     assert lines == [old.report.summary()] and len(obs) == 40
 
 
+def test_the_sources_of_the_demonstrations_are_told_apart(tmp_path: Path, recording):
+    """load_demos reports each path's source and episode count (train prints them by source
+    and keeps them in the run's metadata): the scripted expert's, a record_demos bag (who,
+    device) and a bag converted from session bags."""
+    import json
+
+    import yaml
+
+    _, episode, _ = recording
+    scripted = _bag(tmp_path, episode, 'scripted')
+    recorded, converted = _bag(tmp_path, episode, 'recorded'), _bag(tmp_path, episode, 'conv')
+    for bag, key, value in ((recorded, 'cgail_planner.record_demos',
+                             {'driver': 'gamepad', 'who': 'A. Surgeon'}),
+                            (converted, 'cgail_planner.demos', {'source': {'bags': ['x']}})):
+        meta_path = bag / 'metadata.yaml'
+        doc = yaml.safe_load(meta_path.read_text())
+        custom = doc['rosbag2_bagfile_information'].setdefault('custom_data', {}) or {}
+        old = json.loads(custom.get(key, '{}'))
+        custom[key] = json.dumps({**old, **value})
+        doc['rosbag2_bagfile_information']['custom_data'] = custom
+        meta_path.write_text(yaml.safe_dump(doc))
+    sources: list[dict] = []
+    load_demos([scripted, recorded, converted], sources=sources)
+    assert [(s['source'], s['episodes']) for s in sources] == [
+        ('scripted expert (make_demos)', 1),
+        ('record_demos (gamepad driver, by A. Surgeon)', 1),
+        ('teleoperated session bags (make_demos --from-bags)', 1)]
+
+
 @pytest.mark.slow  # re-simulates the 70 committed demonstrations and trains 8,192 steps
 def test_train_smoke_runs_on_the_committed_demonstrations(tmp_path: Path):
     """``train --preset smoke --demos bags/demos/default`` on this machine's numpy, whatever the
