@@ -24,36 +24,42 @@ QUICK = idf.ExcitationConfig(levels=(1.0,), sweep_rate_pa_s=100e3, multisine_per
                              rest_s=1.0, settle_s=0.5)
 
 
-def test_quick_bench_identification_beats_the_nominal_model(tmp_path) -> None:
-    """On the bench, the true plant of seed 1: the identified model's RMS bend error is below
-    the nominal model's, and the YAML it writes is a valid pam_controller parameter file."""
+def test_quick_bench_identification_halves_the_nominal_error(tmp_path) -> None:
+    """On the bench, the true plant of seed 1: the identified model's RMS bend error is at most
+    half the nominal model's (the issue's bar), and the YAML it writes is a valid
+    pam_controller parameter file holding the identified model."""
     from pam_controller.nodes.pam_node import build_settings, PARAMETERS
 
     result = identify_sim(tmp_path, plant_seed=1, excitation=QUICK)
     e = result.errors
-    assert e['identified']['fit'] < 0.6 * e['nominal']['fit'], e
+    assert e['identified']['all'] <= 0.5 * e['nominal']['all'], e
     params = yaml.safe_load((tmp_path / 'pam_identified.yaml').read_text())
     values = params['pam_controller']['ros__parameters']
     template = yaml.safe_load(pam_config_file().read_text())['pam_controller']
     assert set(values) == set(template['ros__parameters']) == set(PARAMETERS)
+    assert set(idf.IDENTIFIED_KEYS) <= set(values)
     settings = build_settings(values)
-    assert settings.model.hysteresis == result.config
+    assert settings.model == result.config
+    assert result.config.bend_offset_rad != (0.0, 0.0)
     assert (tmp_path / 'loops.png').stat().st_size > 10_000
-    assert 'RMS bend error' in (tmp_path / 'report.md').read_text()
+    report = (tmp_path / 'report.md').read_text()
+    assert 'RMS bend error' in report and '`bend_offset_alpha_rad`' in report
     assert (tmp_path / 'bench_bag' / 'metadata.yaml').is_file()
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize('plant_seed', [0, 1])
-def test_short_sweep_identified_error_against_nominal(tmp_path, plant_seed) -> None:
-    """The short excitation (37 s of rig time) on two plants: identification lowers the RMS
-    bend error of the sweeps. Measured (docs: README): seed 0 to 0.77 of the nominal's, seed
-    1 to 0.34; the issue's 50 % holds on seed 1 only, since the controller's model has no
-    per-axis offset and cannot follow the plant's own loop shape."""
-    result = identify_sim(tmp_path, plant_seed=plant_seed, excitation=idf.SHORT_EXCITATION)
+def test_full_excitation_halves_the_nominal_error(tmp_path, plant_seed) -> None:
+    """The full excitation (204 s of rig time, about 45 s wall) on two plants: the identified
+    model's RMS bend error over every sample is at most half the nominal's (the issue's bar).
+    Measured (README): seed 0 0.44, seed 1 0.48 of the nominal's; on the sweeps 0.16 and 0.08.
+    What remains is mostly the plant's lag on the held-out multisine, which the controller's
+    model has no term for; on the short excitation (one multisine period in 37 s) it weighs
+    more and seed 1 ends at 0.51, so the bar is asserted on the full one."""
+    result = identify_sim(tmp_path, plant_seed=plant_seed)
     e = result.errors
-    assert e['identified']['fit'] < 0.85 * e['nominal']['fit'], e
-    assert e['identified']['all'] < 0.85 * e['nominal']['all'], e
+    assert e['identified']['fit'] < 0.25 * e['nominal']['fit'], e
+    assert e['identified']['all'] <= 0.5 * e['nominal']['all'], e
 
 
 def _pose_msg(ns: int):

@@ -20,8 +20,9 @@ is a differential-pressure command ``dp`` around the bias, through the node's ow
 watchdog and pressure caps. The fit reads the measured pressures, never the commands.
 
 **Fit.** The bend is read from the EM orientation relative to the base (measured while the
-chambers are vented), the controller's parameters that ``pam_controller.yaml`` exposes are
-fitted by bounded least squares on the sweeps, and the multisine is held out. Written to
+chambers are vented), the controller's parameters that ``pam_controller.yaml`` exposes (the
+hysteresis, a bend offset and a gain per axis, the cross-coupling) are fitted by bounded least
+squares on the sweeps, and the multisine is held out. Written to
 ``<out>``: ``pam_identified.yaml`` (every key of ``pam_controller.yaml``, the identified ones
 replaced; ``pam_node --ros-args --params-file``), ``loops.png`` (measured bend against
 differential pressure per axis, with the nominal and the identified model) and ``report.md``.
@@ -322,12 +323,23 @@ def report_text(result: Any, data: Any, source: str, extra: Sequence[str] = ()) 
               '## Parameters', '', '| parameter | nominal | identified |', '|---|---|---|']
     nom, ide = identified_parameters(result.nominal), identified_parameters(result.config)
     lines += [f'| `{k}` | {nom[k]:.6g} | {ide[k]:.6g} |' for k in nom]
-    lines += ['', f'`hysteresis_play_count` kept at {result.config.play_count}; major loop '
-              f'width nominal {result.nominal.major_loop_width():.3f} rad, identified '
-              f'{result.config.major_loop_width():.3f} rad.', '',
-              'Not representable by the controller\'s model, so left in the residual: a '
-              'per-axis zero offset (unequal muscles), cross-coupling, the lag, a different '
-              'gain per axis and the shape of the plant\'s own loops.']
+    hyst, hyst_nom = result.config.hysteresis, result.nominal.hysteresis
+    lines += ['', f'`hysteresis_play_count` kept at {hyst.play_count}; major loop width '
+              f'nominal {hyst_nom.major_loop_width():.3f} rad, identified '
+              f'{hyst.major_loop_width():.3f} rad. The model: per axis a Prandtl-Ishlinskii '
+              'operator `h = PI[dp]`, then `bend = b0 + K h`, `b0` the `bend_offset_*`, `K = '
+              '[[gain_scale_alpha, coupling_alpha_from_gamma], [coupling_gamma_from_alpha, '
+              'gain_scale_gamma]]`.', '',
+              '## Not representable', '',
+              'The controller\'s model has no lag term. A first-order lag after the identified '
+              f'model, fitted on the sweeps, is {result.lag_s:.3f} s (the slow sweeps see little '
+              'of a lag: an estimate from below); with it the RMS bend error would be '
+              + ', '.join(f'{math.degrees(result.lag_errors[part]):.2f} deg ({label})'
+                          for part, label in (('fit', 'sweeps'), ('validation', 'multisine'),
+                                              ('all', 'all'))
+                          if math.isfinite(result.lag_errors.get(part, math.nan)))
+              + '. Also left in the residual: the dead zone (the offset holds around the bias, '
+              'not vented) and the shape of the plant\'s own loops.']
     lines += list(extra)
     return '\n'.join(lines) + '\n'
 
@@ -342,13 +354,12 @@ def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str]
     """
     from pam_controller.core import identification as idf
     from pam_controller.core.bending_model import BendingModelConfig
-    from pam_controller.core.hysteresis import HysteresisConfig
 
     pt, p, et, rot = read_bench_bag(bag)
     data = idf.align(pt, p, et, rot)
     model = BendingModelConfig()
     idf.check_excitation(data, model)
-    result = idf.fit_hysteresis(data, HysteresisConfig())
+    result = idf.fit_bending_model(data, model)
     out.mkdir(parents=True, exist_ok=True)
     values = idf.identified_parameters(result.config)
     header = [f'pam_controller parameters identified by identify_pam on {source or bag}.',

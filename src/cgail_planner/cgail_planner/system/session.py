@@ -547,7 +547,8 @@ def identified_pam_parameters(directory: Path, plant_seed: int,
                               log: Callable[[str], None]) -> tuple[tuple[str, float], ...]:
     """The pam_controller model identified on the true plant of ``plant_seed``: read from
     ``<directory>/plant_seed_<seed>/pam_identified.yaml``, after running ``identify_pam``'s
-    simulated bench there if it is not cached yet."""
+    simulated bench there if it is not cached yet (or was identified for an older model, without
+    every key of ``IDENTIFIED_KEYS``)."""
     import yaml
 
     from cgail_planner.system.identify_pam import identify_sim
@@ -555,7 +556,9 @@ def identified_pam_parameters(directory: Path, plant_seed: int,
 
     where = directory / f'plant_seed_{plant_seed}'
     path = where / 'pam_identified.yaml'
-    if not path.is_file():
+    cached = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters'] \
+        if path.is_file() else {}
+    if not set(IDENTIFIED_KEYS) <= set(cached):  # none yet, or of an older model: identify
         log(f'invitro_session: identifying the PAM model on plant seed {plant_seed} '
             f'(identify_pam --sim, {where})')
         result = identify_sim(where, plant_seed=plant_seed)

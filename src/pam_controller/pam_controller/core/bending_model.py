@@ -12,16 +12,24 @@ index    label         effect when its pressure rises
 3        ``gamma_neg`` bends towards -gamma
 =======  ============  =================================================
 
-Model (per axis, the two axes are taken as decoupled)::
+Model::
 
     dp_alpha = p0 - p1,  dp_gamma = p2 - p3               (differential pressure, Pa)
-    alpha = PI[dp_alpha],  gamma = PI[dp_gamma]            (Prandtl-Ishlinskii, core.hysteresis)
+    h_alpha = PI[dp_alpha],  h_gamma = PI[dp_gamma]        (Prandtl-Ishlinskii, core.hysteresis)
+    [alpha; gamma] = b0 + K [h_alpha; h_gamma]             (per-axis offset, gain and coupling)
+    K = [[s_alpha, c_ag], [c_ga, s_gamma]]
     p0, p1 = bias + dp_alpha / 2, bias - dp_alpha / 2      (antagonistic, common-mode bias)
 
-so the pressure -> bend direction (:meth:`BendingModel.bend_from_pressures`, used on measured
-pressures) is the forward PI operator and the bend -> pressure direction
-(:meth:`BendingModel.pressures_for_bend`, used on commands) is its exact inverse from the
-current play state (feed-forward hysteresis compensation, Kuhnen 2003).
+``b0`` (:attr:`BendingModelConfig.bend_offset_rad`) is the bend at zero differential pressure
+around the bias (unequal muscles of a pair), ``s`` (:attr:`BendingModelConfig.gain_scale`) each
+axis's gain relative to the operator's common one, ``c`` (:attr:`BendingModelConfig.coupling`)
+how much one pair bends the other axis (misaligned bending planes). Nominal: ``b0 = 0``,
+``K = I``, the two axes decoupled and equal. The pressure -> bend direction
+(:meth:`BendingModel.bend_from_pressures`, used on measured pressures) is the forward model and
+the bend -> pressure direction (:meth:`BendingModel.pressures_for_bend`, used on commands) its
+exact inverse from the current play state, ``h = K^-1 (bend - b0)`` then the PI inverse per
+axis (feed-forward hysteresis compensation, Kuhnen 2003). ``identify_pam`` fits all of them on
+the bench (:mod:`pam_controller.core.identification`).
 
 Where the parameter values come from:
 
@@ -37,8 +45,9 @@ Where the parameter values come from:
   are published. Identify them on the rig (sinusoidal pressure sweeps + EM-tracked tip angle,
   least squares on the play weights) before relying on them.
 
-Not modelled: cross-coupling between the pairs, the PAM's static nonlinearity (dead zone at low
-pressure, stiffening near full contraction), rate dependence, contact with the vessel wall.
+Not modelled: the PAM's static nonlinearity (dead zone at low pressure, so the offset ``b0`` is
+wrong for vented chambers; stiffening near full contraction), the lag of the bend behind the
+pressure (rate dependence), contact with the vessel wall.
 """
 
 from __future__ import annotations
@@ -67,6 +76,22 @@ setpoint signal encodes 0..409.5 kPa)."""
 HARD_MAX_BEND_RAD = math.pi / 2.0
 """The catheter's maximum bend, 90 deg (paper section IV-B)."""
 
+MAX_BEND_OFFSET_RAD = 0.5
+"""Largest ``|bend_offset_rad|`` accepted, rad (29 deg; the plant's sampled muscles give up to
+~0.15 rad, ``docs/plant.md``)."""
+
+GAIN_SCALE_RANGE: tuple[float, float] = (0.5, 2.0)
+"""Accepted range of each axis's ``gain_scale``."""
+
+MAX_COUPLING = 0.5
+"""Largest ``|coupling|`` accepted (a bending plane turned by 30 deg)."""
+
+
+def _check_pair(name: str, value: tuple[float, float], low: float, high: float) -> None:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (2,) or not np.all(np.isfinite(arr) & (arr >= low) & (arr <= high)):
+        raise ValueError(f'{name} must be 2 numbers in [{low}, {high}], found {value!r}')
+
 
 @dataclass(frozen=True)
 class BendingModelConfig:
@@ -88,11 +113,36 @@ class BendingModelConfig:
     hysteresis: HysteresisConfig = field(default_factory=HysteresisConfig)
     """The PI operator mapping differential pressure (Pa) to bend (rad) on each axis."""
 
+    bend_offset_rad: tuple[float, float] = (0.0, 0.0)
+    """``b0``: bend ``(alpha, gamma)`` at zero differential pressure around the bias, rad
+    (unequal muscles of a pair: a gain spread of +-10 % and a dead zone give up to ~0.15 rad,
+    ``docs/plant.md``). Each in [-0.5, 0.5] rad."""
+
+    gain_scale: tuple[float, float] = (1.0, 1.0)
+    """``(s_alpha, s_gamma)``: each axis's gain as a share of ``hysteresis.gain`` (the diagonal
+    of ``K``). Each in [0.5, 2]."""
+
+    coupling: tuple[float, float] = (0.0, 0.0)
+    """``(c_ag, c_ga)``: the off-diagonal of ``K``, alpha bend per unit of the gamma operator's
+    output and gamma per unit of alpha's (a bending plane turned by ``phi`` gives
+    ``sin(phi)``). Each in [-0.5, 0.5], and ``det K >= 0.5 s_alpha s_gamma``
+    (``K`` well inside the invertible range)."""
+
     def __post_init__(self) -> None:
         for name in ('min_pressure_pa', 'max_pressure_pa', 'bias_pressure_pa', 'max_bend_rad'):
             value = getattr(self, name)
             if not math.isfinite(value):
                 raise ValueError(f'{name} must be a finite number, found {value}')
+        _check_pair('bend_offset_rad', self.bend_offset_rad, -MAX_BEND_OFFSET_RAD,
+                    MAX_BEND_OFFSET_RAD)
+        _check_pair('gain_scale', self.gain_scale, *GAIN_SCALE_RANGE)
+        _check_pair('coupling', self.coupling, -MAX_COUPLING, MAX_COUPLING)
+        (sa, sg), (cag, cga) = self.gain_scale, self.coupling
+        if not (sa * sg - cag * cga >= 0.5 * sa * sg):
+            raise ValueError(
+                f'coupling must keep det K = s_alpha s_gamma - c_ag c_ga >= 0.5 s_alpha s_gamma '
+                f'= {0.5 * sa * sg:.6g}, found {sa * sg - cag * cga:.6g} (gain_scale '
+                f'{self.gain_scale}, coupling {self.coupling})')
         if not (0.0 <= self.min_pressure_pa < self.max_pressure_pa):
             raise ValueError(
                 f'min_pressure_pa must be in [0, max_pressure_pa={self.max_pressure_pa}), '
@@ -107,6 +157,12 @@ class BendingModelConfig:
         if not (0.0 < self.max_bend_rad <= HARD_MAX_BEND_RAD):
             raise ValueError(
                 f'max_bend_rad must be in (0, {HARD_MAX_BEND_RAD}], found {self.max_bend_rad}')
+
+    @property
+    def axis_matrix(self) -> FloatArray:
+        """``K = [[s_alpha, c_ag], [c_ga, s_gamma]]`` (module docstring)."""
+        (sa, sg), (cag, cga) = self.gain_scale, self.coupling
+        return np.array([[sa, cag], [cga, sg]], dtype=np.float64)
 
     @property
     def max_differential_pa(self) -> float:
@@ -156,6 +212,9 @@ class BendingModel:
         self.config = config if config is not None else BendingModelConfig()
         self._command = PrandtlIshlinskii(self.config.hysteresis, channels=2)
         self._estimate = PrandtlIshlinskii(self.config.hysteresis, channels=2)
+        self._offset = np.asarray(self.config.bend_offset_rad, dtype=np.float64)
+        self._k = self.config.axis_matrix
+        self._k_inv = np.linalg.inv(self._k)
 
     def reset(self) -> None:
         """Forget both hysteresis histories."""
@@ -191,7 +250,7 @@ class BendingModel:
             CommandRejectedError: see :func:`check_bend`.
         """
         target = check_bend(bend, self.config.max_bend_rad)
-        dp = self._command.solve(target)
+        dp = self._command.solve(self._k_inv @ (target - self._offset))
         lim = self.config.max_differential_pa
         dp = np.clip(dp, -lim, lim)
         self._command.apply(dp)
@@ -207,8 +266,11 @@ class BendingModel:
 
         Feeds the estimate path's hysteresis state; call it with every measurement in order.
         """
-        return self._estimate.apply(self.pressures_to_differential(pressures))
+        return self._offset + self._k @ self._estimate.apply(
+            self.pressures_to_differential(pressures))
 
     def bend_for_pressures_without_memory(self, pressures: ArrayLike) -> FloatArray:
-        """Anhysteretic bend (``gain * dp``) for pressures: the centre line of the loops."""
-        return self.config.hysteresis.gain * self.pressures_to_differential(pressures)
+        """Anhysteretic bend (``b0 + K gain dp``) for pressures: the centre line of the
+        loops."""
+        return self._offset + self._k @ (self.config.hysteresis.gain
+                                         * self.pressures_to_differential(pressures))

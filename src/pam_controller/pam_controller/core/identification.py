@@ -32,18 +32,24 @@ pressure around the bias, one axis at a time, then both:
 5. ``settle_s`` at the bias.
 
 **Model fitted.** The controller's own (:mod:`pam_controller.core.bending_model`): one
-Prandtl-Ishlinskii operator on each axis's differential pressure, with the parameters that
-``config/pam_controller.yaml`` exposes: the gain, the share of the gain in the plays, the
-density decay of the play weights and the largest play threshold; the number of plays is kept
-(thresholds ``r_max i / n``). Bounded least squares (``scipy.optimize.least_squares``, trust
-region reflective) on the bend residuals of the sweeps, both axes stacked; the play states are
-run over the whole record from the vented (virgin) start, as the controller runs them. The
-largest threshold is searched on a geometric grid first (the residual is only piecewise smooth
-in it), then all four are refined together.
+Prandtl-Ishlinskii operator on each axis's differential pressure, ``h = PI[dp]``, then
+``bend = b0 + K h`` with a bend offset ``b0`` per axis and ``K = [[s_alpha, c_ag], [c_ga,
+s_gamma]]`` (a gain per axis and the cross-coupling), with the parameters that
+``config/pam_controller.yaml`` exposes (:data:`IDENTIFIED_KEYS`): the common gain, the share of
+the gain in the plays, the density decay of the play weights, the largest play threshold, the
+two offsets, the two gain scales (``s_alpha s_gamma = 1``: the common gain is their geometric
+mean) and the two couplings; the number of plays is kept (thresholds ``r_max i / n``). Bounded
+least squares (``scipy.optimize.least_squares``, trust region reflective) on the bend residuals
+of the sweeps, both axes stacked; the play states are run over the whole record from the
+vented (virgin) start, as the controller runs them. The initial guess is the nominal model with
+the offsets at the nominal model's mean residual per axis. The largest threshold is searched
+on a geometric grid first (the residual is only piecewise smooth in it), then all are refined
+together. The multisine stays held out.
 
-Not identifiable with this model, and reported as a residual rather than fitted: a per-axis
-zero offset (unequal muscles bend the segment at zero differential), cross-coupling between the
-axes, the lag and a dead zone.
+Not representable by the controller's model, and reported as a residual rather than fitted:
+the lag of the bend behind the pressure (:func:`fit_lag` measures it on the sweeps for the
+report; the controller has no rate-dependent term), the dead zone (the offset is right around
+the bias, not for vented chambers) and the shape of the plant's own loops.
 """
 
 from __future__ import annotations
@@ -68,7 +74,9 @@ REST, SETTLE, SWEEP_ALPHA, SWEEP_GAMMA, MULTISINE = range(len(SEGMENTS))
 #: Parameters of ``config/pam_controller.yaml`` the fit sets (the others are kept).
 IDENTIFIED_KEYS: tuple[str, ...] = (
     'hysteresis_gain_rad_per_pa', 'hysteresis_fraction', 'hysteresis_density_decay',
-    'hysteresis_max_threshold_pa')
+    'hysteresis_max_threshold_pa', 'bend_offset_alpha_rad', 'bend_offset_gamma_rad',
+    'gain_scale_alpha', 'gain_scale_gamma', 'coupling_alpha_from_gamma',
+    'coupling_gamma_from_alpha')
 
 
 class IdentificationError(PamError, ValueError):
@@ -348,12 +356,17 @@ def play_states(dp: ArrayLike, thresholds: ArrayLike) -> FloatArray:
     return out
 
 
-def predict(config: HysteresisConfig, dp: ArrayLike) -> FloatArray:
+def predict(config: BendingModelConfig | HysteresisConfig, dp: ArrayLike) -> FloatArray:
     """The model's bend (T, 2) for differential pressures (T, 2) from a virgin start (the
-    controller's estimate path, :meth:`BendingModel.bend_from_pressures`, run on a record)."""
+    controller's estimate path, :meth:`BendingModel.bend_from_pressures`, run on a record).
+    A bare :class:`HysteresisConfig` is the nominal per-axis model (``b0 = 0``, ``K = I``)."""
+    model = config if isinstance(config, BendingModelConfig) \
+        else BendingModelConfig(hysteresis=config)
+    hyst = model.hysteresis
     u = np.asarray(dp, dtype=np.float64)
-    w0, w = config.weights()
-    return w0 * u + play_states(u, config.thresholds()) @ w
+    w0, w = hyst.weights()
+    h = w0 * u + play_states(u, hyst.thresholds()) @ w
+    return np.asarray(model.bend_offset_rad) + h @ model.axis_matrix.T
 
 
 def rms(residual: ArrayLike) -> float:
@@ -374,21 +387,34 @@ class FitBounds:
     """The node's range of ``hysteresis_density_decay``."""
     max_threshold: tuple[float, float] = (5e3, 400e3)
     """Pa; the node allows [1, 400e3]; below 5 kPa a play is within the regulators' noise."""
+    offset: tuple[float, float] = (-0.5, 0.5)
+    """rad, each axis: the node's range of ``bend_offset_*_rad``."""
+    gain_scale: tuple[float, float] = (0.5, 2.0)
+    """``s_alpha`` (``s_gamma = 1 / s_alpha``): the node's range of ``gain_scale_*``."""
+    coupling: tuple[float, float] = (-0.5, 0.5)
+    """Each coupling: the node's range of ``coupling_*`` (with ``s_alpha s_gamma = 1`` the
+    product of the two is at most 0.25, so ``det K >= 0.75``)."""
 
 
 @dataclass(frozen=True)
 class FitResult:
-    """An identified hysteresis and its errors."""
+    """An identified bending model and its errors."""
 
-    config: HysteresisConfig
-    """The identified operator (the play count of the nominal one)."""
-    nominal: HysteresisConfig
-    """The operator it started from (the controller's current one)."""
+    config: BendingModelConfig
+    """The identified model (the play count of the nominal one; its pressure limits)."""
+    nominal: BendingModelConfig
+    """The model it started from (the controller's current one)."""
     errors: dict[str, dict[str, float]] = field(default_factory=dict)
     """RMS bend error, rad: ``errors[model][part]``, model ``nominal`` / ``identified``, part
     ``fit`` / ``validation`` / ``all``."""
     cost_evaluations: int = 0
     """Model evaluations the least squares made."""
+    lag_s: float = float('nan')
+    """First-order lag of the bend behind the identified model, s, fitted on the sweeps
+    (:func:`fit_lag`): reported, not representable by the controller's model."""
+    lag_errors: dict[str, float] = field(default_factory=dict)
+    """RMS bend error (rad) of the identified model followed by that lag, per part: what a lag
+    term would add (not the controller's model)."""
 
     @property
     def improvement(self) -> float:
@@ -442,52 +468,77 @@ def _weights(gain: float, fraction: float, decay: float, n: int) -> FloatArray:
     return np.concatenate([[gain * (1.0 - fraction)], gain * fraction * density / density.sum()])
 
 
-def fit_hysteresis(data: IdentificationData, nominal: HysteresisConfig | None = None, *,
-                   bounds: FitBounds | None = None,
-                   grid: int = 12) -> FitResult:
-    """Fit the controller's hysteresis parameters to ``data`` (module docstring).
+#: Order of the fitted vector: gain, fraction, decay, s_alpha, c_ag, c_ga, b_alpha, b_gamma
+#: (and the largest threshold last in the refinement).
+_N_FIT = 8
+
+
+def _model_of(nominal: BendingModelConfig, x: ArrayLike, r_max: float) -> BendingModelConfig:
+    """The :class:`BendingModelConfig` of a fitted vector (order of :data:`_N_FIT`)."""
+    g, f, d, sa, cag, cga, ba, bg = (float(v) for v in np.asarray(x)[:_N_FIT])
+    hyst = replace(nominal.hysteresis, gain=g, hysteresis_fraction=f, density_decay=d,
+                   max_threshold=float(r_max))
+    return replace(nominal, hysteresis=hyst, bend_offset_rad=(ba, bg), gain_scale=(sa, 1.0 / sa),
+                   coupling=(cag, cga))
+
+
+def fit_bending_model(data: IdentificationData, nominal: BendingModelConfig | None = None, *,
+                      bounds: FitBounds | None = None, grid: int = 12) -> FitResult:
+    """Fit the controller's bending model to ``data`` (module docstring).
 
     Args:
         data: the aligned record (:func:`align`).
-        nominal: the controller's current operator (default: the nominal one); its play count
-            is kept and it is the starting point.
+        nominal: the controller's current model (default: the nominal one); its play count and
+            pressure limits are kept and it is the starting point.
         bounds: parameter bounds.
         grid: points of the geometric grid of the largest threshold.
 
     Returns:
-        The identified operator with the nominal and identified RMS errors.
+        The identified model with the nominal and identified RMS errors, and the lag
+        (:func:`fit_lag`) for the report.
     """
     from scipy.optimize import least_squares
 
-    nom = nominal if nominal is not None else HysteresisConfig()
+    nom = nominal if nominal is not None else BendingModelConfig()
     bnd = bounds if bounds is not None else FitBounds()
-    n = nom.play_count
+    hyst = nom.hysteresis
+    n = hyst.play_count
     fit = data.fit
-    target = data.bend[fit].reshape(-1)
+    target = data.bend[fit]
     u_fit = data.dp[fit]
     cache: dict[float, FloatArray] = {}
     evaluations = [0]
 
     def features(r_max: float) -> FloatArray:
-        """(F, n + 1): the input and the plays on the fit samples, both axes stacked."""
+        """(F, 2, n + 1): the input and the plays on the fit samples, per axis."""
         key = float(r_max)
         if key not in cache:
             if len(cache) > 64:
                 cache.clear()
             plays = play_states(data.dp, key * np.arange(1, n + 1) / n)[fit]  # (F, 2, n)
-            cache[key] = np.concatenate([u_fit[..., None], plays], axis=2).reshape(-1, n + 1)
+            cache[key] = np.concatenate([u_fit[..., None], plays], axis=2)
         return cache[key]
 
     def residual(x: FloatArray, r_max: float | None = None) -> FloatArray:
         evaluations[0] += 1
-        g, f, d = x[:3]
-        r = x[3] if r_max is None else r_max
-        return features(r) @ _weights(g, f, d, n) - target
+        g, f, d, sa, cag, cga, ba, bg = x[:_N_FIT]
+        h = features(x[_N_FIT] if r_max is None else r_max) @ _weights(g, f, d, n)  # (F, 2)
+        alpha = ba + sa * h[:, 0] + cag * h[:, 1]
+        gamma = bg + cga * h[:, 0] + h[:, 1] / sa
+        return np.concatenate([alpha - target[:, 0], gamma - target[:, 1]])
 
-    lo = np.array([bnd.gain[0], bnd.fraction[0], bnd.decay[0]])
-    hi = np.array([bnd.gain[1], bnd.fraction[1], bnd.decay[1]])
-    x0 = np.clip([nom.gain, nom.hysteresis_fraction, nom.density_decay], lo, hi)
-    scale = np.array([nom.gain, 0.1, 1.0])
+    lo = np.array([bnd.gain[0], bnd.fraction[0], bnd.decay[0], bnd.gain_scale[0],
+                   bnd.coupling[0], bnd.coupling[0], bnd.offset[0], bnd.offset[0]])
+    hi = np.array([bnd.gain[1], bnd.fraction[1], bnd.decay[1], bnd.gain_scale[1],
+                   bnd.coupling[1], bnd.coupling[1], bnd.offset[1], bnd.offset[1]])
+    # Start: the nominal model, decoupled, the offsets at its mean residual per axis.
+    start_offset = np.mean(target - predict(nom, data.dp)[fit], axis=0) \
+        + np.asarray(nom.bend_offset_rad)
+    sa0 = math.sqrt(nom.gain_scale[0] / nom.gain_scale[1])
+    x0 = np.clip([hyst.gain * math.sqrt(nom.gain_scale[0] * nom.gain_scale[1]),
+                  hyst.hysteresis_fraction, hyst.density_decay, sa0, *nom.coupling,
+                  *start_offset], lo, hi)
+    scale = np.array([hyst.gain, 0.1, 1.0, 0.05, 0.02, 0.02, 0.05, 0.05])
     best: tuple[float, FloatArray, float] | None = None
     for r_max in np.geomspace(bnd.max_threshold[0], bnd.max_threshold[1], grid):
         sol = least_squares(residual, x0, bounds=(lo, hi), x_scale=scale, method='trf',
@@ -495,30 +546,73 @@ def fit_hysteresis(data: IdentificationData, nominal: HysteresisConfig | None = 
         if best is None or sol.cost < best[0]:
             best = (float(sol.cost), sol.x, float(r_max))
     assert best is not None
-    lo4 = np.append(lo, bnd.max_threshold[0])
-    hi4 = np.append(hi, bnd.max_threshold[1])
-    x4 = np.clip(np.append(best[1], best[2]), lo4, hi4)
-    sol = least_squares(residual, x4, bounds=(lo4, hi4), x_scale=np.append(scale, best[2]),
-                        method='trf', diff_step=np.array([1e-4, 1e-3, 1e-3, 1e-2]))
+    lo9 = np.append(lo, bnd.max_threshold[0])
+    hi9 = np.append(hi, bnd.max_threshold[1])
+    x9 = np.clip(np.append(best[1], best[2]), lo9, hi9)
+    step = np.array([1e-4, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2])
+    sol = least_squares(residual, x9, bounds=(lo9, hi9), x_scale=np.append(scale, best[2]),
+                        method='trf', diff_step=step)
     x = sol.x if sol.cost <= best[0] else np.append(best[1], best[2])
-    identified = replace(nom, gain=float(x[0]), hysteresis_fraction=float(x[1]),
-                         density_decay=float(x[2]), max_threshold=float(x[3]))
+    identified = _model_of(nom, x, x[_N_FIT])
+    lag, lag_errors = fit_lag(identified, data)
     return FitResult(config=identified, nominal=nom,
                      errors={'nominal': model_errors(nom, data),
                              'identified': model_errors(identified, data)},
-                     cost_evaluations=evaluations[0])
+                     cost_evaluations=evaluations[0], lag_s=lag, lag_errors=lag_errors)
 
 
-def model_errors(config: HysteresisConfig, data: IdentificationData) -> dict[str, float]:
+def first_order_lag(bend: ArrayLike, t: ArrayLike, tau: float) -> FloatArray:
+    """``bend`` (T, 2) through ``tau dy/dt = bend - y`` (exact for a bend held between the
+    samples at times ``t``), starting at ``y = bend[0]``."""
+    b = np.asarray(bend, dtype=np.float64)
+    if tau <= 0.0:
+        return b.copy()
+    tt = np.asarray(t, dtype=np.float64)
+    keep = np.exp(-np.diff(tt, prepend=tt[0]) / tau)
+    out = np.empty_like(b)
+    out[0] = b[0]
+    for k in range(1, b.shape[0]):
+        out[k] = b[k] + keep[k] * (out[k - 1] - b[k])
+    return out
+
+
+def fit_lag(config: BendingModelConfig, data: IdentificationData,
+            max_lag_s: float = 1.0) -> tuple[float, dict[str, float]]:
+    """The first-order lag (s) that best follows ``config``'s bend on the sweeps, and the RMS
+    errors (rad) per part with it. For the report: the controller has no lag term."""
+    from scipy.optimize import minimize_scalar
+
+    static = predict(config, data.dp)
+
+    def cost(tau: float) -> float:
+        return rms((first_order_lag(static, data.t, tau) - data.bend)[data.fit])
+
+    sol = minimize_scalar(cost, bounds=(0.0, max_lag_s), method='bounded',
+                          options={'xatol': 1e-3})
+    tau = float(sol.x)
+    err = first_order_lag(static, data.t, tau) - data.bend
+    return tau, {'fit': rms(err[data.fit]), 'validation': rms(err[data.validation]),
+                 'all': rms(err)}
+
+
+def model_errors(config: BendingModelConfig | HysteresisConfig,
+                 data: IdentificationData) -> dict[str, float]:
     """RMS bend error (rad) of ``config`` on ``data``: ``fit``, ``validation``, ``all``."""
     err = predict(config, data.dp) - data.bend
     return {'fit': rms(err[data.fit]), 'validation': rms(err[data.validation]),
             'all': rms(err)}
 
 
-def identified_parameters(config: HysteresisConfig) -> dict[str, float]:
-    """The :data:`IDENTIFIED_KEYS` of ``pam_controller.yaml`` for an identified operator."""
-    return {'hysteresis_gain_rad_per_pa': float(config.gain),
-            'hysteresis_fraction': float(config.hysteresis_fraction),
-            'hysteresis_density_decay': float(config.density_decay),
-            'hysteresis_max_threshold_pa': float(config.max_threshold)}
+def identified_parameters(config: BendingModelConfig) -> dict[str, float]:
+    """The :data:`IDENTIFIED_KEYS` of ``pam_controller.yaml`` for an identified model."""
+    h = config.hysteresis
+    return {'hysteresis_gain_rad_per_pa': float(h.gain),
+            'hysteresis_fraction': float(h.hysteresis_fraction),
+            'hysteresis_density_decay': float(h.density_decay),
+            'hysteresis_max_threshold_pa': float(h.max_threshold),
+            'bend_offset_alpha_rad': float(config.bend_offset_rad[0]),
+            'bend_offset_gamma_rad': float(config.bend_offset_rad[1]),
+            'gain_scale_alpha': float(config.gain_scale[0]),
+            'gain_scale_gamma': float(config.gain_scale[1]),
+            'coupling_alpha_from_gamma': float(config.coupling[0]),
+            'coupling_gamma_from_alpha': float(config.coupling[1])}

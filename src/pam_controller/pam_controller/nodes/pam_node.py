@@ -30,7 +30,13 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import SetBool
 
-from pam_controller.core.bending_model import BendingModel, BendingModelConfig
+from pam_controller.core.bending_model import (
+    BendingModel,
+    BendingModelConfig,
+    GAIN_SCALE_RANGE,
+    MAX_BEND_OFFSET_RAD,
+    MAX_COUPLING,
+)
 from pam_controller.core.hysteresis import HysteresisConfig
 from pam_controller.core.supervisor import (
     Backoff,
@@ -84,6 +90,20 @@ PARAMETERS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
     'hysteresis_play_count': (8, 'number of play operators', (1, 64)),
     'hysteresis_max_threshold_pa': (100e3, 'largest play threshold, Pa', (1.0, 400e3)),
     'hysteresis_density_decay': (1.0, 'exponential decay of play weights', (0.0, 20.0)),
+    'bend_offset_alpha_rad': (0.0, 'alpha bend at zero differential pressure (unequal '
+                              'muscles), rad', (-MAX_BEND_OFFSET_RAD, MAX_BEND_OFFSET_RAD)),
+    'bend_offset_gamma_rad': (0.0, 'gamma bend at zero differential pressure (unequal '
+                              'muscles), rad', (-MAX_BEND_OFFSET_RAD, MAX_BEND_OFFSET_RAD)),
+    'gain_scale_alpha': (1.0, 'alpha axis gain, share of hysteresis_gain_rad_per_pa',
+                         GAIN_SCALE_RANGE),
+    'gain_scale_gamma': (1.0, 'gamma axis gain, share of hysteresis_gain_rad_per_pa',
+                         GAIN_SCALE_RANGE),
+    'coupling_alpha_from_gamma': (0.0, 'alpha bend per unit of the gamma operator output '
+                                  '(cross-coupling); det K >= 0.5 s_alpha s_gamma',
+                                  (-MAX_COUPLING, MAX_COUPLING)),
+    'coupling_gamma_from_alpha': (0.0, 'gamma bend per unit of the alpha operator output '
+                                  '(cross-coupling); det K >= 0.5 s_alpha s_gamma',
+                                  (-MAX_COUPLING, MAX_COUPLING)),
     'autostart': (True, AUTOSTART_DESCRIPTION, None),
 }
 #: Parameters fixed for the node's life (the others are read at configure).
@@ -164,7 +184,10 @@ def build_settings(values: Mapping[str, object]) -> PamSettings:
     model = BendingModelConfig(
         min_pressure_pa=p.real('min_pressure_pa'), max_pressure_pa=p.real('max_pressure_pa'),
         bias_pressure_pa=p.real('bias_pressure_pa'), max_bend_rad=p.real('max_bend_rad'),
-        hysteresis=hyst)
+        hysteresis=hyst,
+        bend_offset_rad=(p.real('bend_offset_alpha_rad'), p.real('bend_offset_gamma_rad')),
+        gain_scale=(p.real('gain_scale_alpha'), p.real('gain_scale_gamma')),
+        coupling=(p.real('coupling_alpha_from_gamma'), p.real('coupling_gamma_from_alpha')))
     supervisor = SupervisorConfig(
         command_timeout_s=p.real('command_timeout_s'),
         max_pressure_rate_pa_s=p.real('max_pressure_rate_pa_s'),

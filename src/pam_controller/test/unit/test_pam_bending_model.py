@@ -125,3 +125,79 @@ def test_bend_cap_parameter_applies():
 def test_bad_model_config_raises(kwargs, match):
     with pytest.raises(ValueError, match=match):
         BendingModelConfig(**kwargs)
+
+
+PER_AXIS = BendingModelConfig(bend_offset_rad=(0.12, -0.07), gain_scale=(1.3, 0.8),
+                              coupling=(-0.08, 0.15))
+"""A model with every per-axis parameter away from nominal (offsets, gains, coupling)."""
+
+
+def test_per_axis_model_forward_is_offset_plus_k_times_the_operators():
+    from pam_controller.core.hysteresis import PrandtlIshlinskii
+
+    model = BendingModel(PER_AXIS)
+    pi = PrandtlIshlinskii(PER_AXIS.hysteresis, channels=2)
+    k = np.array([[1.3, -0.08], [0.15, 0.8]])
+    np.testing.assert_array_equal(PER_AXIS.axis_matrix, k)
+    for dp in ([0.0, 0.0], [80e3, -30e3], [-120e3, 60e3]):
+        p = model.differential_to_pressures(dp)
+        expected = np.array([0.12, -0.07]) + k @ pi.apply(dp)
+        np.testing.assert_allclose(model.bend_from_pressures(p), expected, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize('config', [
+    PER_AXIS,
+    BendingModelConfig(bend_offset_rad=(-0.3, 0.2)),
+    BendingModelConfig(gain_scale=(0.6, 1.7), coupling=(0.3, -0.4)),
+])
+def test_round_trip_with_offsets_gains_and_coupling(config):
+    """The inverse stays exact: commands -> pressures -> a separate forward model -> same bend,
+    over a random sequence (every target within the pressure range of this model)."""
+    command_side, plant = BendingModel(config), BendingModel(config)
+    for bend in random_bends(400, seed=1) * 0.6:
+        p = command_side.pressures_for_bend(bend)
+        assert np.all(p >= 0.0) and np.all(p <= 300e3)
+        np.testing.assert_allclose(plant.bend_from_pressures(p), bend, atol=1e-9)
+
+
+def test_default_per_axis_parameters_reproduce_the_decoupled_model_exactly():
+    """Nominal offsets (0), gains (1) and coupling (0) give today's pressures bit for bit."""
+    from pam_controller.core.hysteresis import PrandtlIshlinskii
+
+    model = BendingModel()
+    pi = PrandtlIshlinskii(HysteresisConfig(), channels=2)
+    lim = BendingModelConfig().max_differential_pa
+    for bend in random_bends(200, seed=2):
+        dp = np.clip(pi.solve(bend), -lim, lim)
+        pi.apply(dp)
+        expected = np.clip([150e3 + dp[0] / 2, 150e3 - dp[0] / 2, 150e3 + dp[1] / 2,
+                            150e3 - dp[1] / 2], 0.0, 300e3)
+        np.testing.assert_array_equal(model.pressures_for_bend(bend), expected)
+
+
+@pytest.mark.parametrize('config', [
+    PER_AXIS,
+    BendingModelConfig(bend_offset_rad=(0.5, -0.5), gain_scale=(0.5, 0.5), coupling=(0.35, 0.35)),
+    BendingModelConfig(gain_scale=(2.0, 0.5), coupling=(-0.5, 0.5)),
+])
+def test_caps_hold_whatever_the_per_axis_parameters(config):
+    """Pressure caps always; the bend cap on the command, before the model."""
+    model = BendingModel(config)
+    for bend in random_bends(300, seed=3):
+        p = model.pressures_for_bend(bend)
+        assert np.all(p >= config.min_pressure_pa) and np.all(p <= config.max_pressure_pa)
+    with pytest.raises(CommandRejectedError, match='expected total bend'):
+        model.pressures_for_bend([1.2, 1.2])
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'bend_offset_rad': (0.6, 0.0)}, r'bend_offset_rad must be 2 numbers in \[-0.5, 0.5\]'),
+    ({'bend_offset_rad': (0.0, float('nan'))}, 'bend_offset_rad must be 2 numbers'),
+    ({'gain_scale': (0.4, 1.0)}, r'gain_scale must be 2 numbers in \[0.5, 2.0\]'),
+    ({'coupling': (0.0, -0.6)}, r'coupling must be 2 numbers in \[-0.5, 0.5\]'),
+    ({'gain_scale': (0.5, 0.5), 'coupling': (0.4, 0.4)}, r'coupling must keep det K'),
+    ({'coupling': (0.1,)}, 'coupling must be 2 numbers'),
+])
+def test_bad_per_axis_parameters_raise(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        BendingModelConfig(**kwargs)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pam_controller.core import identification as idf
-from pam_controller.core.bending_model import BendingModelConfig
+from pam_controller.core.bending_model import BendingModel, BendingModelConfig
 from pam_controller.core.hysteresis import HysteresisConfig, PrandtlIshlinskii
 
 DT = 0.05  # 20 Hz: pam_node's control rate in the session
@@ -50,9 +50,9 @@ def test_bend_from_rotations_reads_a_rotation_vector() -> None:
     assert np.allclose(idf.base_rotation(np.stack([base, base])), base)
 
 
-def synthetic(config: HysteresisConfig, noise: float = 0.0, excitation=None,
-              seed: int = 0) -> idf.IdentificationData:
-    """Data from a known PI on the excitation's pressures (plus Gaussian bend noise)."""
+def synthetic(config: HysteresisConfig | BendingModelConfig, noise: float = 0.0,
+              excitation=None, seed: int = 0) -> idf.IdentificationData:
+    """Data from a known model on the excitation's pressures (plus Gaussian bend noise)."""
     sch = idf.excitation_schedule(excitation or idf.SHORT_EXCITATION, DT)
     on = sch.segment != idf.REST
     dp = sch.dp[on]
@@ -73,6 +73,18 @@ def test_predict_equals_the_controllers_operator() -> None:
     np.testing.assert_allclose(idf.predict(cfg, data.dp), expected, rtol=0, atol=1e-12)
 
 
+def test_predict_equals_the_controllers_estimate_path_with_per_axis_parameters() -> None:
+    """The fit's model is the controller's: ``BendingModel.bend_from_pressures`` on a record."""
+    cfg = BendingModelConfig(
+        hysteresis=HysteresisConfig(gain=5e-6, hysteresis_fraction=0.6, max_threshold=60e3),
+        bend_offset_rad=(0.1, -0.05), gain_scale=(1.2, 1 / 1.2), coupling=(0.04, -0.07))
+    data = synthetic(cfg)
+    model = BendingModel(cfg)
+    expected = np.array([model.bend_from_pressures(model.differential_to_pressures(u))
+                         for u in data.dp])
+    np.testing.assert_allclose(idf.predict(cfg, data.dp), expected, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize('known', [
     HysteresisConfig(gain=5e-6, hysteresis_fraction=0.6, density_decay=2.0, max_threshold=60e3),
     HysteresisConfig(gain=8e-6, hysteresis_fraction=0.3, density_decay=0.5,
@@ -80,22 +92,60 @@ def test_predict_equals_the_controllers_operator() -> None:
 ])
 def test_fit_recovers_known_parameters(known: HysteresisConfig) -> None:
     data = synthetic(known)
-    result = idf.fit_hysteresis(data)
-    got = result.config
+    result = idf.fit_bending_model(data)
+    got = result.config.hysteresis
     assert got.gain == pytest.approx(known.gain, rel=1e-3)
     assert got.hysteresis_fraction == pytest.approx(known.hysteresis_fraction, abs=2e-3)
     assert got.density_decay == pytest.approx(known.density_decay, abs=2e-2)
     assert got.max_threshold == pytest.approx(known.max_threshold, rel=2e-3)
+    np.testing.assert_allclose(result.config.bend_offset_rad, 0.0, atol=1e-4)
+    np.testing.assert_allclose(result.config.gain_scale, 1.0, atol=1e-3)
+    np.testing.assert_allclose(result.config.coupling, 0.0, atol=1e-3)
     assert result.errors['identified']['all'] < 1e-4
     assert result.errors['nominal']['all'] > 0.02
+
+
+@pytest.mark.parametrize(('offset', 'scale', 'coupling'), [
+    ((0.12, -0.07), 1.15, (0.0, 0.07)),
+    ((-0.08, 0.03), 0.9, (-0.05, 0.1)),
+])
+def test_fit_recovers_known_per_axis_parameters(offset, scale, coupling) -> None:
+    """Offsets, a gain per axis and the coupling, with the hysteresis, from the sweeps alone:
+    the held-out multisine is predicted as well."""
+    known = BendingModelConfig(
+        hysteresis=HysteresisConfig(gain=5e-6, hysteresis_fraction=0.6, density_decay=2.0,
+                                    max_threshold=60e3),
+        bend_offset_rad=offset, gain_scale=(scale, 1.0 / scale), coupling=coupling)
+    data = synthetic(known)
+    result = idf.fit_bending_model(data)
+    got = result.config
+    np.testing.assert_allclose(got.bend_offset_rad, offset, atol=1e-4)
+    np.testing.assert_allclose(got.gain_scale, known.gain_scale, rtol=1e-3)
+    np.testing.assert_allclose(got.coupling, coupling, atol=1e-3)
+    assert got.hysteresis.gain == pytest.approx(5e-6, rel=1e-3)
+    assert got.hysteresis.max_threshold == pytest.approx(60e3, rel=2e-3)
+    assert result.errors['identified']['validation'] < 1e-4
+    assert result.improvement < 0.01
+    assert result.lag_s < 0.01  # no lag in the data
+
+
+def test_fit_lag_measures_a_first_order_lag_on_the_sweeps() -> None:
+    known = BendingModelConfig(hysteresis=HysteresisConfig(gain=5e-6, hysteresis_fraction=0.0))
+    data = synthetic(known, excitation=idf.ExcitationConfig(levels=(1.0,), multisine_periods=1))
+    lagged = idf.IdentificationData(
+        t=data.t, dp=data.dp, bend=idf.first_order_lag(data.bend, data.t, 0.2), fit=data.fit,
+        validation=data.validation)
+    tau, errors = idf.fit_lag(known, lagged)
+    assert tau == pytest.approx(0.2, abs=2e-3)
+    assert errors['all'] < 1e-4
 
 
 def test_fit_with_em_noise_reaches_the_noise_floor() -> None:
     known = HysteresisConfig(gain=5e-6, hysteresis_fraction=0.6, density_decay=2.0,
                              max_threshold=60e3)
     data = synthetic(known, noise=0.005)  # the Aurora's angle noise, rad RMS
-    result = idf.fit_hysteresis(data)
-    assert result.config.gain == pytest.approx(known.gain, rel=0.02)
+    result = idf.fit_bending_model(data)
+    assert result.config.hysteresis.gain == pytest.approx(known.gain, rel=0.02)
     assert result.errors['identified']['fit'] < 0.0055
     assert result.improvement < 0.5
 
@@ -147,10 +197,15 @@ def test_check_excitation_refuses_short_small_and_saturated_data() -> None:
 
 
 def test_identified_parameters_are_the_yaml_keys() -> None:
-    cfg = HysteresisConfig(gain=5e-6, hysteresis_fraction=0.25, density_decay=3.0,
-                           max_threshold=80e3)
+    cfg = BendingModelConfig(
+        hysteresis=HysteresisConfig(gain=5e-6, hysteresis_fraction=0.25, density_decay=3.0,
+                                    max_threshold=80e3),
+        bend_offset_rad=(0.1, -0.2), gain_scale=(1.25, 0.8), coupling=(0.05, -0.03))
     assert idf.identified_parameters(cfg) == {
         'hysteresis_gain_rad_per_pa': 5e-6, 'hysteresis_fraction': 0.25,
-        'hysteresis_density_decay': 3.0, 'hysteresis_max_threshold_pa': 80e3}
+        'hysteresis_density_decay': 3.0, 'hysteresis_max_threshold_pa': 80e3,
+        'bend_offset_alpha_rad': 0.1, 'bend_offset_gamma_rad': -0.2, 'gain_scale_alpha': 1.25,
+        'gain_scale_gamma': 0.8, 'coupling_alpha_from_gamma': 0.05,
+        'coupling_gamma_from_alpha': -0.03}
     assert tuple(idf.identified_parameters(cfg)) == idf.IDENTIFIED_KEYS
     assert math.isnan(idf.rms([]))
