@@ -9,10 +9,14 @@ from pathlib import Path
 import numpy as np
 
 from cgail_planner.core.metrics import (
+    bootstrap_interval,
+    cliffs_delta,
+    cliffs_magnitude,
     COMPARED_METRICS,
     group_by_condition,
     KruskalResult,
     TrialMetrics,
+    wilson_interval,
 )
 
 
@@ -87,14 +91,28 @@ def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResul
             f'| {_mean_std([m.targeting_error for m in members], 1e3, 2)} '
             f'| {_mean_std([m.duration for m in members], 1.0, 1)} '
             f'| {_mean_std([m.curvature_mean for m in members], 1e-3, 4)} |')
+    lines += _confidence_lines(trials)
+    groups = group_by_condition(trials)
+    pair = (('cgail', 'centerline') if {'cgail', 'centerline'} <= set(groups)
+            else tuple(groups)[:2] if len(groups) == 2 else None)
+    effect = (f' | Cliff\'s delta ({pair[0]} vs {pair[1]}) |' if pair else ' |')
     lines += ['', '## Kruskal-Wallis test between conditions (significant: p < 0.05)', '',
-              '| metric | H | p | significant |', '|---|---:|---:|---|']
+              '| metric | H | p | significant' + effect,
+              '|---|---:|---:|---|' + ('---|' if pair else '')]
     for test in tests:
         label = COMPARED_METRICS.get(test.metric, (test.metric, '', 1.0))[0]
         verdict = 'n/a' if not math.isfinite(test.pvalue) else (
             'yes' if test.significant else 'no')
-        lines.append(f'| {label} | {_fmt(test.statistic, 3)} | {_fmt(test.pvalue, 4)} '
-                     f'| {verdict} |')
+        row = f'| {label} | {_fmt(test.statistic, 3)} | {_fmt(test.pvalue, 4)} | {verdict} |'
+        if pair:
+            d = cliffs_delta([getattr(m, test.metric) for m in groups[pair[0]]],
+                             [getattr(m, test.metric) for m in groups[pair[1]]])
+            row += f' {_fmt(d, 2)} ({cliffs_magnitude(d)}) |'
+        lines.append(row)
+    if pair:
+        lines += ['', f"Cliff's delta: P({pair[0]} > {pair[1]}) - P({pair[0]} < {pair[1]}) "
+                  'over all pairs of trials (negative: smaller for the first; magnitude after '
+                  'Romano et al. 2006).']
     lines += paper_comparison(trials)
     return '\n'.join(lines) + '\n'
 
@@ -102,6 +120,31 @@ def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResul
 CSV_FIELDS = ('name', 'condition', 'samples', 'tracking_mean', 'tracking_std', 'tracking_max',
               'targeting_error', 'duration', 'success', 'time_to_target', 'timed_out',
               'curvature_mean', 'curvature_std', 'path_length')
+
+
+def _ci(values: Sequence[float], scale: float, digits: int) -> str:
+    """Percentile-bootstrap 95 % interval of the mean (finite values), ``lo-hi``."""
+    arr = np.array(values, dtype=np.float64) * scale
+    arr = arr[np.isfinite(arr)]
+    if len(arr) < 2:
+        return 'n/a'
+    lo, hi = bootstrap_interval(arr, statistic='mean')
+    return f'{lo:.{digits}f}-{hi:.{digits}f}'
+
+
+def _confidence_lines(trials: Sequence[TrialMetrics]) -> list[str]:
+    """Per condition: the 95 % intervals of the success rate (Wilson) and of the mean T_r, T_a
+    and T (percentile bootstrap, 2,000 resamples, seeded: a function of the values)."""
+    lines = ['', '## 95 % confidence intervals (success: Wilson; means: percentile bootstrap)',
+             '', '| condition | success rate | T_r mean (mm) | T_a mean (mm) | T mean (s) |',
+             '|---|---:|---:|---:|---:|']
+    for condition, members in group_by_condition(trials).items():
+        lo, hi = wilson_interval(sum(m.success for m in members), len(members))
+        lines.append(f'| {condition} | {lo:.0%}-{hi:.0%} '
+                     f'| {_ci([m.tracking_mean for m in members], 1e3, 2)} '
+                     f'| {_ci([m.targeting_error for m in members], 1e3, 2)} '
+                     f'| {_ci([m.duration for m in members], 1.0, 1)} |')
+    return lines
 
 
 def write_csv(trials: Sequence[TrialMetrics], path: Path) -> Path:

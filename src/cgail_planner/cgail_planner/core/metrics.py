@@ -332,6 +332,29 @@ def bootstrap_interval(values: Sequence[float], statistic: str = "median",
     return float(lo), float(hi)
 
 
+def cliffs_delta(a: Sequence[float], b: Sequence[float]) -> float:
+    """Cliff's delta of two samples, ``P(a > b) - P(a < b)`` over all pairs (finite values
+    only): the effect size that goes with a rank test such as Kruskal-Wallis (Cliff 1993), in
+    [-1, 1], independent of the scale and of outliers. NaN when a sample is empty."""
+    x = np.asarray(a, dtype=np.float64)
+    y = np.asarray(b, dtype=np.float64)
+    x, y = x[np.isfinite(x)], y[np.isfinite(y)]
+    if x.size == 0 or y.size == 0:
+        return math.nan
+    diff = x[:, None] - y[None, :]
+    return float((np.count_nonzero(diff > 0) - np.count_nonzero(diff < 0)) / diff.size)
+
+
+def cliffs_magnitude(delta: float) -> str:
+    """Romano et al. (2006)'s labels of ``|delta|``: negligible < 0.147 <= small < 0.33 <=
+    medium < 0.474 <= large."""
+    if not math.isfinite(delta):
+        return "n/a"
+    d = abs(delta)
+    return ("negligible" if d < 0.147 else "small" if d < 0.33
+            else "medium" if d < 0.474 else "large")
+
+
 def cluster_bootstrap_rate(groups: Sequence[Sequence[bool]], resamples: int = 2000,
                            seed: int = 0, level: float = 0.95) -> tuple[float, float]:
     """Interval of a pooled success rate whose trials come in clusters (the trials of one

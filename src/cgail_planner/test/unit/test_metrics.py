@@ -178,7 +178,9 @@ def test_markdown_report_and_box_plot(tmp_path: Path) -> None:
     assert '| cgail0 | cgail | 5 | 1.00 | 0.00 | 1.00 |' in text
     assert '| cgail | 2 | 100% | 1.50 ± 0.71 |' in text  # sample std of 1 and 2 mm
     assert '| centerline | 1 | 100% | 4.00 |' in text
-    assert '| tracking error T_r | 1.500 | 0.2207 | no |'  # H = (9/2 + 9) - 12 in text
+    # H = (9/2 + 9) - 12; Cliff's delta: both cgail trials below the centerline one
+    assert '| tracking error T_r | 1.500 | 0.2207 | no | -1.00 (large) |' in text
+    assert '| cgail | 34%-100% |' in text  # Wilson interval of 2 / 2
     # ours: (4 - 1.5) / 4 = 62 % better than the centerline, beside the paper's 40 %
     assert '| tracking error T_r | 5.18 ± 3.48 | 40% | 1.50 ± 0.71 | 4.00 | 62% |' in text
     png = box_plots(trials, tests, tmp_path / 'plots' / 'box.png')
@@ -187,6 +189,17 @@ def test_markdown_report_and_box_plot(tmp_path: Path) -> None:
     assert rows[0].startswith('name,condition,samples,tracking_mean,')
     assert rows[1].startswith('cgail0,cgail,5,0.001')
     assert len(rows) == 4
+
+
+def test_cliffs_delta_counts_the_pairs_and_labels_the_magnitude() -> None:
+    from cgail_planner.core.metrics import cliffs_delta, cliffs_magnitude
+
+    assert cliffs_delta([1, 2], [4]) == -1.0
+    assert cliffs_delta([1, 2, 3], [2, 2, 2]) == 0.0  # one above, one below, one tie per b
+    assert cliffs_delta([5, 6, float('nan')], [1, 5]) == pytest.approx(3 / 4)  # 3 > , 0 <, 1 =
+    assert math.isnan(cliffs_delta([], [1.0]))
+    assert [cliffs_magnitude(d) for d in (0.1, -0.2, 0.4, -0.9, math.nan)] == [
+        'negligible', 'small', 'medium', 'large', 'n/a']
 
 
 def test_paper_comparison_needs_both_conditions() -> None:
