@@ -128,7 +128,7 @@ def _ci(values: Sequence[float], scale: float, digits: int) -> str:
     arr = arr[np.isfinite(arr)]
     if len(arr) < 2:
         return 'n/a'
-    lo, hi = bootstrap_interval(arr, statistic='mean')
+    lo, hi = bootstrap_interval(arr.tolist(), statistic='mean')
     return f'{lo:.{digits}f}-{hi:.{digits}f}'
 
 
