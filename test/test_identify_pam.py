@@ -24,12 +24,13 @@ QUICK = idf.ExcitationConfig(levels=(1.0,), sweep_rate_pa_s=100e3, multisine_per
                              rest_s=1.0, settle_s=0.5)
 
 
-def test_quick_bench_identification_halves_the_nominal_error(tmp_path) -> None:
+def test_quick_bench_identification_halves_the_nominal_error(tmp_path, monkeypatch) -> None:
     """On the bench, the true plant of seed 1: the identified model's RMS bend error is at most
     half the nominal model's (the issue's bar), and the YAML it writes is a valid
     pam_controller parameter file holding the identified model."""
     from pam_controller.nodes.pam_node import build_settings, PARAMETERS
 
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)  # the test run holds its own: pick one
     result = identify_sim(tmp_path, plant_seed=1, excitation=QUICK)
     e = result.errors
     assert e['identified']['all'] <= 0.5 * e['nominal']['all'], e

@@ -340,7 +340,7 @@ def test_bad_launch_arguments_name_the_problem(tmp_path, args, given, match):
         parse_launch(data, tmp_path, given, name='args')
 
 
-ANATOMY_NODES = ('phantom', 'planner', 'gui')
+ANATOMY_NODES = ('phantom', 'planner', 'gui', 'igtl_bridge')
 
 
 def test_sim_rig_nodes_build_from_their_packages_node_classes():
@@ -355,7 +355,8 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
     config = SIM_RIG.parents[1]
     assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
-        name: (str(config / f'{name}.yaml'),) for name in ('phantom', 'planner', 'operator')}
+        name: (str(config / f'{name}.yaml'),)
+        for name in ('phantom', 'planner', 'operator', 'igtl_bridge')}
     assert [n.name for n in spec.nodes if n.required] == ['phantom']
 
 
@@ -396,7 +397,7 @@ def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(
     assert params('igtl_bridge')['host'] == '127.0.0.1'
 
 
-def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_and_gui(tmp_path):
+def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_gui_and_bridge(tmp_path):
     """In process mode each node gets it in its own params file, in-process as an override;
     both come from the name/value ``param`` entries over the ``from`` files."""
     assert {n.name: n.parameters.get('anatomy') for n in load_launch_file(SIM_RIG).nodes

@@ -9,6 +9,7 @@ from pathlib import Path
 import shutil
 
 import pytest
+import yaml
 
 from cgail_planner.system.session import main, report
 
@@ -62,13 +63,15 @@ def test_plant_option_goes_to_the_phantom_and_the_controller(capsys, tmp_path) -
         assert overrides['pam_controller'] == {'control_rate_hz': 20.0}
     cached = tmp_path / 'plant_seed_4'
     cached.mkdir()
-    (cached / 'pam_identified.yaml').write_text(
-        'pam_controller:\n  ros__parameters:\n    can_channel: pam0\n'
-        '    hysteresis_gain_rad_per_pa: 5.0e-06\n    hysteresis_fraction: 0.75\n'
-        '    hysteresis_density_decay: 3.0\n    hysteresis_max_threshold_pa: 50000.0\n')
+    from pam_controller.core.identification import IDENTIFIED_KEYS
+
+    values = dict.fromkeys(IDENTIFIED_KEYS, 0.0) | {
+        'hysteresis_gain_rad_per_pa': 5e-6, 'hysteresis_fraction': 0.75,
+        'hysteresis_density_decay': 3.0, 'hysteresis_max_threshold_pa': 5e4}
+    (cached / 'pam_identified.yaml').write_text(yaml.safe_dump(
+        {'pam_controller': {'ros__parameters': {'can_channel': 'pam0', **values}}}))
     params = identified_pam_parameters(tmp_path, 4, print)  # cached: no bench run
-    assert params == (('hysteresis_gain_rad_per_pa', 5e-6), ('hysteresis_fraction', 0.75),
-                      ('hysteresis_density_decay', 3.0), ('hysteresis_max_threshold_pa', 5e4))
+    assert params == tuple((k, values[k]) for k in IDENTIFIED_KEYS)
     rig = SimpleNamespace(settings=SessionSettings(pam_parameters=params), spec=spec)
     overrides = TrialRig._overrides(rig, Path('aurora'))  # type: ignore[arg-type]
     assert overrides['pam_controller'] == {'control_rate_hz': 20.0, **dict(params)}
