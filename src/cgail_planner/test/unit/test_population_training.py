@@ -87,8 +87,9 @@ def test_the_generalist_preset_is_cgail_on_the_population_with_drawn_targets() -
     assert gen.env_options == "sphere_targets"
     assert (gen.population.anatomies, gen.population.redraw_every,
             gen.population.eval_anatomies, gen.population.include,
-            gen.population.include_weight) == (128, 4, 5, ("default", "elongated"), 10.0)
-    assert (gen.max_steps, gen.eval_every, gen.eval_episodes) == (7_000_000, 204_800, 30)
+            gen.population.include_weight) == (128, 4, 5, ("default", "elongated"), 20.0)
+    assert gen.population.eval_include
+    assert (gen.max_steps, gen.eval_every, gen.eval_episodes) == (5_000_000, 204_800, 70)
     # the C-GAIL mechanics (reward signals, strengths, PPO, curriculum) are the cgail preset's;
     # only the run's size and its periodic evaluation differ
     a, b = config_to_dict(gen), config_to_dict(cgail)
