@@ -66,7 +66,7 @@ def test_phantom_publishes_the_lumen_and_the_body(ros) -> None:
         assert kinds(got[0]) == [('lumen', 0, Marker.TRIANGLE_LIST),
                                  ('catheter_body', 0, Marker.LINE_STRIP)]
         lumen, body = got[0].markers[1:]
-        assert len(lumen.points) == 3 * len(node.lumen.faces) == 3 * 4783
+        assert len(lumen.points) == 3 * len(node.lumen.faces)  # (4783 faces on AVX-512 numpy)
         assert conv.marker_points(lumen) == pytest.approx(
             node.world.anatomy.vertices[node.lumen.faces.reshape(-1)])
         assert body.scale.x == pytest.approx(0.007)
