@@ -25,27 +25,25 @@ class Demos(NamedTuple):
 
 def demo_source(path: Path) -> str:
     """Who made the demonstrations of ``path``: ``record_demos`` (with the device and who
-    recorded them), teleoperated session bags (``make_demos --from-bags``), the scripted
-    expert (``make_demos``), or ``.npz`` arrays."""
-    import json
-
+    recorded them, :func:`~cgail_planner.learning.recorder.read_recording`), teleoperated
+    session bags (``make_demos --from-bags``: a ``source`` in the bag's custom data), the
+    scripted expert (``make_demos``), or ``.npz`` arrays."""
     import yaml
+
+    from cgail_planner.learning.demo_bags import _custom_info
+    from cgail_planner.learning.recorder import read_recording
 
     if path.suffix == '.npz':
         return 'npz arrays'
+    rec = read_recording(path)
+    if rec is not None:
+        return f"record_demos ({rec.get('driver', '?')} driver, by {rec.get('who', '?')})"
     try:
         doc = yaml.safe_load((path / 'metadata.yaml').read_text())
-        custom = doc['rosbag2_bagfile_information'].get('custom_data') or {}
-    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        custom = doc['rosbag2_bagfile_information'].get('custom_data')
+        info = _custom_info(path, custom)
+    except (OSError, yaml.YAMLError, KeyError, TypeError, DemoError):
         return 'unknown (no readable metadata.yaml)'
-    if 'cgail_planner.record_demos' in custom:
-        rec = json.loads(custom['cgail_planner.record_demos'])
-        return (f"record_demos ({rec.get('driver', '?')} driver, by "
-                f"{rec.get('who', '?')})")
-    try:
-        info = json.loads(custom.get('cgail_planner.demos') or '{}')
-    except json.JSONDecodeError:
-        info = {}
     if info.get('source'):
         return 'teleoperated session bags (make_demos --from-bags)'
     return 'scripted expert (make_demos)'
