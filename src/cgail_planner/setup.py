@@ -52,6 +52,7 @@ setup(
             'bag_record = cgail_planner.bags.record:main',
             'bag_play = cgail_planner.bags.play:main',
             'bag_metrics = cgail_planner.bags.metrics_cli:main',
+            'session_compare = cgail_planner.bags.compare_cli:main',
             'bag_recover = cgail_planner.bags.recover:main',
             'sim_render = cgail_planner.sim.render:main',
             'prepare_anatomy = cgail_planner.patient.prepare_cli:main',

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import fields
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +16,9 @@ from cgail_planner.core.metrics import (
     cliffs_magnitude,
     COMPARED_METRICS,
     group_by_condition,
+    kruskal_by_condition,
     KruskalResult,
+    MetricsError,
     TrialMetrics,
     wilson_interval,
 )
@@ -157,6 +161,149 @@ def write_csv(trials: Sequence[TrialMetrics], path: Path) -> Path:
         writer.writerow(CSV_FIELDS)
         for m in trials:
             writer.writerow([getattr(m, f) for f in CSV_FIELDS])
+    return path
+
+
+def read_csv(path: Path) -> list[TrialMetrics]:
+    """The trials of a ``metrics.csv`` written by :func:`write_csv` (a session's or
+    ``bag_metrics``'). Raises :class:`MetricsError` naming the file, the row and what was wrong
+    (missing file or column, a value that is not a number or a boolean)."""
+    import csv
+
+    if not Path(path).is_file():
+        raise MetricsError(f'{path}: expected a metrics.csv (invitro_session / bag_metrics '
+                           f'output), found no file')
+    with Path(path).open(newline='') as stream:
+        rows = list(csv.reader(stream))
+    if not rows or tuple(rows[0]) != CSV_FIELDS:
+        raise MetricsError(f'{path}: expected the header {",".join(CSV_FIELDS)}, found '
+                           f'{",".join(rows[0]) if rows else "an empty file"}')
+    kinds = {f.name: f.type for f in fields(TrialMetrics)}
+    trials = []
+    for line, row in enumerate(rows[1:], start=2):
+        if len(row) != len(CSV_FIELDS):
+            raise MetricsError(f'{path}:{line}: expected {len(CSV_FIELDS)} fields, found '
+                               f'{len(row)}')
+        values: dict[str, Any] = {}
+        for name, text in zip(CSV_FIELDS, row, strict=True):
+            kind = kinds[name]
+            try:
+                if kind == 'bool':
+                    if text not in ('True', 'False'):
+                        raise ValueError(text)
+                    values[name] = text == 'True'
+                elif kind == 'int':
+                    values[name] = int(text)
+                elif kind == 'float':
+                    values[name] = float(text)
+                else:
+                    values[name] = text
+            except ValueError:
+                raise MetricsError(f'{path}:{line}: expected {name} to be {kind}, found '
+                                   f'{text!r}') from None
+        trials.append(TrialMetrics(**values))
+    if not trials:
+        raise MetricsError(f'{path}: expected at least one trial, found none')
+    return trials
+
+
+#: The metrics of a comparison between sessions (the paper's two in-vitro measures).
+SESSION_METRICS = ('tracking_mean', 'targeting_error')
+
+
+def session_comparison(sessions: Mapping[str, Sequence[TrialMetrics]],
+                       pair: tuple[str, str] = ('cgail', 'centerline')) -> str:
+    """Markdown: per session (e.g. plant x mode) and condition, the trials, the success rate
+    with its Wilson interval, and T_r and T_a as mean ± sample std with the percentile-bootstrap
+    interval of the mean; then per session the comparison of ``pair``: the improvement of the
+    first over the second, the Kruskal-Wallis p and Cliff's delta; the paper's row last."""
+    lines = ['| session | condition | trials | success [95 % CI] | T_r (mm) [95 % CI] '
+             '| T_a (mm) [95 % CI] |', '|---|---|---:|---|---|---|']
+    for label, trials in sessions.items():
+        for condition, members in group_by_condition(trials).items():
+            wins = sum(m.success for m in members)
+            lo, hi = wilson_interval(wins, len(members))
+            cells = [f'{_mean_std([getattr(m, k) for m in members], 1e3, 2)} '
+                     f'[{_ci([getattr(m, k) for m in members], 1e3, 2)}]'
+                     for k in SESSION_METRICS]
+            lines.append(f'| {label} | {condition} | {len(members)} '
+                         f'| {wins / len(members):.0%} [{lo:.0%}-{hi:.0%}] | {cells[0]} '
+                         f'| {cells[1]} |')
+    paper = PAPER_IN_VITRO
+    lines.append(f'| paper (in vitro) | {pair[0]} | 10 | 100% '
+                 f'| {paper["tracking_mean"][0]:.2f} ± {paper["tracking_mean"][1]:.2f} '
+                 f'| {paper["targeting_error"][0]:.2f} ± {paper["targeting_error"][1]:.2f} |')
+    lines += ['', f'{pair[0]} against {pair[1]} (improvement: ({pair[1]} - {pair[0]}) / '
+              f'{pair[1]} of the means; Kruskal-Wallis p; Cliff\'s delta, negative: smaller '
+              f'for {pair[0]}):', '',
+              '| session | T_r improvement | T_r p | T_r delta | T_a improvement | T_a p '
+              '| T_a delta |', '|---|---:|---:|---|---:|---:|---|']
+    for label, trials in sessions.items():
+        groups = group_by_condition(trials)
+        if not set(pair) <= set(groups):
+            continue
+        tests = {t.metric: t for t in kruskal_by_condition(
+            [m for c in pair for m in groups[c]], SESSION_METRICS)}
+        cells = []
+        for k in SESSION_METRICS:
+            a = [getattr(m, k) for m in groups[pair[0]]]
+            b = [getattr(m, k) for m in groups[pair[1]]]
+            mean_b = float(np.nanmean(b))
+            gain = (mean_b - float(np.nanmean(a))) / mean_b if mean_b > 0 else math.nan
+            d = cliffs_delta(a, b)
+            cells += ['n/a' if not math.isfinite(gain) else f'{gain:.0%}',
+                      _fmt(tests[k].pvalue, 3), f'{_fmt(d, 2)} ({cliffs_magnitude(d)})']
+        lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
+    lines.append(f'| paper (in vitro; p not given in numbers) | {paper["tracking_mean"][2]:.0%} '
+                 f'| - | - | {paper["targeting_error"][2]:.0%} | - | - |')
+    return '\n'.join(lines) + '\n'
+
+
+def session_box_plots(sessions: Mapping[str, Sequence[TrialMetrics]], path: Path) -> Path:
+    """One panel per :data:`SESSION_METRICS`: a box per session and condition, grouped by
+    session, with the trials as points."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(SESSION_METRICS),
+                             figsize=(max(6.0, 1.3 * sum(len(group_by_condition(t))
+                                                         for t in sessions.values())) + 1.0,
+                                      4.2), squeeze=False)
+    colours: dict[str, str] = {}
+    for ax, metric in zip(axes[0], SESSION_METRICS, strict=True):
+        label, unit, scale = COMPARED_METRICS[metric]
+        pos, ticks, data, names = 1.0, [], [], []
+        for session, trials in sessions.items():
+            groups = group_by_condition(trials)
+            first = pos
+            for condition, members in groups.items():
+                values = np.array([getattr(m, metric) for m in members], np.float64) * scale
+                values = values[np.isfinite(values)]
+                colour = colours.setdefault(condition, f'C{len(colours)}')
+                ax.boxplot([values], positions=[pos], widths=0.7, showmeans=True,
+                           showfliers=False, patch_artist=True,
+                           boxprops={'facecolor': colour, 'alpha': 0.35})
+                ax.scatter(np.full(len(values), pos), values, s=9, alpha=0.6, zorder=3,
+                           color=colour)
+                data.append(values)
+                pos += 1.0
+            ticks.append(0.5 * (first + pos - 1.0))
+            names.append(session)
+            pos += 0.6
+        ax.set_xticks(ticks, names, rotation=20, ha='right', fontsize=8)
+        ax.set_title(label, fontsize=10)
+        ax.set_ylabel(unit)
+        ax.grid(axis='y', alpha=0.3)
+    from matplotlib.patches import Patch
+
+    fig.legend(handles=[Patch(color=c, alpha=0.5, label=name) for name, c in colours.items()],
+               loc='upper right', fontsize=8)
+    fig.tight_layout(rect=(0, 0, 0.92, 1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
     return path
 
 
