@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # The main job: set up if needed, then run the simulated in-vitro session of the paper
 # (section IV-B) end to end on the built-in defaults: default anatomy, the committed C-GAIL
-# policy, 10 trials following the C-GAIL path and 10 following the centerline (3-minute
-# limit each), every trial recorded to a bag, then the metrics table and box plots.
+# policy, the phantom's true catheter plant with the PAM model identified on it first
+# (identify_pam on the simulated bench), 30 trials following the C-GAIL path and 30 following
+# the centerline (3-minute limit each), every trial recorded to a bag, then the metrics table
+# and box plots.
 #   bash scripts/demo.sh                       # defaults, output in runs/invitro_session
 #   bash scripts/demo.sh --trials 3 --mode dynamic --out runs/dyn   # any invitro_session option
 set -euo pipefail

@@ -22,7 +22,7 @@ import pytest
 
 from cgail_planner.bags.bagio import content_digest
 
-ARGS = ['--trials', '1', '--time-limit', '12', '--seed', '3']
+ARGS = ['--trials', '1', '--time-limit', '12', '--seed', '3', '--plant', 'nominal']
 
 
 def test_one_trial_twice_idle_then_loaded_gives_the_same_bag_and_metrics(tmp_path) -> None:
@@ -119,7 +119,7 @@ def test_same_bags_and_metrics_idle_in_one_job_and_loaded_in_two(tmp_path) -> No
 def test_two_concurrent_sessions_pick_their_own_domains_and_do_not_mix(tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
     cmd = [sys.executable, '-m', 'cgail_planner.system.session', '--trials', '1',
-           '--time-limit', '4', '--jobs', '1', '--conditions', 'cgail']
+           '--plant', 'nominal', '--time-limit', '4', '--jobs', '1', '--conditions', 'cgail']
     procs = [subprocess.Popen([*cmd, '--out', str(tmp_path / name)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
              for name in ('one', 'two')]

@@ -38,7 +38,7 @@ def test_default_policy_is_the_committed_cgail_model_of_the_anatomy_and_mode() -
 
 
 def test_plant_option_goes_to_the_phantom_and_the_controller(capsys, tmp_path) -> None:
-    """--plant nominal (default) | identified | ideal: the phantom's ``plant`` parameter, and
+    """--plant identified (default) | nominal | ideal: the phantom's ``plant`` parameter, and
     for 'identified' the cached identified model over pam_controller's parameters."""
     from types import SimpleNamespace
 
@@ -50,7 +50,8 @@ def test_plant_option_goes_to_the_phantom_and_the_controller(capsys, tmp_path) -
         TrialSpec,
     )
 
-    assert build_parser().parse_args([]).plant == 'nominal'
+    assert build_parser().parse_args([]).plant == 'identified'
+    assert build_parser().parse_args([]).trials == 30
     assert build_parser().parse_args(['--plant', 'identified']).plant == 'identified'
     with pytest.raises(SystemExit):
         build_parser().parse_args(['--plant', 'true'])
@@ -114,13 +115,16 @@ def _assert_both_trials_reached(out: Path) -> None:
 
 @pytest.mark.slow
 def test_one_trial_per_condition_end_to_end(tmp_path) -> None:
+    """The main job's path (--plant identified, the default): identify_pam on the session's
+    plant first, then a trial per condition with the identified model."""
     out = tmp_path / 'session'
     code = main(['--trials', '1', '--out', str(out), '--time-limit', '150'])
     assert code == 0
+    assert (out / 'identification' / 'plant_seed_0' / 'pam_identified.yaml').is_file()
     _assert_both_trials_reached(out)
     assert (out / 'metrics_boxplot.png').is_file()
     assert sorted(p.name for p in (out / 'bags').iterdir()) == ['centerline', 'cgail']
-    _assert_tf_and_markers_recorded(out / 'bags' / 'cgail' / 'cgail_01')
+    _assert_tf_and_markers_recorded(out / 'bags' / 'cgail' / 'cgail_01', dynamic=False)
 
 
 def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path,
@@ -129,9 +133,9 @@ def test_a_short_trial_records_tf_the_tip_covariance_and_the_markers(tmp_path,
     dynamic (the wall deforms), and what its bag holds besides the metrics' topics."""
     monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)  # the test run holds its own: pick one
     out = tmp_path / 'session'
-    assert main(['--trials', '1', '--conditions', 'centerline', '--mode', 'dynamic',
-                 '--time-limit', '8', '--out', str(out)]) == 0
-    _assert_tf_and_markers_recorded(out / 'bags' / 'centerline' / 'centerline_01')
+    assert main(['--trials', '1', '--plant', 'nominal', '--conditions', 'centerline',
+                 '--mode', 'dynamic', '--time-limit', '8', '--out', str(out)]) == 0
+    _assert_tf_and_markers_recorded(out / 'bags' / 'centerline' / 'centerline_01', dynamic=True)
 
 
 def test_slicer_follows_a_simulated_trial_over_openigtlink(tmp_path, monkeypatch) -> None:
@@ -170,8 +174,8 @@ def test_slicer_follows_a_simulated_trial_over_openigtlink(tmp_path, monkeypatch
     thread = threading.Thread(target=slicer, daemon=True)
     thread.start()
     try:
-        assert main(['--trials', '1', '--conditions', 'centerline', '--time-limit', '8',
-                     '--time-scale', '2', '--igtl', '--igtl-port', str(port),
+        assert main(['--trials', '1', '--plant', 'nominal', '--conditions', 'centerline',
+                     '--time-limit', '8', '--time-scale', '2', '--igtl', '--igtl-port', str(port),
                      '--out', str(tmp_path / 'session')]) == 0
     finally:
         stop.set()
@@ -185,10 +189,10 @@ def test_slicer_follows_a_simulated_trial_over_openigtlink(tmp_path, monkeypatch
     assert len(got[igtl.LUMEN_DEVICE][-1].polygons) > 0
 
 
-def _assert_tf_and_markers_recorded(bag: Path) -> None:
+def _assert_tf_and_markers_recorded(bag: Path, dynamic: bool) -> None:
     """The trial's bag carries TF (aurora -> phantom latched, phantom -> catheter_tip with
     every tip pose), the tip with its covariance and both marker arrays, as Foxglove and RViz2
-    read them."""
+    read them; the recorded lumen moves in a dynamic trial and stays put in a static one."""
     from rosbags.highlevel import AnyReader
 
     from cgail_planner.system.session import RECORDED_LUMEN_TRIANGLES
@@ -219,9 +223,10 @@ def _assert_tf_and_markers_recorded(bag: Path) -> None:
     assert {m.ns for a in msgs['/phantom/markers'] for m in a.markers} >= {'lumen',
                                                                               'catheter_body'}
     assert {m.ns for a in msgs['/planner/markers'] for m in a.markers} >= {'target', 'path'}
-    first, last_wall = lumen[0].points, lumen[-1].points  # dynamic: the wall moved
-    assert max(abs(a.x - b.x) + abs(a.y - b.y) + abs(a.z - b.z)
-               for a, b in zip(first, last_wall, strict=True)) > 1e-5
+    first, last_wall = lumen[0].points, lumen[-1].points
+    moved = max(abs(a.x - b.x) + abs(a.y - b.y) + abs(a.z - b.z)
+                for a, b in zip(first, last_wall, strict=True))
+    assert moved > 1e-5 if dynamic else moved == 0.0
 
 
 @pytest.mark.slow
@@ -236,6 +241,7 @@ def test_one_trial_per_condition_in_a_prepared_anatomy(prepared_anatomy, tmp_pat
         / 'cgail_default_static.onnx', default_contract(prepared_anatomy, 'static'),
         tmp_path / 'cgail_p07_static.onnx')
     out = tmp_path / 'session'
-    assert main(['--trials', '1', '--out', str(out), '--time-limit', '150', '--anatomy',
-                 str(prepared_anatomy), '--policy', str(policy), '--jobs', '1']) == 0
+    assert main(['--trials', '1', '--plant', 'nominal', '--out', str(out), '--time-limit',
+                 '150', '--anatomy', str(prepared_anatomy), '--policy', str(policy),
+                 '--jobs', '1']) == 0
     _assert_both_trials_reached(out)
