@@ -28,6 +28,14 @@ def _fmt(value: float, digits: int = 2) -> str:
     return 'n/a' if not math.isfinite(value) else f'{value:.{digits}f}'
 
 
+def _pvalue(p: float, digits: int = 4) -> str:
+    """A p-value with ``digits`` decimals, in scientific notation below ``10**-digits`` (never
+    a bare 0)."""
+    if math.isfinite(p) and 0.0 <= p < 10.0 ** -digits:
+        return f'{p:.1e}'
+    return _fmt(p, digits)
+
+
 #: The paper's in-vitro results (abstract and section V-B): C-GAIL path mean ± std and the
 #: improvement over the centerline, (centerline - cgail) / centerline.
 PAPER_IN_VITRO = {
@@ -107,7 +115,7 @@ def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResul
         label = COMPARED_METRICS.get(test.metric, (test.metric, '', 1.0))[0]
         verdict = 'n/a' if not math.isfinite(test.pvalue) else (
             'yes' if test.significant else 'no')
-        row = f'| {label} | {_fmt(test.statistic, 3)} | {_fmt(test.pvalue, 4)} | {verdict} |'
+        row = f'| {label} | {_fmt(test.statistic, 3)} | {_pvalue(test.pvalue)} | {verdict} |'
         if pair:
             d = cliffs_delta([getattr(m, test.metric) for m in groups[pair[0]]],
                              [getattr(m, test.metric) for m in groups[pair[1]]])
@@ -252,7 +260,7 @@ def session_comparison(sessions: Mapping[str, Sequence[TrialMetrics]],
             gain = (mean_b - float(np.nanmean(a))) / mean_b if mean_b > 0 else math.nan
             d = cliffs_delta(a, b)
             cells += ['n/a' if not math.isfinite(gain) else f'{gain:.0%}',
-                      _fmt(tests[k].pvalue, 3), f'{_fmt(d, 2)} ({cliffs_magnitude(d)})']
+                      _pvalue(tests[k].pvalue, 3), f'{_fmt(d, 2)} ({cliffs_magnitude(d)})']
         lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
     lines.append(f'| paper (in vitro; p not given in numbers) | {paper["tracking_mean"][2]:.0%} '
                  f'| - | - | {paper["targeting_error"][2]:.0%} | - | - |')

@@ -105,3 +105,12 @@ def test_labels_must_be_distinct_and_well_formed(tmp_path, capsys) -> None:
         parse_session(f'={one}')
     assert main([f'x={one}', f'x={one}', '-o', str(tmp_path / 'out')]) == 2
     assert "session label 'x' given twice" in capsys.readouterr().err
+
+
+def test_a_tiny_p_value_is_written_in_scientific_notation_not_as_zero(tmp_path) -> None:
+    lo = [1.0 + 0.01 * i for i in range(30)]
+    hi = [2.0 + 0.01 * i for i in range(30)]
+    text = session_comparison({'S': read_csv(session(tmp_path, 's', lo, hi) / 'metrics.csv')})
+    row = [line for line in text.splitlines() if line.startswith('| S | ')][-1]  # C-GAIL vs
+    p = [c.strip() for c in row.strip('|').split('|')][2]                          # centerline
+    assert 'e-' in p and 0.0 < float(p) < 1e-3
