@@ -32,7 +32,8 @@ measured pressures and the gripper's position. ``--plant identified`` (the defau
 ``identify_pam``'s simulated bench on that plant (cached in ``<out>/identification/``) and gives
 the PAM controller the identified model, as a rig team does before a session; ``nominal`` keeps
 the controller's nominal model on the same plant; ``ideal`` makes the plant the controller's own
-nominal model (no model error: the comparison's upper bound).
+nominal model with a kinematic tip and no sleeve slip (the old rig, for comparison; not an upper
+bound: without the compliant tip, its tip strays farther from the path in the arch).
 
 **Simulated time is the only time** (:mod:`cgail_planner.system.lockstep`). The rig's nodes run
 on one lockstep executor that owns their clocks: a tick advances the simulated clock by
