@@ -55,6 +55,20 @@ def _mean_std(values: Sequence[float], scale: float, digits: int) -> str:
     return f'{arr.mean():.{digits}f} ± {arr.std(ddof=1):.{digits}f}'
 
 
+def _improvement(treated: Sequence[float], reference: Sequence[float]) -> str:
+    """``(reference - treated) / reference`` of the means (finite values), as a percentage;
+    ``n/a`` when the reference mean is not positive."""
+    ref = float(np.nanmean(reference))
+    gain = (ref - float(np.nanmean(treated))) / ref if ref > 0.0 else math.nan
+    return 'n/a' if not math.isfinite(gain) else f'{gain:.0%}'
+
+
+def _finite(members: Sequence[TrialMetrics], metric: str, scale: float) -> np.ndarray:
+    """The finite values of ``metric`` over ``members``, times ``scale`` (a box's data)."""
+    values = np.array([getattr(m, metric) for m in members], dtype=np.float64) * scale
+    return values[np.isfinite(values)]
+
+
 def paper_comparison(trials: Sequence[TrialMetrics]) -> list[str]:
     """Markdown lines comparing ours with the paper's in-vitro T_a and T_r (needs conditions
     ``cgail`` and ``centerline``; empty otherwise)."""
@@ -67,14 +81,12 @@ def paper_comparison(trials: Sequence[TrialMetrics]) -> list[str]:
              '|---|---:|---:|---:|---:|---:|']
     for metric, (mean, std, gain) in PAPER_IN_VITRO.items():
         label = COMPARED_METRICS[metric][0]
-        ours = [np.nanmean([getattr(m, metric) for m in groups[c]]) * 1e3
-                for c in ('cgail', 'centerline')]
-        improvement = (ours[1] - ours[0]) / ours[1] if ours[1] > 0.0 else math.nan
+        cgail, centerline = ([getattr(m, metric) for m in groups[c]]
+                             for c in ('cgail', 'centerline'))
         lines.append(
             f'| {label} | {mean:.2f} ± {std:.2f} | {gain:.0%} '
-            f'| {_mean_std([getattr(m, metric) for m in groups["cgail"]], 1e3, 2)} '
-            f'| {_mean_std([getattr(m, metric) for m in groups["centerline"]], 1e3, 2)} '
-            f'| {"n/a" if not math.isfinite(improvement) else f"{improvement:.0%}"} |')
+            f'| {_mean_std(cgail, 1e3, 2)} | {_mean_std(centerline, 1e3, 2)} '
+            f'| {_improvement(cgail, centerline)} |')
     return lines
 
 
@@ -256,11 +268,9 @@ def session_comparison(sessions: Mapping[str, Sequence[TrialMetrics]],
         for k in SESSION_METRICS:
             a = [getattr(m, k) for m in groups[pair[0]]]
             b = [getattr(m, k) for m in groups[pair[1]]]
-            mean_b = float(np.nanmean(b))
-            gain = (mean_b - float(np.nanmean(a))) / mean_b if mean_b > 0 else math.nan
             d = cliffs_delta(a, b)
-            cells += ['n/a' if not math.isfinite(gain) else f'{gain:.0%}',
-                      _pvalue(tests[k].pvalue, 3), f'{_fmt(d, 2)} ({cliffs_magnitude(d)})']
+            cells += [_improvement(a, b), _pvalue(tests[k].pvalue, 3),
+                      f'{_fmt(d, 2)} ({cliffs_magnitude(d)})']
         lines.append(f'| {label} | ' + ' | '.join(cells) + ' |')
     lines.append(f'| paper (in vitro; p not given in numbers) | {paper["tracking_mean"][2]:.0%} '
                  f'| - | - | {paper["targeting_error"][2]:.0%} | - | - |')
@@ -282,25 +292,21 @@ def session_box_plots(sessions: Mapping[str, Sequence[TrialMetrics]], path: Path
     colours: dict[str, str] = {}
     for ax, metric in zip(axes[0], SESSION_METRICS, strict=True):
         label, unit, scale = COMPARED_METRICS[metric]
-        pos, ticks, data, names = 1.0, [], [], []
-        for session, trials in sessions.items():
-            groups = group_by_condition(trials)
+        pos, ticks = 1.0, []
+        for trials in sessions.values():
             first = pos
-            for condition, members in groups.items():
-                values = np.array([getattr(m, metric) for m in members], np.float64) * scale
-                values = values[np.isfinite(values)]
+            for condition, members in group_by_condition(trials).items():
+                values = _finite(members, metric, scale)
                 colour = colours.setdefault(condition, f'C{len(colours)}')
                 ax.boxplot([values], positions=[pos], widths=0.7, showmeans=True,
                            showfliers=False, patch_artist=True,
                            boxprops={'facecolor': colour, 'alpha': 0.35})
                 ax.scatter(np.full(len(values), pos), values, s=9, alpha=0.6, zorder=3,
                            color=colour)
-                data.append(values)
                 pos += 1.0
             ticks.append(0.5 * (first + pos - 1.0))
-            names.append(session)
             pos += 0.6
-        ax.set_xticks(ticks, names, rotation=20, ha='right', fontsize=8)
+        ax.set_xticks(ticks, list(sessions), rotation=20, ha='right', fontsize=8)
         ax.set_title(label, fontsize=10)
         ax.set_ylabel(unit)
         ax.grid(axis='y', alpha=0.3)
@@ -328,10 +334,7 @@ def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
     metrics = list(COMPARED_METRICS.items())
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.0 * len(metrics), 4.0))
     for ax, (metric, (label, unit, scale)) in zip(np.atleast_1d(axes), metrics, strict=True):
-        data = []
-        for members in groups.values():
-            values = np.array([getattr(m, metric) for m in members], dtype=np.float64) * scale
-            data.append(values[np.isfinite(values)])
+        data = [_finite(members, metric, scale) for members in groups.values()]
         ax.boxplot(data, tick_labels=list(groups), showmeans=True, showfliers=False)
         for i, values in enumerate(data, start=1):
             ax.scatter(np.full(len(values), i), values, s=12, alpha=0.6, zorder=3)

@@ -306,7 +306,7 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     except Exception as exc:  # rosbags raises several unrelated types for unreadable bags
         raise DemoError(f'{path}: not a readable rosbag2 bag ({exc})') from None
     # rosbags exposes a bag directory's metadata.yaml custom_data only on its storage reader
-    custom = _custom_info(path, getattr(getattr(reader.storage, 'metadata', None), 'custom',
+    custom = custom_info(path, getattr(getattr(reader.storage, 'metadata', None), 'custom',
                                         None))
     try:
         heads: list[dict[str, Any]] = []
@@ -356,7 +356,7 @@ def read_demo_bag(path: Path) -> tuple[dict[str, Any], list[DemoEpisode]]:
     return meta, episodes
 
 
-def _custom_info(path: Path, custom: dict[str, str] | None) -> dict[str, Any]:
+def custom_info(path: Path, custom: dict[str, str] | None) -> dict[str, Any]:
     """The bag's JSON custom data (empty for bags without it)."""
     text = (custom or {}).get(CUSTOM_DATA_KEY)
     if text is None:

@@ -30,7 +30,7 @@ def demo_source(path: Path) -> str:
     scripted expert (``make_demos``), or ``.npz`` arrays."""
     import yaml
 
-    from cgail_planner.learning.demo_bags import _custom_info
+    from cgail_planner.learning.demo_bags import custom_info
     from cgail_planner.learning.recorder import read_recording
 
     if path.suffix == '.npz':
@@ -41,7 +41,7 @@ def demo_source(path: Path) -> str:
     try:
         doc = yaml.safe_load((path / 'metadata.yaml').read_text())
         custom = doc['rosbag2_bagfile_information'].get('custom_data')
-        info = _custom_info(path, custom)
+        info = custom_info(path, custom)
     except (OSError, yaml.YAMLError, KeyError, TypeError, DemoError):
         return 'unknown (no readable metadata.yaml)'
     if info.get('source'):
