@@ -61,6 +61,7 @@ setup(
             'make_demos = cgail_planner.learning.demos_cli:main',
             'record_demos = cgail_planner.system.record_demos:main',
             'train = cgail_planner.learning.train:main',
+            'refine = cgail_planner.learning.refine:main',
             'evaluate = cgail_planner.learning.evaluate:main',
             'export_onnx = cgail_planner.learning.export:main',
             'invitro_session = cgail_planner.system.session:main',

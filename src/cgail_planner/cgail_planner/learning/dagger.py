@@ -39,7 +39,9 @@ def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes
         env: a :class:`~cgail_planner.sim.env.CatheterNavEnv` (the expert reads its state).
         policy: observation -> action in [-1, 1]^3; it drives every step.
         episodes: episode k uses start ``k % n_starts``, target ``(k // n_starts) % n_targets``
-            and seed ``seed + k`` (as :func:`~cgail_planner.learning.demos_cli.record_episodes`).
+            and seed ``seed + k`` (as :func:`~cgail_planner.learning.demos_cli.record_episodes`);
+            in an env that draws its targets (``EnvConfig.targets == "sphere"``), a target
+            drawn anew from that seed instead.
         seed: base seed.
         every: label steps 0, every, 2 * every, ... of each episode (>= 1).
         stop: checked before each episode; True ends the collection early (a time budget).
@@ -55,13 +57,16 @@ def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes
     expert = ScriptedExpert(env)
     sc = env.unwrapped.engine.scenarios
     n_s, n_t = len(sc.starts), len(sc.targets)
+    drawn = env.unwrapped.config.targets == 'sphere'
     obs_l: list[np.ndarray] = []
     act_l: list[np.ndarray] = []
     wins: list[bool] = []
     for k in range(episodes):
         if stop is not None and stop():
             break
-        obs, _ = env.reset(seed=seed + k, options={'start': k % n_s, 'target': (k // n_s) % n_t})
+        options = {'start': k % n_s} if drawn else {'start': k % n_s,
+                                                    'target': (k // n_s) % n_t}
+        obs, _ = env.reset(seed=seed + k, options=options)
         expert.reset(None)  # (no score jitter: one label per state)
         i = 0
         while True:

@@ -54,7 +54,8 @@ def export_actor(actor: Actor, path: Path, metadata: dict[str, Any]) -> Path:
 
 
 def training_notes(ckpt: dict[str, Any]) -> dict[str, Any]:
-    """The contract's ``training`` entry of a checkpoint: preset, steps and curriculum.
+    """The contract's ``training`` entry of a checkpoint: preset, steps and curriculum, and
+    ``refinement`` when :mod:`cgail_planner.learning.refine` refined it.
 
     ``final_theta_max_rad`` is theta_max of the curriculum lesson the checkpoint was trained at
     (None without a curriculum); the policy still runs at the contract's ``theta_max``, the
@@ -63,9 +64,13 @@ def training_notes(ckpt: dict[str, Any]) -> dict[str, Any]:
     lessons = list(ckpt['config'].get('curriculum', {}).get('theta_max_deg', []))
     lesson = ckpt.get('curriculum_lesson')
     final = math.radians(lessons[int(lesson)]) if lessons and lesson is not None else None
-    return {'preset': ckpt['config'].get('name', 'custom'),
-            'train_steps': int(ckpt.get('step', 0)), 'curriculum_theta_max_deg': lessons,
-            'curriculum_lesson': lesson, 'final_theta_max_rad': final}
+    notes = {'preset': ckpt['config'].get('name', 'custom'),
+             'train_steps': int(ckpt.get('step', 0)), 'curriculum_theta_max_deg': lessons,
+             'curriculum_lesson': lesson, 'final_theta_max_rad': final}
+    refinement = ckpt.get('metadata', {}).get('refinement')
+    if refinement is not None:
+        notes['refinement'] = dict(refinement)
+    return notes
 
 
 def export_checkpoint(ckpt_path: Path, out: Path) -> Path:

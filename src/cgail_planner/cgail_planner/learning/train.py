@@ -126,6 +126,29 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     return env, eval_env, meta
 
 
+def load_training_demos(cfg: Any, demos: list[str] | list[Path], anatomy: Any = None
+                        ) -> tuple[Any, Any, Any, list[dict[str, Any]]]:
+    """The demonstrations a preset learns from (``None``s when it uses neither GAIL nor BC):
+    ``(obs, act, episodes, sources)``, each bag's re-simulation and the episodes per source
+    reported on stderr; ``anatomy``: the one-anatomy run's non-built-in anatomy the bags must
+    have been recorded in (None: any)."""
+    from cgail_planner.learning.demos import load_demos
+
+    sources: list[dict[str, Any]] = []
+    if not cfg.needs_demos:
+        return None, None, None, sources
+    demo_obs, demo_act, demo_episodes = load_demos(
+        [Path(d) for d in demos],
+        report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
+        anatomy=anatomy, env_options=cfg.env_options, sources=sources)
+    by_source: dict[str, int] = {}
+    for src in sources:
+        by_source[src['source']] = by_source.get(src['source'], 0) + (src['episodes'] or 0)
+    print('train: demonstrations by source: ' + '; '.join(
+        f'{k}: {v} episodes' for k, v in by_source.items()), file=sys.stderr)
+    return demo_obs, demo_act, demo_episodes, sources
+
+
 def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = True,
                  seed: int = 0, run_state: dict[str, Any] | None = None) -> dict[str, float]:
     """The training loop: iterations, logging, periodic evaluation and checkpoints.
@@ -268,23 +291,9 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f'--anatomy: preset {cfg.name!r} trains on '
                              f'{cfg.population.anatomies} population anatomies{also}: expected '
                              f'no --anatomy, found {args.anatomy!r}')
-        from cgail_planner.learning.demos import load_demos
-
-        demo_obs = demo_act = demo_episodes = None
-        sources: list[dict[str, Any]] = []
-        if cfg.needs_demos:
-            demo_obs, demo_act, demo_episodes = load_demos(
-                [Path(d) for d in args.demos],
-                report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
-                anatomy=None if is_builtin(args.anatomy) or cfg.population.enabled
-                else args.anatomy,
-                env_options=cfg.env_options, sources=sources)
-            by_source: dict[str, int] = {}
-            for src in sources:
-                by_source[src['source']] = by_source.get(src['source'], 0) + (src['episodes']
-                                                                               or 0)
-            print('train: demonstrations by source: ' + '; '.join(
-                f'{k}: {v} episodes' for k, v in by_source.items()), file=sys.stderr)
+        demo_obs, demo_act, demo_episodes, sources = load_training_demos(
+            cfg, args.demos, None if is_builtin(args.anatomy) or cfg.population.enabled
+            else args.anatomy)
         env, eval_env, meta = make_envs(
             args.mode, args.anatomy, cfg.num_envs, cfg.env_options, cfg.population,
             report=lambda line: print(f'train: population: {line}', file=sys.stderr))
