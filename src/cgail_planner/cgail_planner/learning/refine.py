@@ -5,6 +5,10 @@ Usage::
     scripts/ws refine runs/generalist/best.pt --demos bags/demos/population \\
         bags/demos/elongated --out runs/generalist_refined
     scripts/ws export_onnx runs/generalist_refined/refined.pt --out generalist.onnx
+    # fine-tuning: the committed generalist refined in one new anatomy
+    scripts/ws make_demos --anatomy population-10007 --episodes 15 --out runs/ft/demos
+    scripts/ws refine generalist.onnx --anatomy population-10007 --episodes 60 \
+        --demos runs/ft/demos --out runs/ft
 
 **What it does.** The policy of a ``train`` checkpoint of a population preset (``generalist``)
 drives static episodes in the run's own training anatomies, with targets drawn anew per episode
@@ -22,6 +26,14 @@ best of the checkpoint and the rounds (latest on ties, as ``train`` keeps ``best
 **Which anatomies.** ``--anatomies`` of the run's training seeds, evenly spaced, ``--episodes``
 episodes each, and each built-in anatomy the run includes ``include_weight`` times as many
 (the share the training gave it). Never a held-out seed, never a selection seed.
+
+**One anatomy (fine-tuning).** With ``--anatomy A`` the policy (a ``train`` checkpoint or an
+exported ``.onnx``, whose actor and normaliser are taken as ``train --init-from`` takes them) is
+refined in ``A`` alone: ``--episodes`` episodes there, targets drawn anew per episode in its
+30 mm sphere (``--preset``'s ``env_options``, ``finetune`` by default: the generalist's), the
+demonstrations of ``A``, validation on ``eval_episodes`` drawn targets of ``A`` (seeds apart from
+the labelled episodes'), and ``refined.pt`` is a one-anatomy checkpoint of ``A`` (its contract
+names ``A`` and its content hash), as ``train --preset finetune --anatomy A`` writes one.
 
 **Why** (not part of the paper's method, which trains C-GAIL only). The fourth generalist run
 (C-GAIL, 100 min) missed targets that lie off to the side low in the aortic root: it kept the
@@ -105,14 +117,17 @@ def _group(spec: Any) -> str:
 
 def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
            options: RefineOptions | None = None, progress: bool = True,
-           log: Any = None) -> dict[str, Any]:
-    """Refine ``checkpoint`` (module docstring); returns what ``refine.yaml`` holds.
+           log: Any = None, anatomy: str | None = None,
+           preset: str = 'finetune') -> dict[str, Any]:
+    """Refine ``checkpoint`` (module docstring); ``anatomy``: refine in that one anatomy with
+    ``preset``'s settings instead of in the run's population. Returns what ``refine.yaml``
+    holds.
 
     Raises:
-        LearningError: a checkpoint that is not a static population run's, or unusable
-            demonstrations (one line each).
+        LearningError: a checkpoint that is not a static population run's (without
+            ``anatomy``), or unusable demonstrations (one line each).
     """
-    from cgail_planner.learning.config import config_from_dict
+    from cgail_planner.learning.config import config_from_dict, load_config
     from cgail_planner.learning.dagger import expert_labels
     from cgail_planner.learning.train import load_training_demos, make_envs
     from cgail_planner.learning.trainer import evaluate_policy, load_checkpoint, Trainer
@@ -122,34 +137,67 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     options = options or RefineOptions()
     say = log or (lambda line: print(f'refine: {line}', file=sys.stderr))
     t0 = time.monotonic()
-    ckpt = load_checkpoint(checkpoint)
-    cfg = config_from_dict(ckpt['config'])
-    meta = dict(ckpt.get('metadata', {}))
-    if not cfg.population.enabled:
-        raise LearningError(f'{checkpoint}: expected a checkpoint of a population preset '
-                            f'(generalist), found preset {cfg.name!r} on one anatomy '
-                            '(plan_patient refines a one-anatomy policy)')
-    if meta.get('mode', 'static') != 'static':
-        raise LearningError(f'{checkpoint}: expected a static run\'s checkpoint (the labels '
-                            f'are drawn in the rigid aorta), found mode {meta.get("mode")!r}')
+    checkpoint = Path(checkpoint)
+    if anatomy is None:
+        ckpt = load_checkpoint(checkpoint)
+        cfg = config_from_dict(ckpt['config'])
+        meta = dict(ckpt.get('metadata', {}))
+        if not cfg.population.enabled:
+            raise LearningError(f'{checkpoint}: expected a checkpoint of a population preset '
+                                f'(generalist), found preset {cfg.name!r} on one anatomy '
+                                '(give --anatomy to refine it in one anatomy)')
+        if meta.get('mode', 'static') != 'static':
+            raise LearningError(f'{checkpoint}: expected a static run\'s checkpoint (the '
+                                'labels are drawn in the rigid aorta), found mode '
+                                f'{meta.get("mode")!r}')
+    else:
+        from cgail_planner.sim.anatomy import resolve_anatomy
+
+        resolve_anatomy(anatomy)  # (a bad anatomy fails before the demonstrations load)
+        if checkpoint.suffix != '.onnx':
+            load_checkpoint(checkpoint)  # (a missing or unreadable one: one line, early)
+        elif not checkpoint.is_file():
+            raise LearningError(f'policy not found: expected an exported .onnx at {checkpoint}')
+        cfg = load_config(preset)
+        if cfg.population.enabled:
+            raise LearningError(f'--preset: expected a one-anatomy preset with --anatomy '
+                                f'(finetune), found {cfg.name!r} on a population')
     if not cfg.needs_demos:
-        raise LearningError(f'{checkpoint}: expected a preset that learns from '
-                            f'demonstrations, found preset {cfg.name!r} without GAIL or BC')
+        raise LearningError(f'expected a preset that learns from demonstrations, found preset '
+                            f'{cfg.name!r} without GAIL or BC')
     if not demos:
-        raise LearningError('--demos: expected the run\'s demonstration sources, found none')
-    demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos)
-    env, eval_env, _ = make_envs('static', 'default', cfg.num_envs, cfg.env_options,
-                                 cfg.population, report=say)
-    trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=int(ckpt['seed']),
-                      metadata=meta, demo_episodes=demo_episodes)
-    trainer.resume(ckpt, checkpoint)  # (networks, normaliser, step, curriculum, rng)
-    eval_seed = 10_000 + int(ckpt['seed'])  # (train's periodic evaluation)
+        raise LearningError('--demos: expected the demonstration sources, found none')
+    if anatomy is None:
+        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos)
+        env, eval_env, _ = make_envs('static', 'default', cfg.num_envs, cfg.env_options,
+                                     cfg.population, report=say)
+        trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act,
+                          seed=int(ckpt['seed']), metadata=meta, demo_episodes=demo_episodes)
+        eval_seed = 10_000 + int(ckpt['seed'])  # (train's periodic evaluation)
+        specs = label_anatomies(cfg.population, options)
+
+        def restore() -> None:  # (networks, normaliser, step, curriculum, rng)
+            trainer.resume(ckpt, checkpoint)
+    else:
+        from cgail_planner.sim.anatomy import is_builtin
+
+        demo_obs, demo_act, demo_episodes, _ = load_training_demos(
+            cfg, demos, None if is_builtin(anatomy) else anatomy)
+        env, eval_env, meta = make_envs('static', anatomy, cfg.num_envs, cfg.env_options)
+        meta['preset'] = cfg.name
+        trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=options.seed,
+                          metadata=meta, demo_episodes=demo_episodes)
+        eval_seed = 10_000 + options.seed
+        specs = [(anatomy, options.episodes)]
+
+        def restore() -> None:
+            trainer.load_weights(checkpoint)
+    restore()
 
     def validate() -> float:
         return evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
                                seed=eval_seed)['eval/success_rate']
 
-    specs = label_anatomies(cfg.population, options)
     envs = [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='static',
                                                    anatomy=spec)), n, _group(spec))
             for spec, n in specs]
@@ -179,7 +227,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
                 g[1] += st['episodes']
                 bar.update(n)
         t_label = time.monotonic() - t_round
-        trainer.resume(ckpt, checkpoint)  # (DAgger clones the aggregate from the start)
+        restore()  # (DAgger clones the aggregate from the start)
         stats = trainer.pretrain_bc(options.epochs, extra=(np.concatenate(obs_all),
                                                            np.concatenate(act_all)),
                                     refit_normalizer=False)
@@ -202,8 +250,12 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
             f'{k} {100 * v[0] / v[1]:.0f}%' for k, v in groups.items()) +
             f' of its episodes; {labels} labels; cloned {options.epochs} epochs (loss '
             f'{row["bc_loss"]:.4f}); validation {100 * rate:.1f}% ({row["wall_s"]:.0f} s)')
-    chosen = checkpoint if best[1] == 0 else out / f'round_{best[1]}.pt'
-    (out / 'refined.pt').write_bytes(Path(chosen).read_bytes())
+    if best[1] == 0:  # no round validated better: the policy as it came, as a checkpoint
+        restore()
+        trainer.metadata.pop('refinement', None)
+        trainer.save(out / 'refined.pt')
+    else:
+        (out / 'refined.pt').write_bytes((out / f'round_{best[1]}.pt').read_bytes())
     summary.update(chosen=best[1], validation=best[0],
                    wall_s=round(time.monotonic() - t0, 1))
     (out / 'refine.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
@@ -216,7 +268,12 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``refine`` console script."""
     p = argparse.ArgumentParser(prog='refine', description=__doc__.split('\n')[0])
     p.add_argument('checkpoint', type=Path, help="a population run's train checkpoint "
-                   '(best.pt, final.pt)')
+                   '(best.pt, final.pt); with --anatomy also an exported .onnx')
+    p.add_argument('--anatomy', default=None,
+                   help='refine in this one anatomy (fine-tuning: a built-in name, '
+                        'population-<seed> or a prepared anatomy directory)')
+    p.add_argument('--preset', default='finetune',
+                   help="with --anatomy: the preset whose settings apply (default finetune)")
     p.add_argument('--demos', nargs='+', default=[], help="the run's demonstration sources")
     p.add_argument('--out', type=Path, required=True, help='directory to write')
     d = RefineOptions()
@@ -237,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
         opts = RefineOptions(rounds=args.rounds, anatomies=args.anatomies,
                              episodes=args.episodes, every=args.every, epochs=args.epochs,
                              seed=args.seed)
-        refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress)
+        refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress,
+               anatomy=args.anatomy, preset=args.preset)
     except (LearningError, ValueError) as exc:
         print(f'refine: error: {exc}', file=sys.stderr)
         return 2

@@ -155,3 +155,75 @@ def test_refine_refuses_what_it_cannot_use_in_one_line(tmp_path, monkeypatch, ca
     assert err.count('\n') == 1
     assert main([str(one), '--rounds', '0', '--out', str(tmp_path / 'o')]) == 2
     assert 'rounds must be an int in [1, 10], found 0' in capsys.readouterr().err
+
+
+def _one_anatomy_preset(tmp: Path) -> Path:
+    """The smoke preset's networks with drawn targets, as a YAML preset file."""
+    import yaml
+
+    d = config_to_dict(load_config('smoke'))
+    d.update(num_envs=2, eval_episodes=2, env_options='sphere_targets', name='smoke_sphere')
+    path = tmp / 'smoke_sphere.yaml'
+    path.write_text(yaml.safe_dump(d))
+    return path
+
+
+def test_refine_in_one_anatomy_fine_tunes_an_exported_policy(tmp_path, monkeypatch) -> None:
+    """``--anatomy``: the exported policy's actor and normaliser, refined in that anatomy, give
+    a one-anatomy checkpoint of it; a round that validates worse than the policy as it came
+    leaves refined.pt that policy."""
+    import torch
+
+    from cgail_planner.learning.export import export_checkpoint
+    from cgail_planner.learning.onnx_policy import OnnxPolicy
+    import cgail_planner.learning.trainer as trainer_mod
+    from cgail_planner.learning.trainer import load_checkpoint
+
+    onnx_path = export_checkpoint(_population_checkpoint(tmp_path, monkeypatch),
+                                  tmp_path / 'gen.onnx')
+    preset = _one_anatomy_preset(tmp_path)
+    demos = [str(tmp_path / 'demos.npz')]
+    opts = RefineOptions(episodes=2, every=50, epochs=2)
+    summary = refine(onnx_path, demos, tmp_path / 'ft', opts, progress=False,
+                     log=lambda line: None, anatomy='elongated', preset=str(preset))
+    assert summary['rounds'][0]['labels'] > 0
+    assert set(summary['rounds'][0]['policy_success']) == {'elongated'}
+    ckpt = load_checkpoint(tmp_path / 'ft' / 'round_1.pt')
+    assert ckpt['config']['name'] == 'smoke_sphere'
+    contract = ckpt['metadata']['catheter_contract']
+    assert contract['anatomy'] == 'elongated' and 'anatomies' not in contract  # (one)
+    # worse validation than the policy as it came: refined.pt is that policy, a checkpoint
+    rates = iter([1.0, 0.5])
+    monkeypatch.setattr(trainer_mod, 'evaluate_policy',
+                        lambda *a, **k: {'eval/success_rate': next(rates)})
+    kept = refine(onnx_path, demos, tmp_path / 'kept', opts, progress=False,
+                  log=lambda line: None, anatomy='elongated', preset=str(preset))
+    assert (kept['chosen'], kept['validation']) == (0, 1.0)
+    refined = load_checkpoint(tmp_path / 'kept' / 'refined.pt')
+    assert 'refinement' not in refined['metadata']
+    obs = np.random.default_rng(1).uniform(-1, 1, (8, 41)).astype(np.float32)
+    export_checkpoint(tmp_path / 'kept' / 'refined.pt', tmp_path / 'kept.onnx')
+    np.testing.assert_allclose(OnnxPolicy(tmp_path / 'kept.onnx')(obs),
+                               OnnxPolicy(onnx_path)(obs), atol=1e-5)
+    assert not torch.equal(load_checkpoint(tmp_path / 'kept' / 'round_1.pt')['actor']['mu.bias'],
+                           refined['actor']['mu.bias'])
+
+
+def test_refine_in_one_anatomy_refuses_what_it_cannot_use_in_one_line(tmp_path,
+                                                                        capsys) -> None:
+    preset = _one_anatomy_preset(tmp_path)
+    base = ['--demos', 'x.npz', '--out', str(tmp_path / 'o')]
+    cases = [
+        ([str(tmp_path / 'gen.onnx'), '--anatomy', 'default', '--preset', str(preset)],
+         'policy not found: expected an exported .onnx at '),
+        ([str(tmp_path / 'gen.onnx'), '--anatomy', 'nowhere'], 'nowhere'),
+    ]
+    for args, want in cases:
+        assert main(args + base) == 2
+        err = capsys.readouterr().err
+        assert err.startswith('refine: error: ') and want in err and err.count('\n') == 1, err
+    (tmp_path / 'gen.onnx').write_bytes(b'not onnx')
+    assert main([str(tmp_path / 'gen.onnx'), '--anatomy', 'default', '--preset',
+                 'generalist', *base]) == 2
+    err = capsys.readouterr().err
+    assert "expected a one-anatomy preset with --anatomy (finetune), found 'generalist'" in err
