@@ -264,7 +264,7 @@ class RrtFollower(CenterlineFollower):
 
 def run_trials(env: Any, method: Any, trials: int, seed: int,
                reuse_pairs: bool = False, noise: TrackingNoise | None = None,
-               tracked: bool = True) -> list[Trial]:
+               tracked: bool = True, drawn: bool = False) -> list[Trial]:
     """``trials`` episodes of a policy (obs -> action) or a state-based baseline (``act()``).
 
     Args:
@@ -281,7 +281,15 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
         noise: the tracker through which ``method`` perceives the tip (default: none).
         tracked: whether ``method`` sees the tip through ``noise`` (False for a method that
             uses the simulator's state, e.g. the scripted expert).
+        drawn: trial k's target is drawn anew from its seed in the anatomy's 30 mm sphere (an
+            env with ``EnvConfig.targets == "sphere"``) instead of one of the fixed set: every
+            method meets the same target in trial k.
     """
+    if drawn and env.unwrapped.config.targets != 'sphere':
+        raise ValueError(f'drawn targets need an env that draws them (env options '
+                         f'sphere_targets), found targets {env.unwrapped.config.targets!r}')
+    if drawn and reuse_pairs:
+        raise ValueError('reuse_pairs needs fixed targets (a drawn target differs per trial)')
     noise = noise if noise is not None else TrackingNoise(0.0, 0.0)
     noisy = tracked and noise.enabled
     if reuse_pairs and noisy:
@@ -297,7 +305,8 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
         if reuse_pairs and pair in done:
             out.append(done[pair])
             continue
-        obs, _ = env.reset(seed=seed + k, options={'start': pair[0], 'target': pair[1]})
+        options = {'start': pair[0]} if drawn else {'start': pair[0], 'target': pair[1]}
+        obs, _ = env.reset(seed=seed + k, options=options)
         rng = np.random.default_rng([seed, k, 7001])
         if hasattr(method, 'reset'):
             method.reset(seed + k)
@@ -503,8 +512,9 @@ def _run_methods(env: Any, policies: dict[str, Any], args: argparse.Namespace,
         t0 = time.monotonic()
         tracked = name != 'expert'  # the demonstrator uses the simulator's state
         # noise-free static: a deterministic method's outcome is a function of the pair
-        reuse = mode == 'static' and tracked and not noise.enabled
-        results[name] = run_trials(env, method, args.trials, args.seed, reuse, noise, tracked)
+        reuse = mode == 'static' and tracked and not noise.enabled and not args.drawn_targets
+        results[name] = run_trials(env, method, args.trials, args.seed, reuse, noise, tracked,
+                                   args.drawn_targets)
         s = summarize(results[name])
         print(f"{mode}{where} {name}: success {100 * s['success_rate']:.0f}% "
               f"({time.monotonic() - t0:.0f} s)", flush=True)
@@ -585,6 +595,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--scenario-seed', type=int, default=0,
                    help="the anatomy's target set (EnvConfig.scenario_seed): 0 is the set the "
                         'demonstrations and presets train on; another gives unseen targets')
+    p.add_argument('--drawn-targets', action='store_true',
+                   help="trial k's target drawn anew from its seed in the anatomy's 30 mm "
+                        'sphere, the same for every method, instead of the target set\'s five '
+                        '(needs the env options sphere_targets, a generalist\'s)')
     p.add_argument('--position-noise-mm', type=float, default=TrackingNoise.position_mm,
                    help='RMS position error of the simulated EM tracker, mm (0: none)')
     p.add_argument('--orientation-noise-deg', type=float, default=TrackingNoise.orientation_deg,
@@ -640,23 +654,29 @@ def main(argv: list[str] | None = None) -> int:
             named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
             named = f'Anatomy {named}'
         per = ' per anatomy' if held_out else ''
+        if args.drawn_targets:
+            target = "a target drawn anew from seed + k in the anatomy's 30 mm sphere. "
+        else:
+            target = '(k // 3) % 5' + (f' of target set (scenario seed) {args.scenario_seed}. '
+                                       if args.scenario_seed else '. ')
         notes = (f'{named}, {args.trials} trials per method{per}, epsilon 10 mm, '
                  f'seed {args.seed}, env options `{options}`. Trial k: start k % 3, target '
-                 '(k // 3) % 5')
-        notes += (f' of target set (scenario seed) {args.scenario_seed}. '
-                  if args.scenario_seed else '. ')
+                 f'{target}')
         if noise.enabled:
             notes += (f'The methods perceive the tip through a simulated EM tracker '
                       f'({noise.position_mm:g} mm / {noise.orientation_deg:g} deg RMS, drawn per '
                       'step from the trial seed), so every trial is an independent sample; the '
                       'scripted expert uses the simulator state and its own seed.')
+        elif args.drawn_targets:
+            notes += 'No tracking noise; every trial has a target of its own.'
         else:
             notes += ('No tracking noise: in static mode a deterministic method gives the same '
                       'outcome for a repeated start x target pair, so each pair is simulated '
                       'once and counted for each of its trials (the p-values then overstate '
                       'the evidence); the seeded expert runs every trial.')
         meta = {'anatomy': label, 'trials': args.trials, 'seed': args.seed,
-                'scenario_seed': args.scenario_seed, 'env_options': options,
+                'scenario_seed': args.scenario_seed, 'drawn_targets': args.drawn_targets,
+                'env_options': options,
                 'position_noise_mm': noise.position_mm,
                 'orientation_noise_deg': noise.orientation_deg,
                 'policies': paths}

@@ -40,11 +40,14 @@ names ``A`` and its content hash), as ``train --preset finetune --anatomy A`` wr
 heading of the ascending aorta, turned when 15-20 mm away and hit the wall (87-89 % of targets
 drawn anew in ``default`` and ``elongated``; 83 % on ``elongated``'s unseen target set). GAIL's
 reward pulls the policy towards the demonstrations' state distribution but teaches nothing on
-the states the policy drifts into; the expert's labels there do. Measured on 2026-12-03 (one
-round, 216 episodes, every 4th state, 26,605 labels, ~6 min on one core): unseen ``elongated``
-targets 83 % -> 100 %, 20 held-out anatomies 93 % -> 97 % (static); a second round gave 94 %
-on the held-out ones. The refined checkpoint keeps the run's contract, and its ``refinement``
-metadata (written into the exported model's training notes) says how it was refined.
+the states the policy drifts into; the expert's labels there do. Measured on 2026-12-03 with
+the defaults on the fourth run's ``best.pt`` (216 episodes in 34 anatomies, 25,983 labels,
+6 min 13 s on one core): validation 92.9 % -> 100 %; unseen ``elongated`` targets 83 % -> 100 %
+and 20 held-out anatomies 93 % -> 97 % (static, simulated tracker); held out dynamic 94 %
+before and after. A second round, in a first trial of the recipe, gave 94 % on the held-out
+ones against its first round's 97 %. The refined checkpoint keeps the run's contract, and its
+``refinement`` metadata (written into the exported model's training notes) says how it was
+refined.
 
 Writes ``<out>/round_<k>.pt`` (k = 1..rounds), ``refined.pt`` and ``refine.yaml`` (per round:
 episodes, labels, the policy's success while labelling per anatomy group, the validation and the

@@ -167,3 +167,51 @@ def test_a_negative_scenario_seed_is_a_one_line_error(tmp_path, capsys):
                           '--out', str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert err == 'evaluate: error: scenario_seed must be an int >= 0, found -1\n'
+
+
+def test_drawn_targets_give_every_method_the_same_new_target_per_trial():
+    """``drawn``: trial k's target comes from seed + k in the 30 mm sphere (not the fixed
+    set), the same for every method; an env with fixed targets refuses it in one line."""
+    env = CatheterNavEnv(EnvConfig.from_options('sphere_targets', max_steps=5))
+    fixed = {tuple(t.position) for t in env.engine.scenarios.targets}
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.targets: list[tuple[float, ...]] = []
+
+        def reset(self, seed=None) -> None:
+            self.targets.append(tuple(env.engine.target[0]))
+
+        def act(self) -> np.ndarray:
+            return np.array([0.0, 0.0, 1.0], np.float32)
+
+    a, b = Recorder(), Recorder()
+    trials = run_trials(env, a, 4, seed=11, drawn=True)
+    run_trials(env, b, 4, seed=11, drawn=True)
+    assert len(trials) == 4 and a.targets == b.targets
+    assert len(set(a.targets)) == 4 and not set(a.targets) & fixed
+    c = Recorder()
+    run_trials(env, c, 4, seed=11)  # (without drawn: the fixed set's targets)
+    assert set(c.targets) <= fixed
+    with pytest.raises(ValueError, match=r"drawn targets need an env that draws them \(env "
+                                         r"options sphere_targets\), found targets 'fixed'"):
+        run_trials(CatheterNavEnv(EnvConfig(max_steps=5)), a, 1, seed=0, drawn=True)
+
+
+def test_the_cli_draws_targets_and_says_so(tmp_path, capsys):
+    import json
+
+    from cgail_planner.learning import evaluate
+
+    assert evaluate.main(['--baselines', 'centerline', '--trials', '2', '--drawn-targets',
+                          '--env-options', 'sphere_targets', '--out', str(tmp_path)]) == 0
+    data = json.loads((tmp_path / 'results.json').read_text())
+    assert data['drawn_targets'] is True and data['env_options'] == 'sphere_targets'
+    assert "a target drawn anew from seed + k in the anatomy's 30 mm sphere" in (
+        tmp_path / 'report.md').read_text()
+    capsys.readouterr()
+    assert evaluate.main(['--baselines', 'centerline', '--trials', '1', '--drawn-targets',
+                          '--out', str(tmp_path / 'x')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('evaluate: error: drawn targets need an env that draws them')
+    assert err.count('\n') == 1
