@@ -171,7 +171,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     if not demos:
         raise LearningError('--demos: expected the demonstration sources, found none')
     if anatomy is None:
-        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos)
+        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos, prog='refine')
         env, eval_env, _ = make_envs('static', 'default', cfg.num_envs, cfg.env_options,
                                      cfg.population, report=say)
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act,
@@ -185,7 +185,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         from cgail_planner.sim.anatomy import is_builtin
 
         demo_obs, demo_act, demo_episodes, _ = load_training_demos(
-            cfg, demos, None if is_builtin(anatomy) else anatomy)
+            cfg, demos, None if is_builtin(anatomy) else anatomy, prog='refine')
         env, eval_env, meta = make_envs('static', anatomy, cfg.num_envs, cfg.env_options)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=options.seed,

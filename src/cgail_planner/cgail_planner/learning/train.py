@@ -126,12 +126,12 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
     return env, eval_env, meta
 
 
-def load_training_demos(cfg: Any, demos: list[str] | list[Path], anatomy: Any = None
-                        ) -> tuple[Any, Any, Any, list[dict[str, Any]]]:
+def load_training_demos(cfg: Any, demos: list[str] | list[Path], anatomy: Any = None,
+                        prog: str = 'train') -> tuple[Any, Any, Any, list[dict[str, Any]]]:
     """The demonstrations a preset learns from (``None``s when it uses neither GAIL nor BC):
     ``(obs, act, episodes, sources)``, each bag's re-simulation and the episodes per source
-    reported on stderr; ``anatomy``: the one-anatomy run's non-built-in anatomy the bags must
-    have been recorded in (None: any)."""
+    reported on stderr after ``prog:``; ``anatomy``: the one-anatomy run's non-built-in anatomy
+    the bags must have been recorded in (None: any)."""
     from cgail_planner.learning.demos import load_demos
 
     sources: list[dict[str, Any]] = []
@@ -139,12 +139,12 @@ def load_training_demos(cfg: Any, demos: list[str] | list[Path], anatomy: Any = 
         return None, None, None, sources
     demo_obs, demo_act, demo_episodes = load_demos(
         [Path(d) for d in demos],
-        report=lambda line: print(f'train: demonstrations: {line}', file=sys.stderr),
+        report=lambda line: print(f'{prog}: demonstrations: {line}', file=sys.stderr),
         anatomy=anatomy, env_options=cfg.env_options, sources=sources)
     by_source: dict[str, int] = {}
     for src in sources:
         by_source[src['source']] = by_source.get(src['source'], 0) + (src['episodes'] or 0)
-    print('train: demonstrations by source: ' + '; '.join(
+    print(f'{prog}: demonstrations by source: ' + '; '.join(
         f'{k}: {v} episodes' for k, v in by_source.items()), file=sys.stderr)
     return demo_obs, demo_act, demo_episodes, sources
 
