@@ -31,9 +31,10 @@ episodes each, and each built-in anatomy the run includes ``include_weight`` tim
 exported ``.onnx``, whose actor and normaliser are taken as ``train --init-from`` takes them) is
 refined in ``A`` alone: ``--episodes`` episodes there, targets drawn anew per episode in its
 30 mm sphere (``--preset``'s ``env_options``, ``finetune`` by default: the generalist's), the
-demonstrations of ``A``, validation on ``eval_episodes`` drawn targets of ``A`` (seeds apart from
-the labelled episodes'), and ``refined.pt`` is a one-anatomy checkpoint of ``A`` (its contract
-names ``A`` and its content hash), as ``train --preset finetune --anatomy A`` writes one.
+demonstrations of ``A``, validation on ``eval_episodes`` (or ``--validation-episodes``) drawn
+targets of ``A`` (seeds apart from the labelled episodes'), and ``refined.pt`` is a
+one-anatomy checkpoint of ``A`` (its contract names ``A`` and its content hash), as ``train
+--preset finetune --anatomy A`` writes one.
 
 **Why** (not part of the paper's method, which trains C-GAIL only). The fourth generalist run
 (C-GAIL, 100 min) missed targets that lie off to the side low in the aortic root: it kept the
@@ -90,10 +91,13 @@ class RefineOptions:
     """Passes of the cloning over demonstrations plus labels (``plan_patient``'s warm start)."""
     seed: int = 0
     """Seed of the episodes (anatomy j of round r: ``seed + 100000 r + 1000 j + k``)."""
+    validation_episodes: int = 0
+    """Episodes of each validation; 0: the preset's ``eval_episodes`` (``train``'s)."""
 
     def __post_init__(self) -> None:
         for name, lo, hi in (('rounds', 1, 10), ('anatomies', 0, 10_000), ('episodes', 1, 1000),
-                             ('every', 1, 1000), ('epochs', 1, 1000), ('seed', 0, 2**31)):
+                             ('every', 1, 1000), ('epochs', 1, 1000), ('seed', 0, 2**31),
+                             ('validation_episodes', 0, 10_000)):
             v = getattr(self, name)
             if not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f'{name} must be an int in [{lo}, {hi}], found {v!r}')
@@ -197,8 +201,10 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
             trainer.load_weights(checkpoint)
     restore()
 
+    n_val = options.validation_episodes or cfg.eval_episodes
+
     def validate() -> float:
-        return evaluate_policy(trainer.act_deterministic, eval_env, cfg.eval_episodes,
+        return evaluate_policy(trainer.act_deterministic, eval_env, n_val,
                                seed=eval_seed)['eval/success_rate']
 
     envs = [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='static',
@@ -206,7 +212,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
             for spec, n in specs]
     base = validate()
     say(f'{checkpoint}: step {trainer.step}, validation {100 * base:.1f}% on '
-        f'{cfg.eval_episodes} episodes; {sum(n for _, n, _ in envs)} episodes a round in '
+        f'{n_val} episodes; {sum(n for _, n, _ in envs)} episodes a round in '
         f'{len(envs)} anatomies ({time.monotonic() - t0:.0f} s)')
     summary: dict[str, Any] = {'checkpoint': str(checkpoint), 'options': asdict(options),
                                'base_validation': base, 'rounds': []}
@@ -286,8 +292,10 @@ def main(argv: list[str] | None = None) -> int:
                                      'include_weight times as many)'),
                         ('every', 'label every n-th state'),
                         ('epochs', 'cloning passes over demonstrations + labels'),
-                        ('seed', 'seed of the episodes')):
-        p.add_argument(f'--{name}', type=int, default=getattr(d, name),
+                        ('seed', 'seed of the episodes'),
+                        ('validation_episodes', "episodes of each validation (0: the preset's "
+                                                'eval_episodes)')):
+        p.add_argument(f'--{name.replace("_", "-")}', type=int, default=getattr(d, name),
                        help=f'{help_} (default {getattr(d, name)})')
     p.add_argument('--threads', type=int, default=1, help='torch CPU threads')
     p.add_argument('--no-progress', action='store_true', help='hide the progress bar')
@@ -296,7 +304,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         opts = RefineOptions(rounds=args.rounds, anatomies=args.anatomies,
                              episodes=args.episodes, every=args.every, epochs=args.epochs,
-                             seed=args.seed)
+                             seed=args.seed, validation_episodes=args.validation_episodes)
         refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress,
                anatomy=args.anatomy, preset=args.preset)
     except (LearningError, ValueError) as exc:

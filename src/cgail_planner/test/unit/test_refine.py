@@ -64,6 +64,8 @@ def test_the_labelled_anatomies_are_evenly_spaced_training_seeds_and_the_built_i
     ({'rounds': 0}, r'rounds must be an int in \[1, 10\], found 0'),
     ({'episodes': 0}, r'episodes must be an int in \[1, 1000\], found 0'),
     ({'every': 1.5}, r'every must be an int in \[1, 1000\], found 1.5'),
+    ({'validation_episodes': -1}, r'validation_episodes must be an int in \[0, 10000\], '
+                                  r'found -1'),
 ])
 def test_bad_options_are_one_line(kw: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):
@@ -194,11 +196,19 @@ def test_refine_in_one_anatomy_fine_tunes_an_exported_policy(tmp_path, monkeypat
     assert contract['anatomy'] == 'elongated' and 'anatomies' not in contract  # (one)
     # worse validation than the policy as it came: refined.pt is that policy, a checkpoint
     rates = iter([1.0, 0.5])
-    monkeypatch.setattr(trainer_mod, 'evaluate_policy',
-                        lambda *a, **k: {'eval/success_rate': next(rates)})
-    kept = refine(onnx_path, demos, tmp_path / 'kept', opts, progress=False,
-                  log=lambda line: None, anatomy='elongated', preset=str(preset))
+    episodes: list[int] = []
+
+    def fake_validation(policy, env, n, seed):
+        episodes.append(n)
+        return {'eval/success_rate': next(rates)}
+
+    monkeypatch.setattr(trainer_mod, 'evaluate_policy', fake_validation)
+    kept = refine(onnx_path, demos, tmp_path / 'kept',
+                  RefineOptions(episodes=2, every=50, epochs=2, validation_episodes=7),
+                  progress=False, log=lambda line: None, anatomy='elongated',
+                  preset=str(preset))
     assert (kept['chosen'], kept['validation']) == (0, 1.0)
+    assert episodes == [7, 7]  # (--validation-episodes: not the preset's eval_episodes, 2)
     refined = load_checkpoint(tmp_path / 'kept' / 'refined.pt')
     assert 'refinement' not in refined['metadata']
     obs = np.random.default_rng(1).uniform(-1, 1, (8, 41)).astype(np.float32)
