@@ -50,7 +50,7 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverSt
 from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, try_shutdown
+from catheter_driver.nodes import RCLError, spin, try_shutdown
 from catheter_driver.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard, declare
 
 _R, _S = RelayConfig(), SupervisionConfig()
@@ -480,7 +480,7 @@ def main(args=None) -> None:
         else:
             node.get_logger().info('autostart is false: unconfigured, waiting for '
                                    'sleeve_driver/change_state')
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

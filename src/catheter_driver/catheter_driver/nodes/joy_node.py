@@ -19,7 +19,7 @@ from catheter_driver.core.joy_filter import JoyConfig, JoyFilter
 from catheter_driver.exceptions import DeviceDisconnectedError
 from catheter_driver.hw.gamepad import Gamepad, GamepadFactory, SdlGamepad
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, try_shutdown
+from catheter_driver.nodes import RCLError, spin, try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -123,7 +123,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = JoyNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -14,7 +14,7 @@ from sensor_msgs.msg import JointState, Joy
 from catheter_driver.core.teleop import Teleop, TeleopConfig, TeleopOutput
 from catheter_driver.exceptions import CommandError
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, try_shutdown
+from catheter_driver.nodes import RCLError, spin, try_shutdown
 from catheter_driver.nodes.params import declare
 
 
@@ -82,7 +82,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = TeleopNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -48,7 +48,7 @@ from cgail_planner.gui.server import GuiServer
 from cgail_planner.gui.state import GuiState
 from cgail_planner.gui.static import build_table, find_web_root, missing_vendor
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, try_shutdown
+from cgail_planner.nodes import RCLError, spin, try_shutdown
 from cgail_planner.sim.mesh_io import AnatomyError
 
 _D = GuiConfig()
@@ -450,7 +450,7 @@ def main(args: list[str] | None = None) -> None:
     node = None
     try:
         node = GuiNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -35,7 +35,7 @@ from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LUMEN_NS
 from cgail_planner.hw import igtl_server as srv
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, try_shutdown
+from cgail_planner.nodes import RCLError, spin, try_shutdown
 from cgail_planner.sim.mesh_io import AnatomyError
 
 
@@ -194,7 +194,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = IgtlBridge()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -35,7 +35,7 @@ from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.guidance import PathFollower
 from cgail_planner.core.operator import aimed_bend, OperatorConfig, Percept, ScriptedOperator
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, try_shutdown
+from cgail_planner.nodes import RCLError, spin, try_shutdown
 
 
 class OperatorNode(Node):
@@ -235,7 +235,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = OperatorNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

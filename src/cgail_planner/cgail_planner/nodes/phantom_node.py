@@ -78,7 +78,7 @@ from cgail_planner.core.phantom import FIXTURES, PhantomConfig, PhantomPhysics
 from cgail_planner.core.plant import make_plant
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, try_shutdown
+from cgail_planner.nodes import RCLError, spin, try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.mesh_io import AnatomyError
 from cgail_planner.sim.wall import WallError
@@ -420,7 +420,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = PhantomNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

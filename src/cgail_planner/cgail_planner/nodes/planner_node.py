@@ -64,7 +64,7 @@ from cgail_planner.core.planner import (
 )
 from cgail_planner.core.rrt_planner import RrtConfig
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, try_shutdown
+from cgail_planner.nodes import RCLError, spin, try_shutdown
 from cgail_planner.sim.ftl_model import CatheterConfig
 from cgail_planner.sim.mesh_io import AnatomyError
 
@@ -413,7 +413,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = PlannerNode()
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

@@ -71,7 +71,7 @@ from em_tracker.core.pose import Registration, TipPose
 from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
-from em_tracker.nodes import RCLError, try_shutdown
+from em_tracker.nodes import RCLError, spin, try_shutdown
 from em_tracker.nodes.conversions import (
     diagnostic_status,
     registration_tf,
@@ -399,7 +399,7 @@ def main(args=None) -> None:
         else:
             node.get_logger().info('autostart is false: unconfigured, waiting for '
                                    'aurora/change_state')
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:

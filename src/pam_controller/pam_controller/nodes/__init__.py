@@ -1,6 +1,7 @@
 """ROS 2 nodes of ``pam_controller``, and what their entry points share."""
 
 import contextlib
+from typing import Any
 
 import rclpy
 from rclpy.impl.implementation_singleton import rclpy_implementation
@@ -18,3 +19,23 @@ def try_shutdown() -> None:
     on Ctrl-C under load). Either way the context ends shut down."""
     with contextlib.suppress(RCLError):
         rclpy.try_shutdown()
+
+
+def spin(node: Any) -> None:
+    """``rclpy.spin(node)`` that tolerates Ctrl-C before it starts: rclpy's SIGINT handler can
+    shut the context down between the node's start-up and the spin, and ``rclpy.spin``'s global
+    executor is then ``None`` (``AttributeError: 'NoneType' object has no attribute
+    'add_node'``, seen once in CI on the console-entry-point test). A private executor of the
+    node's context spins until that context is shut down, and returns at once if it already is;
+    an ``RCLError`` from a context shut down meanwhile is the caller's clean stop (``RCLError``
+    above)."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    if not node.context.ok():
+        return
+    executor = SingleThreadedExecutor(context=node.context)
+    try:
+        executor.add_node(node)
+        executor.spin()
+    finally:
+        executor.shutdown(timeout_sec=0)

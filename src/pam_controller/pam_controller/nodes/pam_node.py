@@ -50,7 +50,7 @@ from pam_controller.hw import can_protocol as proto
 from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
 from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes import conversions as conv
-from pam_controller.nodes import RCLError, try_shutdown
+from pam_controller.nodes import RCLError, spin, try_shutdown
 from pam_controller.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -503,7 +503,7 @@ def main(args: list[str] | None = None) -> None:
         else:
             node.get_logger().info('autostart is false: unconfigured, waiting for '
                                    'pam_controller/change_state')
-        rclpy.spin(node)
+        spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
