@@ -14,10 +14,11 @@ lies inside the lumen, else along the centerline; straight where neither does).
 After every step the rollout ends as an
 episode does, by the same priority: a **collision** (the tip sphere penetrates the wall:
 ``wall.tip_contact(...).penetration > 0``; the frozen model wall exerts no force), an **exit**
-(the tip crossed the exit plane of the open descending end, or left the anatomy's bounding box
-grown by 10 mm), or **success** (the tip within ``goal_tolerance`` of the goal, which is then
-appended as the last point); else it fails after ``max_rollout_steps``. So a policy rolled out
-from an episode's start pose gives the episode's tip path and ending (``test_model_parity.py``).
+(the step crossed the disc of an open end, :mod:`cgail_planner.sim.exits`, or the tip left the
+anatomy's bounding box grown by 10 mm), or **success** (the tip within ``goal_tolerance`` of the
+goal, which is then appended as the last point); else it fails after ``max_rollout_steps``. So a
+policy rolled out from an episode's start pose gives the episode's tip path and ending
+(``test_model_parity.py``).
 In dynamic mode the wall is the deformable wall's current (deformed) shape, frozen for the
 rollout.
 
@@ -66,6 +67,7 @@ from cgail_planner.core.path_fit import (
 )
 from cgail_planner.core.rotations import validate_pose
 from cgail_planner.core.rrt_planner import Lumen, RrtConfig, RrtPlanner
+from cgail_planner.sim.exits import crossed_disc
 from cgail_planner.sim.ftl_model import (
     advance_pose,
     CatheterConfig,
@@ -208,9 +210,12 @@ class ModelWorld:
     contains: Callable[[FloatArray], NDArray[np.bool_]]
     """Lumen test of (N, 3) points."""
     exit_point: FloatArray
-    """(3,) centre of the open descending end, m (the rollout's exit plane)."""
+    """(3,) centre of the open descending end, m (where the introducer comes in)."""
     exit_normal: FloatArray
-    """(3,) unit normal of the exit plane, out of the lumen."""
+    """(3,) unit normal of the descending end's plane, out of the lumen."""
+    exit_discs: FloatArray
+    """(D, 7) the open cuts a rollout can leave through (:attr:`cgail_planner.sim.anatomy.
+    Anatomy.exit_discs`, :mod:`cgail_planner.sim.exits`)."""
     introducer: Callable[[FloatArray, FloatArray], FloatArray] | None = None
     """``(position, rotation) -> (K, 3)`` introducer nodes behind a tip pose (proximal end
     first, :func:`cgail_planner.sim.ftl_model.seed_body`); None: straight to
@@ -267,15 +272,15 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
         contains=anatomy.contains,
         exit_point=np.asarray(anatomy.exit_point, dtype=np.float64),
         exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64),
-        introducer=_sim_introducer(world))
+        exit_discs=anatomy.exit_discs, introducer=_sim_introducer(world))
 
 
 def _lumen(world: ModelWorld, wall: RayWall) -> Lumen:
     """The geometry queries the RRT needs: the wall's distance (its unchecked form when it has
-    one) and the model world's lumen test, centerlines, ostia, exit plane and bounds."""
+    one) and the model world's lumen test, centerlines, ostia, exit discs and bounds."""
     distance = getattr(wall, "distance_unchecked", None) or wall.distance
     return Lumen(distance=distance, contains=world.contains, centerlines=world.centerlines,
-                 ostia=world.ostia, exit_point=world.exit_point, exit_normal=world.exit_normal,
+                 ostia=world.ostia, exit_discs=world.exit_discs,
                  bbox_low=world.bbox_low, bbox_high=world.bbox_high)
 
 
@@ -624,7 +629,8 @@ class Planner:
             float(cat.max_step_insertion), bool(cat.forward_only), float(cat.radius),
             float(cat.dt),
             float(self.wall_tolerance), float(cfg.goal_tolerance),
-            w.exit_point, w.exit_normal, np.ascontiguousarray(w.bbox_low, dtype=np.float64),
+            np.ascontiguousarray(w.exit_discs, dtype=np.float64),
+            np.ascontiguousarray(w.bbox_low, dtype=np.float64),
             np.ascontiguousarray(w.bbox_high, dtype=np.float64), int(max_steps), arrays,
             program.ops, program.consts, program.widths, program.scratch(), program.out_reg,
             action)
@@ -650,8 +656,7 @@ class Planner:
         goal = np.asarray(goal, dtype=np.float64)
         positions, rotations, arc, n0 = self._seed(p, r, cfg.max_rollout_steps)
         n = n0
-        ex, ey, ez = w.exit_point.tolist()
-        nx, ny, nz = w.exit_normal.tolist()
+        discs = np.ascontiguousarray(w.exit_discs, dtype=np.float64)
         low, high = w.bbox_low.tolist(), w.bbox_high.tolist()
         gx, gy, gz = goal.tolist()
         clearance = -math.inf  # a lower bound of the exact clearance (as the env's broad phase)
@@ -663,6 +668,7 @@ class Planner:
                 raise NoPathError(f"policy must return 3 finite actions, found {out.tolist()}",
                                   _points(positions, n, n0), "bad_action", step)
             a0, a1, a2 = out.tolist()
+            x0, y0, z0 = p.tolist()
             alpha, gamma, dl = command_nb(a0, a1, a2, cat.theta_max, cat.segment_length,
                                           cat.max_step_insertion, cat.forward_only)
             travelled = 0.0
@@ -684,7 +690,7 @@ class Planner:
                     raise self._failure("collided", step, _points(positions, n, n0), goal)
                 clearance = contact.clearance if math.isfinite(contact.clearance) else -math.inf
             x, y, z = p.tolist()
-            if (x - ex) * nx + (y - ey) * ny + (z - ez) * nz > 0.0 \
+            if crossed_disc(x0, y0, z0, x, y, z, discs) >= 0 \
                     or not (low[0] <= x <= high[0] and low[1] <= y <= high[1]
                             and low[2] <= z <= high[2]):
                 raise self._failure("left", step, _points(positions, n, n0), goal)

@@ -25,7 +25,8 @@ import numpy as np
 
 from cgail_planner.core import mlp
 from cgail_planner.core.mlp import mlp_forward
-from cgail_planner.sim import ftl_model, raycast
+from cgail_planner.sim import exits, ftl_model, raycast
+from cgail_planner.sim.exits import crossed_disc
 from cgail_planner.sim.ftl_model import (
     advance_nb,
     command_nb,
@@ -42,7 +43,8 @@ from cgail_planner.sim.raycast import (
 )
 
 # the kernel calls kernels of other modules: its disk cache must follow their sources
-drop_stale_numba_cache(__file__, [__file__, mlp.__file__, raycast.__file__, ftl_model.__file__])
+drop_stale_numba_cache(__file__, [__file__, mlp.__file__, raycast.__file__, ftl_model.__file__,
+                                  exits.__file__])
 
 __all__ = ["BAD_ACTION", "COLLIDED", "LEFT_ANATOMY", "REACHED", "STEP_LIMIT", "rollout_kernel"]
 
@@ -53,7 +55,8 @@ COLLIDED = 1
 BAD_ACTION = 2
 """The policy returned a non-finite action (in ``action``) at step ``steps``."""
 LEFT_ANATOMY = 3
-"""The tip crossed the exit plane or left the bounding box at step ``steps``."""
+"""The tip left through the disc of an open end (:mod:`cgail_planner.sim.exits`) or left the
+bounding box at step ``steps``."""
 STEP_LIMIT = 4
 """``max_steps`` steps without reaching the goal."""
 
@@ -79,8 +82,8 @@ def _penetration(bvh, px, py, pz, radius, tolerance):
 @njit(cache=True)
 def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code, origin,
                    position_scale, d_max, ray_length, theta_max, segment_length, step_len,
-                   forward_only, radius, dt, tolerance, goal_tolerance, exit_point, exit_normal,
-                   low, high, max_steps, bvh, ops, consts, widths, regs, out_reg, action):
+                   forward_only, radius, dt, tolerance, goal_tolerance, exit_discs, low,
+                   high, max_steps, bvh, ops, consts, widths, regs, out_reg, action):
     """Roll the policy out from the tip of a seeded body (Planner.rollout_reference).
 
     Args:
@@ -102,7 +105,7 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code
         dt: step length, s (unused: the frozen wall has no contact force).
         tolerance: the wall's penetration tolerance, m.
         goal_tolerance: success distance, m.
-        exit_point, exit_normal: (3,) the exit plane of the open descending end.
+        exit_discs: (D, 7) the open cuts (:attr:`cgail_planner.sim.anatomy.Anatomy.exit_discs`).
         low, high: (3,) bounding box, m.
         max_steps: step limit.
         bvh: the wall's :class:`~cgail_planner.sim.raycast.BVHArrays`.
@@ -158,6 +161,7 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code
             finite = finite and math.isfinite(action[a])
         if not finite:
             return BAD_ACTION, step, n
+        x0, y0, z0 = p[0], p[1], p[2]
         alpha, gamma, dl = command_nb(action[0], action[1], action[2], theta_max,
                                       segment_length, step_len, forward_only)
         travelled = 0.0
@@ -183,8 +187,7 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code
             if pen > 0.0:
                 return COLLIDED, step, n
             clearance = clear if math.isfinite(clear) else -np.inf
-        out = ((p[0] - exit_point[0]) * exit_normal[0] + (p[1] - exit_point[1]) * exit_normal[1]
-               + (p[2] - exit_point[2]) * exit_normal[2]) > 0.0
+        out = crossed_disc(x0, y0, z0, p[0], p[1], p[2], exit_discs) >= 0
         for a in range(3):
             out = out or p[a] < low[a] or p[a] > high[a]
         if out:

@@ -55,15 +55,17 @@ that; the success counts differ by a few plans of 15, see the tests.) The time l
 real-time safety bound of the planner node; a plan it cuts short depends on the machine's speed
 (its error says which limit ran out).
 
-**Validity.** A state is valid when the tip lies on the lumen side of the exit plane, inside the
-anatomy's bounding region (:func:`cgail_planner.sim.scenarios.episode_bounds`) and at least
-``catheter radius + clearance_margin + resolution / 2`` from the wall (the wall's own distance
-query, :meth:`cgail_planner.sim.wall.StaticWall.distance`). Motions are checked every
-``resolution`` of arc length (OMPL's validity-checking resolution): the distance to the wall is
-1-Lipschitz along the curve, so between two checked states it is at least the checked value less
+**Validity.** A state is valid when the tip lies outside the exit slab of every open end
+(:func:`cgail_planner.sim.exits.in_exit_slab`, ``2 * resolution`` deep: no motion leaves
+through a cut's disc), inside the anatomy's bounding region
+(:func:`cgail_planner.sim.scenarios.episode_bounds`) and at least ``catheter radius +
+clearance_margin + resolution / 2`` from the wall (the wall's own distance query,
+:meth:`cgail_planner.sim.wall.StaticWall.distance`). Motions are checked every ``resolution`` of
+arc length (OMPL's validity-checking resolution): the distance to the wall is 1-Lipschitz along
+the curve, so between two checked states it is at least the checked value less
 ``resolution / 2``, and the whole curve clears the wall by ``radius + clearance_margin``. Start
 and goal states are also checked inside the lumen (``contains``); a curve cannot leave the lumen
-between checked states since it would have to cross the wall.
+between checked states since it would have to cross the wall or a cut's disc (and so a slab).
 
 **Output.** The joined curves sampled every ``resolution`` (:attr:`RrtPath.points`, start first,
 the goal state last); :class:`~cgail_planner.core.planner.Planner` resamples them at its
@@ -84,6 +86,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cgail_planner.core.errors import InvalidInputError, NoPathError
+from cgail_planner.sim.exits import in_exit_slab
 from cgail_planner.sim.ftl_model import CatheterConfig
 
 FloatArray = NDArray[np.float64]
@@ -170,10 +173,8 @@ class Lumen:
     """Branch name -> (N, 3) Voronoi centerline from the descending aorta to the ostium, m."""
     ostia: dict[str, FloatArray]
     """Branch name -> (3,) coronary ostium, m."""
-    exit_point: FloatArray
-    """(3,) centre of the open descending end, m."""
-    exit_normal: FloatArray
-    """(3,) unit normal of the exit plane, out of the lumen."""
+    exit_discs: FloatArray
+    """(D, 7) the open cuts (:attr:`cgail_planner.sim.anatomy.Anatomy.exit_discs`)."""
     bbox_low: FloatArray
     """(3,) lower corner of the region the tip may visit, m."""
     bbox_high: FloatArray
@@ -281,8 +282,8 @@ class RrtPlanner:
         si = ob.SpaceInformation(space)
         (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = frame.rot.tolist()
         ox, oy, oz = frame.origin.tolist()
-        ex, ey, ez = lum.exit_point.tolist()
-        nx, ny, nz = lum.exit_normal.tolist()
+        discs = np.ascontiguousarray(lum.exit_discs, dtype=np.float64)
+        slab = 2.0 * self.config.resolution
         lx, ly, lz = lum.bbox_low.tolist()
         hx, hy, hz = lum.bbox_high.tolist()
         need = self.required
@@ -294,7 +295,7 @@ class RrtPlanner:
             x = ox + a * r00 + b * r10 + c * r20
             y = oy + a * r01 + b * r11 + c * r21
             z = oz + a * r02 + b * r12 + c * r22
-            if (x - ex) * nx + (y - ey) * ny + (z - ez) * nz > 0.0 \
+            if in_exit_slab(x, y, z, discs, slab) >= 0 \
                     or not (lx <= x <= hx and ly <= y <= hy and lz <= z <= hz):
                 return False
             query[0, 0], query[0, 1], query[0, 2] = x, y, z

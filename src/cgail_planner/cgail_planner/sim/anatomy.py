@@ -79,7 +79,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 import trimesh
 
-from cgail_planner.sim import disk_cache, mesh_io
+from cgail_planner.sim import disk_cache, exits, mesh_io
 from cgail_planner.sim.mesh_io import AnatomyError, MeshLoadError
 
 __all__ = [
@@ -338,6 +338,7 @@ class Anatomy:
         start_point: (3,) lumen point in the descending aorta near the exit end.
         start_direction: (3,) unit lumen direction there (cranial).
 
+    Derived: :attr:`exit_discs`, the open cuts the tip can leave through (one per cap).
     All arrays are read-only copies. Equality and hashing are by identity (``eq=False``);
     :attr:`content_hash` compares contents.
     """
@@ -404,6 +405,25 @@ class Anatomy:
             h.update(np.ascontiguousarray(self.ostia[side], dtype="<f8").tobytes())
             h.update(str(int(self.ostium_vertices[side])).encode())
         return h.hexdigest()[:16]
+
+    @functools.cached_property
+    def exit_discs(self) -> np.ndarray:
+        """(D, 7) the open cuts as discs, the one exit rule's input (:mod:`cgail_planner.sim.
+        exits`): one row ``(centre, normal out of the lumen, radius)`` per cap (a connected
+        region of ``wall_face_mask == False`` faces), measured from the cap faces.
+
+        Row 0 is the descending end: centre :attr:`exit_point`, normal :attr:`exit_normal` and
+        the largest distance of its cap's vertices from that centre, in the plane. The other
+        caps (supra-aortic branch and coronary stub ends) follow: their area-weighted centroid,
+        mean normal and largest in-plane vertex distance. The valve plane at the annulus is
+        wall (the valve is closed: the tip collides with it), so it is no disc; a mesh whose
+        annulus is an open cap gets a disc there like any cap.
+
+        Raises:
+            AnatomyError: no cap around :attr:`exit_point` (every anatomy the loaders and
+                ``prepare_anatomy`` make has one).
+        """
+        return _exit_discs(self)
 
     @property
     def mesh(self) -> trimesh.Trimesh:
@@ -752,6 +772,39 @@ def _assemble(name: str, verts: np.ndarray, faces: np.ndarray, wall_mask: np.nda
         start_point=g.spine[i_start].copy(),
         start_direction=_unit(-g.tangent[i_start]),
     )
+
+
+def _exit_discs(anatomy: Anatomy) -> np.ndarray:
+    """:attr:`Anatomy.exit_discs` measured from the cap faces."""
+    caps = np.flatnonzero(~anatomy.wall_face_mask)
+    label = _face_components(anatomy.faces[caps]) if len(caps) else np.zeros(0, np.int64)
+    regions = [anatomy.faces[caps[label == k]] for k in np.unique(label)]
+    centroids, normals, areas = [], [], []
+    for faces in regions:
+        tri = anatomy.vertices[faces]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        area = 0.5 * np.linalg.norm(cross, axis=1)
+        centroids.append((tri.mean(axis=1) * area[:, None]).sum(axis=0) / area.sum())
+        normals.append(_unit(cross.sum(axis=0)))
+        areas.append(float(area.sum()))
+    exit_point = np.asarray(anatomy.exit_point, dtype=np.float64)
+    gaps = [float(np.linalg.norm(c - exit_point)) for c in centroids]
+    # the descending cap: the one whose centroid is nearest exit_point, within its own size
+    first = int(np.argmin(gaps)) if regions else -1
+    if first < 0 or gaps[first] > 2.0 * math.sqrt(areas[first] / math.pi):
+        found = f"the nearest cap {min(gaps) * 1e3:.1f} mm away" if regions else "no cap faces"
+        raise AnatomyError(f"expected a cap (wall_face_mask False) closing the descending end "
+                           f"at exit_point {np.round(exit_point * 1e3, 1).tolist()} mm, found "
+                           f"{found}")
+    centroids[first], normals[first] = exit_point, _unit(anatomy.exit_normal)
+    order = [first] + [k for k in range(len(regions)) if k != first]
+    radii = []
+    for k in order:
+        rel = anatomy.vertices[np.unique(regions[k])] - centroids[k]
+        in_plane = rel - (rel @ normals[k])[:, None] * normals[k]
+        radii.append(float(np.linalg.norm(in_plane, axis=1).max()))
+    return exits.disc_array(np.array([centroids[k] for k in order]),
+                            np.array([normals[k] for k in order]), np.array(radii))
 
 
 _CACHE: dict[str, Anatomy] = {}

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from cgail_planner.sim.anatomy import anatomy_label, AnatomySpec
 from cgail_planner.sim.config import EnvConfig
+from cgail_planner.sim.exits import crossed_discs
 from cgail_planner.sim.ftl_model import (
     action_to_command,
     bend_limit,
@@ -37,7 +38,6 @@ from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.reward import (
     bending_event,
     compute_reward,
-    exited_lumen,
     non_minor_collision,
     reached_target,
     StepEvents,
@@ -208,8 +208,8 @@ class NavEngine:
         cat = config.catheter
         self.catheter = CatheterBatch(n_envs, cat, capacity=config.max_steps + 8)
         self.radius = cat.radius
-        self.exit_point = np.asarray(anatomy.exit_point, dtype=np.float64)
-        self.exit_normal = np.asarray(anatomy.exit_normal, dtype=np.float64)
+        #: the open cuts the tip can leave through (:mod:`cgail_planner.sim.exits`)
+        self.exit_discs = anatomy.exit_discs
         self.bbox_low, self.bbox_high = episode_bounds(anatomy)
         #: the episode target's wall vertex, rest offset and branch, per environment
         self._target_vertex = np.zeros(n_envs, dtype=np.int64)
@@ -342,6 +342,7 @@ class NavEngine:
         cat = self.catheter
         alpha, gamma, dl = action_to_command(actions, cat.theta_max, cfg.segment_length,
                                              cat.config.max_step_insertion, cfg.forward_only)
+        previous_tips = cat.tip_position  # (a copy) for the exit test
         al, ga, applied_dl = cat.step(alpha, gamma, dl)
         limit = bend_limit(np.where(applied_dl > 0.0, applied_dl, 0.0), cat.theta_max,
                            cfg.segment_length)
@@ -381,7 +382,7 @@ class NavEngine:
         rcfg = cfg.reward
         collision = non_minor_collision(self.contact_force, self.penetration, rcfg)
         outside_box = np.any((tips < self.bbox_low) | (tips > self.bbox_high), axis=1)
-        exited = exited_lumen(tips, self.exit_point, self.exit_normal) | outside_box
+        exited = crossed_discs(previous_tips, tips, self.exit_discs) | outside_box
         success = reached_target(tips, self.target, rcfg)
         new_wp = update_waypoints(tips, self.waypoints, self.reached, rcfg)
         bending = bending_event(al, ga, limit, rcfg, actions)
@@ -492,7 +493,7 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
 
     **Reward** (paper Table I, :mod:`cgail_planner.sim.reward`): ``r_obst = -1`` on a non-minor
     collision (force >= 0.8 N or penetration), ``r_exit = -1`` when the tip leaves through the
-    open descending end (or the anatomy's bounding box + 10 mm, i.e. through any other open end),
+    disc of an open end (:mod:`cgail_planner.sim.exits`) or the anatomy's bounding box + 10 mm,
     ``r_target = +1`` when ``||p_t - p_g|| < epsilon``; every step ``r_step = -1e-5``, ``+0.05``
     per newly reached centerline waypoint (within 6 mm, the target's branch, once per episode) and
     ``r_bending = +1e-5`` when ``max(|alpha|, |gamma|) > 0.9 theta_max^t``.

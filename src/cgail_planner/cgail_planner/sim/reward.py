@@ -6,9 +6,11 @@
 term              value     event
 ================  ========  ==========================================================
 ``r_obst``        -1        non-minor tip-wall collision (ends the episode)
-``r_exit``        -1        the tip leaves the lumen through the open descending end
-                            (crosses the exit plane of ``Anatomy.exit_point/exit_normal``,
-                            ends the episode)
+``r_exit``        -1        the tip leaves the lumen through an open end: the step
+                            crosses the disc of a cut (``Anatomy.exit_discs``: the
+                            descending end, a branch or coronary stub end;
+                            :mod:`cgail_planner.sim.exits`), or the tip leaves the
+                            bounding box (ends the episode)
 ``r_target``      +1        ``||p_t - p_g|| < epsilon`` (epsilon 10 mm; ends the episode)
 ``r_step``        -1e-5     every step
 ``r_centerline``  +0.05     per centerline waypoint newly reached in this episode
@@ -115,7 +117,7 @@ class StepEvents(NamedTuple):
     collision: BoolArray
     """Non-minor tip-wall collision."""
     exited: BoolArray
-    """The tip left through the open descending end."""
+    """The tip left the lumen through an open end (:mod:`cgail_planner.sim.exits`)."""
     success: BoolArray
     """``||p_t - p_g|| < epsilon``."""
     new_waypoints: NDArray[np.int64]
@@ -144,17 +146,6 @@ def non_minor_collision(force: FloatArray, penetration: FloatArray,
     f = np.asarray(force, dtype=np.float64)
     pen = np.asarray(penetration, dtype=np.float64)
     return (f >= config.minor_force) | (pen > 0.0)
-
-
-def exited_lumen(tip: FloatArray, exit_point: FloatArray, exit_normal: FloatArray) -> BoolArray:
-    """True where the tip lies beyond the exit plane (outside the open descending end).
-
-    Args:
-        tip: (N, 3) tip positions.
-        exit_point: (3,) centre of the open end.
-        exit_normal: (3,) unit normal pointing out of the lumen.
-    """
-    return np.asarray((np.asarray(tip) - exit_point) @ exit_normal > 0.0)
 
 
 def reached_target(tip: FloatArray, target: FloatArray, config: RewardConfig) -> BoolArray:

@@ -23,6 +23,7 @@ from cgail_planner.core.planner import (
     ReplanConfig,
 )
 from cgail_planner.sim.contact import Contact
+from cgail_planner.sim.exits import disc_array
 from cgail_planner.sim.ftl_model import (
     CatheterConfig,
     ObservationConfig,
@@ -68,8 +69,8 @@ class Plane(OpenSpace):
 
 
 def box_world(**extra) -> ModelWorld:
-    """A 1 m box around the origin; the open (exit) end is the plane y = -0.10025 (normal -y;
-    a quarter step off the step grid)."""
+    """A 1 m box around the origin; the open (exit) end is a disc across the box in the plane
+    y = -0.10025 (normal -y; a quarter step off the step grid)."""
     line = np.column_stack([np.zeros(50), np.linspace(0, 0.2, 50), np.zeros(50)])
     bend = np.column_stack([np.linspace(0, 0.05, 50), np.full(50, 0.2), np.zeros(50)])
     return ModelWorld(
@@ -77,7 +78,9 @@ def box_world(**extra) -> ModelWorld:
         centerlines={'left': line, 'right': np.vstack([line, bend[1:]])},
         ostia={'left': np.array([0.0, 0.2, 0.0]), 'right': np.array([0.05, 0.2, 0.0])},
         contains=lambda pts: np.linalg.norm(pts, axis=1) < 0.4,
-        exit_point=np.array([0.0, -0.10025, 0.0]), exit_normal=np.array([0.0, -1.0, 0.0]), **extra)
+        exit_point=np.array([0.0, -0.10025, 0.0]), exit_normal=np.array([0.0, -1.0, 0.0]),
+        exit_discs=disc_array(np.array([[0.0, -0.10025, 0.0]]), np.array([[0.0, -1.0, 0.0]]),
+                              np.array([0.5])), **extra)
 
 
 def constant(action):

@@ -20,6 +20,7 @@ from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.mlp import MlpBuilder, MlpProgram
 from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.learning.onnx_policy import OnnxPolicy
+from cgail_planner.sim.exits import crossed_discs
 from cgail_planner.sim.ftl_model import (
     action_to_command,
     advance_pose,
@@ -81,17 +82,19 @@ def constant_action_outcome(planner: Planner, p0, r0, action) -> tuple[str, int]
     """What a constant forward action must give, from the catheter model and the wall alone:
     the tip poses of the model's single-pose step (independent of the wall), each checked as
     an episode ends: a collision when the tip sphere penetrates the wall after step k
-    ('touched', k), the tip beyond the exit plane or the bounding box after step k ('left', k)."""
+    ('touched', k), step k through an exit disc or the tip beyond the bounding box after it
+    ('left', k)."""
     cfg, world, cat = planner.config, planner.world, planner.config.catheter
     alpha, gamma, dl = (float(v) for v in action_to_command(
         np.asarray(action, dtype=np.float64), cat.theta_max, cat.segment_length,
         cat.max_step_insertion))
     p, r = np.array(p0, dtype=float), np.array(r0, dtype=float)
     for k in range(1, cfg.max_rollout_steps + 1):
+        p0 = p
         p, r = advance_pose(p, r, alpha, gamma, dl)
         if planner.wall.tip_contact(p, cat.radius, cat.dt).penetration > 0.0:
             return 'touched', k
-        if (p - world.exit_point) @ world.exit_normal > 0.0 \
+        if crossed_discs(p0[None], p[None], world.exit_discs)[0] \
                 or ((p < world.bbox_low) | (p > world.bbox_high)).any():
             return 'left', k
     return 'step limit', cfg.max_rollout_steps
@@ -236,7 +239,7 @@ def test_kernel_sees_the_current_shape_of_a_deformable_wall(world, policy) -> No
 def test_retraction_follows_a_bent_introducer_out_of_the_exit() -> None:
     """In the aorta whose descending part curves near its open end, start 2's body behind it
     is the bent introducer: retracting all the way, the tip slides along it and leaves through
-    the exit plane (as the env's episode does), where a straight introducer would have taken
+    the exit disc (as the env's episode does), where a straight introducer would have taken
     it through the wall."""
     import dataclasses
     import sys

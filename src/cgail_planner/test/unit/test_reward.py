@@ -6,7 +6,6 @@ import pytest
 from cgail_planner.sim.reward import (
     bending_event,
     compute_reward,
-    exited_lumen,
     non_minor_collision,
     reached_target,
     RewardConfig,
@@ -66,12 +65,6 @@ def test_terms_split() -> None:
 def test_collision_classes(force: float, penetration: float, non_minor: bool) -> None:
     assert bool(non_minor_collision(np.array([force]), np.array([penetration]), CFG)[0]) \
         is non_minor
-
-
-def test_exit_plane() -> None:
-    tips = np.array([[0.0, 0.0, 0.001], [0.0, 0.0, -0.001], [0.05, 0.0, 0.0]])
-    out = exited_lumen(tips, np.zeros(3), np.array([0.0, 0.0, -1.0]))
-    assert out.tolist() == [False, True, False]
 
 
 def test_success_distance() -> None:
