@@ -30,7 +30,7 @@ class NoPathError(PlannerError):
         message: what happened.
         points: (K, 3) the tip positions rolled out before the failure, m (None when the
             failure is not a rollout's); kept as :attr:`points` for diagnostics.
-        reason: how a rollout ended: ``collided``, ``left`` (exit plane or bounding box),
+        reason: how a rollout ended: ``collided``, ``left`` (an exit disc or bounding box),
             ``limit`` (step limit) or ``bad_action``; for the RRT the limit that ran out,
             ``max_iterations`` or ``time_limit``; None otherwise.
         step: the step it ended at (the RRT: the iterations it used; None otherwise).

@@ -402,7 +402,7 @@ class Planner:
 
     Args:
         config: planner settings and the catheter model.
-        world: the anatomy model (observation origin and ``d_max``, exit plane, bounds).
+        world: the anatomy model (observation origin and ``d_max``, exit discs, bounds).
         wall: ray-cast and contact wall (static, or the deformable wall whose current shape is
             used).
         policy: ``obs (dim,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
