@@ -12,6 +12,13 @@ landmarks, decisions, warnings), ``DIR/render.png`` and ``DIR/prepare.yaml`` (in
 versions, the frame conversion and ``Anatomy.content_hash``). Every other tool loads the result
 with ``load_anatomy_mesh(DIR / "lumen.stl")``.
 
+The checks (:mod:`cgail_planner.patient.validate`) end with the proof that the anatomy is
+usable: the scripted expert drives whole episodes to every standard target, in the rigid and in
+the beating aorta (about 10 s); a target it cannot reach refuses the anatomy, and one stderr
+line and the report's per-target table say which target, in which mode, from which start, and
+why (collision, exit, timeout, simulation fault). ``--no-expert-check`` skips that proof (quick
+runs only: the report then says the anatomy's usability is not proven).
+
 Exit status: 0 usable; 1 the checks refused the anatomy (the report and render are written, the
 lumen is kept as ``lumen.rejected.stl`` / ``.yaml`` for inspection); 2 the input could not be
 used (one line on stderr says why).
@@ -118,6 +125,10 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                          "0.75 mm for a mesh)")
     ap.add_argument("--no-wall-check", action="store_true",
                     help="skip the deformable-wall check (two simulated heartbeats)")
+    ap.add_argument("--no-expert-check", action="store_true",
+                    help="skip the expert check, the proof that the anatomy is usable (the "
+                         "scripted expert to every standard target, static and dynamic; "
+                         "~15 s): for quick runs only")
     return ap.parse_args(argv)
 
 
@@ -213,7 +224,8 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
     save_anatomy_mesh(prepared.anatomy, out / "lumen.stl")
     anatomy = load_anatomy_mesh(out / "lumen.stl", name=name)
     t0 = time.perf_counter()
-    validation = validate_anatomy(anatomy, wall=not args.no_wall_check)
+    validation = validate_anatomy(anatomy, wall=not args.no_wall_check,
+                                  expert=not args.no_expert_check)
     prepared.timings["validation"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     _render(anatomy, prepared, validation, out / "render.png")
@@ -245,6 +257,7 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
         "anatomy": {"vertices": len(anatomy.vertices), "faces": len(anatomy.faces),
                     "content_hash": anatomy.content_hash},
         "usable": not validation.errors,
+        "expert_check": _expert_record(validation, args.no_expert_check),
         "errors": [f"{c.name}: {c.message}" for c in validation.errors],
         "warnings": prepared.warnings + [f"{c.name}: {c.message}" for c in validation.warnings],
         "timings_s": {k: round(v, 2) for k, v in prepared.timings.items()},
@@ -269,7 +282,7 @@ def _render(anatomy: Any, prepared: PreparedAnatomy, validation: Validation, pat
         anatomy, path, centerlines=validation.centerlines,
         scenarios=validation.scenarios is not None,
         markers={"annulus centre": np.asarray(anatomy.annulus_center),
-                 "exit point": np.asarray(anatomy.exit_point)},
+                 "exit point": np.asarray(anatomy.exit_point), **_missed_targets(validation)},
         title=f"prepared anatomy '{anatomy.name}': {len(anatomy.vertices)} vertices; {verdict}")
 
 
@@ -343,12 +356,61 @@ def _report(record: dict[str, Any], prepared: PreparedAnatomy, v: Validation, an
     lines += ["", "## What was decided", ""] + [f"- {n}" for n in prepared.notes]
     warns = record["warnings"]
     lines += ["", "## Warnings", ""] + ([f"- {w}" for w in warns] if warns else ["none"])
+    lines += _expert_section(v)
     lines += ["", "## Timings", "", "| step | s |", "|---|---|"]
     lines += [f"| {k} | {val:.1f} |" for k, val in prepared.timings.items()]
     lines += ["", "## Render", "", "Lumen (wall red, caps grey), centrelines, ostia, annulus "
               "centre, exit point, starts (triangles) and targets (stars):", "",
               "![render](render.png)", ""]
     return "\n".join(lines)
+
+
+def _expert_record(v: Validation, skipped: bool) -> Any:
+    """The expert check in ``prepare.yaml``: one entry per episode, or why there is none."""
+    if skipped:
+        return "skipped (--no-expert-check): usability not proven"
+    if not v.expert_trials:
+        return "not run"
+    return [{"mode": t.mode, "target": t.target, "start": t.start, "outcome": t.outcome,
+             "steps": t.steps, "final_distance_mm": round(t.final_distance_mm, 2),
+             "max_wall_displacement_mm": round(t.max_wall_mm, 2), "detail": t.detail}
+            for t in v.expert_trials]
+
+
+def _missed_targets(v: Validation) -> dict[str, np.ndarray]:
+    """Render markers at the targets the expert check did not reach (rest positions)."""
+    if v.scenarios is None:
+        return {}
+    reached = {(t.mode, t.target) for t in v.expert_trials if t.outcome == "success"}
+    return {f"target {t.target} NOT reached": np.asarray(v.scenarios.targets[t.target].position)
+            for t in v.expert_trials if (t.mode, t.target) not in reached}
+
+
+def _expert_section(v: Validation) -> list[str]:
+    """The report's per-episode table of the expert check."""
+    lines = ["", "## Scripted expert to every standard target", ""]
+    if not v.expert_trials:
+        ran = [c for c in v.checks if c.name.startswith("expert ")]
+        lines.append("Not run: " + (ran[0].message.removeprefix("not run: ") if ran else
+                                    "skipped (`--no-expert-check`); the anatomy's usability "
+                                    "is not proven."))
+        return lines
+    lines += ["Target k of set 0 from start k % 3 (another start when that fails), whole "
+              "episodes of the real env: rigid wall (static), then the beating wall pushed by "
+              "the catheter body with the target riding on it (dynamic). Target positions from "
+              "the annulus centre (x patient left, y posterior, z cranial), height above the "
+              "annulus plane. Wall: the largest wall-particle displacement from rest.", "",
+              "| mode | target | position (mm) | height (mm) | start | outcome | steps | "
+              "final distance (mm) | closest (mm) | wall (mm) | tip-contact steps | why |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for t in v.expert_trials:
+        mark = t.outcome if t.outcome == "success" else f"**{t.outcome}**"
+        wall = f"{t.max_wall_mm:.1f}" if t.mode == "dynamic" else "-"
+        lines.append(f"| {t.mode} | {t.target} | {_fmt(np.asarray(t.target_mm))} | "
+                     f"{t.height_mm:.1f} | {t.start} | {mark} | {t.steps} | "
+                     f"{t.final_distance_mm:.1f} | {t.closest_mm:.1f} | {wall} | "
+                     f"{t.contact_steps} | {t.detail} |")
+    return lines
 
 
 def record_len(v: Validation, branch: str) -> str:

@@ -24,7 +24,34 @@ deformable wall               two heartbeats with the catheter in the introducer
                               particle further than ``wall_bound_mm`` from rest, all
                               finite (a wall that would blow up is refused, never
                               reported later as a "collision")
+expert static,                the scripted expert reaches every standard target        error /
+expert dynamic                (target set 0) in whole episodes of the real env:        warning
+                              rigid wall; beating wall pushed by the catheter body
+                              with the target moving with it
 ============================  =======================================================  =========
+
+**The expert check** (``expert=True``; ``prepare_anatomy`` runs it unless
+``--no-expert-check``) is the proof that the anatomy is usable: the checks above are geometry,
+this one drives the catheter. Target ``k`` of set 0 (:data:`EXPERT_TARGET_SET`, the rig's and
+the demonstrations' targets) is driven to from start ``k % 3`` by the scripted expert
+(:class:`~cgail_planner.learning.expert.ScriptedExpert`, no score jitter: a deterministic
+function of the anatomy), once in the static env and once in the dynamic one (heartbeat,
+deformable wall pushed by the catheter body, the target riding on its wall particle), each a
+full episode of :class:`~cgail_planner.sim.env.CatheterNavEnv` ending in success, collision,
+exit, simulation fault or the 2,000-step timeout. So every target and every start is driven in
+both modes. A target missed from its start is tried from the other starts: reached from one of
+them it is a warning (the failed start is named), reached from none it is an error, and so is
+a simulation fault from any start (a wall that cannot take the catheter). The error names the
+target, its position from the annulus centre, the mode, each start tried and its outcome
+("collision 31 mm from the target at step 212", "exited through the descending cut at step
+40", "simulation fault at step 443 ..."). Every episode is in ``Validation.expert_trials``
+(outcome, steps, final and closest distance, largest wall displacement, tip-contact steps).
+Cost on ``default``: 10 episodes of ~500 steps, about 5 s static and 10 s dynamic on one
+loaded core (``figures["expert_s"]``).
+
+:func:`expert_success` is the same drive as a measurement: the scripted expert's or the
+centerline follower's success on other target sets (unseen by every training), static and
+dynamic, through :func:`cgail_planner.learning.evaluate.run_trials`.
 """
 
 from __future__ import annotations
@@ -39,13 +66,19 @@ import numpy as np
 from cgail_planner.sim.anatomy import Anatomy, AnatomyError
 from cgail_planner.sim.ftl_model import CatheterConfig
 
-__all__ = ["Check", "Validation", "bend_radii", "validate_anatomy"]
+__all__ = ["EXPERT_TARGET_SET", "Check", "ExpertTrial", "SuccessTable", "Validation",
+           "bend_radii", "expert_success", "run_expert_trial", "validate_anatomy"]
 
 #: Vertex count above which the deformable wall falls below ~500 steps/s.
 MAX_VERTICES = 4000
 #: Largest wall-particle displacement from rest accepted in the deformable-wall check, mm
 #: (the heartbeat moves the annulus by up to ~11 mm; the catheter indents the wall by a few).
 WALL_BOUND_MM = 25.0
+#: Target set of the expert check: the standard one (``EnvConfig.scenario_seed`` 0), which the
+#: rig, the demonstrations and the presets use.
+EXPERT_TARGET_SET = 0
+#: Episode outcomes of the expert check.
+OUTCOMES = ("success", "collision", "exited", "timeout", "simulation fault")
 
 
 @dataclass(frozen=True)
@@ -63,6 +96,42 @@ class Check:
     """One line: what is wrong and what to do (empty when ok)."""
 
 
+@dataclass(frozen=True)
+class ExpertTrial:
+    """One episode of the expert check."""
+
+    mode: str
+    """``static`` or ``dynamic``."""
+    target: int
+    """Index in target set :data:`EXPERT_TARGET_SET`."""
+    target_mm: tuple[float, float, float]
+    """The target's rest position from the annulus centre, mm (phantom axes: x patient left,
+    y posterior, z cranial)."""
+    height_mm: float
+    """The target's height above the annulus plane (along the root axis), mm."""
+    start: int
+    outcome: str
+    """One of :data:`OUTCOMES`."""
+    steps: int
+    final_distance_mm: float
+    """Tip-target distance at the last step, mm."""
+    closest_mm: float
+    """Smallest tip-target distance of the episode (T_a), mm."""
+    max_wall_mm: float
+    """Largest wall-particle displacement from rest over the episode, mm (0 in static mode)."""
+    contact_steps: int
+    """Steps with the tip touching the wall (minor contacts included)."""
+    detail: str
+    """Why it failed, one phrase (empty on success)."""
+
+    @property
+    def where(self) -> str:
+        """The target, as the report and the error name it."""
+        x, y, z = self.target_mm
+        return (f"target {self.target} (({x:.1f}, {y:.1f}, {z:.1f}) mm from the annulus "
+                f"centre, {self.height_mm:.1f} mm above its plane)")
+
+
 @dataclass
 class Validation:
     """All checks of one anatomy, and the data behind them (for the report and render)."""
@@ -72,6 +141,8 @@ class Validation:
     scenarios: Any = None
     figures: dict[str, Any] = field(default_factory=dict)
     """Numbers for the report: radius profile, bends, wall displacement, speeds ..."""
+    expert_trials: list[ExpertTrial] = field(default_factory=list)
+    """Every episode of the expert check, in the order run (module doc)."""
 
     @property
     def errors(self) -> list[Check]:
@@ -295,9 +366,265 @@ def _wall_check(anatomy: Anatomy, cat: CatheterConfig, v: Validation,
         v.add("deformable wall", "ok", value, limit)
 
 
+def _exit_where(anatomy: Anatomy, tip: np.ndarray) -> str:
+    """Which cut an exited tip left through: the nearest cap vertex's cut (the descending one
+    when that vertex lies in the exit plane), else outside the anatomy's bounds."""
+    caps = np.unique(anatomy.faces[~np.asarray(anatomy.wall_face_mask)])
+    if len(caps):
+        pts = np.asarray(anatomy.vertices)[caps]
+        d = np.linalg.norm(pts - tip, axis=1)
+        i = int(np.argmin(d))
+        if d[i] < 0.02:
+            if abs(float((pts[i] - anatomy.exit_point) @ anatomy.exit_normal)) < 5e-4:
+                return "through the descending cut"
+            x, y, z = pts[i] * 1e3
+            return f"through a branch cut (near ({x:.0f}, {y:.0f}, {z:.0f}) mm)"
+    return "out of the anatomy's bounds"
+
+
+def _fault_of(info: dict[str, Any]) -> str | None:
+    """The simulation fault an env step reports in its info, if any (its text, or a
+    placeholder when the env gives only the flag)."""
+    for key in ("simulation_fault", "fault"):
+        value = info.get(key)
+        if isinstance(value, str) and value:
+            return value
+        if value is not None and not isinstance(value, str) and bool(value):
+            text = info.get("fault_message") or info.get("simulation_fault_message")
+            return str(text) if text else "the simulator stopped the episode"
+    return None
+
+
+def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTrial:
+    """One full expert episode from ``start`` to ``target`` of ``env``'s target set.
+
+    Args:
+        env: a :class:`~cgail_planner.sim.env.CatheterNavEnv`.
+        expert: a :class:`~cgail_planner.learning.expert.ScriptedExpert` of ``env``.
+        start: start index.
+        target: target index.
+
+    Returns:
+        The episode's outcome and figures; a simulation fault (a wall that blows up) ends it
+        as ``simulation fault``, never raised.
+    """
+    from cgail_planner.sim.wall import WallError
+
+    eng = env.unwrapped.engine
+    anatomy = eng.world.anatomy
+    env.reset(seed=target, options={"start": start, "target": target})
+    expert.reset(None)
+    rest = np.asarray(eng.scenarios.targets[target].position)
+    rel = (rest - np.asarray(anatomy.annulus_center)) * 1e3
+    height = float(rel @ np.asarray(anatomy.root_axis))
+    max_wall = 0.0
+    contact = 0
+    fault: str | None = None
+    info: dict[str, Any] = {}
+    while True:
+        try:
+            _, _, terminated, truncated, info = env.step(expert.act())
+        except WallError as err:
+            fault = str(err)
+        wall = eng.walls[0]
+        max_wall = max(max_wall, float(getattr(wall, "max_displacement", 0.0)))
+        if fault is None:
+            fault = _fault_of(info)
+        if fault is not None:
+            break
+        contact += bool(info["in_contact"])
+        if terminated or truncated:
+            break
+    steps = int(eng.steps[0])
+    tip = np.asarray(eng.catheter.tip_position[0])
+    final = float(np.linalg.norm(np.asarray(eng.target[0]) - tip)) * 1e3
+    closest = float(eng.min_distance[0]) * 1e3
+    if fault is not None:
+        outcome = "simulation fault"
+        detail = f"simulation fault at step {steps} ({fault})"
+    elif info["success"]:
+        outcome, detail = "success", ""
+    elif info["collision"]:
+        outcome = "collision"
+        detail = (f"collision {final:.0f} mm from the target at step {steps} "
+                  f"({float(info['collision_force']):.1f} N, "
+                  f"{float(info['penetration']) * 1e3:.1f} mm into the wall)")
+    elif info["exited"]:
+        outcome = "exited"
+        detail = (f"exited {_exit_where(anatomy, tip)} at step {steps}, {final:.0f} mm "
+                  "from the target")
+    else:
+        outcome = "timeout"
+        detail = (f"timeout after {steps} steps, closest {closest:.0f} mm from the target "
+                  f"(final {final:.0f} mm)")
+    return ExpertTrial(mode=env.unwrapped.config.mode, target=target,
+                       target_mm=(float(rel[0]), float(rel[1]), float(rel[2])),
+                       height_mm=height, start=start, outcome=outcome, steps=steps,
+                       final_distance_mm=final, closest_mm=closest,
+                       max_wall_mm=max_wall * 1e3, contact_steps=contact, detail=detail)
+
+
+def _expert_check(anatomy: Anatomy, v: Validation, mode: str) -> None:
+    """The ``expert <mode>`` row (module doc)."""
+    from cgail_planner.learning.expert import ScriptedExpert
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    name = f"expert {mode}"
+    limit = f"every target of set {EXPERT_TARGET_SET} reached"
+    t0 = time.perf_counter()
+    try:
+        env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy,
+                                       scenario_seed=EXPERT_TARGET_SET))
+    except (AnatomyError, ValueError) as err:
+        v.add(name, "error", "not run", limit, f"the {mode} env does not build: {err}")
+        return
+    expert = ScriptedExpert(env)
+    n_s, n_t = len(env.scenarios.starts), len(env.scenarios.targets)
+    failed: list[tuple[ExpertTrial, list[ExpertTrial]]] = []
+    retried: list[str] = []
+    reached = 0
+    steps = 0
+    for k in range(n_t):
+        tried: list[ExpertTrial] = []
+        for s in [k % n_s, *(j for j in range(n_s) if j != k % n_s)]:
+            trial = run_expert_trial(env, expert, s, k)
+            tried.append(trial)
+            v.expert_trials.append(trial)
+            steps += trial.steps
+            if trial.outcome in ("success", "simulation fault"):
+                break
+        last = tried[-1]
+        misses = [t for t in tried if t.outcome != "success"]
+        if last.outcome == "success":
+            reached += 1
+            if misses:
+                retried.append(f"{last.where} reached from start {last.start} only ("
+                               + "; ".join(f"from start {t.start}: {t.detail}" for t in misses)
+                               + ")")
+        else:
+            failed.append((last, misses))
+            if last.outcome == "simulation fault":
+                break  # (the wall cannot take the catheter here: no more minutes on it)
+    elapsed = time.perf_counter() - t0
+    v.figures[f"expert_{mode}_s"] = elapsed
+    v.figures["expert_s"] = v.figures.get("expert_s", 0.0) + elapsed
+    v.figures[f"expert_{mode}_steps"] = steps
+    trials = [t for t in v.expert_trials if t.mode == mode]
+    walls = max((t.max_wall_mm for t in trials), default=0.0)
+    value = (f"{reached}/{n_t} targets reached ({len(trials)} episode"
+             f"{'s' * (len(trials) != 1)}, {steps} steps, "
+             f"{elapsed:.1f} s" + (f"; wall <= {walls:.1f} mm" if mode == "dynamic" else "")
+             + ")")
+    if failed:
+        first, misses = failed[0]
+        text = (f"{first.where} not reached in {mode} mode: "
+                + "; ".join(f"from start {t.start}: {t.detail}" for t in misses))
+        if len(failed) > 1:
+            text += "; also " + ", ".join(
+                f"target {t.target} ({'; '.join(f'start {m.start}: {m.outcome}' for m in ms)})"
+                for t, ms in failed[1:])
+        if first.outcome == "simulation fault" and reached + len(failed) < n_t:
+            text += f"; targets {', '.join(str(j) for j in range(first.target + 1, n_t))} " \
+                    "not driven after the fault"
+        v.add(name, "error", value, limit,
+              f"expected the scripted expert to reach every standard target, found {text}: "
+              "the anatomy is not usable for this task (the report's expert table says more)")
+    elif retried:
+        v.add(name, "warning", value, limit, f"in {mode} mode " + "; ".join(retried))
+    else:
+        v.add(name, "ok", value, limit)
+
+
+def _check_modes(name: str, modes: Any) -> tuple[str, ...]:
+    modes = tuple(modes)
+    bad = [m for m in modes if m not in ("static", "dynamic")]
+    if bad or not modes:
+        raise ValueError(f"{name}: expected modes among 'static' and 'dynamic', found "
+                         f"{list(modes)}")
+    return modes
+
+
+@dataclass
+class SuccessTable:
+    """Success of one method on target sets of an anatomy (:func:`expert_success`)."""
+
+    method: str
+    trials: dict[str, dict[int, list[Any]]]
+    """mode -> target set -> the trials (:class:`cgail_planner.learning.evaluate.Trial`)."""
+
+    def rate(self, mode: str, target_set: int | None = None) -> float:
+        """Share of successful trials in ``mode``, over every set or in ``target_set``."""
+        by_set = self.trials[mode]
+        runs = [t for k, ts in by_set.items() if target_set in (None, k) for t in ts]
+        return float(np.mean([t.success for t in runs])) if runs else float("nan")
+
+    def markdown(self) -> str:
+        """A markdown table: one row per mode, one column per target set, and all sets."""
+        sets = sorted({k for by_set in self.trials.values() for k in by_set})
+        lines = [f"| {self.method} | " + " | ".join(f"set {k}" for k in sets) + " | all |",
+                 "|---|" + "---|" * (len(sets) + 1)]
+        for mode, by_set in self.trials.items():
+            cells = [f"{100 * self.rate(mode, k):.0f}% ({len(by_set[k])})" for k in sets]
+            n = sum(len(ts) for ts in by_set.values())
+            lines.append(f"| {mode} | " + " | ".join(cells)
+                         + f" | {100 * self.rate(mode):.0f}% ({n}) |")
+        return "\n".join(lines)
+
+
+def expert_success(anatomy: Any, *, sets: tuple[int, ...] = (1, 2, 3),
+                   modes: tuple[str, ...] = ("static", "dynamic"), method: str = "expert",
+                   trials: int = 15, seed: int = 10_000, tracker: bool = True) -> SuccessTable:
+    """The scripted expert's or the centerline follower's success on target sets ``sets``
+    (not set 0, which the demonstrations and the expert check use: targets no run trained on),
+    in each mode, through ``evaluate``'s trials
+    (:func:`cgail_planner.learning.evaluate.run_trials`: trial ``k`` from start ``k % 3`` to
+    target ``(k // 3) % 5`` with seed ``seed + k``, so 15 trials cover every pair once).
+
+    Args:
+        anatomy: a built-in name, a prepared directory, a mesh file or an
+            :class:`~cgail_planner.sim.anatomy.Anatomy`.
+        sets: the target sets (``EnvConfig.scenario_seed``).
+        modes: ``static`` and/or ``dynamic``.
+        method: ``expert`` (the scripted expert, which reads the simulator's state; seeded
+            score jitter per trial, as in ``evaluate``) or ``follower`` (the centerline
+            follower, :class:`~cgail_planner.learning.evaluate.CenterlineFollower`).
+        trials: trials per set and mode.
+        seed: base seed of the trials.
+        tracker: the follower perceives the tip through the simulated EM tracker
+            (``evaluate``'s and ``plan_patient``'s default, :class:`~cgail_planner.learning.
+            evaluate.TrackingNoise`); False: the true tip.
+
+    Raises:
+        ValueError: an unknown method or mode, fewer than one trial.
+        AnatomyError: an anatomy that does not load or admits no scenario set.
+    """
+    from cgail_planner.learning.evaluate import CenterlineFollower, run_trials, TrackingNoise
+    from cgail_planner.learning.expert import ScriptedExpert
+    from cgail_planner.sim.config import EnvConfig
+    from cgail_planner.sim.env import CatheterNavEnv
+
+    if method not in ("expert", "follower"):
+        raise ValueError(f"method: expected 'expert' or 'follower', found {method!r}")
+    if trials < 1:
+        raise ValueError(f"trials: expected >= 1, found {trials}")
+    modes = _check_modes("modes", modes)
+    out: dict[str, dict[int, list[Any]]] = {}
+    for mode in modes:
+        for k in sets:
+            env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=int(k)))
+            tracked = method == "follower"
+            agent = CenterlineFollower(env) if tracked else ScriptedExpert(env)
+            noise = TrackingNoise() if tracker and tracked else None
+            out.setdefault(mode, {})[int(k)] = run_trials(env, agent, trials, seed,
+                                                           noise=noise, tracked=tracked)
+    return SuccessTable(method, out)
+
+
 def validate_anatomy(anatomy: Anatomy, *, catheter: CatheterConfig | None = None,
                      wall: bool = True, wall_bound_mm: float = WALL_BOUND_MM,
-                     beats: float = 2.0) -> Validation:
+                     beats: float = 2.0, expert: bool = False,
+                     expert_modes: tuple[str, ...] = ("static", "dynamic")) -> Validation:
     """Run every check (module doc) on ``anatomy``.
 
     Args:
@@ -306,6 +633,10 @@ def validate_anatomy(anatomy: Anatomy, *, catheter: CatheterConfig | None = None
         wall: run the deformable-wall check.
         wall_bound_mm: largest accepted particle displacement, mm.
         beats: heartbeats the wall check runs.
+        expert: run the expert check (the scripted expert to every standard target, whole
+            episodes; ~15 s), the proof that the anatomy is usable (``prepare_anatomy`` runs
+            it; off by default for the cheap geometric screening of population samples).
+        expert_modes: the modes of the expert check (``static``, ``dynamic``).
 
     Returns:
         The checks and their figures; later checks that depend on a failed one are skipped
@@ -315,6 +646,7 @@ def validate_anatomy(anatomy: Anatomy, *, catheter: CatheterConfig | None = None
     from cgail_planner.sim.scenarios import build_scenarios
 
     cat = catheter or CatheterConfig()
+    _check_modes("expert_modes", expert_modes)
     v = Validation()
     t0 = time.perf_counter()
     if not _mesh_checks(anatomy, v):
@@ -348,5 +680,12 @@ def validate_anatomy(anatomy: Anatomy, *, catheter: CatheterConfig | None = None
     elif wall:
         v.add("deformable wall", "error", "not run", f"<= {wall_bound_mm:.0f} mm",
               "not run: fix the errors above first")
+    for mode in expert_modes if expert else ():
+        if not v.errors:  # (a refused lumen: no minutes of timeouts on top)
+            _expert_check(anatomy, v, mode)
+        else:
+            v.add(f"expert {mode}", "error", "not run",
+                  f"every target of set {EXPERT_TARGET_SET} reached",
+                  "not run: fix the errors above first")
     v.figures["validation_s"] = time.perf_counter() - t0
     return v

@@ -113,9 +113,10 @@ def coarse(tmp_path_factory: pytest.TempPathFactory) -> Case:
                                              descending_length_mm=170.0))
     tmp = tmp_path_factory.mktemp("coarse")
     paths = ct.write(tmp)
+    # (the expert check's ~10 s run in test_patient_expert_check.py)
     result = prepare_anatomy([str(paths["aorta"]), "--lv", str(paths["lv"]), "--out",
                               str(tmp / "prepared"), "--voxel-mm", "1.2",
-                              "--target-vertices", "1500"])
+                              "--target-vertices", "1500", "--no-expert-check"])
     return Case(result, ct.truth, 50.0, 170.0)
 
 
