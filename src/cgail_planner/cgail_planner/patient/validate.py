@@ -366,20 +366,21 @@ def _wall_check(anatomy: Anatomy, cat: CatheterConfig, v: Validation,
         v.add("deformable wall", "ok", value, limit)
 
 
-def _exit_where(anatomy: Anatomy, tip: np.ndarray) -> str:
-    """Which cut an exited tip left through: the nearest cap vertex's cut (the descending one
-    when that vertex lies in the exit plane), else outside the anatomy's bounds."""
-    caps = np.unique(anatomy.faces[~np.asarray(anatomy.wall_face_mask)])
-    if len(caps):
-        pts = np.asarray(anatomy.vertices)[caps]
-        d = np.linalg.norm(pts - tip, axis=1)
-        i = int(np.argmin(d))
-        if d[i] < 0.02:
-            if abs(float((pts[i] - anatomy.exit_point) @ anatomy.exit_normal)) < 5e-4:
-                return "through the descending cut"
-            x, y, z = pts[i] * 1e3
-            return f"through a branch cut (near ({x:.0f}, {y:.0f}, {z:.0f}) mm)"
-    return "out of the anatomy's bounds"
+def _exit_where(anatomy: Anatomy, previous: np.ndarray, tip: np.ndarray) -> str:
+    """Which cut the last step ``previous -> tip`` left the lumen through
+    (:func:`cgail_planner.sim.exits.crossed_disc` on :attr:`Anatomy.exit_discs`: row 0 is the
+    descending cut), else out of the anatomy's bounds (the env's other exit)."""
+    from cgail_planner.sim.exits import crossed_disc
+
+    discs = anatomy.exit_discs
+    (x0, y0, z0), (x1, y1, z1) = np.asarray(previous, float), np.asarray(tip, float)
+    k = int(crossed_disc(x0, y0, z0, x1, y1, z1, discs))
+    if k < 0:
+        return "out of the anatomy's bounds"
+    if k == 0:
+        return "through the descending cut"
+    x, y, z = discs[k, :3] * 1e3
+    return f"through the cut at ({x:.0f}, {y:.0f}, {z:.0f}) mm (a branch end)"
 
 
 def _fault_of(info: dict[str, Any]) -> str | None:
@@ -422,6 +423,7 @@ def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTr
     fault: str | None = None
     info: dict[str, Any] = {}
     while True:
+        previous = np.array(eng.catheter.tip_position[0])  # (the exit's step starts here)
         try:
             _, _, terminated, truncated, info = env.step(expert.act())
         except WallError as err:
@@ -451,8 +453,8 @@ def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTr
                   f"{float(info['penetration']) * 1e3:.1f} mm into the wall)")
     elif info["exited"]:
         outcome = "exited"
-        detail = (f"exited {_exit_where(anatomy, tip)} at step {steps}, {final:.0f} mm "
-                  "from the target")
+        detail = (f"exited {_exit_where(anatomy, previous, tip)} at step {steps}, "
+                  f"{final:.0f} mm from the target")
     else:
         outcome = "timeout"
         detail = (f"timeout after {steps} steps, closest {closest:.0f} mm from the target "

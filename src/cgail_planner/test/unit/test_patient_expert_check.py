@@ -148,6 +148,24 @@ def test_collision_detail_names_distance_and_step(monkeypatch: pytest.MonkeyPatc
     assert abs(int(m[1]) - t.final_distance_mm) <= 0.5
 
 
+class _Retract:
+    """Pulls the catheter back: out through the descending cut."""
+
+    def reset(self, seed: int | None) -> None:
+        pass
+
+    def act(self) -> np.ndarray:
+        return np.array([0.0, 0.0, -1.0], dtype=np.float32)
+
+
+def test_exit_detail_names_the_cut() -> None:
+    env = env_mod.CatheterNavEnv(EnvConfig())
+    t = run_expert_trial(env, _Retract(), 0, 1)
+    assert t.outcome == "exited", t
+    assert t.detail == (f"exited through the descending cut at step {t.steps}, "
+                        f"{t.final_distance_mm:.0f} mm from the target")
+
+
 def test_simulation_fault_ends_the_trial_and_refuses(monkeypatch: pytest.MonkeyPatch) -> None:
     # A wall whose fault bound (5 mm) the heartbeat itself exceeds: the first dynamic episode
     # ends as a simulation fault, which refuses the anatomy without trying other starts.
