@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from cgail_planner.patient import PatientError
-from cgail_planner.patient.skeleton import Skeleton, skeleton_of
+from cgail_planner.patient.skeleton import Branch, Skeleton, skeleton_tree, SkeletonTree
 from cgail_planner.patient.volume import LabelVolume
 from cgail_planner.sim import mesh_io
 from cgail_planner.sim.anatomy import Anatomy
@@ -70,6 +70,22 @@ _EDGE_FACTOR = 0.93
 the remesher ends ~13 % short of the ideal vertex count)."""
 _ARCH_CLEARANCE_MM = 40.0
 """Centreline distance between the last supra-aortic branch and the farthest start, mm."""
+_ARCH_DROP_MM = 15.0
+"""Both limbs of the arch run at least this far caudal of its apex, mm."""
+_ARCH_BRANCH_BELOW_MM = 35.0
+"""A supra-aortic branch leaves the trunk at most this far caudal of the arch's apex, mm."""
+_ARCH_BRANCH_ARC_MM = 70.0
+"""... and at most this far along the centreline from it, mm."""
+_SKELETON_MM = 1.0
+"""Voxel size of the grid the centreline tree is computed on, mm (a coarse first look)."""
+_CUT_SHIFTS_MM = (0.0, 1.5, 3.0, 4.5)
+"""Inward shifts of a cut plane tried in turn until it crosses a clean tube, mm."""
+_END_TILT_DEG = 20.0
+"""A root end face tilted more than this from the root axis is an axial cut, not the valve."""
+_ANNULUS_SPREAD_MM = 3.0
+"""Least uncertainty of an annulus found from the root's shape, along the axis, mm."""
+_STJ_HEIGHT_MM = (17.0, 22.0)
+"""Usual height of the sinotubular junction above the annulus, mm (ANATOMY.md)."""
 _CATHETER_RADIUS_MM = 3.5
 """Outer radius of the paper's catheter (7 mm diameter, :mod:`cgail_planner.sim.ftl_model`)."""
 
@@ -149,6 +165,9 @@ class PreparedAnatomy:
     """Where each landmark came from (``estimated``, ``coronary label``, ``given`` ...)."""
     timings: dict[str, float] = field(default_factory=dict)
     """Seconds per step."""
+    annulus_uncertainty_mm: float = 0.0
+    """How far the annulus may lie from the estimate along the root axis, mm (0: given; a
+    voxel or two: fitted to the LV contact; more when found from the root's shape)."""
 
     def to_phantom(self, points_lps_mm: np.ndarray) -> np.ndarray:
         """Patient LPS mm -> phantom m."""
@@ -237,54 +256,122 @@ class _Field:
 # ------------------------------------------------------------------------------------------
 # 3-4. Orientation and frame
 # ------------------------------------------------------------------------------------------
-def _orient(skel: Skeleton, lv_points: np.ndarray | None, notes: list[str],
-            warnings: list[str]) -> tuple[Skeleton, bool]:
-    """The skeleton with its trunk running root -> descending end; True when the decision did
-    not use the frame (so the frame can be checked)."""
-    a, b = skel.trunk[0], skel.trunk[-1]
+def _turns_at(z: np.ndarray, arc: np.ndarray, i: int, sign: float) -> bool:
+    """True when the trunk turns back at point ``i``: both limbs leave it by at least
+    ``_ARCH_DROP_MM`` along S (``sign`` 1: down from a maximum, -1: up from a minimum)."""
+    if arc[i] < 10.0 or arc[-1] - arc[i] < 10.0:
+        return False
+    d = sign * (z[i] - z)
+    return bool(d[:i + 1].max() >= _ARCH_DROP_MM and d[i:].max() >= _ARCH_DROP_MM)
+
+
+def _arch_apex(skel: Skeleton, source: str, frame_hint: str) -> int:
+    """Index of the arch's apex on the trunk: the most cranial trunk point, where the trunk
+    turns back on itself (the ascending and descending limbs both run caudally from it).
+
+    Raises:
+        PatientError: the lumen turns back at its most CAUDAL point instead (a flipped S axis),
+            or it does not turn back at all (no arch in the label).
+    """
+    z = skel.trunk[:, 2]
+    arc = skel.trunk_arc
+    top = int(np.argmax(z))
+    if _turns_at(z, arc, top, 1.0):
+        return top
+    bottom = int(np.argmin(z))
+    if _turns_at(z, arc, bottom, -1.0):
+        raise PatientError(
+            f"expected the aortic arch at the cranial (+S) end of the lumen in {source}, found "
+            f"the lumen turning back at its most caudal point (S = {z[bottom]:.0f} mm, both "
+            f"limbs rising from it): the S axis is flipped; {frame_hint}")
+    raise PatientError(
+        f"expected an aortic arch in {source} (the lumen turning back at its cranial end, both "
+        f"limbs {_ARCH_DROP_MM:.0f} mm below it), found a lumen from S = {z[0]:.0f} to "
+        f"{z[-1]:.0f} mm that does not turn back: a thoracic or whole-aorta label is needed")
+
+
+def _identify(tree: SkeletonTree, lv_points: np.ndarray | None, source: str, frame_hint: str,
+              notes: list[str], warnings: list[str]) -> tuple[Skeleton, int, list[Branch]]:
+    """The trunk from the root end to the distal end, the arch apex's index on it and the
+    supra-aortic (arch) branches, found from the shape alone.
+
+    * Root end: the trunk end next to the left ventricle when an LV label is given; otherwise
+      the widest end (the ascending aorta is the widest part of the aorta). The distal end is
+      the end farthest from the root along the tree (the descending cut of a thoracic label,
+      or an iliac or femoral artery of a whole-aorta label).
+    * Arch: the trunk's most cranial point, where it turns back (:func:`_arch_apex`). Without an
+      LV label, the ascending limb (root to apex) must be the shorter one: when it is longer,
+      the widest end was the descending end of a thoracic label and the ends swap.
+    * Arch branches: the branches that leave the top of the arch (junction within
+      ``_ARCH_BRANCH_BELOW_MM`` below the apex and ``_ARCH_BRANCH_ARC_MM`` of centreline from
+      it) and run cranially. Abdominal and iliac branches never qualify, whatever their size.
+    """
+    leaves = list(tree.leaves)
+    widths = {leaf: tree.end_width(leaf) for leaf in leaves}
     if lv_points is not None and len(lv_points):
         from scipy.spatial import cKDTree
 
-        tree = cKDTree(lv_points)
-        da, db = float(tree.query(a)[0]), float(tree.query(b)[0])
-        notes.append(f"root end: the trunk end next to the left ventricle ({min(da, db):.0f} mm "
-                     f"from it; the other end {max(da, db):.0f} mm)")
-        return (skel if da <= db else skel.reversed()), True
+        lv_tree = cKDTree(lv_points)
+        wide = sorted(leaves, key=lambda n: -widths[n])[:3]
+        dist = {n: float(lv_tree.query(tree.pos[n])[0]) for n in wide}
+        root = min(wide, key=lambda n: dist[n])
+        notes.append(f"root end: the wide trunk end next to the left ventricle "
+                     f"({dist[root]:.0f} mm from it)")
+    else:
+        root = max(leaves, key=lambda n: widths[n])
+    dist_root = tree.distances(root)
+    distal = max((n for n in leaves if n != root), key=lambda n: dist_root[n])
+    skel = tree.skeleton(root, distal)
+    apex = _arch_apex(skel, source, frame_hint)
     arc = skel.trunk_arc
-    if skel.branches:
-        junctions = np.array([arc[br.junction_index] for br in skel.branches])
-        from_a = float(junctions.min())
-        from_b = float(arc[-1] - junctions.max())
-        if max(from_a, from_b) > 1.3 * min(from_a, from_b):
-            root_is_a = from_a < from_b
-            notes.append(
-                "root end: the trunk end nearer the supra-aortic branches "
-                f"({min(from_a, from_b):.0f} mm of centreline to the first branch; "
-                f"{max(from_a, from_b):.0f} mm from the other end to the last branch)")
-            return (skel if root_is_a else skel.reversed()), True
-    root_is_a = a[1] < b[1]
-    warnings.append("the root end was taken as the more anterior trunk end (no LV label and the "
-                    "branches do not tell): the axis convention could not be checked; pass --lv "
-                    "or check the render")
-    return (skel if root_is_a else skel.reversed()), False
+    asc, desc = float(arc[apex]), float(arc[-1] - arc[apex])
+    if lv_points is None or not len(lv_points):
+        if asc > desc:
+            root = distal
+            dist_root = tree.distances(root)
+            distal = max((n for n in leaves if n != root), key=lambda n: dist_root[n])
+            skel = tree.skeleton(root, distal)
+            apex = _arch_apex(skel, source, frame_hint)
+            arc = skel.trunk_arc
+            asc, desc = float(arc[apex]), float(arc[-1] - arc[apex])
+        how = ("the widest end" if widths[root] >= max(widths.values()) else
+               "the end of the shorter limb from the arch")
+        notes.append(f"root end: {how} (mean radius {widths[root]:.1f} mm; "
+                     f"{asc:.0f} mm of centreline to the top of the arch, {desc:.0f} mm from it "
+                     "to the distal end)")
+        if desc < 1.25 * asc:
+            warnings.append("the root end could not be told clearly from the descending end "
+                            f"({asc:.0f} vs {desc:.0f} mm of centreline from the arch): check "
+                            "the render, or pass --lv")
+    z = skel.trunk[:, 2]
+    arch_branches = []
+    for br in skel.branches:
+        j = br.junction_index
+        chord = br.points[-1] - br.points[0]
+        rises = chord[2] > 0.3 * max(float(np.linalg.norm(chord)), 1e-9)
+        if (z[apex] - z[j] <= _ARCH_BRANCH_BELOW_MM and abs(arc[j] - arc[apex])
+                <= _ARCH_BRANCH_ARC_MM and rises):
+            arch_branches.append(br)
+    others = len(skel.branches) - len(arch_branches)
+    notes.append(f"arch: top at S = {z[apex]:.0f} mm, {len(arch_branches)} supra-aortic "
+                 f"branch(es) leaving it; {others} other branch end(s) of the label (below the "
+                 "arch: visceral, renal, iliac ...)")
+    if not arch_branches:
+        warnings.append("no supra-aortic branch found at the top of the arch: the descending "
+                        "cut is measured from the top of the arch; check the render")
+    return skel, apex, arch_branches
 
 
-def _check_frame(skel: Skeleton, source: str, frame_hint: str, warnings: list[str]) -> None:
-    """Refuse flipped axes: the descending aorta lies posterior-left of the ascending aorta and
-    the supra-aortic branches point cranially (patient LPS)."""
+def _check_frame(skel: Skeleton, apex: int, arch_branches: list[Branch], source: str,
+                 frame_hint: str, warnings: list[str]) -> None:
+    """Refuse flipped x and y axes: the descending aorta lies posterior-left of the ascending
+    aorta (patient LPS). A flipped S axis is refused by :func:`_arch_apex`."""
     arc = skel.trunk_arc
     pts = skel.trunk
-    asc = _at(pts, arc, min(30.0, 0.2 * arc[-1]))
-    s_last = max((arc[b.junction_index] for b in skel.branches), default=0.5 * arc[-1])
+    asc = _at(pts, arc, min(30.0, 0.5 * arc[apex]))
+    s_last = max((arc[b.junction_index] for b in arch_branches), default=float(arc[apex]))
     desc = _at(pts, arc, min(s_last + 60.0, 0.5 * (s_last + arc[-1])))
     d = desc - asc
-    if skel.branches:
-        up = np.array([_unit(b.points[-1] - b.points[0])[2] for b in skel.branches])
-        if np.median(up) < -0.3:
-            raise PatientError(
-                f"expected the supra-aortic branches to point cranially (+S) in {source}, found "
-                f"them pointing caudally (median S component {np.median(up):.2f}): the S axis "
-                f"is flipped; {frame_hint}")
     if d[0] < -10.0 and d[1] < -10.0:
         raise PatientError(
             f"expected the descending aorta posterior-left of the ascending aorta in {source}, "
@@ -309,9 +396,19 @@ def _fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
                    lv_mask: np.ndarray | None, given: np.ndarray | None,
-                   notes: list[str]) -> tuple[np.ndarray, np.ndarray, float]:
-    """(centre, root axis into the aorta, radius) of the annulus (LPS mm)."""
+                   notes: list[str]) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """(centre, root axis into the aorta, radius, uncertainty along the axis) of the annulus
+    (LPS mm).
+
+    Without a left-ventricle label the annulus comes from the root's shape: the plane of the
+    label's flat proximal end when it is square to the root axis, else the lowest cross-section
+    square to the axis above an oblique (axial) end face; the uncertainty along the axis is
+    the end face's span, at least ``_ANNULUS_SPREAD_MM``, and the sinus / sinotubular profile
+    above it is checked against the usual heights (:func:`_root_profile`).
+    """
     from scipy.ndimage import binary_dilation
+
+    uncertainty = _ANNULUS_SPREAD_MM
 
     arc = skel.trunk_arc
     root_end = skel.trunk[0]
@@ -334,9 +431,13 @@ def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
         how = f"fitted to {int(near.sum())} voxels of contact with the left ventricle"
     else:
         # The flat end of the root: boundary samples near the root end facing out of it.
+        # The root axis is the ascending centreline 10-35 mm from the end (the skeleton bends
+        # into an oblique end face over its last millimetres).
+        if arc[-1] > 40.0:
+            out_dir = _unit(_at(skel.trunk, arc, 10.0) - _at(skel.trunk, arc, 35.0))
         shell = field_.grid_points(mask & ~_erode(mask))
         rel = shell - root_end
-        cand = shell[(np.linalg.norm(rel, axis=1) < 30.0) & (rel @ out_dir > -3.0)]
+        cand = shell[(np.linalg.norm(rel, axis=1) < 35.0) & (rel @ out_dir > -12.0)]
         if len(cand) < 20:
             raise PatientError("expected a closed root end (the valve plane), found an open "
                                "or empty root in the label")
@@ -344,13 +445,33 @@ def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
         grad = np.stack([(field_(cand + eps * e) - field_(cand - eps * e)) / (2 * eps)
                          for e in np.eye(3)], axis=1)
         grad /= np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-9)
-        facing = cand[grad @ out_dir > 0.85]
+        facing = cand[grad @ out_dir > 0.5]
         if len(facing) < 20:
             raise PatientError("expected the root to end in a flat valve plane, found no flat "
                                "end facing out of it: give the annulus (--annulus) or an LV "
                                "label (--lv)")
         q, n = _fit_plane(facing)
-        how = f"fitted to the flat end of the root ({len(facing)} boundary voxels)"
+        n = n if n @ out_dir > 0 else -n
+        tilt = math.degrees(math.acos(min(1.0, abs(float(n @ out_dir)))))
+        if tilt <= _END_TILT_DEG:
+            flat = cand[grad @ n > 0.9]  # the end face itself, without the bend into it
+            if len(flat) >= 20:
+                facing = flat
+                q, n = _fit_plane(facing)
+                n = n if n @ out_dir > 0 else -n
+            how = f"fitted to the flat end of the root ({len(facing)} boundary voxels)"
+        else:
+            # An end cut by an axial slice, oblique to the root: the annulus is the lowest
+            # cross-section square to the root axis that the end face does not truncate.
+            n = out_dir
+            heights = (facing - root_end) @ -out_dir
+            top = float(np.percentile(heights, 95.0)) + 1.0
+            span = top - float(heights.min())
+            q = root_end - top * out_dir
+            how = (f"the lowest complete cross-section square to the root axis: the label's "
+                   f"end face is oblique to it ({tilt:.0f} deg, an axial cut) and spans "
+                   f"{span:.0f} mm along the axis below the plane")
+            uncertainty = max(uncertainty, span)
     axis = -_unit(n) if n @ out_dir > 0 else _unit(n)
     if given is not None:
         q = np.asarray(given, dtype=float)
@@ -360,7 +481,7 @@ def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
     rel = above - q
     h = rel @ axis
     rho = np.linalg.norm(rel - np.outer(h, axis), axis=1)
-    section = above[(h > 0.5) & (h < 0.5 + 2 * field_.spacing) & (rho < 25.0)]
+    section = above[(h > 0.5) & (h < 0.5 + 2 * field_.spacing) & (rho < 35.0)]
     if len(section) < 10:
         raise PatientError("expected lumen just above the annulus plane, found none: the "
                            "annulus estimate left the root")
@@ -370,7 +491,151 @@ def _annulus_plane(field_: _Field, mask: np.ndarray, skel: Skeleton,
         centre = q
     radius = float(np.sqrt(len(section) * field_.spacing ** 3 / (2 * field_.spacing) / math.pi))
     notes.append(f"annulus plane {how}")
-    return centre, axis, radius
+    if lv_mask is not None:
+        uncertainty = 2.0 * field_.spacing
+    return centre, axis, radius, uncertainty
+
+
+def _coarse(mask: np.ndarray, vol: LabelVolume, sigma_mm: float) -> LabelVolume:
+    """The lumen smoothed by ``sigma_mm`` on a ``_SKELETON_MM`` grid (or the working grid
+    when coarser), for the centreline tree: thinning a whole aorta on a 0.5 mm grid takes
+    half a minute, and the tree is only a first look."""
+    from scipy.ndimage import gaussian_filter, map_coordinates
+
+    h = max(_SKELETON_MM, vol.spacing)
+    smooth = gaussian_filter(mask.astype(np.float32), max(sigma_mm, 0.5 * h) / vol.spacing)
+    shape = np.floor((np.array(mask.shape) - 1) * vol.spacing / h).astype(int) + 1
+    axes = [np.arange(n) * h / vol.spacing for n in shape]
+    idx = np.stack(np.meshgrid(*axes, indexing="ij"), axis=0)
+    coarse = map_coordinates(smooth, idx.reshape(3, -1), order=1, mode="nearest")
+    return LabelVolume(coarse.reshape(tuple(shape)) > 0.5, vol.origin, h, vol.source)
+
+
+def _kept_box(skel: Skeleton, arch_branches: list[Branch], options: PrepareOptions,
+              given_exit: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) LPS mm corners of the part of the label that can be kept: the trunk from
+    the root to the longest possible descending cut, the branches joining it there, and a
+    margin for the extruded root and the cut stubs."""
+    arc = skel.trunk_arc
+    s_last = max((float(arc[b.junction_index]) for b in arch_branches), default=0.0)
+    reach = float(arc[-1]) if given_exit else s_last + options.descending_mm + 2 * _BEYOND_MM
+    pts = [skel.trunk[arc <= reach]]
+    pts += [b.points for b in skel.branches if arc[b.junction_index] <= reach]
+    allp = np.concatenate(pts)
+    margin = float(skel.trunk_radii.max()) + 45.0
+    return allp.min(axis=0) - margin, allp.max(axis=0) + margin
+
+
+def _crop(vol: LabelVolume, mask: np.ndarray, box: tuple[np.ndarray, np.ndarray]
+          ) -> LabelVolume:
+    """``mask`` (on ``vol``'s grid) cut to the LPS box."""
+    lo = np.maximum(np.floor((box[0] - vol.origin) / vol.spacing).astype(int), 0)
+    hi = np.minimum(np.ceil((box[1] - vol.origin) / vol.spacing).astype(int) + 1,
+                    np.array(mask.shape))
+    sl = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
+    return LabelVolume(np.ascontiguousarray(mask[sl]), vol.origin + vol.spacing * lo,
+                       vol.spacing, vol.source)
+
+
+def _keep_connected(sdf: np.ndarray, field_: _Field, inside: np.ndarray,
+                    notes: list[str]) -> np.ndarray:
+    """The field with every lumen piece not connected to ``inside`` (LPS mm) removed: what
+    lies beyond the descending cut (the abdominal aorta, iliacs) once the cuts are carved."""
+    from scipy.ndimage import label as cc_label
+
+    labels, n = cc_label(sdf < 0.0)
+    ijk = np.clip(np.rint((inside - field_.origin) / field_.spacing).astype(int), 0,
+                  np.array(sdf.shape) - 1)
+    keep = int(labels[tuple(ijk)])
+    if keep == 0:
+        raise PatientError("expected the top of the arch inside the carved lumen, found it "
+                           "outside: the cuts removed the arch")
+    if n > 1:
+        out = sdf.copy()
+        drop = (labels != keep) & (labels > 0)
+        out[drop] = np.maximum(out[drop], field_.spacing)
+        removed = float(drop.sum()) * field_.spacing ** 3 * 1e-3
+        notes.append(f"removed {removed:.0f} mL of lumen beyond the cuts ({n - 1} piece(s))")
+        return out
+    return sdf
+
+
+def _root_profile(field_: _Field, mask: np.ndarray, centre: np.ndarray, axis: np.ndarray,
+                  radius: float) -> tuple[float, float, float]:
+    """(sinus height, sinotubular-junction height, sinus bulge) above the annulus, mm: the
+    widest equivalent radius 0-15 mm above it, the narrowest 10-35 mm above it and beyond the
+    sinus, and their difference (a label that starts above the valve has no bulge)."""
+    pts = field_.grid_points(mask)
+    rel = pts - centre
+    h = rel @ axis
+    rho = np.linalg.norm(rel - np.outer(h, axis), axis=1)
+    sel = (h >= 0.0) & (h < 36.0) & (rho < max(1.5 * radius, radius + 8.0))
+    counts = np.bincount(np.floor(h[sel]).astype(int), minlength=36)[:36]
+    r_eq = np.sqrt(counts * field_.spacing ** 3 / math.pi)
+    h_sinus = int(np.argmax(r_eq[:16]))
+    lo = max(10, h_sinus + 3)
+    h_stj = lo + int(np.argmin(r_eq[lo:36]))
+    return float(h_sinus), float(h_stj), float(r_eq[h_sinus] - r_eq[h_stj])
+
+
+def _euler(sdf: np.ndarray) -> int:
+    """Euler characteristic of the largest zero-level surface of ``sdf`` (2: no handle)."""
+    from skimage.measure import marching_cubes
+
+    v, f, _, _ = marching_cubes(np.pad(sdf, 1, constant_values=1.0), 0.0)
+    v, f = mesh_io.largest_component(v, np.asarray(f, dtype=np.int64))
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]),
+                              axis=1), axis=0)
+    return int(len(v) - len(edges) + len(f))
+
+
+def _break_handles(sdf: np.ndarray, field_: _Field, notes: list[str]) -> np.ndarray:
+    """The field with every handle of the lumen cut at its narrowest point.
+
+    Real labels have them where two vessels touch (a carotid against the brachiocephalic
+    trunk, a thin bridge on 3 mm slices): a loop in the lumen's skeleton. Each loop is cut by
+    removing a ball at the loop's narrowest skeleton point (its inscribed radius + a voxel),
+    which is where the two vessels meet. Refused when a handle remains after a few rounds.
+    """
+    import networkx as nx
+    from scipy.ndimage import distance_transform_edt
+    from scipy.spatial import cKDTree
+    from skimage.morphology import skeletonize
+
+    h = field_.spacing
+    out = sdf
+    for _ in range(4):
+        euler = _euler(out)
+        if euler == 2:
+            return out
+        mask = out < 0.0
+        ijk = np.argwhere(skeletonize(mask))
+        edt = distance_transform_edt(mask, sampling=h)
+        tree = cKDTree(ijk)
+        pairs = tree.query_pairs(np.sqrt(3.0) + 1e-6, output_type="ndarray")
+        g = nx.Graph()
+        g.add_edges_from((int(a), int(b)) for a, b in pairs)
+        cycles = [c for c in nx.cycle_basis(g) if len(c) >= 6]
+        if not cycles:
+            break
+        out = out.copy()
+        grid: tuple[np.ndarray, ...] = tuple(np.indices(out.shape, sparse=True))
+        for cyc in cycles:
+            node = min(cyc, key=lambda n: float(edt[tuple(ijk[n])]))
+            r = float(edt[tuple(ijk[node])]) + h
+            c = ijk[node]
+            d2 = np.zeros((1, 1, 1))
+            for k in range(3):
+                d2 = d2 + (grid[k] - int(c[k])) ** 2
+            ball = d2 <= (r / h) ** 2
+            out[ball] = np.maximum(out[ball], h)
+            notes.append(f"cut a handle of the lumen (a loop of {len(cyc) * h:.0f} mm) at its "
+                         f"narrowest point {np.round(field_.origin + h * c).tolist()} mm "
+                         f"(radius {r - h:.1f} mm): two vessels touching in the label?")
+    if _euler(out) != 2:
+        raise PatientError(f"expected a lumen without handles (Euler characteristic 2), found "
+                           f"{_euler(out)} after cutting loops: vessels fused in the label?")
+    return out
 
 
 def _erode(mask: np.ndarray) -> np.ndarray:
@@ -404,16 +669,24 @@ def _introducer_clearance(trunk: np.ndarray, radii: np.ndarray, arc: np.ndarray,
     return worst
 
 
-def _plan_cuts(skel: Skeleton, annulus: tuple[np.ndarray, np.ndarray, float],
-               options: PrepareOptions, given_exit: np.ndarray | None, notes: list[str],
+def _plan_cuts(skel: Skeleton, apex: int, arch_branches: list[Branch],
+               annulus: tuple[np.ndarray, np.ndarray, float], options: PrepareOptions,
+               given_exit: np.ndarray | None, notes: list[str],
                warnings: list[str]) -> tuple[list[Cut], float]:
-    """The cut planes and the arc length of the exit along the trunk (mm)."""
+    """The cut planes and the arc length of the exit along the trunk (mm).
+
+    The descending cut lies ``options.descending_mm`` of centreline below the last arch
+    branch (the top of the arch + 20 mm when none was found), whatever the label holds below
+    it (abdominal branches, iliacs); every branch that joins the trunk above the cut is cut
+    ``branch_mm`` beyond the wall.
+    """
     centre, axis, r_ann = annulus
     arc = skel.trunk_arc
     trunk = skel.trunk
     radii = skel.trunk_radii
     cuts = [Cut("annulus", centre, -axis, r_ann)]
-    s_last = max((float(arc[b.junction_index]) for b in skel.branches), default=0.0)
+    s_last = max((float(arc[b.junction_index]) for b in arch_branches),
+                 default=float(arc[apex]) + 20.0)
     end_room = float(arc[-1]) - _BEYOND_MM - 2.0
     # The farthest start must lie in the descending aorta, clear of the arch's bend.
     need = _START_ABOVE_EXIT_MM + _START_SPAN_MM + _ARCH_CLEARANCE_MM
@@ -459,6 +732,13 @@ def _plan_cuts(skel: Skeleton, annulus: tuple[np.ndarray, np.ndarray, float],
         s_j = float(arc[br.junction_index])
         if s_j > s_exit:
             continue  # removed with the descending end
+        if s_j < 0.5 * float(arc[apex]):
+            # No branch leaves the ascending aorta's proximal half (the coronaries are not in
+            # the label): a lobe of the root's end face, removed with the root below the
+            # annulus or left closed.
+            notes.append(f"a {br.length:.0f} mm end {s_j:.0f} mm from the root end is a lobe "
+                         "of the root, not a branch: not cut")
+            continue
         barc = _arc(br.points)
         r_j = float(radii[br.junction_index])
         u = r_j + options.branch_mm
@@ -521,9 +801,9 @@ def _carve(sdf: np.ndarray, field_: _Field, cuts: list[Cut]) -> np.ndarray:
 # 6. Surface
 # ------------------------------------------------------------------------------------------
 def _surface(sdf: np.ndarray, field_: _Field, target_vertices: int,
-             cuts: list[Cut], annulus_lps: np.ndarray, timings: dict[str, float]
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray], np.ndarray,
-                        np.ndarray]:
+             cuts: list[Cut], annulus_lps: np.ndarray, timings: dict[str, float],
+             notes: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                        list[np.ndarray], np.ndarray, np.ndarray]:
     """(vertices m, faces, wall mask, cap vertex ids per cut, annulus vertex ids, valve-plane
     face mask)."""
     import time
@@ -569,13 +849,22 @@ def _surface(sdf: np.ndarray, field_: _Field, target_vertices: int,
         is_wall = cut.name == "annulus"
         point = (cut.point - annulus_lps) * 1e-3
         r = cut.radius * 1e-3
-        try:
-            vm, new_f, kept, ids = mesh_io.clip_and_cap(
-                vm, f, point, cut.normal, r + 0.004, _BEYOND_MM * 1e-3 + r + 0.004, edge,
-                field_m)
-        except mesh_io.MeshError as err:
-            raise PatientError(f"expected a clean tube to cut at the {cut.name} cut, found: "
-                               f"{err}") from err
+        # A plane through a pinch of the surface (a lobe of an oblique root end, a bump of
+        # the segmentation) gives no simple loop: the cut moves inwards by up to 4.5 mm.
+        for shift in _CUT_SHIFTS_MM:
+            try:
+                vm_new, new_f, kept, ids = mesh_io.clip_and_cap(
+                    vm, f, point - shift * 1e-3 * cut.normal, cut.normal, r + 0.004,
+                    _BEYOND_MM * 1e-3 + r + 0.004, edge, field_m)
+                break
+            except mesh_io.MeshError as err:
+                if shift == _CUT_SHIFTS_MM[-1]:
+                    raise PatientError(f"expected a clean tube to cut at the {cut.name} cut, "
+                                       f"found: {err}") from err
+        if shift:
+            notes.append(f"the {cut.name} cut moved {shift:.1f} mm inwards to cross a clean "
+                         "tube")
+        vm = vm_new
         n_new = len(new_f) - len(kept)
         cap_mask = np.concatenate([cap_mask[kept], np.full(n_new, not is_wall)])
         valve_mask = np.concatenate([valve_mask[kept], np.full(n_new, is_wall)])
@@ -741,36 +1030,66 @@ def prepare_volume(vol: LabelVolume, *, name: str, options: PrepareOptions | Non
     sources: dict[str, str] = {}
     t0 = time.perf_counter()
     mask = _largest_component(vol, opts, notes)
-    sdf = _signed_distance(mask, vol.spacing, opts.smoothing_mm)
-    field_ = _Field(sdf, vol.origin, vol.spacing)
-    mask = sdf < 0.0
-    timings["lumen field"] = time.perf_counter() - t0
+    timings["lumen"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    skel = skeleton_of(LabelVolume(mask, vol.origin, vol.spacing, vol.source))
-    lv_mask = None
+    tree = skeleton_tree(_coarse(mask, vol, opts.smoothing_mm))
     lv_points = None
     if lv is not None:
-        lv_mask = lv.mask & ~mask
-        if not lv_mask.any():
+        lv_only = lv.mask & ~mask
+        if not lv_only.any():
             raise PatientError(f"expected left-ventricle voxels in {lv.source}, found none "
                                "outside the aorta")
-        lv_points = field_.grid_points(lv_mask & ~_erode(lv_mask))
-    skel, frame_checkable = _orient(skel, lv_points, notes, warnings)
-    if frame_checkable:
-        _check_frame(skel, vol.source, frame_hint, warnings)
+        lv_points = vol.points(np.argwhere(lv_only & ~_erode(lv_only)))
+    skel, apex, arch_branches = _identify(tree, lv_points, vol.source, frame_hint, notes,
+                                          warnings)
+    _check_frame(skel, apex, arch_branches, vol.source, frame_hint, warnings)
     timings["skeleton"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    centre, axis, r_ann = _annulus_plane(field_, mask, skel, lv_mask, ov.annulus_center, notes)
+    # Only the part of the label that is kept needs the fine field: the root, the arch with
+    # its branches and the descending aorta down to the longest cut (plus a margin).
+    box = _kept_box(skel, arch_branches, opts, ov.exit_point is not None)
+    vol = _crop(vol, mask, box)
+    mask = vol.mask
+    sdf = _signed_distance(mask, vol.spacing, opts.smoothing_mm)
+    field_ = _Field(sdf, vol.origin, vol.spacing)
+    sdf = field_.sdf = _break_handles(sdf, field_, notes)
+    mask = sdf < 0.0
+    lv_mask = None if lv is None else _crop(lv, lv.mask, box).mask & ~mask
+    if coronary is not None:
+        coronary = _crop(coronary, coronary.mask, box)
+    timings["lumen field"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    centre, axis, r_ann, uncertainty = _annulus_plane(field_, mask, skel, lv_mask,
+                                                      ov.annulus_center, notes)
+    h_sinus, h_stj, bulge = _root_profile(field_, mask, centre, axis, r_ann)
+    if lv is None and ov.annulus_center is None:
+        lo, hi = _STJ_HEIGHT_MM
+        if bulge < 1.0:
+            warnings.append(
+                f"annulus from the root's shape: no sinus bulge above it (widest {bulge:.1f} mm "
+                "over the sinotubular junction): the label may start above the valve, and the "
+                "true annulus lie lower; give --annulus or an LV label (--lv)")
+            uncertainty = max(uncertainty, hi)
+        elif not lo - uncertainty <= h_stj <= hi + uncertainty:
+            warnings.append(
+                f"annulus from the root's shape: the sinotubular junction lies {h_stj:.0f} mm "
+                f"above it (usually {lo:.0f}-{hi:.0f} mm): check the annulus in the render")
+            uncertainty = max(uncertainty, abs(h_stj - 0.5 * (lo + hi)))
+        notes.append(f"annulus uncertainty +- {uncertainty:.0f} mm along the root axis (no LV "
+                     f"label): sinus widest {h_sinus:.0f} mm above the annulus, sinotubular "
+                     f"junction {h_stj:.0f} mm (usually {lo:.0f}-{hi:.0f}), bulge {bulge:.1f} mm")
+    else:
+        uncertainty = 0.0 if ov.annulus_center is not None else uncertainty
     sources["annulus_center"] = "given" if ov.annulus_center is not None else (
         "LV contact" if lv is not None else "root end")
-    cuts, s_exit = _plan_cuts(skel, (centre, axis, r_ann), opts, ov.exit_point, notes,
-                              warnings)
+    cuts, s_exit = _plan_cuts(skel, apex, arch_branches, (centre, axis, r_ann), opts,
+                              ov.exit_point, notes, warnings)
     sources["exit_point"] = "given" if ov.exit_point is not None else "descending cut"
-    carved = _carve(sdf, field_, cuts)
+    carved = _keep_connected(_carve(sdf, field_, cuts), field_, skel.trunk[apex], notes)
     carved_field = _Field(carved, vol.origin, vol.spacing)
     timings["cuts planned"] = time.perf_counter() - t0
     vm, faces, wall, cap_ids, annulus_ids, valve = _surface(
-        carved, carved_field, opts.target_vertices, cuts, centre, timings)
+        carved, carved_field, opts.target_vertices, cuts, centre, timings, notes)
     t0 = time.perf_counter()
     # The phantom origin is the centroid of the valve plane (the annulus cross-section).
     shift, valve_area = _disc_centroid(vm, faces[valve])
@@ -826,4 +1145,4 @@ def prepare_volume(vol: LabelVolume, *, name: str, options: PrepareOptions | Non
                  f"{len(cap_ids)} caps and the valve plane")
     return PreparedAnatomy(anatomy=anatomy, annulus_lps_mm=annulus_lps, cuts=cuts,
                            skeleton=skel, notes=notes, warnings=warnings, sources=sources,
-                           timings=timings)
+                           timings=timings, annulus_uncertainty_mm=uncertainty)

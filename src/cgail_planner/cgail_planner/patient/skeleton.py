@@ -10,21 +10,25 @@ the finished wall (:func:`cgail_planner.sim.centerline.compute_centerlines`).
 2. the inscribed radius at each skeleton voxel from the Euclidean distance transform;
 3. pruning: a terminal path shorter than its junction's radius + ``spur_mm`` is a spur
    (a sinus lobe, a bump of the segmentation), removed until none is left;
-4. the two ends with the widest last 20 mm are the aorta's ends; the path between them is the
-   trunk; every other end is a branch, attached to the trunk at its junction.
+4. :class:`SkeletonTree` keeps the pruned tree; which two ends are the aorta's (the trunk) is
+   decided from the shape by :mod:`~cgail_planner.patient.prepare` (the root is not always the
+   widest end's partner: a whole-aorta label ends in iliac arteries narrower than the
+   supra-aortic stubs), and :meth:`SkeletonTree.skeleton` makes the trunk between them, every
+   other end a branch attached to the trunk at its junction.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 import itertools
+from typing import Any
 
 import numpy as np
 
 from cgail_planner.patient import PatientError
 from cgail_planner.patient.volume import LabelVolume
 
-__all__ = ["Branch", "Skeleton", "skeleton_of"]
+__all__ = ["Branch", "Skeleton", "SkeletonTree", "skeleton_tree"]
 
 
 @dataclass(frozen=True)
@@ -80,8 +84,56 @@ def _graph(ijk: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.
     return pairs, length, np.arange(len(ijk))
 
 
-def skeleton_of(volume: LabelVolume, spur_mm: float = 8.0) -> Skeleton:
-    """The centreline tree of ``volume``'s lumen (see the module doc).
+@dataclass
+class SkeletonTree:
+    """The pruned centreline tree of a lumen (LPS mm); nodes are skeleton voxels."""
+
+    pos: np.ndarray
+    """(N, 3) LPS mm of every skeleton voxel (tree nodes index it)."""
+    radius: np.ndarray
+    """(N,) inscribed radius, mm."""
+    tree: Any
+    """networkx.Graph, a tree with edge ``weight`` in mm."""
+    leaves: tuple[int, ...]
+    """The tree's ends."""
+    n_spurs: int
+
+    def end_width(self, leaf: int, skip_mm: float = 5.0, length_mm: float = 25.0) -> float:
+        """Median inscribed radius between ``skip_mm`` and ``length_mm`` from an end, mm (the
+        first millimetres are skipped: the skeleton of a flat end tapers into it)."""
+        import networkx as nx
+
+        dist = nx.single_source_dijkstra_path_length(self.tree, leaf, cutoff=length_mm)
+        nodes = [n for n, d in dist.items() if d >= skip_mm] or list(dist)
+        return float(np.median(self.radius[nodes]))
+
+    def distances(self, source: int) -> dict[int, float]:
+        """Path length from ``source`` to every node, mm."""
+        import networkx as nx
+
+        return dict(nx.single_source_dijkstra_path_length(self.tree, source))
+
+    def skeleton(self, a: int, b: int) -> Skeleton:
+        """The trunk from end ``a`` to end ``b`` and every other end as a branch."""
+        import networkx as nx
+
+        trunk_nodes = nx.shortest_path(self.tree, a, b, weight="weight")
+        on_trunk = {n: k for k, n in enumerate(trunk_nodes)}
+        branches = []
+        for leaf in self.leaves:
+            if leaf in (a, b):
+                continue
+            path = nx.shortest_path(self.tree, leaf, trunk_nodes[0])
+            k = next(i for i, n in enumerate(path) if n in on_trunk)
+            nodes = path[:k + 1][::-1]
+            branches.append(Branch(points=self.pos[nodes], radii=self.radius[nodes],
+                                   junction_index=on_trunk[nodes[0]]))
+        return Skeleton(trunk=self.pos[trunk_nodes], trunk_radii=self.radius[trunk_nodes],
+                        branches=tuple(branches), n_spurs=self.n_spurs)
+
+
+def skeleton_tree(volume: LabelVolume, spur_mm: float = 8.0) -> SkeletonTree:
+    """The pruned centreline tree of ``volume``'s lumen (see the module doc).
 
     Raises:
         PatientError: a lumen without two ends (e.g. a blob or a ring).
@@ -134,25 +186,5 @@ def skeleton_of(volume: LabelVolume, spur_mm: float = 8.0) -> Skeleton:
     if len(leaves) < 2:
         raise PatientError(f"expected a lumen with two ends (root and descending aorta) in "
                            f"{volume.source}, found {len(leaves)}: a closed ring or a blob?")
-    pos = volume.points(ijk)
-
-    def end_width(leaf: int) -> float:
-        """Mean inscribed radius over the 20 mm next to an end."""
-        dist = nx.single_source_dijkstra_path_length(tree, leaf, cutoff=20.0)
-        return float(np.mean(radius[list(dist)]))
-
-    widths = {leaf: end_width(leaf) for leaf in leaves}
-    a, b = sorted(leaves, key=lambda n: -widths[n])[:2]
-    trunk_nodes = nx.shortest_path(tree, a, b, weight="weight")
-    on_trunk = {n: k for k, n in enumerate(trunk_nodes)}
-    branches = []
-    for leaf in leaves:
-        if leaf in (a, b):
-            continue
-        path = nx.shortest_path(tree, leaf, trunk_nodes[0])
-        k = next(i for i, n in enumerate(path) if n in on_trunk)
-        nodes = path[:k + 1][::-1]
-        branches.append(Branch(points=pos[nodes], radii=radius[nodes],
-                               junction_index=on_trunk[nodes[0]]))
-    return Skeleton(trunk=pos[trunk_nodes], trunk_radii=radius[trunk_nodes],
-                    branches=tuple(branches), n_spurs=n_spurs)
+    return SkeletonTree(pos=volume.points(ijk), radius=np.asarray(radius, dtype=float),
+                        tree=tree, leaves=tuple(leaves), n_spurs=n_spurs)
