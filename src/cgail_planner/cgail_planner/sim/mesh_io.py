@@ -721,7 +721,14 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     n = _normals(v, t)
     flip = n @ normal < 0.0
     t[flip] = t[flip][:, ::-1]
-    return v, np.vstack([f, t]), kept, np.array(cap_ids, dtype=np.int64)
+    out = np.vstack([f, t])
+    directed = np.concatenate([out[:, [0, 1]], out[:, [1, 2]], out[:, [2, 0]]])
+    if len(np.unique(directed, axis=0)) < len(directed):
+        # A cross-section that is not star-shaped about its centre (an oblique cut through a
+        # kidney-shaped lumen) gives cap triangles that fold over each other.
+        raise MeshError(f"expected a star-shaped cross-section at the cut near "
+                        f"{np.round(point, 4)}, found a cap that folds over itself")
+    return v, out, kept, np.array(cap_ids, dtype=np.int64)
 
 
 def read_mesh_mm(path: str | Path) -> trimesh.Trimesh:
