@@ -382,8 +382,12 @@ def _missed_targets(v: Validation) -> dict[str, np.ndarray]:
     if v.scenarios is None:
         return {}
     reached = {(t.mode, t.target) for t in v.expert_trials if t.outcome == "success"}
-    return {f"target {t.target} NOT reached": np.asarray(v.scenarios.targets[t.target].position)
-            for t in v.expert_trials if (t.mode, t.target) not in reached}
+    missed: dict[int, list[str]] = {}
+    for t in v.expert_trials:
+        if (t.mode, t.target) not in reached and t.mode not in missed.get(t.target, []):
+            missed.setdefault(t.target, []).append(t.mode)
+    return {f"target {k} NOT reached ({', '.join(modes)})":
+            np.asarray(v.scenarios.targets[k].position) for k, modes in missed.items()}
 
 
 def _expert_section(v: Validation) -> list[str]:
