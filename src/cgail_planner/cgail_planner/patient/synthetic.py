@@ -14,6 +14,10 @@ voxelised as a CT segmentation would give it:
 * with long supra-aortic branches (``branch_length_mm`` beyond the arch wall) and a long
   descending aorta (``descending_length_mm`` below the arch), both open at the field of view as
   a real segmentation ends;
+* optionally the whole aorta as TotalSegmentator and the AVT dataset give it
+  (``abdominal=True``): below the descending aorta an abdominal aorta with a coeliac stub,
+  two renal stubs and the iliac bifurcation into two common iliac arteries, so the label's
+  lowest ends are iliacs and branches leave it far below the arch;
 * the root ends at the annulus plane; an optional left-ventricle blob (an ellipsoid below the
   annulus, touching it) goes to a separate label map, as do optional coronary stubs (label 1
   left, 2 right; 10 mm beyond the sinus wall) which never belong to the aortic label.
@@ -58,7 +62,8 @@ class SyntheticCTConfig:
     anatomy: str = "default"
     """Built-in anatomy to voxelise (``default`` or ``elongated``)."""
     spacing_mm: tuple[float, float, float] = (0.84, 0.84, 1.0)
-    """Voxel size along i, j, k in mm (a thoracic CTA); each in [0.3, 2.5]."""
+    """Voxel size along i, j, k in mm (a thoracic CTA); each in [0.3, 3.5] (3 mm slices are
+    common in whole-aorta CTA)."""
     voxel_order: str = "LPS"
     """Directions of increasing i, j (k runs superior): ``LPS`` (DICOM order) or ``RAS``."""
     annulus_ras_mm: tuple[float, float, float] = (-18.0, 26.0, -642.0)
@@ -75,10 +80,13 @@ class SyntheticCTConfig:
     """Also make a coronary label map (1 left, 2 right stub, outside the aortic label)."""
     seed: int = 0
     """Seed of the partial-volume noise."""
+    abdominal: bool = False
+    """Continue the label into the abdominal aorta, its coeliac and renal stubs and the iliac
+    arteries (a whole-aorta label, :data:`ABDOMEN_MM`)."""
 
     def __post_init__(self) -> None:
-        if len(self.spacing_mm) != 3 or not all(0.3 <= s <= 2.5 for s in self.spacing_mm):
-            raise ValueError(f"spacing_mm must be 3 values in [0.3, 2.5] mm, found "
+        if len(self.spacing_mm) != 3 or not all(0.3 <= s <= 3.5 for s in self.spacing_mm):
+            raise ValueError(f"spacing_mm must be 3 values in [0.3, 3.5] mm, found "
                              f"{self.spacing_mm!r}")
         if self.voxel_order not in _VOXEL_ORDERS:
             raise ValueError(f"voxel_order must be one of {_VOXEL_ORDERS}, found "
@@ -201,6 +209,48 @@ def _aortic_field(g: AortaGeometry, pts: np.ndarray) -> np.ndarray:
     return out
 
 
+#: The abdominal part of a whole-aorta label, mm: abdominal aorta length below the
+#: descending aorta and its end radius; coeliac and renal stubs (height below the abdominal
+#: aorta's start, length, radius); common iliacs (length, radius, angle from caudal, deg).
+ABDOMEN_MM = {"aorta": (170.0, 8.5), "coeliac": (30.0, 25.0, 3.5), "renal": (70.0, 30.0, 3.0),
+              "iliac": (90.0, 5.0, 25.0)}
+
+
+def _capsule(pts: np.ndarray, a: np.ndarray, b: np.ndarray, ra: float, rb: float) -> np.ndarray:
+    """Signed distance (about) to a cone-capped segment from ``a`` (radius ``ra``) to ``b``."""
+    d = b - a
+    t = np.clip((pts - a) @ d / float(d @ d), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(pts - (a + t[:, None] * d), axis=1) - (ra + t * (rb - ra)))
+
+
+def _abdominal_field(g: AortaGeometry, pts: np.ndarray) -> np.ndarray:
+    """The abdominal aorta, its coeliac and renal stubs and the common iliacs below the
+    descending aorta's end (phantom m, < 0 inside): straight tubes, the aorta caudal along
+    -S, the renals to the left and right, the coeliac anterior, the iliacs diverging."""
+    mm = 1e-3
+    top = g.spine[-1]
+    r0 = 0.5 * g.p.descending_diameter
+    length, r_end = ABDOMEN_MM["aorta"]
+    caudal = np.array([0.0, 0.0, -1.0])
+    bottom = top + length * mm * caudal
+    f = _capsule(pts, top - 0.01 * caudal, bottom, r0, r_end * mm)
+    h, ln, r = ABDOMEN_MM["coeliac"]
+    at = top + h * mm * caudal
+    f = np.minimum(f, _capsule(pts, at, at + (r0 + ln * mm) * np.array([0.0, -1.0, 0.0]),
+                               r * mm, r * mm))
+    h, ln, r = ABDOMEN_MM["renal"]
+    at = top + h * mm * caudal
+    for side in (-1.0, 1.0):
+        f = np.minimum(f, _capsule(pts, at, at + (r0 + ln * mm) * np.array([side, 0.0, 0.0]),
+                                   r * mm, r * mm))
+    ln, r, ang = ABDOMEN_MM["iliac"]
+    a = np.radians(ang)
+    for side in (-1.0, 1.0):
+        d = np.array([side * np.sin(a), 0.0, -np.cos(a)])
+        f = np.minimum(f, _capsule(pts, bottom, bottom + ln * mm * d, r_end * mm, r * mm))
+    return f
+
+
 def _coronary_field(g: AortaGeometry, pts: np.ndarray, side: str) -> np.ndarray:
     """Stub of ``side``: 10 mm beyond the sinus wall, radius the ostium's (m, < 0 inside)."""
     tube = next(t for t in g.tubes if t.name == f"{side}_coronary")
@@ -264,6 +314,15 @@ def make_synthetic_ct(config: SyntheticCTConfig | None = None) -> SyntheticCT:
     for tube in g.tubes:
         pts.append(np.stack([tube.start, tube.start + (tube.length + 0.01) * tube.direction]))
     pts.append(np.stack([-0.06 * g.axis]))
+    if cfg.abdominal:
+        length, _ = ABDOMEN_MM["aorta"]
+        ln, _, ang = ABDOMEN_MM["iliac"]
+        bottom = g.spine[-1] - length * 1e-3 * np.array([0.0, 0.0, 1.0])
+        reach = (ln * 1e-3) * np.array([np.sin(np.radians(ang)), 0.06, np.cos(np.radians(ang))])
+        pts.append(np.stack([bottom - reach * np.array([1, 1, 1]),
+                             bottom + reach * np.array([1, 1, -1]),
+                             g.spine[-1] + np.array([0.06, -0.06, 0.0]),
+                             g.spine[-1] + np.array([-0.06, 0.0, 0.0])]))
     box = np.vstack(pts)
     lo = box.min(axis=0) - 0.03
     hi = box.max(axis=0) + 0.03
@@ -290,8 +349,11 @@ def make_synthetic_ct(config: SyntheticCTConfig | None = None) -> SyntheticCT:
     step = float(spacing.max()) * 1e-3
     rng = np.random.default_rng(cfg.seed)
     threshold = rng.normal(0.0, cfg.noise, size=grid) * float(spacing.mean()) * 1e-3
-    aorta = (_sample_field(lambda p: _aortic_field(g, p), grid, to_phantom, step)
-             < threshold).astype(np.uint8)
+    def aortic(p: np.ndarray) -> np.ndarray:
+        f = _aortic_field(g, p)
+        return np.minimum(f, _abdominal_field(g, p)) if cfg.abdominal else f
+
+    aorta = (_sample_field(aortic, grid, to_phantom, step) < threshold).astype(np.uint8)
     lv = None
     if cfg.lv:
         lv_vals = _sample_field(lambda p: _lv_field(g, p), grid, to_phantom, step)
@@ -383,6 +445,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spacing-mm", type=float, nargs=3, default=(0.84, 0.84, 1.0))
     p.add_argument("--no-lv", action="store_true", help="no left-ventricle label map")
     p.add_argument("--coronaries", action="store_true", help="also a coronary label map")
+    p.add_argument("--abdominal", action="store_true",
+                   help="the whole aorta: abdominal aorta, coeliac and renal stubs, iliacs")
     p.add_argument("--mesh", choices=_VOXEL_ORDERS, default=None,
                    help="write a lumen surface (STL) in this frame instead of label maps")
     p.add_argument("--noise-mm", type=float, default=0.0, help="vertex noise of --mesh, mm")
@@ -402,7 +466,7 @@ def main(argv: list[str] | None = None) -> int:
             ct = make_synthetic_ct(SyntheticCTConfig(
                 anatomy=args.anatomy, voxel_order=args.voxel_order,
                 spacing_mm=tuple(args.spacing_mm), lv=not args.no_lv,
-                coronaries=args.coronaries, seed=args.seed))
+                coronaries=args.coronaries, seed=args.seed, abdominal=args.abdominal))
             written = ct.write(args.out)
             truth = ct.truth
     except (ValueError, PatientError) as exc:
