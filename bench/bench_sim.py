@@ -39,7 +39,7 @@ from cgail_planner.sim.ftl_model import N_RAYS
 from cgail_planner.sim.pbd import PBDConfig
 from cgail_planner.sim.scenarios import load_world
 from cgail_planner.sim.vec_env import CatheterNavVecEnv
-from cgail_planner.sim.wall import DeformableWall, StaticWall
+from cgail_planner.sim.wall import DeformableWall, StaticWall, WallError
 
 
 def _actions(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -133,15 +133,21 @@ def bench_components(seconds: float, n: int) -> dict[str, Timing]:
             wall.step(clock[0], 0.1, body, 0.0035)
 
         out[f"PBD step incl. BVH refit ({name})"] = _timed(pbd_step, seconds)
-    # The catheter pressing the wall 1 mm deep at its tip (contact pairs, local settling sweeps,
-    # Newton force): also loads every contact kernel before the env timings.
+    # The catheter body shifted towards the wall until its tip sphere lies 1 mm beyond the
+    # surface: the straight body then presses ~1 mm along the 50 mm of descending wall it lies
+    # by, down to the fixed ring at the descending cut (contact pairs, local settling sweeps,
+    # Newton force); also loads every contact kernel before the env timings.
     sd, _, normal, _ = static._bvh.closest_point(start.position)
     press = body + (0.001 - 0.0035 - sd) * normal  # tip sphere 1 mm beyond the surface
-    out[f"PBD step, catheter pressing the wall 1 mm ({DYNAMIC_PBD_CONFIG.iterations} sweeps)"] = \
-        _timed(lambda: dyn.step(clock[0], 0.1, press, 0.0035), seconds / 2)
-
-    out["tip_contact deformable, pressing (incl. Newton force)"] = _timed(
-        lambda: dyn.tip_contact(press[-1], 0.0035, 0.1), seconds / 4)
+    name = f"PBD step, body pressing the wall 1 mm ({DYNAMIC_PBD_CONFIG.iterations} sweeps)"
+    try:
+        out[name] = _timed(lambda: dyn.step(clock[0], 0.1, press, 0.0035), seconds / 2)
+        out["tip_contact deformable, pressing (incl. Newton force)"] = _timed(
+            lambda: dyn.tip_contact(press[-1], 0.0035, 0.1), seconds / 4)
+        print(f"  pressing: largest particle displacement {dyn.max_displacement * 1e3:.1f} mm "
+              "(heartbeat and the 1 mm dent)")
+    except WallError as err:  # a benchmark reports a wall fault and goes on
+        print(f"  pressing: simulation fault, not timed: {err}")
     dyn.reset()
     for k in range(3):
         dyn.step(0.1 * (k + 1), 0.1, body, 0.0035)

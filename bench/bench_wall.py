@@ -21,7 +21,14 @@ catheter) against a 60-sweep solve, the rms and 99th-percentile particle positio
 range of the ostium-target heartbeat amplitude (beats 3-4) relative to the reference: the
 evidence behind ``DYNAMIC_PBD_CONFIG``.
 
-Run: ``scripts/ws python bench/bench_wall.py [--anatomy default] [--repeats 200] [--accuracy]``.
+With ``--contact`` it also runs full-length contact trials on the dynamic env
+(:func:`cgail_planner.sim.contact_trial.run_contact_trials`: the catheter riding the wall, tip
+aimed ``--depth`` mm beyond it, ``--steps`` steps, six sides) and prints per trial the largest
+particle displacement and the body's indentation into the rest wall at that moment; any
+anatomy the env accepts (a built-in name or a prepared patient directory).
+
+Run: ``scripts/ws python bench/bench_wall.py [--anatomy default] [--repeats 200] [--accuracy]
+[--contact [--depth 1] [--steps 2000] [--trials 6] [--contact-only]]``.
 """
 
 from __future__ import annotations
@@ -102,13 +109,43 @@ def accuracy(anatomy_name: str) -> None:
               f"{100 * amp.max():+6.1f} %")
 
 
+def contact(anatomy: str, trials: int, steps: int, depth_mm: float) -> None:
+    """Print the full-length contact trials (see module doc)."""
+    from cgail_planner.sim.contact_trial import run_contact_trials
+
+    t0 = time.perf_counter()
+    out = run_contact_trials(anatomy, trials=trials, steps=steps, depth=depth_mm * 1e-3)
+    print(f"contact trials on {anatomy!r}: tip aimed {depth_mm:g} mm beyond the wall, "
+          f"{steps} steps ({time.perf_counter() - t0:.0f} s)")
+    print(f"  {'start':>5s} {'target':>6s} {'side':>4s} {'end':>16s} {'steps':>5s} "
+          f"{'contact':>7s} {'max disp mm':>11s} {'indentation mm':>14s}")
+    for t in out:
+        print(f"  {t.start:5d} {t.target:6d} {t.direction:4d} {t.end:>16s} {t.steps:5d} "
+              f"{t.contact_steps:7d} {t.max_displacement_mm:11.1f} {t.indentation_mm:14.1f}")
+        if t.fault:
+            print(f"    {t.fault}")
+    print(f"  largest displacement {max(t.max_displacement_mm for t in out):.1f} mm, "
+          f"faults {sum(t.end == 'simulation fault' for t in out)} / {len(out)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--anatomy", default="default")
     parser.add_argument("--repeats", type=int, default=200)
     parser.add_argument("--accuracy", action="store_true",
                         help="also print the convergence of the VBD settings")
+    parser.add_argument("--contact", action="store_true",
+                        help="also run full-length contact trials on the dynamic env")
+    parser.add_argument("--contact-only", action="store_true",
+                        help="only the contact trials (no timings)")
+    parser.add_argument("--depth", type=float, default=1.0,
+                        help="contact trials: tip aim beyond the wall, mm")
+    parser.add_argument("--steps", type=int, default=2000, help="contact trials: steps")
+    parser.add_argument("--trials", type=int, default=6, help="contact trials: trials")
     args = parser.parse_args()
+    if args.contact_only:
+        contact(args.anatomy, args.trials, args.steps, args.depth)
+        return
     anatomy = build_anatomy(args.anatomy)
     static = StaticWall(anatomy)
     axis = anatomy.start_direction / np.linalg.norm(anatomy.start_direction)
@@ -179,6 +216,8 @@ def main() -> None:
           f"{result.penetration * 1e3:.3f} mm, in_contact {result.in_contact}")
     if args.accuracy:
         accuracy(args.anatomy)
+    if args.contact:
+        contact(args.anatomy, args.trials, args.steps, args.depth)
 
 
 if __name__ == "__main__":

@@ -13,14 +13,22 @@ Which side of the wall the segment is on is decided by the angle-weighted pseudo
 closest feature (face, edge or vertex; Baerentzen & Aanaes 2005) of the REST shape (a deeply
 indented, locally folded mesh cannot flip it), so a segment that has ended up
 beyond the wall (e.g. the beating root swept over the catheter) moves the wall past it instead
-of pulling the wall inwards. A single correction is capped at ``r``: larger ones are spread
-over the iterations and steps.
+of pulling the wall inwards. It does so only when the segment lies on the lumen side of the
+same triangle point in the rest shape (the wall moved over it). A segment that is beyond the
+triangle at rest too leaves the triangle alone: it is the wall of a neighbouring vessel within
+reach (branches and arch limbs a few mm apart on patient meshes) or the flank of a dent the
+catheter has slid under; moving such a wall through the catheter, by up to ``r`` + the reach
+each step, dragged dents deeper step after step and blew the wall up past the 40 mm bound
+within a few steps of a catheter riding the wall of the elongated arch. A single correction
+is capped at ``r``: larger ones are spread over the iterations and steps.
 
 The correction of a triangle point with barycentric weights ``b_k`` is spread over its three
 vertices with inverse masses ``w_k`` (the standard PBD point-triangle projection against a
 kinematic collider): ``dx_k = w_k b_k C / (sum_j w_j b_j^2) n``, which moves the point
 ``q_t = sum b_k x_k`` by exactly ``C n``. A segment that pierces the triangle pushes it along its
-outward normal beyond the segment's outer end.
+outward normal beyond the segment's outer end. No vertex moves further than twice the
+violation in one correction (``_STEP_CAP``): next to kinematic vertices the formula above
+asks a free vertex for ``C / b_k``, unbounded as ``b_k -> 0``.
 
 Force (Newton's second law on the wall particles). For each particle ``i``:
 ``m_i a_i = f_i^contact + f_i^elastic + f_i^damping``, so the force the catheter exerts on a set
@@ -59,6 +67,14 @@ from cgail_planner.sim.raycast import cst_scalar, drop_stale_numba_cache
 
 drop_stale_numba_cache(__file__, [__file__, raycast.__file__])
 
+#: Bound of one contact correction of a particle, as a multiple of the constraint violation
+#: it corrects. The triangle point ``sum b_k x_k`` moves by the violation ``C``; its vertex k
+#: moves by ``w_k b_k C / sum_j w_j b_j^2``, up to ~1.4 C for a triangle of free particles of
+#: similar masses, but unbounded as ``b_k -> 0`` next to kinematic (fixed or annulus) vertices:
+#: a catheter pressing 1 mm into a triangle of the fixed descending ring moved its one free
+#: vertex 5.9 mm in a single projection and blew the wall up the step after.
+_STEP_CAP = 2.0
+
 __all__ = ["Contact", "linearize_contacts", "narrow_pairs", "project_contacts",
            "project_planes"]
 
@@ -83,12 +99,26 @@ class Contact:
 
 
 @njit(cache=True)
-def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normals,
+def _lumen_side_at_rest(rest, i0, i1, i2, u, v, w, p0x, p0y, p0z, p1x, p1y, p1z, sp, pn):
+    """True when the segment point ``sp`` lies on the lumen side of the triangle's point
+    ``(u, v, w)`` in the REST shape (along the rest pseudo-normal ``pn``)."""
+    s = 0.0
+    for c in range(3):
+        q = u * rest[i0, c] + v * rest[i1, c] + w * rest[i2, c]
+        a = p0x if c == 0 else (p0y if c == 1 else p0z)
+        b = p1x if c == 0 else (p1y if c == 1 else p1z)
+        s += (q - (a + sp * (b - a))) * pn[c]
+    return s >= 0.0
+
+
+@njit(cache=True)
+def project_contacts(x, rest, inv_mass, faces, face_edges, face_normals, vertex_normals,
                      edge_normals, pair_face, pair_seg, points, radius, dt, impulse, touched):
     """One Gauss-Seidel sweep of the capsule-chain contact constraints (in place).
 
     Args:
         x: (N, 3) particle positions, updated.
+        rest: (N, 3) rest positions (the side test of a segment found beyond the wall).
         inv_mass: (N,) inverse masses (0 = kinematic).
         faces: (M, 3) wall triangles.
         face_edges: (M, 3) edge id of local edge k = (f_k, f_{k+1}) of every wall triangle.
@@ -148,7 +178,10 @@ def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normal
                     continue
                 nx, ny, nz = dfx / dist, dfy / dist, dfz / dist
                 cval = radius - dist
-            else:  # segment beyond the wall: move the wall past it
+            else:  # segment beyond the wall: move the wall past it, if it swept over it
+                if not _lumen_side_at_rest(rest, i0, i1, i2, u, v, w, p0x, p0y, p0z, p1x,
+                                           p1y, p1z, sp, pn):
+                    continue
                 nx, ny, nz = -dfx / dist, -dfy / dist, -dfz / dist
                 cval = radius + dist
         else:  # the segment pierces the triangle: push beyond its outer end
@@ -174,19 +207,20 @@ def project_contacts(x, inv_mass, faces, face_edges, face_normals, vertex_normal
         if cval > worst:
             worst = cval
         # Large corrections (a wall swept into the catheter) are spread over iterations.
-        lam = min(cval, radius) / wsum
+        corr = min(cval, radius)
+        lam = corr / wsum
         for k in range(3):
             idx = i0 if k == 0 else (i1 if k == 1 else i2)
             beta = u if k == 0 else (v if k == 1 else w)
             wk = inv_mass[idx]
             if wk <= 0.0 or beta <= 0.0:
                 continue
-            step = wk * beta * lam
+            step = min(wk * beta * lam, _STEP_CAP * corr)
             x[idx, 0] += step * nx
             x[idx, 1] += step * ny
             x[idx, 2] += step * nz
             # m_k * dx_k / dt with m_k = 1 / w_k
-            imp = beta * lam / dt
+            imp = step / (wk * dt)
             impulse[idx, 0] += imp * nx
             impulse[idx, 1] += imp * ny
             impulse[idx, 2] += imp * nz
@@ -216,7 +250,7 @@ def narrow_pairs(x, faces, pair_face, pair_seg, points, reach):
 
 
 @njit(cache=True)
-def linearize_contacts(x, faces, face_edges, face_normals, vertex_normals, edge_normals,
+def linearize_contacts(x, rest, faces, face_edges, face_normals, vertex_normals, edge_normals,
                        pair_face, pair_seg, points, radius):
     """Freeze each pair's contact feature at the current positions for the inner iterations.
 
@@ -225,7 +259,8 @@ def linearize_contacts(x, faces, face_edges, face_normals, vertex_normals, edge_
     pair's constraint becomes the plane ``(sum_k b_k x_k - A) . n >= radius``: a few flops per
     iteration instead of a segment-triangle distance. The exact projection still closes every
     step. Returns ``(bary (P, 3), anchor (P, 3), normal (P, 3), mark (P,))`` with ``mark`` 2 for
-    pairs of the tip sphere, 1 otherwise.
+    pairs of the tip sphere, 1 otherwise, 0 for pairs that :func:`project_contacts` leaves
+    alone (a segment beyond the wall that was beyond it at rest too).
     """
     m = pair_face.shape[0]
     nb = points.shape[0]
@@ -280,6 +315,10 @@ def linearize_contacts(x, faces, face_edges, face_normals, vertex_normals, edge_
             dfy = qty - qsy
             dfz = qtz - qsz
             sign = 1.0 if dfx * pn[0] + dfy * pn[1] + dfz * pn[2] >= 0.0 else -1.0
+            if sign < 0.0 and not _lumen_side_at_rest(rest, i0, i1, i2, u, v, w, p0x, p0y,
+                                                      p0z, p1x, p1y, p1z, sp, pn):
+                mark[p] = 0
+                continue
             normal[p, 0] = sign * dfx / dist
             normal[p, 1] = sign * dfy / dist
             normal[p, 2] = sign * dfz / dist
@@ -324,23 +363,24 @@ def project_planes(x, inv_mass, faces, pair_face, bary, anchor, normal, mark, ra
         qy = u * x[i0, 1] + v * x[i1, 1] + w * x[i2, 1] - anchor[p, 1]
         qz = u * x[i0, 2] + v * x[i1, 2] + w * x[i2, 2] - anchor[p, 2]
         cval = radius - (qx * nx + qy * ny + qz * nz)
-        if cval <= 0.0:
+        if cval <= 0.0 or mark[p] == 0:
             continue
         wsum = inv_mass[i0] * u * u + inv_mass[i1] * v * v + inv_mass[i2] * w * w
         if wsum <= 0.0:
             continue
-        lam = min(cval, radius) / wsum
+        corr = min(cval, radius)
+        lam = corr / wsum
         for k in range(3):
             idx = i0 if k == 0 else (i1 if k == 1 else i2)
             beta = u if k == 0 else (v if k == 1 else w)
             wk = inv_mass[idx]
             if wk <= 0.0 or beta <= 0.0:
                 continue
-            step = wk * beta * lam
+            step = min(wk * beta * lam, _STEP_CAP * corr)
             x[idx, 0] += step * nx
             x[idx, 1] += step * ny
             x[idx, 2] += step * nz
-            imp = beta * lam / dt
+            imp = step / (wk * dt)
             impulse[idx, 0] += imp * nx
             impulse[idx, 1] += imp * ny
             impulse[idx, 2] += imp * nz
