@@ -47,6 +47,7 @@ from collections.abc import Callable
 import dataclasses
 from dataclasses import dataclass
 import json
+import logging
 from pathlib import Path
 import sys
 import time
@@ -57,6 +58,8 @@ import numpy as np
 from cgail_planner.core.rotations import rotvec_to_matrix
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.onnx_policy import OnnxPolicy
+
+_LOG = logging.getLogger(__name__)
 
 #: Wall-clock bound of the rrt baseline's search, s: generous, so that its iteration budget
 #: (``RrtConfig.max_iterations``) ends every search and the results do not depend on the host.
@@ -143,6 +146,9 @@ class Trial:
     targeting_error_mm: float
     plan_ms: float | None = None
     """Wall time of the method's plan for this trial, ms (None: a method that does not plan)."""
+    fault: bool = False
+    """The episode ended in a simulation fault (the env's ``info["simulation_fault"]``: the
+    deformable wall blew up); neither a success nor a collision."""
 
 
 class CenterlineFollower:
@@ -322,9 +328,17 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
             obs, _, te, tr, info = env.step(a)
             if te or tr:
                 break
+        fault = bool(info.get('simulation_fault', False))
+        if fault:
+            from cgail_planner.sim.anatomy import anatomy_label
+
+            _LOG.warning('simulation fault in %s, trial %d (start %d, target %d, seed %d) at '
+                         'step %d: %s', anatomy_label(env.unwrapped.config.anatomy), k,
+                         pair[0], int(info['target']), seed + k, int(info['timesteps']),
+                         info.get('simulation_fault_message', ''))
         out.append(Trial(bool(info['success']), bool(info['collision']), int(info['timesteps']),
                          1e3 * float(info['targeting_error']),
-                         getattr(method, 'plan_ms', None)))
+                         getattr(method, 'plan_ms', None), fault))
         done[pair] = out[-1]
     return out
 
@@ -355,6 +369,7 @@ def summarize(trials: list[Trial]) -> dict[str, Any]:
                          for t in trials}),
         'success_rate': float(np.mean([t.success for t in trials])),
         'collision_rate': float(np.mean([t.collision for t in trials])),
+        'faults': sum(t.fault for t in trials),
         'T_s_all': med([t.timesteps for t in trials]),
         'T_s_succ': med([t.timesteps for t in succ]),
         'T_a_all_mm': med([t.targeting_error_mm for t in trials]),
@@ -444,14 +459,16 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
     lines = ['# In-silico evaluation', '', notes, '']
     for mode, results in all_results.items():
         lines += [f'## {mode}', '',
-                  '| method | n | distinct | success [95% CI] | collision [95% CI] | T_s all | '
-                  'T_s succ [95% CI] | T_a all (mm) [95% CI] | T_a succ (mm) |',
-                  '|---|---|---|---|---|---|---|---|---|']
+                  '| method | n | distinct | success [95% CI] | collision [95% CI] | '
+                  'simulation faults | T_s all | T_s succ [95% CI] | T_a all (mm) [95% CI] | '
+                  'T_a succ (mm) |',
+                  '|---|---|---|---|---|---|---|---|---|---|']
         for name, trials in results.items():
             s = summarize(trials)
             lines.append(f"| {name} | {s['n']} | {s['distinct']} | "
                          f"{_pct(s['success_rate'], s['success_ci'])} | "
-                         f"{_pct(s['collision_rate'], s['collision_ci'])} | {s['T_s_all']:.0f} | "
+                         f"{_pct(s['collision_rate'], s['collision_ci'])} | {s['faults']} | "
+                         f"{s['T_s_all']:.0f} | "
                          f"{_with(s['T_s_succ'], s['T_s_succ_ci'], '.0f')} | "
                          f"{_with(s['T_a_all_mm'], s['T_a_all_ci'], '.1f')} | "
                          f"{s['T_a_succ_mm']:.1f} |")

@@ -112,6 +112,9 @@ class Trainer:
         self.step = 0
         self.n_updates = 0
         self.stats = EpisodeStats(deque(maxlen=100), deque(maxlen=100), deque(maxlen=100))
+        #: Training episodes a simulation fault ended (the env's ``info["simulation_fault"]``:
+        #: truncated, so bootstrapped like the step limit), since the start of this run.
+        self.simulation_faults = 0
         self.steps_per_rollout = math.ceil(cfg.ppo.buffer_size / env.num_envs)
         self.buffer = RolloutBuffer(self.steps_per_rollout, env.num_envs, self.obs_dim,
                                     self.act_dim, list(self.signals))
@@ -144,6 +147,7 @@ class Trainer:
             self._ep_reward += rew
             self._ep_len += 1
             for i in np.flatnonzero(ended):
+                self.simulation_faults += bool(infos[i].get('simulation_fault', False))
                 self._finish_episode(int(i), is_success(infos[i]))
             self._obs = next_obs
             self.step += self.env.num_envs
@@ -282,6 +286,7 @@ class Trainer:
             scalars['environment/episode_reward'] = float(np.mean(self.stats.rewards))
             scalars['environment/episode_length'] = float(np.mean(self.stats.lengths))
             scalars['environment/success_rate'] = float(np.mean(self.stats.successes))
+        scalars['environment/simulation_faults'] = float(self.simulation_faults)
         if self.curriculum.enabled:
             scalars['curriculum/lesson'] = float(self.curriculum.lesson)
             scalars['curriculum/theta_max_deg'] = math.degrees(self.curriculum.theta_max or 0.0)

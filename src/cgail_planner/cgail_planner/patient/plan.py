@@ -194,6 +194,9 @@ class PlanResult:
     out: Path
     success: dict[str, dict[str, float]] = field(default_factory=dict)
     """mode -> method -> success rate on the unseen targets."""
+    faults: dict[str, dict[str, int]] = field(default_factory=dict)
+    """mode -> method -> episodes of the final evaluation that ended in a simulation fault
+    (counted as failures in ``success``)."""
     goals_met: bool = False
     timings_s: dict[str, float] = field(default_factory=dict)
     """Wall time of each stage, s."""
@@ -628,10 +631,13 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
                 res[name] += run_trials(env, method or CenterlineFollower(env), options.trials,
                                         10_000 + options.seed, noise=noise)
         for name, trials in res.items():
-            rate = summarize(trials)['success_rate']
+            stats = summarize(trials)
+            rate = stats['success_rate']
             result.success.setdefault(mode, {})[name] = rate
+            result.faults.setdefault(mode, {})[name] = stats['faults']
+            faults = f', {stats["faults"]} simulation faults' if stats['faults'] else ''
             say(f'evaluation, {mode}, unseen targets: {name} {100 * rate:.0f}% '
-                f'({len(trials)} trials)')
+                f'({len(trials)} trials{faults})')
         all_results[mode] = res
     result.timings_s['evaluation'] = time.monotonic() - t_eval
     write_report(all_results, out / 'evaluation',
@@ -684,7 +690,8 @@ def _write_record(result: PlanResult, anatomy: str, base: str, options: PlanOpti
                                   for k, v in asdict(options).items()},
         'demonstrations': demo_stats, 'timings_s': {k: round(v, 1) for k, v in
                                                     result.timings_s.items()},
-        'success_unseen_targets': result.success, 'goals_met': result.goals_met,
+        'success_unseen_targets': result.success, 'simulation_faults': result.faults,
+        'goals_met': result.goals_met,
         'policies': {m: str(p) for m, p in policies.items()},
         'validation_history': result.history,
     }
@@ -765,9 +772,14 @@ def _write_report(result: PlanResult, anatomy: str, base: str, options: PlanOpti
     for mode, rates in result.success.items():
         cells = [f'{100 * rates[m]:.0f}%' if m in rates else '-' for m in result.success['static']]
         lines.append(f'| {mode} | ' + ' | '.join(cells) + ' |')
+    faulted = {f'{mode} {m}': k for mode, per in result.faults.items()
+               for m, k in per.items() if k}
     lines += [
         '', f'Success over {options.trials * len(options.test_seeds)} trials per method and '
-        'mode, through the simulated EM tracker. Details, timesteps, targeting errors and box '
+        'mode, through the simulated EM tracker. Simulation faults (episodes a blown-up wall '
+        'ended, counted as failures): '
+        + (', '.join(f'{k} ({v})' for k, v in faulted.items()) if faulted else 'none')
+        + '. Details, timesteps, targeting errors and box '
         'plots: [evaluation/report.md](evaluation/report.md).', '',
         '## Time', '',
         '| stage | wall time |', '|---|---|',

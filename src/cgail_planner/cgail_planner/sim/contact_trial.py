@@ -86,9 +86,10 @@ def _aim(engine: NavEngine, lateral: np.ndarray, depth: float, progress: int
 
 
 def run_contact_trials(anatomy: AnatomySpec, trials: int = 6, steps: int = 2000,
-                       depth: float = 0.001, pbd_config: PBDConfig | None = None
-                       ) -> list[ContactTrial]:
-    """``trials`` contact trials of ``steps`` steps in a dynamic env of ``anatomy``.
+                       depth: float = 0.001, pbd_config: PBDConfig | None = None,
+                       first: int = 0) -> list[ContactTrial]:
+    """``trials`` contact trials of ``steps`` steps in a dynamic env of ``anatomy``: trials
+    ``first`` .. ``first + trials - 1``.
 
     Trial k starts at start ``k % n_starts``, heads for target ``k % n_targets`` and presses
     towards :data:`LATERAL_DIRECTIONS` ``[k % 6]``, its tip aimed ``depth`` (m) beyond the
@@ -96,6 +97,8 @@ def run_contact_trials(anatomy: AnatomySpec, trials: int = 6, steps: int = 2000,
     """
     if not isinstance(trials, int) or trials < 1:
         raise ValueError(f"trials must be an int >= 1, found {trials!r}")
+    if not isinstance(first, int) or first < 0:
+        raise ValueError(f"first must be an int >= 0, found {first!r}")
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps must be an int >= 1, found {steps!r}")
     if not (isinstance(depth, (int, float)) and 0.0 <= depth <= 0.01):
@@ -105,12 +108,13 @@ def run_contact_trials(anatomy: AnatomySpec, trials: int = 6, steps: int = 2000,
     rest = StaticWall(engine.world.anatomy).bvh  # the rest wall
     sc = engine.scenarios
     out: list[ContactTrial] = []
-    for k in range(trials):
+    for k in range(first, first + trials):
         start, target = k % len(sc.starts), k % len(sc.targets)
         engine.reset_env(0, start, target)
         wall = engine.walls[0]
         assert isinstance(wall, DeformableWall)
-        progress, contact, worst, indentation, end, fault = 0, 0, 0.0, 0.0, "full", ""
+        progress, contact, worst, end, fault = 0, 0, 0.0, "full", ""
+        worst_body = engine.catheter.body_points(0, engine.config.body_spacing)
         for _ in range(steps):
             a, progress = _aim(engine, LATERAL_DIRECTIONS[k % 6], depth, progress)
             _, _, _, info = engine.step(a[None])
@@ -121,12 +125,11 @@ def run_contact_trials(anatomy: AnatomySpec, trials: int = 6, steps: int = 2000,
             contact += bool(info["in_contact"][0])
             if wall.max_displacement > worst:
                 worst = wall.max_displacement
-                body = engine.catheter.body_points(0, engine.config.body_spacing)
-                indentation = max(float(rest.closest_point(q)[0]) for q in body) \
-                    + engine.radius
+                worst_body = engine.catheter.body_points(0, engine.config.body_spacing)
             if bool(info["exited"][0]):
                 end = "exited"
                 break
+        indentation = max(float(rest.closest_point(q)[0]) for q in worst_body) + engine.radius
         out.append(ContactTrial(start=start, target=target, direction=k % 6,
                                 steps=int(engine.steps[0]),
                                 contact_steps=contact, max_displacement_mm=worst * 1e3,

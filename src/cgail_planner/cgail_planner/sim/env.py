@@ -9,6 +9,7 @@ observations and reward, one batched raycast per step in static mode);
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from typing import Any, cast
 
@@ -50,9 +51,10 @@ from cgail_planner.sim.scenarios import (
     TargetConfig,
     World,
 )
-from cgail_planner.sim.wall import DeformableWall, StaticWall
+from cgail_planner.sim.wall import DeformableWall, StaticWall, WallError
 
 FloatArray = NDArray[np.float64]
+_LOG = logging.getLogger(__name__)
 
 
 #: Bound of the unbounded-looking entries (positions, u, v) of the observation space.
@@ -350,12 +352,23 @@ class NavEngine:
         self.time += cfg.dt
         tips = cat.tip_position
         n = self.n_envs
+        fault = np.zeros(n, dtype=bool)
+        fault_message = [""] * n
         if cfg.mode == "dynamic":
             for i in range(n):
                 wall = cast(DeformableWall, self.walls[i])  # (dynamic mode)
                 # (unchecked step: finite times, a body from the catheter kinematics)
-                wall.step_unchecked(float(self.time[i]), float(cfg.dt),
-                                    cat.body_points(i, cfg.body_spacing), float(self.radius))
+                try:
+                    wall.step_unchecked(float(self.time[i]), float(cfg.dt),
+                                        cat.body_points(i, cfg.body_spacing),
+                                        float(self.radius))
+                except WallError as err:  # a simulation fault ends this episode (see step)
+                    fault[i], fault_message[i] = True, str(err)
+                    _LOG.warning("simulation fault in %s: env %d, start %d, target %d, step "
+                                 "%d: %s", anatomy_label(cfg.anatomy), i,
+                                 int(self.start_id[i]), int(self.target_id[i]),
+                                 int(self.steps[i]), err)
+                    wall.reset()  # a sane wall for this last step's sensing
                 self.target[i] = (wall.vertices[int(self._target_vertex[i])]
                                   + self._target_offset[i])
         # Static broad phase (exact, not a heuristic): the clearance to a rigid wall is
@@ -384,6 +397,8 @@ class NavEngine:
         outside_box = np.any((tips < self.bbox_low) | (tips > self.bbox_high), axis=1)
         exited = crossed_discs(previous_tips, tips, self.exit_discs) | outside_box
         success = reached_target(tips, self.target, rcfg)
+        if fault.any():  # a faulted step has no outcome of the task (no r_end)
+            collision, exited, success = collision & ~fault, exited & ~fault, success & ~fault
         new_wp = update_waypoints(tips, self.waypoints, self.reached, rcfg)
         bending = bending_event(al, ga, limit, rcfg, actions)
         events = StepEvents(collision=collision, exited=exited, success=success,
@@ -391,7 +406,7 @@ class NavEngine:
         terms, terminated = compute_reward(events, rcfg)
         dist = np.linalg.norm(self.target - tips, axis=1)
         np.minimum(self.min_distance, dist, out=self.min_distance)
-        truncated = (self.steps >= cfg.max_steps) & ~terminated
+        truncated = ((self.steps >= cfg.max_steps) | fault) & ~terminated
         info = {
             "success": events.success & ~events.collision & ~events.exited,
             "collision": collision,
@@ -410,6 +425,8 @@ class NavEngine:
             "reward_end": terms.end,
             "reward_centerline": terms.centerline,
             "reward_bending": terms.bending,
+            "simulation_fault": fault,
+            "simulation_fault_message": np.array(fault_message),
         }
         return terms.total, terminated, truncated, info
 
@@ -511,14 +528,25 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     waypoints are those of the rest shape in both modes.
 
     **Termination**: success, non-minor collision or exit. **Truncation**: ``max_steps`` steps
-    (2000 = 200 s by default).
+    (2000 = 200 s by default), or a **simulation fault**: the deformable wall raised
+    :class:`~cgail_planner.sim.wall.WallError` (a particle beyond ``PBDConfig.max_displacement``
+    from rest, or a non-finite position). That step ends the episode as truncated, with
+    ``info["simulation_fault"]`` True and the wall's message in
+    ``info["simulation_fault_message"]`` (logged as a warning with the anatomy, start, target
+    and step); its reward is the step's ``r_in`` only (``r_end = 0``, no success, collision or
+    exit). Table I has no entry for it: a fault is the simulator's, not an outcome of the task,
+    so it is neither rewarded nor punished, and, like the step limit, it truncates rather than
+    terminates (a learner bootstraps from the last state instead of taking it as terminal).
+    The wall is reset to rest for that step's sensing; the tools count these episodes as the
+    outcome ``simulation fault``.
 
     **Info** (every step): ``success`` / ``is_success`` (bool), ``collision`` (non-minor, bool),
     ``exited`` (bool), ``collision_force`` (N), ``penetration`` (m), ``in_contact`` (bool),
     ``targeting_error`` (m, minimum tip-target distance so far: the paper's T_a), ``distance``
     (m, current), ``timesteps`` (steps so far: T_s), ``time`` (s), ``new_waypoints``,
     ``waypoints_reached``, ``bend`` (applied [alpha, gamma], rad), ``insertion`` (applied m),
-    ``reward_end``/``reward_centerline``/``reward_bending``, ``start``, ``target`` (ids; -1
+    ``reward_end``/``reward_centerline``/``reward_bending``, ``simulation_fault`` (bool) and
+    ``simulation_fault_message`` (str, empty without a fault), ``start``, ``target`` (ids; -1
     for a target drawn per episode),
     ``target_position`` (m), ``theta_max`` (rad).
 

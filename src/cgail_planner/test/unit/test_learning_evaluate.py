@@ -156,7 +156,7 @@ def test_scenario_seed_selects_the_target_set_and_results_json_records_it(
     entry = data['modes']['static']['centerline']
     assert entry['summary']['n'] == 2 and len(entry['trials']) == 2
     assert set(entry['trials'][0]) == {'success', 'collision', 'timesteps',
-                                       'targeting_error_mm', 'plan_ms'}
+                                       'targeting_error_mm', 'plan_ms', 'fault'}
     assert 'of target set (scenario seed) 1.' in (tmp_path / 'report.md').read_text()
 
 
