@@ -75,6 +75,7 @@ PYTHON_KEYS = {
     # PyPI only
     'fast_simplification': Key('python3-fast-simplification-pip', 'fast-simplification'),
     'gymnasium': Key('python3-gymnasium-pip', 'gymnasium'),
+    'nrrd': Key('python3-pynrrd-pip', 'pynrrd'),
     'ndicapy': Key('python3-ndicapi-pip', 'ndicapi'),
     'ompl': Key('python3-ompl-pip', 'ompl'),  # the PyPI bindings (rosdep's ompl is the C++ lib)
     'onnxruntime': Key('python3-onnxruntime-pip', 'onnxruntime'),
@@ -103,7 +104,7 @@ def _module_key(name: str) -> str:
 
 def imported_modules(path: Path) -> set[str]:
     """Absolute imports of a file, as :func:`_module_key` names (``os``, ``backports.zstd``)."""
-    found = set()
+    found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             found.update(_module_key(alias.name) for alias in node.names)

@@ -3,8 +3,8 @@
 * :mod:`~cgail_planner.patient.synthetic` makes realistic synthetic label maps (and surface
   meshes) from the built-in anatomies, in a scanner frame, with the truth to compare against:
   the project's own test data (nothing is downloaded).
-* :mod:`~cgail_planner.patient.volume` reads the inputs (NIfTI label maps; STL/OBJ/PLY/VTP
-  meshes) into one binary lumen volume in patient LPS millimetres.
+* :mod:`~cgail_planner.patient.volume` reads the inputs (NIfTI, NRRD and 3D Slicer ``.seg.nrrd``
+  label maps; STL/OBJ/PLY/VTP meshes) into one binary lumen volume in patient LPS millimetres.
 * :mod:`~cgail_planner.patient.prepare` is the pipeline: lumen, centreline skeleton, flat cuts,
   remeshing, caps, landmarks, the conversion to the ``phantom`` frame.
 * :mod:`~cgail_planner.patient.validate` checks the prepared anatomy (mesh, lumen radius against
@@ -14,7 +14,7 @@
   the prepared anatomy directory (``lumen.stl``, ``lumen.yaml``, ``prepare.yaml``,
   ``report.md``, ``render.png``).
 
-Pure numpy/scipy/scikit-image/nibabel/trimesh: no rclpy, no torch.
+Pure numpy/scipy/scikit-image/nibabel/pynrrd/trimesh: no rclpy, no torch.
 """
 
 from cgail_planner.sim.mesh_io import AnatomyError

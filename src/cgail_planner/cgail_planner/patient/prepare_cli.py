@@ -4,7 +4,16 @@ Usage::
 
     prepare_anatomy aorta.nii.gz --out runs/patient7 [--label 1] [--lv lv.nii.gz]
                     [--coronary coronaries.nii.gz] [--name patient7]
+    prepare_anatomy Segmentation.seg.nrrd --label aorta [--lv-label "left ventricle"] --out DIR
+    prepare_anatomy total.nii.gz --label total:aorta --out DIR
     prepare_anatomy lumen.stl --frame LPS --out runs/patient7 [--units mm]
+
+Label maps: NIfTI (``.nii``, ``.nii.gz``), NRRD (``.nrrd``, ``.nhdr``) and 3D Slicer
+segmentations (``.seg.nrrd``, also multi-layer), in any orientation and with anisotropic voxels
+(thick slices are interpolated by shape). ``--label`` / ``--lv-label`` choose the voxels: a label
+value (``1``), a Slicer segment name (``aorta``), a TotalSegmentator class (``total:aorta``,
+``total:heart``, ``heartchambers_highres:heart_ventricle_left``, ``total_v1:aorta``) or several
+joined by commas; by default every non-zero voxel (or a segmentation's only segment).
 
 Writes ``DIR/lumen.stl`` (mm) with its landmark sidecar ``DIR/lumen.yaml`` (the format of
 :func:`cgail_planner.sim.anatomy.load_anatomy_mesh`), ``DIR/report.md`` (checks, figures,
@@ -21,11 +30,12 @@ runs only: the report then says the anatomy's usability is not proven).
 
 Exit status: 0 usable; 1 the checks refused the anatomy (the report and render are written, the
 lumen is kept as ``lumen.rejected.stl`` / ``.yaml`` for inspection); 2 the input could not be
-used (one line on stderr says why).
+used (one line on stderr says why; nothing is written: the directory is made in a hidden
+sibling and moved into place only when complete).
 
 Points given on the command line (``--annulus``, ``--exit-point``, ``--left-ostium``,
 ``--right-ostium``) are in the input's frame and mm: scanner RAS for a NIfTI label map, the
-declared ``--frame`` for a mesh.
+header's ``space`` for a NRRD (LPS for a 3D Slicer file), the declared ``--frame`` for a mesh.
 """
 
 from __future__ import annotations
@@ -35,7 +45,9 @@ from collections.abc import Sequence
 import datetime
 import math
 from pathlib import Path
+import shutil
 import sys
+import tempfile
 import time
 from typing import Any
 
@@ -51,12 +63,13 @@ from cgail_planner.patient.prepare import (
 from cgail_planner.patient.validate import validate_anatomy, Validation
 from cgail_planner.patient.volume import (
     FRAMES,
+    LABEL_MAP_SUFFIXES,
+    LabelImage,
     LabelVolume,
     LPS_FROM_RAS,
-    read_label_map,
-    read_nifti,
+    MESH_SUFFIXES,
+    read_label_image,
     read_surface,
-    resample_mask,
     UNITS,
     voxelize_surface,
 )
@@ -89,23 +102,29 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog=_PROG, description=__doc__.split("\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog="\n".join(__doc__.split("\n")[2:]))
-    ap.add_argument("input", help="NIfTI label map (.nii/.nii.gz) or closed lumen surface "
-                                  "(.stl/.obj/.ply/.vtp)")
+    ap.add_argument("input", help="label map (NIfTI .nii/.nii.gz, NRRD .nrrd/.nhdr, 3D Slicer "
+                                  ".seg.nrrd) or closed lumen surface (.stl/.obj/.ply/.vtp)")
     ap.add_argument("--out", required=True, help="directory to write the prepared anatomy to")
     ap.add_argument("--name", default=None, help="anatomy name (default: the directory name)")
-    ap.add_argument("--label", type=int, default=None,
-                    help="label value of the aortic lumen (default: every non-zero voxel)")
+    ap.add_argument("--label", default=None,
+                    help="the aortic lumen's voxels: a label value, a Slicer segment name, a "
+                         "TotalSegmentator class (total:aorta, heartchambers_highres:aorta, "
+                         "total_v1:aorta) or several joined by commas (default: every "
+                         "non-zero voxel, or a segmentation's only segment)")
     ap.add_argument("--frame", choices=FRAMES, default=None,
                     help="axes of a surface mesh's coordinates (required for a mesh)")
     ap.add_argument("--units", choices=sorted(UNITS), default="mm",
                     help="length unit of a surface mesh (default mm)")
-    ap.add_argument("--lv", default=None, help="left-ventricle label map (NIfTI): the annulus "
-                                                "plane is fitted to its contact with the aorta")
-    ap.add_argument("--lv-label", type=int, default=None,
-                    help="label value of the LV in --lv (default: every non-zero voxel)")
+    ap.add_argument("--lv", default=None,
+                    help="left-ventricle label map (any label-map format): the annulus plane "
+                         "is fitted to its contact with the aorta")
+    ap.add_argument("--lv-label", default=None,
+                    help="the LV's voxels in --lv, chosen as --label (e.g. "
+                         "heartchambers_highres:heart_ventricle_left; default: every non-zero "
+                         "voxel); without --lv, the LV is read from the input label map")
     ap.add_argument("--coronary", default=None,
-                    help="coronary label map (NIfTI): the ostia are where the two coronary "
-                         "arteries meet the aorta")
+                    help="coronary label map (any label-map format): the ostia are where the "
+                         "two coronary arteries meet the aorta")
     for key in ("annulus", "exit-point", "left-ostium", "right-ostium"):
         ap.add_argument(f"--{key}", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                         help=f"the {key.replace('-', ' ')} (input frame, mm), instead of the "
@@ -136,7 +155,7 @@ def _versions() -> dict[str, str]:
     import importlib.metadata as md
 
     out = {}
-    for pkg in ("cgail_planner", "numpy", "scipy", "scikit-image", "nibabel", "trimesh",
+    for pkg in ("cgail_planner", "numpy", "scipy", "scikit-image", "nibabel", "pynrrd", "trimesh",
                 "fast-simplification"):
         try:
             out[pkg] = md.version(pkg)
@@ -146,19 +165,33 @@ def _versions() -> dict[str, str]:
 
 
 def _read_inputs(args: argparse.Namespace) -> tuple[LabelVolume, np.ndarray, str, list[str],
-                                                    dict[str, Any]]:
-    """(lumen volume, matrix input -> LPS, frame name, notes, input record)."""
+                                                    dict[str, Any], LabelImage | None]:
+    """(lumen volume, matrix input -> LPS, frame name, notes, input record, the label map as
+    read or None for a mesh)."""
     path = Path(args.input)
     name = path.name.lower()
     notes: list[str] = []
-    if name.endswith((".nii", ".nii.gz")):
+    if name.endswith(LABEL_MAP_SUFFIXES):
+        image = read_label_image(path)
         if args.frame is not None:
-            notes.append("--frame ignored: a NIfTI affine gives scanner RAS coordinates")
-        vol, nifti_notes = read_label_map(path, args.label, spacing=args.voxel_mm)
-        notes += nifti_notes
-        record = {"kind": "label map", "path": str(path.resolve()), "label": args.label,
-                  "frame": "RAS (NIfTI affine)", "working_voxel_mm": vol.spacing}
-        return vol, LPS_FROM_RAS, "RAS", notes, record
+            notes.append(f"--frame ignored: the {image.kind} file gives its own frame "
+                         f"({image.frame})")
+        vol = image.volume(args.label, spacing=args.voxel_mm)
+        notes += image.notes
+        how = ("NIfTI affine" if image.kind == "NIfTI" else "NRRD space")
+        record = {"kind": "label map", "format": image.kind, "path": str(path.resolve()),
+                  "label": args.label, "selected": vol.source,
+                  "frame": f"{image.frame} ({how})",
+                  "input_voxel_mm": [round(float(x), 4) for x in
+                                     np.linalg.norm(image.affine[:3, :3], axis=0)],
+                  "working_voxel_mm": vol.spacing}
+        return vol, image.to_lps, image.frame, notes, record, image
+    if not name.endswith(MESH_SUFFIXES):
+        raise PatientError(f"expected a label map ({', '.join(LABEL_MAP_SUFFIXES)}) or a surface "
+                           f"mesh ({', '.join(MESH_SUFFIXES)}), found {path.name!r}")
+    if args.lv is None and args.lv_label is not None:
+        raise PatientError(f"expected --lv with --lv-label for the surface mesh {path.name}, "
+                           "found none (a mesh has no labels)")
     if args.frame is None:
         raise PatientError(f"expected --frame RAS or --frame LPS for the surface mesh "
                            f"{path.name} (a mesh's coordinates carry no axis convention), "
@@ -169,27 +202,89 @@ def _read_inputs(args: argparse.Namespace) -> tuple[LabelVolume, np.ndarray, str
               "units": args.units, "vertices": len(surface.vertices),
               "working_voxel_mm": vol.spacing}
     to_lps = LPS_FROM_RAS if args.frame == "RAS" else np.eye(3)
-    return vol, to_lps, args.frame, notes, record
+    return vol, to_lps, args.frame, notes, record, None
 
 
-def _extra_map(path: str, label: int | None, vol: LabelVolume, what: str) -> LabelVolume:
-    data, affine, _ = read_nifti(path)
-    sel = data != 0 if label is None else data == label
-    if not sel.any():
-        raise PatientError(f"expected {what} voxels in {path}, found none")
+def _extra_map(source: str | LabelImage, label: str | None, vol: LabelVolume,
+               what: str) -> LabelVolume:
+    """The ``what`` voxels (``label`` of ``source``, a file or the input's label map) on the
+    lumen's grid."""
+    image = source if isinstance(source, LabelImage) else read_label_image(source)
     hi = vol.origin + vol.spacing * (np.array(vol.mask.shape) - 1)
-    return resample_mask(sel, affine, spacing=vol.spacing, bbox_lps=(vol.origin, hi),
-                         source=Path(path).name)
+    try:
+        extra = image.volume(label, spacing=vol.spacing, bbox_lps=(vol.origin, hi))
+    except PatientError as err:
+        raise PatientError(f"{what} label map: {err}") from err
+    if not extra.mask.any():
+        raise PatientError(f"expected {what} voxels of {extra.source} within the aortic "
+                           "label's bounding box (+15 mm), found none: not the same patient "
+                           "or frame?")
+    return extra
+
+
+class _Staging:
+    """The output directory made in a hidden sibling and moved into place when complete, so a
+    run that fails leaves no half-written directory (and an earlier run's files untouched)."""
+
+    def __init__(self, final: Path) -> None:
+        self.final = final
+        self.path: Path | None = None
+
+    def make(self) -> Path:
+        """Create the staging directory (and the output's parent) and return it."""
+        self.final.parent.mkdir(parents=True, exist_ok=True)
+        self.path = Path(tempfile.mkdtemp(prefix=f".{self.final.name}.", suffix=".partial",
+                                          dir=self.final.parent))
+        return self.path
+
+    def publish(self) -> None:
+        """Move the staged files into the output directory: a new directory is renamed into
+        place; into an existing one each file replaces its namesake (and the other lumen
+        files of an earlier run are removed)."""
+        if self.path is None:
+            return
+        if not self.final.exists():
+            self.path.rename(self.final)
+        else:
+            for stale in ("lumen.stl", "lumen.yaml", "lumen.rejected.stl",
+                          "lumen.rejected.yaml"):
+                if not (self.path / stale).exists():
+                    (self.final / stale).unlink(missing_ok=True)
+            for f in sorted(self.path.iterdir()):
+                f.replace(self.final / f.name)
+            self.path.rmdir()
+        self.path = None
+
+    def discard(self) -> None:
+        """Remove what is still staged (after a failure)."""
+        if self.path is not None:
+            shutil.rmtree(self.path, ignore_errors=True)
+            self.path = None
 
 
 def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
     """Run ``prepare_anatomy`` (the command line's arguments) and return what it made.
 
     Raises:
-        PatientError: the input cannot be used (one line why).
+        PatientError: the input cannot be used (one line why); nothing is written.
         AnatomyError: the written lumen does not load back (a bug: report it).
     """
     args = _parse(argv)
+    stage = _Staging(Path(args.out))
+    if stage.final.exists() and not stage.final.is_dir():
+        raise PatientError(f"expected --out to be a directory, found a file at {stage.final}")
+    try:
+        result = _prepare(args, argv, stage)
+        stage.publish()
+    finally:
+        stage.discard()
+    result.out = stage.final
+    return result
+
+
+def _prepare(args: argparse.Namespace, argv: Sequence[str] | None,
+             stage: _Staging) -> PrepareResult:
+    """:func:`prepare_anatomy` writing into ``stage``."""
     t_start = time.perf_counter()
     out = Path(args.out)
     name = args.name or out.resolve().name
@@ -200,8 +295,10 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
     except ValueError as err:
         raise PatientError(str(err)) from err
     t0 = time.perf_counter()
-    vol, to_lps, frame, in_notes, in_record = _read_inputs(args)
-    lv = _extra_map(args.lv, args.lv_label, vol, "left-ventricle") if args.lv else None
+    vol, to_lps, frame, in_notes, in_record, image = _read_inputs(args)
+    lv_source = args.lv or (image if args.lv_label is not None else None)
+    lv = (_extra_map(lv_source, args.lv_label, vol, "left-ventricle")
+          if lv_source is not None else None)
     cor = _extra_map(args.coronary, None, vol, "coronary") if args.coronary else None
     t_read = time.perf_counter() - t0
 
@@ -213,14 +310,13 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
                                   left_ostium=lps(args.left_ostium),
                                   right_ostium=lps(args.right_ostium))
     hint = ("check --frame" if in_record["kind"] == "surface mesh"
-            else "check the NIfTI affine (orientation)")
+            else "check the NIfTI affine (orientation)" if image is not None
+            and image.kind == "NIfTI" else "check the NRRD space and space directions")
     prepared = prepare_volume(vol, name=name, options=options, lv=lv, coronary=cor,
                               overrides=overrides, frame_hint=hint)
     prepared.timings = {"read input": t_read, **prepared.timings}
     prepared.notes[:0] = in_notes
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("lumen.stl", "lumen.yaml", "lumen.rejected.stl", "lumen.rejected.yaml"):
-        (out / stale).unlink(missing_ok=True)
+    out = stage.make()
     save_anatomy_mesh(prepared.anatomy, out / "lumen.stl")
     anatomy = load_anatomy_mesh(out / "lumen.stl", name=name)
     t0 = time.perf_counter()
@@ -237,8 +333,8 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "command": [_PROG, *(sys.argv[1:] if argv is None else list(argv))],
         "input": in_record,
-        "lv": None if args.lv is None else {"path": str(Path(args.lv).resolve()),
-                                            "label": args.lv_label},
+        "lv": None if lv_source is None else {
+            "path": str(Path(args.lv or args.input).resolve()), "label": args.lv_label},
         "coronary": None if args.coronary is None else str(Path(args.coronary).resolve()),
         "options": {"target_vertices": options.target_vertices, "branch_mm": options.branch_mm,
                     "descending_mm": options.descending_mm,

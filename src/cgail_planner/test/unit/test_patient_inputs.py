@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import nibabel as nib
 import numpy as np
@@ -61,7 +62,7 @@ def test_cli_empty_label_one_line_and_exit_2(tmp_path: Path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert err[0].startswith("prepare_anatomy: error: expected non-zero voxels in ")
-    assert not (tmp_path / "out" / "lumen.stl").exists()
+    assert not (tmp_path / "out").exists()
 
 
 def test_cli_two_disconnected_components_refused(tmp_path: Path,
@@ -74,6 +75,7 @@ def test_cli_two_disconnected_components_refused(tmp_path: Path,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert "expected one connected lumen in two.nii.gz, found 2 components" in err[0]
+    assert not (tmp_path / "out").exists()
 
 
 def test_cli_mesh_needs_a_frame(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -92,7 +94,9 @@ def test_cli_open_mesh_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert main([str(path), "--frame", "LPS", "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    assert "expected a closed (watertight) surface in open.stl, found 96 open" in err[0]
+    assert ("expected a closed (watertight) surface in open.stl, found 96 open or non-manifold "
+            "edges (2 holes, 0 non-manifold)") in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["open.stl"]
 
 
 def test_cli_mesh_in_metres_refused_with_the_hint(tmp_path: Path,
@@ -159,7 +163,7 @@ def test_synthetic_ct_console_script_writes_label_maps_and_meshes(tmp_path) -> N
     names = sorted(p.name for p in (tmp_path / 'ct').iterdir())
     assert names == ['synthetic_aorta.nii.gz', 'synthetic_coronary.nii.gz',
                      'synthetic_lv.nii.gz', 'truth.yaml']
-    img = nib.load(tmp_path / 'ct' / 'synthetic_aorta.nii.gz')
+    img: Any = nib.load(tmp_path / 'ct' / 'synthetic_aorta.nii.gz')
     assert img.header.get_zooms() == pytest.approx((0.84, 0.84, 1.0), abs=1e-6)
     truth = yaml.safe_load((tmp_path / 'ct' / 'truth.yaml').read_text())
     assert set(truth) >= {'annulus_center', 'left_ostium', 'right_ostium', 'root_axis'}
@@ -171,4 +175,4 @@ def test_synthetic_ct_console_script_refuses_bad_options(tmp_path, capsys) -> No
     from cgail_planner.patient.synthetic import main
 
     assert main(['--out', str(tmp_path), '--spacing-mm', '0.1', '0.84', '1.0']) == 2
-    assert 'spacing_mm must be 3 values in [0.3, 2.5] mm' in capsys.readouterr().err
+    assert 'spacing_mm must be 3 values in [0.3, 3.5] mm' in capsys.readouterr().err
