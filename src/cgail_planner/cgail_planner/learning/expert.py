@@ -5,14 +5,17 @@ the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.ftl_mod
 limit ``theta_max * delta_l / L``, insertion <= v_max * dt), and scores the predicted tip path:
 
 * **clearance**: at every predicted point, the inscribed-sphere radius of the nearest centerline
-  point minus the distance to it, minus the catheter radius; a path whose clearance drops below
-  ``min_clearance`` is penalised in proportion to the violation (hard walls, soft score);
+  point minus the distance to it, minus the catheter radius (in dynamic mode, also the
+  distance to the wall as it is at planning time, deformed by the heartbeat and the catheter);
+  a path whose clearance drops below ``min_clearance`` is penalised in proportion to the
+  violation (hard walls, soft score);
 * **progress**: distance of the path's end to a *carrot*, the centerline point ``lookahead``
   waypoints past the furthest one reached, or the target itself in the final approach;
 * **target**: the closest predicted approach to the target (the task's success test).
 
 A sequence is one of 25 constant bends (a0, a1 in {-1, -0.5, 0, 0.5, 1}, full insertion) held
-for ``stage1`` steps, followed by ``stage2`` steps of pure pursuit towards the carrot
+for ``stage1`` steps or for twice as long, followed by pure pursuit for the rest of the
+``stage1 + stage2`` steps towards the carrot
 (``steer_towards``); the best sequence's actions are executed. Only actions inside [-1, 1]^3 are
 produced, so the demonstrations respect the catheter's constraints by construction. The expert
 reads the simulator's state (tip pose, target, centerline), which a policy never sees.
@@ -57,6 +60,10 @@ class ExpertConfig:
 
 
 _LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
+_SHIFT_NEIGHBOURS = 24
+"""Wall vertices whose mean displacement moves a centerline point in dynamic mode."""
+_LIVE_REACH = 0.05
+"""Search radius of the live-wall clearance in dynamic mode, m (farther counts as clear)."""
 _GRID = np.array([(a, b) for a in _LEVELS for b in _LEVELS])
 
 
@@ -70,6 +77,8 @@ class ScriptedExpert:
         self._progress = 0
         self._rng: np.random.Generator | None = None
         self._lookahead = self.cfg.lookahead
+        self._near: np.ndarray | None = None
+        self._near_key: tuple[Any, ...] | None = None
 
     def reset(self, seed: int | None = None) -> None:
         """Forget the plan and the progress (call after ``env.reset``).
@@ -91,9 +100,25 @@ class ScriptedExpert:
         cl = eng.world.centerlines[eng.branch[0]]
         return np.asarray(cl.points), np.asarray(cl.radii)
 
-    def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, carrot: np.ndarray
-                 ) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Predicted tip points (K, T, 3) of K sequences and the actions of each step."""
+    def _wall_shift(self, pts_cl: np.ndarray) -> np.ndarray:
+        """(P, 3) mean displacement from rest of the wall vertices nearest each centerline
+        point, m (the ``_SHIFT_NEIGHBOURS`` rest vertices nearest it, found once)."""
+        eng = self.env.engine
+        wall = eng.walls[0]
+        rest = np.asarray(eng.world.anatomy.vertices)
+        key = (id(rest), len(pts_cl), float(pts_cl[0, 0]), float(pts_cl[-1, 2]))
+        if self._near_key != key:
+            from scipy.spatial import cKDTree
+
+            self._near = cKDTree(rest).query(pts_cl, k=_SHIFT_NEIGHBOURS)[1]
+            self._near_key = key
+        disp = np.asarray(wall.vertices) - rest
+        return np.asarray(disp[self._near].mean(axis=1))
+
+    def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, carrot: np.ndarray,
+                 hold: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Predicted tip points (K, T, 3) of K sequences and the actions of each step
+        (sequence k holds ``first[k]`` for ``hold[k]`` steps, default ``stage1``)."""
         eng = self.env.engine
         cat_cfg = eng.config.catheter
         theta = eng.catheter.theta_max
@@ -101,8 +126,10 @@ class ScriptedExpert:
         p = np.repeat(p[None], K, 0)
         R = np.repeat(R[None], K, 0)
         pts, acts = [], []
+        hold = np.full(K, self.cfg.stage1) if hold is None else hold
         for t in range(self.cfg.stage1 + self.cfg.stage2):
-            a = first if t < self.cfg.stage1 else steer_towards(p, R, carrot, cat_cfg, theta)
+            a = np.where((t < hold)[:, None], first,
+                         steer_towards(p, R, carrot, cat_cfg, theta))
             al, ga, dl = action_to_command(a, theta, cat_cfg.segment_length,
                                            cat_cfg.max_step_insertion, cat_cfg.forward_only)
             R = R @ bend_rotation(al, ga)
@@ -138,19 +165,38 @@ class ScriptedExpert:
         k_near = int(np.argmin(np.linalg.norm(pts_cl - p, axis=1)))
         self._progress = max(self._progress, k_near)
         k = min(self._progress + self._lookahead, len(pts_cl) - 1)
+        dynamic = eng.config.mode == "dynamic"
+        if dynamic:
+            # The beating wall carries the root (and the target on it) several mm off the rest
+            # shape the centerline was computed on: the centerline and its spheres move with
+            # the mean displacement of the wall around each of their points.
+            pts_cl = pts_cl + self._wall_shift(pts_cl)
         d_target = float(np.linalg.norm(target - p))
         final = d_target < self.cfg.approach_distance or k >= len(pts_cl) - 2
         carrot = target if final else pts_cl[k]
         cat_cfg = eng.config.catheter
         pursuit = steer_towards(p, R, carrot, cat_cfg, eng.catheter.theta_max)
-        first = np.concatenate([np.column_stack([_GRID, np.ones(len(_GRID))]), pursuit[None]])
-        traj, acts = self._rollout(p, R, first, carrot)
+        bends = np.column_stack([_GRID, np.ones(len(_GRID))])
+        # Each constant bend held for stage1 steps, and for twice as long (a tight arch
+        # needs the longer turn before pursuit takes over), then the pure pursuit alone.
+        first = np.concatenate([bends, bends, pursuit[None]])
+        hold = np.concatenate([np.full(len(bends), self.cfg.stage1),
+                               np.full(len(bends), 2 * self.cfg.stage1), [self.cfg.stage1]])
+        traj, acts = self._rollout(p, R, first, carrot, hold)
         # clearance from the centerline's inscribed spheres
         flat = traj.reshape(-1, 3)
         d = np.linalg.norm(flat[:, None, :] - pts_cl[None, :, :], axis=2)
         j = np.argmin(d, axis=1)
         clear = (radii[j] - d[np.arange(len(flat)), j] - cat_cfg.outer_diameter / 2).reshape(
             traj.shape[:2])
+        if True:
+            # The beating wall is not where the centerline's spheres say: the clearance is
+            # also taken from the wall as it is now (deformed by the heartbeat and by the
+            # catheter), so the tip keeps off a wall that moved into its path.
+            live = eng.walls[0].distance_unchecked(np.ascontiguousarray(flat, np.float64),
+                                                   _LIVE_REACH)
+            live = np.minimum(live, _LIVE_REACH) - cat_cfg.outer_diameter / 2
+            clear = np.minimum(clear, live.reshape(traj.shape[:2]))
         violation = np.clip(self.cfg.min_clearance - clear, 0.0, None).max(axis=1)
         end_to_carrot = np.linalg.norm(traj[:, -1] - carrot, axis=1)
         closest_target = np.linalg.norm(traj - target, axis=2).min(axis=1)
