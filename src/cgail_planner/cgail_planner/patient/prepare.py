@@ -78,8 +78,8 @@ _ARCH_BRANCH_ARC_MM = 70.0
 """... and at most this far along the centreline from it, mm."""
 _SKELETON_MM = 1.0
 """Voxel size of the grid the centreline tree is computed on, mm (a coarse first look)."""
-_CUT_SHIFTS_MM = (0.0, 1.5, 3.0, 4.5)
-"""Inward shifts of a cut plane tried in turn until it crosses a clean tube, mm."""
+_CUT_SHIFTS_MM = (0.0, 1.5, 3.0, 4.5, 6.0, 8.0, -1.5, -3.0)
+"""Shifts of a cut plane (inwards > 0) tried in turn until it crosses a clean tube, mm."""
 _END_TILT_DEG = 20.0
 """A root end face tilted more than this from the root axis is an axial cut, not the valve."""
 _ANNULUS_SPREAD_MM = 3.0
@@ -103,7 +103,8 @@ class PrepareOptions:
     stubs); in [5, 80]."""
     descending_mm: float = 150.0
     """Centreline length kept below the last supra-aortic branch, mm; in [90, 400]. Shortened
-    when the field of view ends earlier, or when a straight introducer would touch the wall."""
+    when the field of view ends earlier; when a straight introducer would touch the wall,
+    shorter lengths are tried, then (where the label goes on) up to 100 mm longer ones."""
     smoothing_mm: float = 1.0
     """Standard deviation of the Gaussian smoothing of the lumen field, mm; in [0, 3]."""
     island_fraction: float = 0.05
@@ -319,10 +320,23 @@ def _identify(tree: SkeletonTree, lv_points: np.ndarray | None, source: str, fra
                      f"({dist[root]:.0f} mm from it)")
     else:
         root = max(leaves, key=lambda n: widths[n])
-    dist_root = tree.distances(root)
-    distal = max((n for n in leaves if n != root), key=lambda n: dist_root[n])
-    skel = tree.skeleton(root, distal)
-    apex = _arch_apex(skel, source, frame_hint)
+    # The widest end is the root's almost always; when its trunk has no arch (a bulge of a
+    # real label wider than the root's end), the next widest ends are tried in turn.
+    first_error: PatientError | None = None
+    roots = [root] if lv_points is not None and len(lv_points) else \
+        sorted(leaves, key=lambda n: -widths[n])[:3]
+    for root in roots:
+        dist_root = tree.distances(root)
+        distal = max((n for n in leaves if n != root), key=lambda n: dist_root[n])
+        skel = tree.skeleton(root, distal)
+        try:
+            apex = _arch_apex(skel, source, frame_hint)
+            break
+        except PatientError as err:
+            first_error = first_error or err
+    else:
+        assert first_error is not None
+        raise first_error
     arc = skel.trunk_arc
     asc, desc = float(arc[apex]), float(arc[-1] - arc[apex])
     if lv_points is None or not len(lv_points):
@@ -703,7 +717,10 @@ def _plan_cuts(skel: Skeleton, apex: int, arch_branches: list[Branch],
         # The longest descending aorta (up to descending_mm) whose straight introducers keep
         # clear of the wall; shorter ones are tried in 10 mm steps.
         first = min(s_last + options.descending_mm, end_room)
-        candidates = np.arange(first, s_last + need - 1e-9, -10.0)
+        # Shorter first; then, where a whole-aorta label goes on, up to 100 mm longer (an
+        # S-shaped real descending aorta may be straight only further down).
+        longer = np.arange(first + 10.0, min(first + 100.0, end_room) + 1e-9, 10.0)
+        candidates = np.concatenate([np.arange(first, s_last + need - 1e-9, -10.0), longer])
         best = (-math.inf, first)
         for cand in candidates:
             clear = _introducer_clearance(trunk, radii, arc, float(cand),
@@ -850,7 +867,8 @@ def _surface(sdf: np.ndarray, field_: _Field, target_vertices: int,
         point = (cut.point - annulus_lps) * 1e-3
         r = cut.radius * 1e-3
         # A plane through a pinch of the surface (a lobe of an oblique root end, a bump of
-        # the segmentation) gives no simple loop: the cut moves inwards by up to 4.5 mm.
+        # the segmentation) gives no simple loop: the cut moves by up to 8 mm (inwards first).
+        closed = False
         for shift in _CUT_SHIFTS_MM:
             try:
                 vm_new, new_f, kept, ids = mesh_io.clip_and_cap(
@@ -858,11 +876,19 @@ def _surface(sdf: np.ndarray, field_: _Field, target_vertices: int,
                     _BEYOND_MM * 1e-3 + r + 0.004, edge, field_m)
                 break
             except mesh_io.MeshError as err:
-                if shift == _CUT_SHIFTS_MM[-1]:
+                if shift != _CUT_SHIFTS_MM[-1]:
+                    continue
+                if not cut.name.startswith("branch"):
                     raise PatientError(f"expected a clean tube to cut at the {cut.name} cut, "
                                        f"found: {err}") from err
+                # A side branch is left closed (a blind stub) rather than refuse the lumen.
+                notes.append(f"the {cut.name} stub could not be cut cleanly ({err}): left "
+                             "closed")
+                closed = True
+        if closed:
+            continue
         if shift:
-            notes.append(f"the {cut.name} cut moved {shift:.1f} mm inwards to cross a clean "
+            notes.append(f"the {cut.name} cut moved {shift:+.1f} mm inwards to cross a clean "
                          "tube")
         vm = vm_new
         n_new = len(new_f) - len(kept)

@@ -722,13 +722,75 @@ def clip_and_cap(v: np.ndarray, f: np.ndarray, point: np.ndarray, normal: np.nda
     flip = n @ normal < 0.0
     t[flip] = t[flip][:, ::-1]
     out = np.vstack([f, t])
-    directed = np.concatenate([out[:, [0, 1]], out[:, [1, 2]], out[:, [2, 0]]])
-    if len(np.unique(directed, axis=0)) < len(directed):
+    if not _consistent(out):
         # A cross-section that is not star-shaped about its centre (an oblique cut through a
-        # kidney-shaped lumen) gives cap triangles that fold over each other.
-        raise MeshError(f"expected a star-shaped cross-section at the cut near "
-                        f"{np.round(point, 4)}, found a cap that folds over itself")
+        # kidney-shaped real lumen) gives ring triangles that fold over each other: the rim
+        # is closed by ear clipping instead (no interior vertex; the rim stays as it is).
+        v = v[:base]
+        t = _ear_clip(v, np.asarray(outer, dtype=np.int64), normal)
+        n = _normals(v, t)
+        flip = n @ normal < 0.0
+        t[flip] = t[flip][:, ::-1]
+        out = np.vstack([f, t])
+        cap_ids = list(outer)
+        if not _consistent(out):
+            raise MeshError(f"expected a simple cross-section at the cut near "
+                            f"{np.round(point, 4)}, found a rim that crosses itself")
     return v, out, kept, np.array(cap_ids, dtype=np.int64)
+
+
+def _consistent(faces: np.ndarray) -> bool:
+    """True when no directed edge repeats (a consistently wound, unfolded surface)."""
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return len(np.unique(directed, axis=0)) == len(directed)
+
+
+def _ear_clip(v: np.ndarray, loop: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Triangles (T, 3) filling the planar polygon ``loop`` (vertex ids, in order) by ear
+    clipping in the plane of ``normal`` (any simple polygon, convex or not)."""
+    e1 = np.cross(normal, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(normal, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    xy = np.column_stack([v[loop] @ e1, v[loop] @ e2])
+    area = 0.5 * float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
+    idx = list(range(len(loop))) if area > 0 else list(range(len(loop)))[::-1]
+    tris: list[list[int]] = []
+
+    def cross(o: int, a: int, b: int) -> float:
+        return float((xy[a, 0] - xy[o, 0]) * (xy[b, 1] - xy[o, 1])
+                     - (xy[a, 1] - xy[o, 1]) * (xy[b, 0] - xy[o, 0]))
+
+    guard = 0
+    while len(idx) > 3 and guard < 10 * len(loop) ** 2:
+        guard += 1
+        best, best_q = -1, -np.inf
+        for k in range(len(idx)):
+            a, b, c = idx[k - 1], idx[k], idx[(k + 1) % len(idx)]
+            if cross(a, b, c) <= 0.0:
+                continue  # reflex corner
+            inside = False
+            for m in idx:
+                if m in (a, b, c):
+                    continue
+                if cross(a, b, m) >= 0 and cross(b, c, m) >= 0 and cross(c, a, m) >= 0:
+                    inside = True
+                    break
+            if inside:
+                continue
+            # the ear with the largest smallest angle (no slivers where it can be helped)
+            q = cross(a, b, c) / max(float(np.sum((xy[a] - xy[c]) ** 2)), 1e-18)
+            if q > best_q:
+                best, best_q = k, q
+        if best < 0:
+            raise MeshError("expected a simple cross-section to cap, found a rim that crosses "
+                            "itself")
+        a, b, c = idx[best - 1], idx[best], idx[(best + 1) % len(idx)]
+        tris.append([a, b, c])
+        idx.pop(best)
+    tris.append(idx[:3])
+    return np.asarray(loop[np.asarray(tris)], dtype=np.int64)
 
 
 def read_mesh_mm(path: str | Path) -> trimesh.Trimesh:
