@@ -88,9 +88,11 @@ def test_real_whole_aorta_is_prepared_from_its_shape(real_d18: PrepareResult) ->
     assert r.usable, [c.message for c in r.validation.errors]
     assert (r.out / "lumen.stl").is_file() and (r.out / "report.md").is_file()
     assert _note(r, r"(\d+) supra-aortic branch\(es\) leaving it").group(1) == "3"
-    # The label runs on to the iliacs; the cut keeps 150 mm below the last arch branch.
-    assert _note(r, r"descending cut (\d+) mm of centreline below").group(1) == "150"
-    assert int(_note(r, r"the label continues (\d+) mm beyond").group(1)) > 150
+    # The label runs on to the iliacs; the cut keeps 150 mm below the last arch branch, or
+    # up to 100 mm more where D18's bending descending aorta leaves a straight introducer
+    # against the wall at 150 mm.
+    assert 150 <= int(_note(r, r"descending cut (\d+) mm of centreline below").group(1)) <= 250
+    assert int(_note(r, r"the label continues (\d+) mm beyond").group(1)) > 100
     # The descending aorta lies posterior of the ascending aorta (phantom frame: LPS).
     a = r.anatomy
     assert float(a.start_point[1]) > 0.02
