@@ -861,9 +861,14 @@ def solve_vbd(x, inv_mass, mass, rest, adj_ptr, adj_other, adj_k, adj_rest, adj_
 
 
 @njit(cache=True)
-def _grow_rings(active, adj_ptr, adj_other, rings):
-    """``active`` grown by ``rings`` springs (the particles within that many springs)."""
+def contact_faces_neighbourhood(faces, pair_face, adj_ptr, adj_other, rings):
+    """(N,) bool: the vertices of the contact candidate triangles ``pair_face`` and every
+    particle within ``rings`` springs of them."""
     n = adj_ptr.shape[0] - 1
+    active = np.zeros(n, np.bool_)
+    for p in range(pair_face.shape[0]):
+        for k in range(3):
+            active[faces[pair_face[p], k]] = True
     for _ in range(rings):
         grown = active.copy()
         for i in range(n):
@@ -875,19 +880,6 @@ def _grow_rings(active, adj_ptr, adj_other, rings):
 
 
 @njit(cache=True)
-def contact_faces_neighbourhood(faces, pair_face, adj_ptr, adj_other, rings):
-    """(N,) bool: the vertices of the contact candidate triangles ``pair_face`` and every
-    particle within ``rings`` springs of them."""
-    n = adj_ptr.shape[0] - 1
-    active = np.zeros(n, np.bool_)
-    for p in range(pair_face.shape[0]):
-        for k in range(3):
-            active[faces[pair_face[p], k]] = True
-    active = _grow_rings(active, adj_ptr, adj_other, rings)
-    return active
-
-
-@njit(cache=True)
 def contact_neighbourhood(touched, adj_ptr, adj_other, vertex_order, rings):
     """Particles within ``rings`` springs of a particle a contact moved, in sweep order."""
     n = touched.shape[0]
@@ -895,7 +887,13 @@ def contact_neighbourhood(touched, adj_ptr, adj_other, vertex_order, rings):
     for i in range(n):
         if touched[i] > 0:
             active[i] = True
-    active = _grow_rings(active, adj_ptr, adj_other, rings)
+    for _ in range(rings):
+        grown = active.copy()
+        for i in range(n):
+            if active[i]:
+                for a in range(adj_ptr[i], adj_ptr[i + 1]):
+                    grown[adj_other[a]] = True
+        active = grown
     count = 0
     for i in range(n):
         if active[i]:
