@@ -5,8 +5,9 @@ the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.ftl_mod
 limit ``theta_max * delta_l / L``, insertion <= v_max * dt), and scores the predicted tip path:
 
 * **clearance**: at every predicted point, the inscribed-sphere radius of the nearest centerline
-  point minus the distance to it, minus the catheter radius (in dynamic mode, also the
-  distance to the wall as it is at planning time, deformed by the heartbeat and the catheter);
+  point minus the distance to it, minus the catheter radius, and no more than the distance to
+  the wall itself as it is at planning time (in dynamic mode deformed by the heartbeat and the
+  catheter) minus the catheter radius;
   a path whose clearance drops below ``min_clearance`` is penalised in proportion to the
   violation (hard walls, soft score);
 * **progress**: distance of the path's end to a *carrot*, the centerline point ``lookahead``
@@ -63,7 +64,7 @@ _LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 _SHIFT_NEIGHBOURS = 24
 """Wall vertices whose mean displacement moves a centerline point in dynamic mode."""
 _LIVE_REACH = 0.05
-"""Search radius of the live-wall clearance in dynamic mode, m (farther counts as clear)."""
+"""Search radius of the wall-distance clearance, m (farther counts as clear)."""
 _GRID = np.array([(a, b) for a in _LEVELS for b in _LEVELS])
 
 
@@ -189,14 +190,13 @@ class ScriptedExpert:
         j = np.argmin(d, axis=1)
         clear = (radii[j] - d[np.arange(len(flat)), j] - cat_cfg.outer_diameter / 2).reshape(
             traj.shape[:2])
-        if True:
-            # The beating wall is not where the centerline's spheres say: the clearance is
-            # also taken from the wall as it is now (deformed by the heartbeat and by the
-            # catheter), so the tip keeps off a wall that moved into its path.
-            live = eng.walls[0].distance_unchecked(np.ascontiguousarray(flat, np.float64),
-                                                   _LIVE_REACH)
-            live = np.minimum(live, _LIVE_REACH) - cat_cfg.outer_diameter / 2
-            clear = np.minimum(clear, live.reshape(traj.shape[:2]))
+        # The spheres are a model of the wall: the clearance is also taken from the wall
+        # itself as it is now (in dynamic mode deformed by the heartbeat and the catheter),
+        # so the tip keeps off a wall that is nearer than the spheres say.
+        live = eng.walls[0].distance_unchecked(np.ascontiguousarray(flat, np.float64),
+                                               _LIVE_REACH)
+        live = np.minimum(live, _LIVE_REACH) - cat_cfg.outer_diameter / 2
+        clear = np.minimum(clear, live.reshape(traj.shape[:2]))
         violation = np.clip(self.cfg.min_clearance - clear, 0.0, None).max(axis=1)
         end_to_carrot = np.linalg.norm(traj[:, -1] - carrot, axis=1)
         closest_target = np.linalg.norm(traj - target, axis=2).min(axis=1)
