@@ -383,3 +383,31 @@ def test_largest_displacement_counts_nan_as_infinitely_far():
     assert largest_displacement(x, rest) == (2, pytest.approx(0.005, abs=1e-15))
     x[1, 0] = np.nan
     assert largest_displacement(x, rest) == (1, np.inf)
+
+
+def test_a_folded_wall_does_not_flip_the_tip_outside(tube):
+    """A tip well inside the lumen stays inside when the deformed wall turns inside out around
+    it (a fold of a real root's beating wall, AVT D10: 10.7 mm inside, then "11.8 mm beyond"
+    0.5 mm further on); a real crossing, as long as the moves allow, is still reported."""
+    tip = np.array([0.0, 0.0, 0.06])
+    body = np.column_stack([np.zeros(5), np.zeros(5), np.linspace(0.02, 0.06, 5)])
+    mirrored = tube.vertices * [-1.0, 1.0, 1.0]  # the same tube, every face turned over
+    wall = DeformableWall(tube, heartbeat_config=NO_BEAT)
+    wall.step(DT, DT, body, CATHETER_R)
+    assert wall.tip_contact(tip, CATHETER_R, DT).penetration == 0.0
+    wall.vertices = mirrored
+    wall._dirty = True  # (as after a solver step: refitted at the next query)
+    c = wall.tip_contact(tip, CATHETER_R, DT)
+    assert not c.in_contact and c.penetration == 0.0 and wall.side_vetoes == 1
+    # without the query before, the side test alone reads the tip deep beyond the wall
+    fresh = DeformableWall(tube, heartbeat_config=NO_BEAT)
+    fresh.vertices = mirrored
+    fresh._dirty = True
+    deep = fresh.tip_contact(tip, CATHETER_R, DT).penetration
+    assert deep == pytest.approx(R * math.cos(math.pi / N_AROUND) + CATHETER_R, abs=1e-9)
+    # a move long enough to cross the wall does cross it
+    wall.reset()
+    assert wall.tip_contact(tip, CATHETER_R, DT).penetration == 0.0
+    outside = np.array([R + 0.004, 0.0, 0.06])
+    assert wall.tip_contact(outside, CATHETER_R, DT).penetration > CATHETER_R
+    assert wall.side_vetoes == 0
