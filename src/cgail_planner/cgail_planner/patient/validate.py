@@ -17,8 +17,9 @@ lumen radius                  narrowest inscribed radius along the centrelines v
                               catheter radius (3.5 mm; warning under radius + 1.5 mm)  warning
 tightest bend                 centreline bend radius vs the catheter's smallest bend   warning
                               radius L / theta_max (31.8 mm)
-starts and introducers        every start and its straight introducer keep the         error
-                              catheter radius from the wall
+starts and introducers        every start and its introducer (straight, or along the   error
+                              centreline where a straight one would touch the wall)
+                              keep the catheter radius from the wall
 targets                       the scenario set finds its 5 targets near the ostia      error
 deformable wall               two heartbeats with the catheter in the introducer: no   error
                               particle further than ``wall_bound_mm`` from rest, all
@@ -293,34 +294,26 @@ def _lumen_checks(anatomy: Anatomy, cat: CatheterConfig, v: Validation) -> None:
 
 
 def _start_checks(anatomy: Anatomy, cat: CatheterConfig, v: Validation) -> bool:
-    import trimesh
+    from cgail_planner.sim.scenarios import tube_clearance
 
-    sc = v.scenarios
-    wall = trimesh.Trimesh(anatomy.vertices, anatomy.faces[anatomy.wall_face_mask],
-                           process=False)
     r_cat = cat.radius
     worst = math.inf
     where = ""
-    for k, st in enumerate(sc.starts):
-        tail = np.asarray(st.introducer_tail)
+    for k, st in enumerate(v.scenarios.starts):
         p = np.asarray(st.position)
-        pts = tail + np.linspace(0.0, 1.0, 60)[:, None] * (p - tail)
-        inside = (pts - anatomy.exit_point) @ anatomy.exit_normal < -1e-3
-        # Distance to the wall (caps are open ends), negative outside the lumen.
-        _, dist, _ = trimesh.proximity.closest_point(wall, pts[inside])
-        sd = np.where(anatomy.contains(pts[inside]), dist, -dist)
-        if len(sd):
-            i = int(np.argmin(sd))
-            if sd[i] < worst:
-                worst = float(sd[i])
-                behind = float(np.linalg.norm(pts[inside][i] - p)) * 1e3
-                where = f"start {k}, {behind:.0f} mm behind the tip"
+        # the introducer as the catheter's body lies in it: straight, or along the
+        # centerline where a straight one would touch the wall (StartConfig.introducer)
+        nodes = np.vstack([np.asarray(st.introducer, dtype=np.float64).reshape(-1, 3), p])
+        clear, at = tube_clearance(anatomy, nodes)
+        if clear < worst:
+            worst = float(clear)
+            where = f"start {k}, {float(np.linalg.norm(at - p)) * 1e3:.0f} mm behind the tip"
     v.figures["introducer_clearance_mm"] = worst * 1e3
     value = f"{worst * 1e3:.1f} mm ({where})"
     limit = f">= {r_cat * 1e3:.1f} mm (catheter radius)"
     if worst < r_cat:
         v.add("starts and introducers", "error", value, limit,
-              f"expected every start and its straight introducer {r_cat * 1e3:.1f} mm from the "
+              f"expected every start and its introducer {r_cat * 1e3:.1f} mm from the "
               f"wall, found {worst * 1e3:.1f} mm at {where}: the descending aorta bends too "
               "much there; give --exit-point higher up the descending aorta")
         return False

@@ -6,6 +6,7 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from cgail_planner.patient.validate import bend_radii, validate_anatomy
 from cgail_planner.sim.anatomy import Anatomy, build_anatomy
@@ -61,3 +62,26 @@ def test_absurd_ostia_are_an_error() -> None:
     landmarks = next(c for c in v.checks if c.name == "landmarks")
     assert landmarks.status == "error"
     assert "expected ostia 5-30 mm above the annulus, found left -" in landmarks.message
+
+
+def test_a_start_with_its_introducer_along_the_centerline_is_usable() -> None:
+    """Where a straight introducer would leave the lumen (the curved descending aorta's start
+    2), the simulator lays it along the centerline; the check measures that one (AVT D13 was
+    refused for a straight introducer it never uses)."""
+    from curved_aorta import curved_anatomy, curved_world
+
+    from cgail_planner.sim.scenarios import introducer_tail, tube_clearance
+
+    anatomy, starts = curved_anatomy(), curved_world().scenarios.starts
+    s2 = starts[2]
+    assert s2.bent
+    tail = introducer_tail(anatomy, s2.position, s2.rotation)
+    straight, _ = tube_clearance(anatomy, np.stack([tail, s2.position]))
+    assert straight < 0.0035  # (the straight one would touch the wall)
+    v = validate_anatomy(anatomy, wall=False)
+    check = next(c for c in v.checks if c.name == "starts and introducers")
+    assert check.status == "ok", check.message
+    bent = min(tube_clearance(anatomy, np.vstack([s.introducer, s.position]))[0]
+               for s in starts)
+    assert v.figures["introducer_clearance_mm"] == pytest.approx(bent * 1e3, abs=1e-9)
+    assert 3.5 <= v.figures["introducer_clearance_mm"] < 15.0
