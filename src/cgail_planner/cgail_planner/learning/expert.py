@@ -1,30 +1,50 @@
-"""Scripted expert: a kinematically-constrained sampling MPC over the catheter's action space.
+"""Scripted expert: pure pursuit of the centerline, guarded by a kinematically-constrained
+sampling MPC over the catheter's action space.
 
-Every ``replan_every`` steps the expert samples short action sequences, rolls each one out with
-the catheter's own follow-the-leader kinematics (:mod:`cgail_planner.sim.ftl_model`: per-step bend
-limit ``theta_max * delta_l / L``, insertion <= v_max * dt), and scores the predicted tip path:
+Every ``replan_every`` steps the expert rolls action sequences out with the catheter's own
+follow-the-leader kinematics (:mod:`cgail_planner.sim.ftl_model`: per-step bend limit
+``theta_max * delta_l / L``, insertion <= v_max * dt) over a horizon of ``stage1 + stage2 +
+tail`` steps (64 mm at full insertion), against the wall as it is at planning time (in dynamic
+mode deformed by the heartbeat and the catheter):
 
-* **clearance**: at every predicted point, the inscribed-sphere radius of the nearest centerline
-  point minus the distance to it, minus the catheter radius, and no more than the distance to
-  the wall itself as it is at planning time (in dynamic mode deformed by the heartbeat and the
-  catheter) minus the catheter radius;
-  a path whose clearance drops below ``min_clearance`` is penalised in proportion to the
-  violation (hard walls, soft score);
-* **progress**: distance of the path's end to a *carrot*, the centerline point ``lookahead``
-  waypoints past the furthest one reached, or the target itself in the final approach;
-* **target**: the closest predicted approach to the target (the task's success test).
+1. **Pursuit first.** The pure pursuit of the centerline (the carrot ``lookahead`` waypoints past
+   the furthest one the predicted tip has come nearest to, or the target once within
+   ``approach_distance``: the centerline follower's rule) is predicted over the whole horizon.
+   If its tip keeps off the wall all the way, its first ``replan_every`` actions are executed.
+2. **Sampled alternatives** otherwise, and in the final approach: 25 constant bends (a0, a1 in
+   {-1, -0.5, 0, 0.5, 1}, full insertion) held for ``stage1`` steps or for twice as long, each
+   followed by the same pursuit, and the pursuit itself. **Safety first**: only the sequences
+   whose tip keeps off the wall longest count (the pursuit among them is taken); among them
+   the best score wins:
 
-A sequence is one of 25 constant bends (a0, a1 in {-1, -0.5, 0, 0.5, 1}, full insertion) held
-for ``stage1`` steps or for twice as long, followed by pure pursuit for the rest of the
-``stage1 + stage2`` steps towards the carrot
-(``steer_towards``); the best sequence's actions are executed. Only actions inside [-1, 1]^3 are
-produced, so the demonstrations respect the catheter's constraints by construction. The expert
-reads the simulator's state (tip pose, target, centerline), which a policy never sees.
+   * **clearance**: at every point of the first ``stage1 + stage2`` steps, the inscribed-sphere
+     radius of the nearest centerline point minus the distance to it, minus the catheter
+     radius, and no more than the distance to the wall itself minus the catheter radius; a
+     path whose clearance drops below ``min_clearance`` is penalised in proportion to the
+     violation;
+   * **progress**: distance of the path's end (after ``stage1 + stage2`` steps) to the carrot at
+     planning time;
+   * **target** (final approach): the closest predicted approach to the target (the task's
+     success test).
+
+Why pursuit first: on real aortas (``data/anatomies/avt``) the arch is about as tight as the
+catheter's smallest bend radius (L / theta_max, 31.8 mm). A scorer that pulls the path's end
+onto a carrot 14 mm ahead cuts corners and wiggles between full bends in the descending aorta,
+and arrives at the arch on a line from which no bend clears the outer wall; the contact is
+50-60 mm ahead of the choice that made it, beyond a short horizon. The pursuit keeps the tip
+near the centerline, and the long horizon sees the arch coming. The wall beyond the target
+(once the predicted tip is within ``epsilon`` of it: the episode would have ended) does not
+count.
+
+Only actions inside [-1, 1]^3 are produced, so the demonstrations respect the catheter's
+constraints by construction. The expert reads the simulator's state (tip pose, target,
+centerline), which a policy never sees.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+import math
 from typing import Any
 
 import numpy as np
@@ -39,7 +59,10 @@ class ExpertConfig:
     stage1: int = 8
     """Steps each constant-bend primitive is held."""
     stage2: int = 24
-    """Pure-pursuit steps after the primitive."""
+    """Pure-pursuit steps after the primitive (the part of the horizon that is scored)."""
+    tail: int = 96
+    """Further pure-pursuit steps of each sequence, checked for wall contact only (is the
+    sequence's end a state the pursuit can go on from without touching the wall?)."""
     replan_every: int = 4
     """Steps executed from one plan before re-planning."""
     lookahead: int = 6
@@ -52,6 +75,8 @@ class ExpertConfig:
     """Std of the score jitter of a seeded episode, m (diversity of the demonstrations)."""
 
     def __post_init__(self) -> None:
+        if self.tail < 0:
+            raise ValueError(f'tail must be >= 0, found {self.tail}')
         for name in ('stage1', 'stage2', 'replan_every', 'lookahead'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, found {getattr(self, name)}')
@@ -80,6 +105,8 @@ class ScriptedExpert:
         self._lookahead = self.cfg.lookahead
         self._near: np.ndarray | None = None
         self._near_key: tuple[Any, ...] | None = None
+        self._history: list[np.ndarray] = []
+        self._swept: Any = None
 
     def reset(self, seed: int | None = None) -> None:
         """Forget the plan and the progress (call after ``env.reset``).
@@ -90,6 +117,7 @@ class ScriptedExpert:
         """
         self._plan = []
         self._progress = 0
+        self._history = []
         self._rng = None if seed is None else np.random.default_rng(seed)
         self._lookahead = self.cfg.lookahead
         if self._rng is not None:
@@ -116,19 +144,33 @@ class ScriptedExpert:
         disp = np.asarray(wall.vertices) - rest
         return np.asarray(disp[self._near].mean(axis=1))
 
-    def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, carrot: np.ndarray,
-                 hold: np.ndarray | None = None) -> tuple[np.ndarray, list[np.ndarray]]:
-        """Predicted tip points (K, T, 3) of K sequences and the actions of each step
-        (sequence k holds ``first[k]`` for ``hold[k]`` steps, default ``stage1``)."""
+    def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, hold: np.ndarray,
+                 pts_cl: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Predicted tip points (K, H, 3) of K sequences over the horizon H = ``stage1 +
+        stage2 + tail`` and the actions of their first ``stage1 + stage2`` steps.
+
+        Sequence k holds ``first[k]`` for ``hold[k]`` steps, then pursues its own carrot:
+        ``lookahead`` centerline points past the furthest one its predicted tip has come
+        nearest to, or the target within ``approach_distance`` or near the centerline's end
+        (the centerline follower's rule, :class:`cgail_planner.learning.evaluate.
+        CenterlineFollower`)."""
         eng = self.env.engine
         cat_cfg = eng.config.catheter
         theta = eng.catheter.theta_max
         K = len(first)
         p = np.repeat(p[None], K, 0)
         R = np.repeat(R[None], K, 0)
+        T = self.cfg.stage1 + self.cfg.stage2
+        last = len(pts_cl) - 1
+        progress = np.full(K, self._progress)
         pts, acts = [], []
-        hold = np.full(K, self.cfg.stage1) if hold is None else hold
-        for t in range(self.cfg.stage1 + self.cfg.stage2):
+        for t in range(T + self.cfg.tail):
+            d2 = ((p[:, None, :] - pts_cl[None, :, :]) ** 2).sum(axis=2)
+            progress = np.maximum(progress, np.argmin(d2, axis=1))
+            carrot = pts_cl[np.minimum(progress + self._lookahead, last)]
+            near = np.linalg.norm(p - target, axis=1) < self.cfg.approach_distance
+            near |= progress + self._lookahead >= last - 1
+            carrot = np.where(near[:, None], target, carrot)
             a = np.where((t < hold)[:, None], first,
                          steer_towards(p, R, carrot, cat_cfg, theta))
             al, ga, dl = action_to_command(a, theta, cat_cfg.segment_length,
@@ -136,15 +178,52 @@ class ScriptedExpert:
             R = R @ bend_rotation(al, ga)
             p = p + dl[:, None] * R[:, :, 1]
             pts.append(p)
-            acts.append(a)
+            if t < T:
+                acts.append(a)
         return np.stack(pts, 1), acts
+
+    def _wall_clearance(self, traj: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """(K, H) distance of the predicted tip surface from the wall as it is now, m (capped
+        at ``_LIVE_REACH``; +inf once the tip has come within ``epsilon`` of the target)."""
+        eng = self.env.engine
+        flat = np.ascontiguousarray(traj.reshape(-1, 3), np.float64)
+        live = eng.walls[0].distance_unchecked(flat, _LIVE_REACH)
+        if self._history:
+            # The beating wall moves up to a few mm a step (the valve plane most): the
+            # clearance is from the wall as it was at every step of the last heartbeat, which
+            # it will be again (the swept wall), not only from its shape now.
+            if self._swept is None:
+                from cgail_planner.sim.raycast import WallBVH
+
+                an = eng.world.anatomy
+                self._swept = WallBVH(an.vertices, an.faces, an.wall_face_mask)
+            for shape in self._history:
+                self._swept.refit(shape)
+                live = np.minimum(live, self._swept.distance_unchecked(flat, _LIVE_REACH))
+        live = (np.minimum(live, _LIVE_REACH)
+                - eng.config.catheter.outer_diameter / 2).reshape(traj.shape[:2])
+        done = np.cumsum(np.linalg.norm(traj - target, axis=2) < eng.config.reward.epsilon,
+                         axis=1) > 0
+        return np.where(done, np.inf, live)
 
     def act(self) -> np.ndarray:
         """Next normalised action for the env's current state (from the current plan while
         it lasts: the expert re-plans every ``replan_every`` steps)."""
+        self._remember_wall()
         if self._plan:
             return self._plan.pop(0)
         return self._replan()
+
+    def _remember_wall(self) -> None:
+        """Keep the beating wall's shapes of the last heartbeat (one per step, dynamic mode)."""
+        eng = self.env.engine
+        if eng.config.mode != "dynamic":
+            return
+        wall = eng.walls[0]
+        period = 60.0 / wall.heartbeat.config.heart_rate
+        keep = math.ceil(period / eng.config.dt) + 1
+        self._history.append(np.array(wall.vertices, dtype=np.float64))
+        del self._history[:-keep]
 
     def label(self) -> np.ndarray:
         """The action the expert would take from the env's current state, planned afresh.
@@ -155,6 +234,7 @@ class ScriptedExpert:
         jitter, if :meth:`reset` was given one).
         """
         self._plan = []
+        self._remember_wall()
         return self._replan()
 
     def _replan(self) -> np.ndarray:
@@ -176,36 +256,51 @@ class ScriptedExpert:
         final = d_target < self.cfg.approach_distance or k >= len(pts_cl) - 2
         carrot = target if final else pts_cl[k]
         cat_cfg = eng.config.catheter
+        if not final:
+            # 1. pursuit first: taken when it keeps off the wall over the whole horizon
+            traj, acts = self._rollout(p, R, np.zeros((1, 3)), np.zeros(1, int), pts_cl,
+                                       target)
+            if (self._wall_clearance(traj, target) >= 0.0).all():
+                self._plan = [np.asarray(a[0], np.float32) for a in acts[:self.cfg.replan_every]]
+                return self._plan.pop(0)
+        # 2. sampled alternatives: each constant bend held for stage1 steps, and for twice as
+        # long (a tight arch needs the longer turn before pursuit takes over), and the pursuit
         pursuit = steer_towards(p, R, carrot, cat_cfg, eng.catheter.theta_max)
         bends = np.column_stack([_GRID, np.ones(len(_GRID))])
-        # Each constant bend held for stage1 steps, and for twice as long (a tight arch
-        # needs the longer turn before pursuit takes over), then the pure pursuit alone.
         first = np.concatenate([bends, bends, pursuit[None]])
         hold = np.concatenate([np.full(len(bends), self.cfg.stage1),
-                               np.full(len(bends), 2 * self.cfg.stage1), [self.cfg.stage1]])
-        traj, acts = self._rollout(p, R, first, carrot, hold)
-        # clearance from the centerline's inscribed spheres
-        flat = traj.reshape(-1, 3)
-        d = np.linalg.norm(flat[:, None, :] - pts_cl[None, :, :], axis=2)
+                               np.full(len(bends), 2 * self.cfg.stage1), [0]])
+        traj, acts = self._rollout(p, R, first, hold, pts_cl, target)
+        T = self.cfg.stage1 + self.cfg.stage2
+        live = self._wall_clearance(traj, target)
+        # safety first: how long each sequence, its tail included, keeps off the wall
+        touch = live < 0.0
+        survive = np.where(touch.any(axis=1), np.argmax(touch, axis=1), traj.shape[1])
+        # clearance from the centerline's inscribed spheres, and no more than from the wall
+        # itself (nearer than the spheres say where the wall is not round or has moved)
+        head = traj[:, :T].reshape(-1, 3)
+        d = np.linalg.norm(head[:, None, :] - pts_cl[None, :, :], axis=2)
         j = np.argmin(d, axis=1)
-        clear = (radii[j] - d[np.arange(len(flat)), j] - cat_cfg.outer_diameter / 2).reshape(
-            traj.shape[:2])
-        # The spheres are a model of the wall: the clearance is also taken from the wall
-        # itself as it is now (in dynamic mode deformed by the heartbeat and the catheter),
-        # so the tip keeps off a wall that is nearer than the spheres say.
-        live = eng.walls[0].distance_unchecked(np.ascontiguousarray(flat, np.float64),
-                                               _LIVE_REACH)
-        live = np.minimum(live, _LIVE_REACH) - cat_cfg.outer_diameter / 2
-        clear = np.minimum(clear, live.reshape(traj.shape[:2]))
+        clear = (radii[j] - d[np.arange(len(head)), j] - cat_cfg.outer_diameter / 2).reshape(
+            len(traj), T)
+        clear = np.minimum(clear, live[:, :T])
         violation = np.clip(self.cfg.min_clearance - clear, 0.0, None).max(axis=1)
-        end_to_carrot = np.linalg.norm(traj[:, -1] - carrot, axis=1)
-        closest_target = np.linalg.norm(traj - target, axis=2).min(axis=1)
+        end_to_carrot = np.linalg.norm(traj[:, T - 1] - carrot, axis=1)
+        closest_target = np.linalg.norm(traj[:, :T] - target, axis=2).min(axis=1)
         score = -end_to_carrot - 20.0 * violation
         if final:
-            score = -closest_target - 20.0 * violation
+            # a path predicted to reach the target (within 0.8 epsilon: margin for a target
+            # that moves with the beating wall) gains nothing by going deeper: clearance
+            # decides between such paths (a low target sits near the moving valve plane)
+            eps = 0.8 * eng.config.reward.epsilon
+            score = -np.maximum(closest_target - eps, 0.0) - 0.1 * closest_target \
+                - 20.0 * violation
         if self._rng is not None:
             score = score + self._rng.normal(0.0, self.cfg.score_noise, score.shape)
+        score = np.where(survive < survive.max(), -np.inf, score)
         best = int(np.argmax(score))
+        if not final and survive[-1] == survive.max():
+            best = len(first) - 1
         self._plan = [np.asarray(a[best], np.float32) for a in acts[:self.cfg.replan_every]]
         return self._plan.pop(0)
 
