@@ -61,7 +61,7 @@ def test_expert_reaches_every_standard_target_in_the_rigid_aorta() -> None:
     for t in trials:
         assert t.outcome == "success" and t.detail == ""
         assert 100 < t.steps < 2000
-        assert t.final_distance_mm < 10.0 and t.closest_mm <= t.final_distance_mm
+        assert t.final_distance_mm < 10.0 and t.closest_mm <= t.final_distance_mm + 1e-6
         assert t.max_wall_mm == 0.0
     assert v.errors == []
 
