@@ -315,8 +315,8 @@ class DeformableWall(StaticWall):
         self.t = t
         self._last_dt = dt
         self.steps += 1
-        self._step_move = float(np.sqrt(np.max(np.einsum("ij,ij->i", self.vertices - start,
-                                                         self.vertices - start))))
+        moved = self.vertices - start
+        self._step_move = float(np.sqrt(np.max(np.einsum("ij,ij->i", moved, moved))))
         self._check_displacement(pts)
 
     def _check_displacement(self, pts: np.ndarray) -> None:
@@ -446,7 +446,7 @@ class DeformableWall(StaticWall):
         ``|sd_before| + |sd_now|`` beyond that (plus :data:`_SIDE_SLACK`) keeps the side of the
         query before; :attr:`side_vetoes` counts them.
         """
-        sd, _, normal, face = self._bvh.closest_point(tip, max_dist=np.inf)
+        sd, normal, face = super()._signed_distance(tip)
         last = self._last_tip
         if face >= 0 and last is not None and (sd > 0.0) != (self._last_sd > 0.0):
             reach = math.sqrt(float((tip - last) @ (tip - last))) + self._step_move
