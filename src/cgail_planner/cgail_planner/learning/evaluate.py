@@ -152,7 +152,8 @@ class Trial:
 
 
 class CenterlineFollower:
-    """Baseline: pure pursuit of the target branch's centerline, then of the target.
+    """Baseline: pure pursuit of the target branch's centerline, then of the target (the
+    carrot rule of :mod:`cgail_planner.learning.pursuit`).
 
     Subclasses pursue another polyline by overriding :meth:`waypoints` (:class:`RrtFollower`).
     """
@@ -176,6 +177,7 @@ class CenterlineFollower:
         Args:
             pose: the perceived tip pose ``(p, R)`` (a tracker reading); default the true one.
         """
+        from cgail_planner.learning.pursuit import carrot as pursuit_carrot
         from cgail_planner.sim.ftl_model import steer_towards
 
         eng = self.env.engine
@@ -183,12 +185,8 @@ class CenterlineFollower:
             p, R = eng.catheter.tip_position[0], eng.catheter.tip_rotation[0]
         else:
             p, R = pose
-        wps = self.waypoints()
-        self.progress = max(self.progress, int(np.argmin(np.linalg.norm(wps - p, axis=1))))
-        k = min(self.progress + self.lookahead, len(wps) - 1)
-        target = eng.target[0]
-        carrot = target if (np.linalg.norm(target - p) < self.approach
-                            or k >= len(wps) - 2) else wps[k]
+        carrot, self.progress, _ = pursuit_carrot(p, self.waypoints(), self.progress,
+                                                  self.lookahead, eng.target[0], self.approach)
         return steer_towards(p, R, carrot, eng.config.catheter,
                              eng.catheter.theta_max).astype(np.float32)
 

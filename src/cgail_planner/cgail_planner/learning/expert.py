@@ -49,7 +49,9 @@ from typing import Any
 
 import numpy as np
 
-from cgail_planner.sim.ftl_model import action_to_command, bend_rotation, steer_towards
+from cgail_planner.learning.pursuit import carrot as pursuit_carrot
+from cgail_planner.learning.pursuit import rollout
+from cgail_planner.sim.ftl_model import steer_towards
 
 
 @dataclass(frozen=True)
@@ -88,11 +90,6 @@ class ExpertConfig:
 _LEVELS = (-1.0, -0.5, 0.0, 0.5, 1.0)
 _SHIFT_NEIGHBOURS = 24
 """Wall vertices whose mean displacement moves a centerline point in dynamic mode."""
-_LIVE_REACH = 0.010
-"""Search radius of the wall-distance clearance, m (farther counts as clear). Only distances
-under the catheter radius plus ``min_clearance`` (5.5 mm) change a score, so 10 mm gives the
-same plans as any larger radius, and the BVH search stays local (a 50 mm search cost 12 of 18 s
-of a dynamic episode)."""
 _GRID = np.array([(a, b) for a in _LEVELS for b in _LEVELS])
 
 
@@ -148,52 +145,44 @@ class ScriptedExpert:
         return np.asarray(disp[self._near].mean(axis=1))
 
     def _rollout(self, p: np.ndarray, R: np.ndarray, first: np.ndarray, hold: np.ndarray,
-                 pts_cl: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+                 pts_cl: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted tip points (K, H, 3) of K sequences over the horizon H = ``stage1 +
-        stage2 + tail`` and the actions of their first ``stage1 + stage2`` steps.
+        stage2 + tail`` and the actions (K, stage1 + stage2, 3) of their first ``stage1 +
+        stage2`` steps.
 
-        Sequence k holds ``first[k]`` for ``hold[k]`` steps, then pursues its own carrot:
-        ``lookahead`` centerline points past the furthest one its predicted tip has come
-        nearest to, or the target within ``approach_distance`` or near the centerline's end
-        (the centerline follower's rule, :class:`cgail_planner.learning.evaluate.
-        CenterlineFollower`)."""
+        Sequence k holds ``first[k]`` for ``hold[k]`` steps, then pursues its own carrot
+        (:mod:`cgail_planner.learning.pursuit`: the centerline follower's rule, from the
+        episode's progress)."""
         eng = self.env.engine
-        cat_cfg = eng.config.catheter
-        theta = eng.catheter.theta_max
-        K = len(first)
-        p = np.repeat(p[None], K, 0)
-        R = np.repeat(R[None], K, 0)
         T = self.cfg.stage1 + self.cfg.stage2
-        last = len(pts_cl) - 1
-        progress = np.full(K, self._progress)
-        pts, acts = [], []
-        for t in range(T + self.cfg.tail):
-            d2 = ((p[:, None, :] - pts_cl[None, :, :]) ** 2).sum(axis=2)
-            progress = np.maximum(progress, np.argmin(d2, axis=1))
-            carrot = pts_cl[np.minimum(progress + self._lookahead, last)]
-            near = np.linalg.norm(p - target, axis=1) < self.cfg.approach_distance
-            near |= progress + self._lookahead >= last - 1
-            carrot = np.where(near[:, None], target, carrot)
-            a = np.where((t < hold)[:, None], first,
-                         steer_towards(p, R, carrot, cat_cfg, theta))
-            al, ga, dl = action_to_command(a, theta, cat_cfg.segment_length,
-                                           cat_cfg.max_step_insertion, cat_cfg.forward_only)
-            R = R @ bend_rotation(al, ga)
-            p = p + dl[:, None] * R[:, :, 1]
-            pts.append(p)
-            if t < T:
-                acts.append(a)
-        return np.stack(pts, 1), acts
+        return rollout(p, R, first, hold, pts_cl, self._progress, self._lookahead, target,
+                       self.cfg.approach_distance, eng.config.catheter, eng.catheter.theta_max,
+                       T + self.cfg.tail, T)
 
     def _wall_clearance(self, traj: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """(K, H) distance of the predicted tip surface from the wall as it is now, m, capped
-        at ``_LIVE_REACH`` (or the catheter radius + ``min_clearance`` + 1 mm when more);
-        +inf once the tip has come within ``epsilon`` of the target."""
+        """(K, H) distance of the predicted tip surface from the wall, m, capped where it no
+        longer changes a plan: at ``min_clearance`` over the scored first ``stage1 + stage2``
+        steps, at 0 over the tail (only a touch counts there); +inf once the tip has come
+        within ``epsilon`` of the target. The cap is the BVH's search radius, so the search
+        stays local (the catheter radius + 2 mm, 3.5 mm over the tail, instead of 10 mm: a
+        third of a dynamic episode's time, same plans)."""
         eng = self.env.engine
         radius = eng.config.catheter.outer_diameter / 2
-        reach = max(_LIVE_REACH, radius + self.cfg.min_clearance + 0.001)
-        flat = np.ascontiguousarray(traj.reshape(-1, 3), np.float64)
-        live = eng.walls[0].distance_unchecked(flat, reach)
+        T = self.cfg.stage1 + self.cfg.stage2
+        head, tail = self._wall_distance([(traj[:, :T], radius + self.cfg.min_clearance),
+                                          (traj[:, T:], radius)])
+        live = np.concatenate([head, tail], axis=1) - radius
+        done = np.cumsum(np.linalg.norm(traj - target, axis=2) < eng.config.reward.epsilon,
+                         axis=1) > 0
+        return np.where(done, np.inf, live)
+
+    def _wall_distance(self, parts: list[tuple[np.ndarray, float]]) -> list[np.ndarray]:
+        """Distance from the wall of each part's points (..., 3), capped at the part's reach,
+        m: in dynamic mode from the nearest of the wall's shapes over the last heartbeat."""
+        eng = self.env.engine
+        flat = [np.ascontiguousarray(pts.reshape(-1, 3), np.float64) for pts, _ in parts]
+        dist = [eng.walls[0].distance_unchecked(f, reach)
+                for f, (_, reach) in zip(flat, parts, strict=True)]
         if self._history:
             # The beating wall moves up to a few mm a step (the valve plane most): the
             # clearance is from the wall as it was at every step of the last heartbeat, which
@@ -205,11 +194,10 @@ class ScriptedExpert:
                 self._swept = WallBVH(an.vertices, an.faces, an.wall_face_mask)
             for shape in self._history:
                 self._swept.refit(shape)
-                live = np.minimum(live, self._swept.distance_unchecked(flat, reach))
-        live = (np.minimum(live, reach) - radius).reshape(traj.shape[:2])
-        done = np.cumsum(np.linalg.norm(traj - target, axis=2) < eng.config.reward.epsilon,
-                         axis=1) > 0
-        return np.where(done, np.inf, live)
+                dist = [np.minimum(d, self._swept.distance_unchecked(f, reach))
+                        for d, f, (_, reach) in zip(dist, flat, parts, strict=True)]
+        return [np.minimum(d, reach).reshape(pts.shape[:-1])
+                for d, (pts, reach) in zip(dist, parts, strict=True)]
 
     def act(self) -> np.ndarray:
         """Next normalised action for the env's current state (from the current plan while
@@ -248,25 +236,23 @@ class ScriptedExpert:
         R = eng.catheter.tip_rotation[0].copy()
         target = eng.target[0].copy()
         pts_cl, radii = self._centerline()
-        k_near = int(np.argmin(np.linalg.norm(pts_cl - p, axis=1)))
-        self._progress = max(self._progress, k_near)
-        k = min(self._progress + self._lookahead, len(pts_cl) - 1)
-        dynamic = eng.config.mode == "dynamic"
-        if dynamic:
+        # (progress from the rest centerline; the carrot from the moved one, below)
+        _, self._progress, _ = pursuit_carrot(p, pts_cl, self._progress, self._lookahead,
+                                              target, self.cfg.approach_distance)
+        if eng.config.mode == "dynamic":
             # The beating wall carries the root (and the target on it) several mm off the rest
             # shape the centerline was computed on: the centerline and its spheres move with
             # the mean displacement of the wall around each of their points.
             pts_cl = pts_cl + self._wall_shift(pts_cl)
-        d_target = float(np.linalg.norm(target - p))
-        final = d_target < self.cfg.approach_distance or k >= len(pts_cl) - 2
-        carrot = target if final else pts_cl[k]
+        carrot, _, final = pursuit_carrot(p, pts_cl, self._progress, self._lookahead, target,
+                                          self.cfg.approach_distance)
         cat_cfg = eng.config.catheter
         if not final:
             # 1. pursuit first: taken when it keeps off the wall over the whole horizon
             traj, acts = self._rollout(p, R, np.zeros((1, 3)), np.zeros(1, int), pts_cl,
                                        target)
             if (self._wall_clearance(traj, target) >= 0.0).all():
-                self._plan = [np.asarray(a[0], np.float32) for a in acts[:self.cfg.replan_every]]
+                self._plan = list(acts[0, :self.cfg.replan_every].astype(np.float32))
                 return self._plan.pop(0)
         # 2. sampled alternatives: each constant bend held for stage1 steps, and for twice as
         # long (a tight arch needs the longer turn before pursuit takes over), and the pursuit
@@ -306,7 +292,7 @@ class ScriptedExpert:
         best = int(np.argmax(score))
         if not final and survive[-1] == survive.max():
             best = len(first) - 1
-        self._plan = [np.asarray(a[best], np.float32) for a in acts[:self.cfg.replan_every]]
+        self._plan = list(acts[best, :self.cfg.replan_every].astype(np.float32))
         return self._plan.pop(0)
 
 

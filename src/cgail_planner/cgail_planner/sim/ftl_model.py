@@ -78,6 +78,7 @@ what                 batched (the env)           single pose (Python)        num
 ===================  ==========================  ==========================  ===================
 action -> command    :func:`action_to_command`   :func:`action_to_command`   :func:`command_nb`
 one inserting step   :func:`advance_batch`       :func:`advance_pose`        :func:`advance_nb`
+steer at a point     :func:`steer_towards`       :func:`steer_towards`       :func:`steer_nb`
 retraction           :func:`retract_chain` (one numba implementation, called by every form)
 observation          :func:`observe_batch`       :func:`observe_pose`        :func:`observe_nb`
 paper_code obs.      :func:`observe_probes_nb` (one numba implementation, called by every form)
@@ -704,6 +705,19 @@ def steer_towards(tip_position: FloatArray, tip_rotation: FloatArray, goal: Floa
     a0 = np.clip(alpha / limit, -1.0, 1.0)
     a1 = np.clip(gamma / limit, -1.0, 1.0)
     return np.stack(np.broadcast_arrays(a0, a1, np.full_like(a0, insertion)), axis=-1)
+
+
+@njit(cache=True)
+def steer_nb(p, r, goal, limit):
+    """:func:`steer_towards` of one pose in numba: ``(a0, a1)`` for the step bend limit
+    ``limit`` (rad, > 0) of the insertion the caller commands."""
+    g0, g1, g2 = goal[0] - p[0], goal[1] - p[1], goal[2] - p[2]
+    d0 = r[0, 0] * g0 + r[1, 0] * g1 + r[2, 0] * g2
+    d1 = r[0, 1] * g0 + r[1, 1] * g1 + r[2, 1] * g2
+    d2 = r[0, 2] * g0 + r[1, 2] * g1 + r[2, 2] * g2
+    alpha = math.atan2(d2, d1)
+    gamma = math.atan2(-d0, math.hypot(d1, d2))
+    return min(max(alpha / limit, -1.0), 1.0), min(max(gamma / limit, -1.0), 1.0)
 
 
 def bend_rotation(alpha: FloatArray | float, gamma: FloatArray | float) -> FloatArray:
