@@ -153,6 +153,9 @@ class PlanOptions:
     """Seed of the demonstrations, the training and the evaluation."""
     threads: int = 1
     """torch CPU threads."""
+    jobs: int = 0
+    """Processes recording the expert's demonstrations, one target set each at a time (0: one
+    per CPU core this process may use)."""
     static_share: float = 0.7
     """Share of the budget (from the start) after which static training hands over to the
     dynamic phase while the static goal is still missed; in (0, 1]."""
@@ -184,6 +187,8 @@ class PlanOptions:
               'dagger_rounds', 'an int in [0, 10]')
         check(1 <= self.trials <= 1000, 'trials', 'in [1, 1000]')
         check(1 <= self.threads <= 64, 'threads', 'in [1, 64]')
+        check(isinstance(self.jobs, int) and 0 <= self.jobs <= 256, 'jobs',
+              'an int in [0, 256] (0: one per CPU core)')
         check(0.0 < self.static_share <= 1.0, 'static_share', 'in (0, 1]')
 
 
@@ -251,34 +256,74 @@ def _validate(policy: Callable[[np.ndarray], np.ndarray], envs: Sequence[Any],
     return float(np.mean(wins))
 
 
-def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None],
-                  mode: str = 'static', seeds: Sequence[int] | None = None
-                  ) -> tuple[Demos, dict[str, float]]:
-    """Expert demonstrations of every start x target pair of each target set (default
-    ``options.demo_seeds``) in ``mode``, one bag per set (``demos/seed_<s>``, dynamic:
-    ``demos/dynamic_seed_<s>``); returns the successful episodes' (obs, act) pairs and their
-    count, and statistics."""
+def _demo_set(anatomy: str, mode: str, scenario_seed: int, seed: int, out: Path
+              ) -> tuple[list[tuple[np.ndarray, np.ndarray]], float, int]:
+    """Expert demonstrations of every start x target pair of one target set, written as one
+    demo bag; returns the successful episodes' (obs, act) pairs, the success rate and the
+    number of episodes (a worker of :func:`_record_demos`)."""
     from cgail_planner.learning.demo_bags import write_demo_bag
-    from cgail_planner.learning.demos import Demos
     from cgail_planner.learning.demos_cli import Pairs, record_episodes
     from cgail_planner.sim.anatomy import anatomy_label
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
     pairs: Pairs = []
-    rates = []
+    env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=scenario_seed))
+    sc = env.scenarios
+    n = len(sc.starts) * len(sc.targets)
+    episodes, stats = record_episodes(env, n, seed, pairs)
     prefix = 'seed' if mode == 'static' else f'{mode}_seed'
-    for s in options.demo_seeds if seeds is None else seeds:
-        env = CatheterNavEnv(EnvConfig(mode=mode, anatomy=anatomy, scenario_seed=s))
-        sc = env.scenarios
-        n = len(sc.starts) * len(sc.targets)
-        episodes, stats = record_episodes(env, n, options.seed, pairs)
-        write_demo_bag(out / 'demos' / f'{prefix}_{s}', episodes, anatomy=anatomy_label(anatomy),
-                       mode=mode, dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
-                       anatomy_path=anatomy, scenario_seed=s)
-        rates.append(stats['success_rate'])
-        log(f'expert, {mode}, target set {s}: {n} episodes, success '
-            f'{100 * stats["success_rate"]:.0f}%')
+    write_demo_bag(out / 'demos' / f'{prefix}_{scenario_seed}', episodes,
+                   anatomy=anatomy_label(anatomy), mode=mode, dt=env.config.dt,
+                   anatomy_hash=env.anatomy.content_hash, anatomy_path=anatomy,
+                   scenario_seed=scenario_seed)
+    return pairs, float(stats['success_rate']), n
+
+
+def _jobs(options: PlanOptions, tasks: int) -> int:
+    """Worker processes for ``tasks`` independent jobs: ``options.jobs``, or one per CPU core
+    this process may use (0), never more than the tasks."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else \
+        (os.cpu_count() or 1)
+    return max(1, min(tasks, options.jobs or cores))
+
+
+def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[str], None],
+                  mode: str = 'static', seeds: Sequence[int] | None = None
+                  ) -> tuple[Demos, dict[str, float]]:
+    """Expert demonstrations of every start x target pair of each target set (default
+    ``options.demo_seeds``) in ``mode``, one bag per set (``demos/seed_<s>``, dynamic:
+    ``demos/dynamic_seed_<s>``), the sets spread over ``options.jobs`` processes; returns the
+    successful episodes' (obs, act) pairs in the order of the sets, their count, and
+    statistics. Each set is a function of the anatomy, the set and the seed alone, so the
+    result does not depend on the number of processes."""
+    from cgail_planner.learning.demos import Demos
+
+    sets = list(options.demo_seeds if seeds is None else seeds)
+    done: dict[int, tuple[list[tuple[np.ndarray, np.ndarray]], float, int]] = {}
+
+    def logged(s: int, res: tuple[list[tuple[np.ndarray, np.ndarray]], float, int]) -> None:
+        done[s] = res
+        log(f'expert, {mode}, target set {s}: {res[2]} episodes, success '
+            f'{100 * res[1]:.0f}%')
+
+    jobs = _jobs(options, len(sets))
+    if jobs == 1:
+        for s in sets:
+            logged(s, _demo_set(anatomy, mode, s, options.seed, out))
+    else:
+        import concurrent.futures
+        import multiprocessing
+
+        with concurrent.futures.ProcessPoolExecutor(
+                max_workers=jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
+            futures = {pool.submit(_demo_set, anatomy, mode, s, options.seed, out): s
+                       for s in sets}
+            for future in concurrent.futures.as_completed(futures):
+                logged(futures[future], future.result())
+    pairs = [pair for s in sets for pair in done[s][0]]
     if not pairs:
         from cgail_planner.patient import PatientError
 
@@ -287,9 +332,10 @@ def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[
                            'prepare_anatomy (lumen too narrow, bends too tight?)')
     obs = np.concatenate([o for o, _ in pairs])
     act = np.concatenate([a for _, a in pairs])
-    return Demos(obs, act, len(pairs)), {'episodes': float(len(rates) * n),
-                                         'expert_success': float(np.mean(rates)),
-                                         'samples': float(len(obs))}
+    return Demos(obs, act, len(pairs)), {
+        'episodes': float(sum(done[s][2] for s in sets)),
+        'expert_success': float(np.mean([done[s][1] for s in sets])),
+        'samples': float(len(obs))}
 
 
 def _train_phase(mode: str, anatomy: str, options: PlanOptions, out: Path, clock: _Clock,
@@ -828,11 +874,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="policy to fine-tune (.onnx or train checkpoint; default: the committed "
                         "default static policy; 'scratch': random initialisation)")
     p.add_argument('--preset', default=d.preset, help='training preset (name or YAML)')
-    p.add_argument('--goal-static', type=float, default=d.goal_static)
-    p.add_argument('--goal-dynamic', type=float, default=d.goal_dynamic)
+    p.add_argument('--goal-static', type=float, default=d.goal_static,
+                   help='success rate wanted on unseen targets in the rigid aorta, in (0, 1] '
+                        f'(default {d.goal_static:g})')
+    p.add_argument('--goal-dynamic', type=float, default=d.goal_dynamic,
+                   help='success rate wanted on unseen targets in the beating aorta, in (0, 1] '
+                        f'(default {d.goal_dynamic:g})')
     p.add_argument('--trials', type=int, default=d.trials,
                    help='evaluation trials per method and mode')
-    p.add_argument('--seed', type=int, default=d.seed)
+    p.add_argument('--seed', type=int, default=d.seed,
+                   help='seed of the demonstrations, the training and the evaluation '
+                        f'(default {d.seed})')
     for name, what in (('train', 'trained on'), ('demo', 'the expert demonstrates'),
                        ('validation', 'of the periodic validation'),
                        ('test', 'of the final evaluation (unseen)')):
@@ -846,6 +898,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='DAgger rounds after the warm start, while the static validation is '
                         'under the goal + 5 points (0: none)')
     p.add_argument('--threads', type=int, default=d.threads, help='torch CPU threads')
+    p.add_argument('--jobs', type=int, default=d.jobs,
+                   help='processes recording the expert demonstrations (default 0: one per '
+                        'CPU core); the result does not depend on it')
     p.add_argument('--no-progress', action='store_true', help='no progress bar')
     return p
 
@@ -860,6 +915,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         options = PlanOptions(budget_min=args.budget_min, base=args.base, preset=args.preset,
                               goal_static=args.goal_static, goal_dynamic=args.goal_dynamic,
                               trials=args.trials, seed=args.seed, threads=args.threads,
+                              jobs=args.jobs,
                               bc_epochs=args.bc_epochs, dagger_rounds=args.dagger_rounds,
                               train_seeds=tuple(args.train_seeds),
                               demo_seeds=tuple(args.demo_seeds),

@@ -25,6 +25,7 @@ def test_a_bad_anatomy_is_one_line_and_exit_status_2(bad_anatomy, tmp_path, caps
     (['--train-seeds', '-1'], 'train_seeds must be one or more ints >= 0'),
     (['--trials', '0'], 'trials must be in [1, 1000], found 0'),
     (['--bc-epochs', '-1'], 'bc_epochs must be an int in [0, 1000], found -1'),
+    (['--jobs', '-1'], 'jobs must be an int in [0, 256] (0: one per CPU core), found -1'),
     (['--base', 'nowhere.onnx'], 'expected an exported .onnx policy or a train checkpoint, or '
                                  '"scratch", found no file at nowhere.onnx'),
     (['--preset', 'nopreset'], "expected a preset name in"),
@@ -116,6 +117,31 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
     for png in ('training.png', 'evaluation/static_T_a.png', 'evaluation/dynamic_T_s.png'):
         assert (out / png).stat().st_size > 5000, png
     assert (out / 'evaluation' / 'report.md').is_file()
+
+
+def test_demonstrations_do_not_depend_on_the_number_of_processes(prepared, tmp_path) -> None:
+    """Two target sets in one process and in two (spawned workers): the same bags, the same
+    (obs, act) pairs in the order of the sets."""
+    import numpy as np
+
+    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_planner.patient.plan import _record_demos
+
+    runs = {}
+    for jobs in (1, 2):
+        lines: list[str] = []
+        out = tmp_path / f'jobs{jobs}'
+        runs[jobs] = _record_demos(str(prepared), PlanOptions(jobs=jobs), out, lines.append,
+                                   seeds=(0, 3))
+        assert sorted(line.split(':')[0] for line in lines) == [
+            'expert, static, target set 0', 'expert, static, target set 3']
+        for s in (0, 3):
+            meta, episodes = read_demo_bag(out / 'demos' / f'seed_{s}')
+            assert meta['scenario_seed'] == s and len(episodes) == 15
+    (o1, a1, n1), s1 = runs[1]
+    (o2, a2, n2), s2 = runs[2]
+    assert n1 == n2 and s1 == s2 and n1 >= 20
+    assert np.array_equal(o1, o2) and np.array_equal(a1, a2)
 
 
 @pytest.mark.slow

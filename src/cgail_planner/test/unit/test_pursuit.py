@@ -6,8 +6,7 @@ import pytest
 
 from cgail_planner.learning.pursuit import carrot, rollout
 from cgail_planner.sim.config import CatheterConfig
-from cgail_planner.sim.ftl_model import action_to_command, advance_batch, steer_nb, \
-    steer_towards
+from cgail_planner.sim.ftl_model import action_to_command, advance_batch, steer_nb, steer_towards
 
 
 def _arc(n: int = 80) -> np.ndarray:
