@@ -44,8 +44,11 @@ both modes. A target missed from its start is tried from the other starts: reach
 them it is a warning (the failed start is named), reached from none it is an error, and so is
 a simulation fault from any start (a wall that cannot take the catheter). The error names the
 target, its position from the annulus centre, the mode, each start tried and its outcome
-("collision 31 mm from the target at step 212", "exited through the descending cut at step
-40", "simulation fault at step 443 ..."). Every episode is in ``Validation.expert_trials``
+("collision 31 mm from the target at step 212 ..., 180 mm along the centreline, where it
+bends with a 14 mm radius in a lumen of 10 mm radius", "exited through the descending cut at
+step 40", "simulation fault at step 443 ..."); where every miss is a collision in a bend
+tighter than the catheter's smallest bend radius (L / theta_max), it says so: the lumen is too
+narrow there for the catheter to cut the corner. Every episode is in ``Validation.expert_trials``
 (outcome, steps, final and closest distance, largest wall displacement, tip-contact steps).
 Cost on ``default``: 10 episodes of ~500 steps, about 5 s static and 10 s dynamic on one
 loaded core (``figures["expert_s"]``).
@@ -124,6 +127,9 @@ class ExpertTrial:
     """Steps with the tip touching the wall (minor contacts included)."""
     detail: str
     """Why it failed, one phrase (empty on success)."""
+    collision_bend_mm: float = math.inf
+    """A collision's place: the centreline's tightest bend radius within 10 mm of the tip,
+    mm (inf: no collision, or straight there)."""
 
     @property
     def where(self) -> str:
@@ -175,6 +181,23 @@ def bend_radii(points: np.ndarray, half: float = 0.005) -> tuple[np.ndarray, np.
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(cross > 1e-15, ab * bc * ca / (2.0 * cross), np.inf)
     return s, r
+
+
+def _centerline_place(centerline: Any, point: np.ndarray) -> tuple[str, float]:
+    """Where ``point`` lies along a centreline, as an error names it (the arc length of its
+    nearest centreline point, the centreline's tightest bend radius within 10 mm of it,
+    :func:`bend_radii`, and the lumen's inscribed radius there), and that bend radius, mm."""
+    pts = np.asarray(centerline.points, dtype=float)
+    i = int(np.argmin(np.linalg.norm(pts - point, axis=1)))
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+    s, rb = bend_radii(pts)
+    near = np.abs(s - arc[i]) <= 0.010
+    bend = float(rb[near].min()) if near.any() else math.inf
+    text = f"{arc[i] * 1e3:.0f} mm along the centreline"
+    if math.isfinite(bend):
+        text += f", where it bends with a {bend * 1e3:.0f} mm radius"
+    lumen = float(np.asarray(centerline.radii)[i]) * 1e3
+    return text + f" in a lumen of {lumen:.0f} mm radius", bend * 1e3
 
 
 def _mesh_checks(anatomy: Anatomy, v: Validation) -> bool:
@@ -415,6 +438,7 @@ def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTr
     contact = 0
     fault: str | None = None
     info: dict[str, Any] = {}
+    bend_mm = math.inf
     while True:
         previous = np.array(eng.catheter.tip_position[0])  # (the exit's step starts here)
         try:
@@ -443,7 +467,9 @@ def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTr
         outcome = "collision"
         detail = (f"collision {final:.0f} mm from the target at step {steps} "
                   f"({float(info['collision_force']):.1f} N, "
-                  f"{float(info['penetration']) * 1e3:.1f} mm into the wall)")
+                  f"{float(info['penetration']) * 1e3:.1f} mm into the wall), ")
+        place, bend_mm = _centerline_place(eng.world.centerlines[eng.branch[0]], tip)
+        detail += place
     elif info["exited"]:
         outcome = "exited"
         detail = (f"exited {_exit_where(anatomy, previous, tip)} at step {steps}, "
@@ -456,7 +482,8 @@ def run_expert_trial(env: Any, expert: Any, start: int, target: int) -> ExpertTr
                        target_mm=(float(rel[0]), float(rel[1]), float(rel[2])),
                        height_mm=height, start=start, outcome=outcome, steps=steps,
                        final_distance_mm=final, closest_mm=closest,
-                       max_wall_mm=max_wall * 1e3, contact_steps=contact, detail=detail)
+                       max_wall_mm=max_wall * 1e3, contact_steps=contact, detail=detail,
+                       collision_bend_mm=bend_mm)
 
 
 def _expert_check(anatomy: Anatomy, v: Validation, mode: str) -> None:
@@ -524,11 +551,31 @@ def _expert_check(anatomy: Anatomy, v: Validation, mode: str) -> None:
                     "not driven after the fault"
         v.add(name, "error", value, limit,
               f"expected the scripted expert to reach every standard target, found {text}: "
-              "the anatomy is not usable for this task (the report's expert table says more)")
+              "the anatomy is not usable for this task" + _diagnosis(failed, env)
+              + " (the report's expert table says more)")
     elif retried:
         v.add(name, "warning", value, limit, f"in {mode} mode " + "; ".join(retried))
     else:
         v.add(name, "ok", value, limit)
+
+
+def _diagnosis(failed: list[tuple[ExpertTrial, list[ExpertTrial]]], env: Any) -> str:
+    """Why the expert fails, where every miss is a collision in a bend tighter than the
+    catheter's smallest bend radius (L / theta_max): ``''`` otherwise."""
+    cat = env.unwrapped.engine.config.catheter
+    r_bend = cat.segment_length / cat.theta_max * 1e3
+    bends = []
+    for _, misses in failed:
+        for t in misses:
+            if t.outcome != "collision" or not t.collision_bend_mm < r_bend:
+                return ""
+            bends.append(t.collision_bend_mm)
+    if not bends:
+        return ""
+    return (f": every miss is a collision where the centreline bends with a "
+            f"{min(bends):.0f}-{max(bends):.0f} mm radius, against the catheter's smallest bend "
+            f"radius of {r_bend:.1f} mm (L / theta_max), and the lumen there is too narrow for "
+            "the catheter to cut that corner without touching the wall")
 
 
 def _check_modes(name: str, modes: Any) -> tuple[str, ...]:

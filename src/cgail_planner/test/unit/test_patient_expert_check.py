@@ -142,7 +142,9 @@ def test_collision_detail_names_distance_and_step(monkeypatch: pytest.MonkeyPatc
     t = run_expert_trial(env, ScriptedExpert(env), 0, 3)
     assert t.outcome == "collision", t
     m = re.fullmatch(r"collision (\d+) mm from the target at step (\d+) \(\d+\.\d N, "
-                     r"\d+\.\d mm into the wall\)", t.detail)
+                     r"\d+\.\d mm into the wall\), \d+ mm along the centreline"
+                     r"(, where it bends with a \d+ mm radius)? in a lumen of \d+ mm radius",
+                     t.detail)
     assert m, t.detail
     assert int(m[2]) == t.steps < 2000
     assert abs(int(m[1]) - t.final_distance_mm) <= 0.5

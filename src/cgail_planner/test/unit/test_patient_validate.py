@@ -85,3 +85,40 @@ def test_a_start_with_its_introducer_along_the_centerline_is_usable() -> None:
                for s in starts)
     assert v.figures["introducer_clearance_mm"] == pytest.approx(bent * 1e3, abs=1e-9)
     assert 3.5 <= v.figures["introducer_clearance_mm"] < 15.0
+
+
+def test_a_collision_is_placed_on_the_centreline_and_a_tight_bend_is_diagnosed() -> None:
+    """The expert check's error says where the catheter hit the wall (arc length, bend radius,
+    lumen radius) and, when every miss is a collision in a bend tighter than L / theta_max,
+    why the anatomy cannot be used."""
+    from types import SimpleNamespace
+
+    from cgail_planner.patient.validate import _centerline_place, _diagnosis, ExpertTrial
+    from cgail_planner.sim.config import CatheterConfig
+
+    s = np.arange(0.0, 0.1001, 0.001)  # 100 mm: 40 straight, then a 15 mm-radius turn
+    th = np.clip(s - 0.04, 0.0, None) / 0.015
+    pts = np.column_stack([np.where(s < 0.04, 0.0, 0.015 * (1 - np.cos(th))),
+                           np.where(s < 0.04, s, 0.04 + 0.015 * np.sin(th)), np.zeros_like(s)])
+    cl = SimpleNamespace(points=pts, radii=np.full(len(s), 0.010))
+    text, bend = _centerline_place(cl, pts[60] + [0.0, 0.0, 0.005])
+    assert text == '60 mm along the centreline, where it bends with a 15 mm radius in a lumen ' \
+                   'of 10 mm radius'
+    assert bend == pytest.approx(15.0, abs=0.5)
+    text, bend = _centerline_place(cl, pts[10])
+    assert text == '10 mm along the centreline in a lumen of 10 mm radius' and math.isinf(bend)
+
+    def trial(outcome: str, bend_mm: float) -> ExpertTrial:
+        return ExpertTrial(mode='static', target=0, target_mm=(0.0, 0.0, 20.0), height_mm=20.0,
+                           start=0, outcome=outcome, steps=300, final_distance_mm=120.0,
+                           closest_mm=100.0, max_wall_mm=0.0, contact_steps=0, detail='',
+                           collision_bend_mm=bend_mm)
+
+    env = SimpleNamespace(unwrapped=SimpleNamespace(engine=SimpleNamespace(
+        config=SimpleNamespace(catheter=CatheterConfig()))))
+    tight = [(trial('collision', 11.0), [trial('collision', 11.0), trial('collision', 14.0)])]
+    assert _diagnosis(tight, env).startswith(
+        ': every miss is a collision where the centreline bends with a 11-14 mm radius, '
+        "against the catheter's smallest bend radius of 31.8 mm")
+    assert _diagnosis([(trial('timeout', math.inf), [trial('timeout', math.inf)])], env) == ''
+    assert _diagnosis([(trial('collision', 40.0), [trial('collision', 40.0)])], env) == ''
