@@ -99,11 +99,42 @@ def test_report_on_recorded_trials(tmp_path) -> None:
     assert (tmp_path / 'metrics.csv').is_file() and (tmp_path / 'metrics_boxplot.png').is_file()
 
 
+def test_a_simulation_fault_ends_its_trial_as_a_counted_outcome(tmp_path, monkeypatch,
+                                                               capsys) -> None:
+    """The beating wall blows up 3 simulated seconds into the trial: the phantom freezes, the
+    trial ends at once as a simulation fault (anatomy, seed, time), the session goes on and
+    its report counts the fault."""
+    from cgail_planner.core.phantom import PhantomPhysics
+    from cgail_planner.sim.wall import WallError
+
+    step = PhantomPhysics.step
+    clock = {'t': 0.0}
+
+    def blow_up(self, dt, *args, **kwargs):
+        clock['t'] += dt
+        if clock['t'] > 3.0:
+            raise WallError('deformable wall: expected every particle within 40 mm of its rest '
+                            'position, found particle 7 2495819.0 mm away (injected)')
+        return step(self, dt, *args, **kwargs)
+
+    monkeypatch.setattr(PhantomPhysics, 'step', blow_up)
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)
+    out = tmp_path / 'session'
+    main(['--trials', '1', '--plant', 'nominal', '--conditions', 'centerline', '--jobs', '1',
+          '--mode', 'dynamic', '--time-limit', '30', '--out', str(out)])
+    text = (out / 'metrics.md').read_text()
+    assert 'simulation faults: 1 (a trial a fault ended counts as a failure)' in text, text
+    row = next(line for line in text.splitlines() if line.startswith('| 1 | centerline |'))
+    assert 'simulation fault at ' in row and '(anatomy default, seed ' in row, row
+    assert 'particle 7 2495819.0 mm away (injected)' in row, row
+    assert 'simulation fault at ' in capsys.readouterr().out
+
+
 def _assert_both_trials_reached(out: Path) -> None:
     """The session's report: no callback error, trial 1 of each condition reached its target
     within epsilon in time, with a tracking error under 10 mm."""
     text = (out / 'metrics.md').read_text()
-    assert 'callback errors: 0.' in text
+    assert 'callback errors: 0, simulation faults: 0 ' in text
     rows = [line for line in text.splitlines()
             if line.startswith(('| cgail_01', '| centerline_01'))]
     assert len(rows) == 2, text

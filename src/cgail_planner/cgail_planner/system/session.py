@@ -13,6 +13,9 @@ on a pty, the regulator bank and the sleeve driver on virtual CAN), the real ``a
 scripted ``operator`` at the gamepad. After 1 s of simulated time (the tracker connects, the
 first poses arrive) the goal is published; the trial ends when the operator stops (target
 reached, or closest approach passed) or at the 3-minute limit, and is recorded to its own bag.
+If the beating wall blows up (the phantom freezes its physics, :class:`~cgail_planner.sim.wall.
+WallError`), the trial ends at once as ``simulation fault`` with the anatomy, the seed and the
+time; its bag is evaluated as a failure, the session goes on, and the report counts the faults.
 Then the offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro
 numbers side by side and write the box plots.
 
@@ -369,7 +372,13 @@ class TrialRig:
             while not result.outcome:
                 tick()
                 now = ex.now_s
-                if self.operator.done:
+                if self.phantom.physics_error:
+                    # the phantom froze (a deformable wall beyond its bound): the trial ends
+                    # here as a counted outcome, its bag kept and evaluated as a failure
+                    result.outcome = (f'simulation fault at {now - t0:.1f} s (anatomy '
+                                      f'{self.settings.anatomy}, seed {self.spec.seed}): '
+                                      f'{self.phantom.physics_error}')
+                elif self.operator.done:
                     result.outcome = self.operator.operator.reason
                 elif self.planner.counts['failed_plans'] > failed_before and \
                         self.planner.follower is None and self.operator.operator.state == 'idle':
@@ -749,9 +758,11 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
         return 1
     tests = kruskal_by_condition(trials)
     text = markdown_report(trials, tests)
+    faults = sum(o.startswith('simulation fault') for _, _, o in outcomes)
     lines = ['# Simulated in-vitro session', '',
              f'{len(outcomes)} trials, {wall_s:.0f} s wall time ({jobs} job(s)), callback '
-             f'errors: {callback_errors}.', '', '## Outcomes', '',
+             f'errors: {callback_errors}, simulation faults: {faults} (a trial a fault ended '
+             'counts as a failure).', '', '## Outcomes', '',
              '| trial | condition | operator outcome |', '|---|---|---|']
     lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
     if skipped:
