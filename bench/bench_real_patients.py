@@ -66,16 +66,13 @@ def _landmarks(result: Any) -> dict[str, Any]:
     a = result.anatomy
     axis = np.asarray(a.root_axis, dtype=float)
     exit_mm = np.asarray(a.exit_point, dtype=float) * 1e3
-    notes = " ".join(prepared.notes)
-    below = re.search(r"descending cut (\d+) mm of centreline below", notes)
-    arch = re.search(r"(\d+) supra-aortic branch", notes)
-    diam = re.search(r"equivalent diameter ([\d.]+) mm", notes)
+    figures = prepared.figures
     return {
-        "annulus_diameter_mm": float(diam.group(1)) if diam else math.nan,
+        "annulus_diameter_mm": figures.get("annulus_diameter_mm", math.nan),
         "annulus_uncertainty_mm": float(prepared.annulus_uncertainty_mm),
         "exit_height_mm": float(exit_mm @ axis),
-        "exit_below_arch_mm": float(below.group(1)) if below else math.nan,
-        "arch_branches": int(arch.group(1)) if arch else -1,
+        "exit_below_arch_mm": figures.get("exit_below_arch_mm", math.nan),
+        "arch_branches": int(figures.get("arch_branches", -1)),
         "ostia_height_mm": {k: float(np.asarray(o) @ axis * 1e3) for k, o in a.ostia.items()},
         "ostia_source": prepared.sources.get("left_ostium", "?"),
     }

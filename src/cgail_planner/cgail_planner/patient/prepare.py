@@ -169,6 +169,10 @@ class PreparedAnatomy:
     annulus_uncertainty_mm: float = 0.0
     """How far the annulus may lie from the estimate along the root axis, mm (0: given; a
     voxel or two: fitted to the LV contact; more when found from the root's shape)."""
+    figures: dict[str, float] = field(default_factory=dict)
+    """What the anatomy measures, for tables: ``annulus_diameter_mm`` (equivalent diameter of
+    the valve plane), ``arch_branches`` (supra-aortic branches found), ``exit_below_arch_mm``
+    (centreline length from the last of them to the descending cut)."""
 
     def to_phantom(self, points_lps_mm: np.ndarray) -> np.ndarray:
         """Patient LPS mm -> phantom m."""
@@ -683,6 +687,13 @@ def _introducer_clearance(trunk: np.ndarray, radii: np.ndarray, arc: np.ndarray,
     return worst
 
 
+def _last_branch_arc(skel: Skeleton, apex: int, arch_branches: list[Branch]) -> float:
+    """Arc length along the trunk of the last supra-aortic branch's junction, mm (the top of
+    the arch + 20 mm when none was found)."""
+    return max((float(skel.trunk_arc[b.junction_index]) for b in arch_branches),
+               default=float(skel.trunk_arc[apex]) + 20.0)
+
+
 def _plan_cuts(skel: Skeleton, apex: int, arch_branches: list[Branch],
                annulus: tuple[np.ndarray, np.ndarray, float], options: PrepareOptions,
                given_exit: np.ndarray | None, notes: list[str],
@@ -699,8 +710,7 @@ def _plan_cuts(skel: Skeleton, apex: int, arch_branches: list[Branch],
     trunk = skel.trunk
     radii = skel.trunk_radii
     cuts = [Cut("annulus", centre, -axis, r_ann)]
-    s_last = max((float(arc[b.junction_index]) for b in arch_branches),
-                 default=float(arc[apex]) + 20.0)
+    s_last = _last_branch_arc(skel, apex, arch_branches)
     end_room = float(arc[-1]) - _BEYOND_MM - 2.0
     # The farthest start must lie in the descending aorta, clear of the arch's bend.
     need = _START_ABOVE_EXIT_MM + _START_SPAN_MM + _ARCH_CLEARANCE_MM
@@ -1169,6 +1179,10 @@ def prepare_volume(vol: LabelVolume, *, name: str, options: PrepareOptions | Non
     timings["landmarks"] = time.perf_counter() - t0
     notes.append(f"lumen: {len(vm)} vertices, {int(wall.sum())} wall faces, "
                  f"{len(cap_ids)} caps and the valve plane")
+    figures = {"annulus_diameter_mm": 2e3 * math.sqrt(valve_area / math.pi),
+               "arch_branches": float(len(arch_branches)),
+               "exit_below_arch_mm": s_exit - _last_branch_arc(skel, apex, arch_branches)}
     return PreparedAnatomy(anatomy=anatomy, annulus_lps_mm=annulus_lps, cuts=cuts,
                            skeleton=skel, notes=notes, warnings=warnings, sources=sources,
-                           timings=timings, annulus_uncertainty_mm=uncertainty)
+                           timings=timings, annulus_uncertainty_mm=uncertainty,
+                           figures=figures)

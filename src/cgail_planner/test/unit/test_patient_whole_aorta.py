@@ -61,6 +61,11 @@ def test_synthetic_whole_aorta_finds_the_arch_and_ignores_the_abdomen(
     # The descending cut lies the asked 150 mm below the last arch branch, whatever follows.
     assert _note(r, r"descending cut (\d+) mm of centreline below").group(1) == "150"
     assert int(_note(r, r"the label continues (\d+) mm beyond").group(1)) > 200
+    # the same figures, for tables (bench_real_patients)
+    f = r.prepared.figures
+    assert f["arch_branches"] == 3 and round(f["exit_below_arch_mm"]) == 150
+    assert f["annulus_diameter_mm"] == pytest.approx(float(_note(
+        r, r"equivalent diameter ([\d.]+) mm").group(1)), abs=0.06)
 
 
 def test_synthetic_whole_aorta_landmarks_near_the_truth(synthetic_whole: Whole) -> None:
