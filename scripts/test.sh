@@ -50,10 +50,11 @@ if [ -n "${CGAIL_SLOW:-}" ]; then marker=(-m ""); fi
 
 echo "[test] ruff"
 ruff check src test bench
-echo "[test] mypy (every module of the four packages, nodes included, and the bench scripts)"
-MYPYPATH="src/cgail_planner:src/em_tracker:src/pam_controller:src/catheter_driver" \
+echo "[test] mypy (every module of the packages, nodes included, and the bench scripts)"
+MYPYPATH="src/cgail_planner:src/em_tracker:src/pam_controller:src/catheter_driver:src/cgail_node_utils" \
     mypy --config-file pyproject.toml src/cgail_planner/cgail_planner src/em_tracker/em_tracker \
-    src/pam_controller/pam_controller src/catheter_driver/catheter_driver bench/*.py \
+    src/pam_controller/pam_controller src/catheter_driver/catheter_driver \
+    src/cgail_node_utils/cgail_node_utils bench/*.py \
     src/cgail_planner/test/fixtures/make_policies.py
 
 echo "[test] colcon test"

@@ -1,0 +1,12 @@
+"""Helpers shared by the workspace's ROS 2 nodes (one copy, used by every node package).
+
+Modules, each imported on its own:
+
+* :mod:`cgail_node_utils.entry_point`: what a node's ``main()`` needs around ``rclpy.spin``
+  (``spin``, ``try_shutdown`` and ``RCLError``, tolerant of a Ctrl-C while starting);
+* :mod:`cgail_node_utils.parameters`: parameters declared once with a description and a range
+  (``declare``, ``descriptor``), and the configure-time parameters of a lifecycle device node
+  (``configure_time_guard``, ``AUTOSTART_DESCRIPTION``);
+* :mod:`cgail_node_utils.lifecycle`: a lifecycle node's state read through rclpy's public API
+  (``lifecycle_state``).
+"""
