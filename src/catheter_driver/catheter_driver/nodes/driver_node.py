@@ -18,7 +18,7 @@ unless ``autostart`` is false, which leaves it unconfigured for a lifecycle mana
 
 Parameters are read at configure: a change is accepted only while the node is unconfigured
 (validated, applied by the next configure); in any other state ``set_parameters`` answers
-``successful=False`` with the reason (:mod:`catheter_driver.nodes.params`). ``autostart`` is
+``successful=False`` with the reason (:mod:`cgail_node_utils.parameters`). ``autostart`` is
 read-only.
 """
 
@@ -50,8 +50,8 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverSt
 from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, spin, try_shutdown
-from catheter_driver.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard, declare
+from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, declare
 
 _R, _S = RelayConfig(), SupervisionConfig()
 #: name: (default, description, (lo, hi) or None). Defaults equal the dataclass defaults.
@@ -484,7 +484,7 @@ def main(args=None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
             raise
     finally:
         if node is not None:

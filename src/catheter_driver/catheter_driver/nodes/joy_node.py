@@ -19,8 +19,8 @@ from catheter_driver.core.joy_filter import JoyConfig, JoyFilter
 from catheter_driver.exceptions import DeviceDisconnectedError
 from catheter_driver.hw.gamepad import Gamepad, GamepadFactory, SdlGamepad
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, spin, try_shutdown
-from catheter_driver.nodes.params import declare
+from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.parameters import declare
 
 
 class JoyNode(Node):
@@ -127,7 +127,7 @@ def main(args=None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
             raise
     finally:
         if node is not None:

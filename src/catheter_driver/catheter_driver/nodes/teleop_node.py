@@ -14,8 +14,8 @@ from sensor_msgs.msg import JointState, Joy
 from catheter_driver.core.teleop import Teleop, TeleopConfig, TeleopOutput
 from catheter_driver.exceptions import CommandError
 from catheter_driver.nodes import conversions as conv
-from catheter_driver.nodes import RCLError, spin, try_shutdown
-from catheter_driver.nodes.params import declare
+from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.parameters import declare
 
 
 class TeleopNode(Node):
@@ -86,7 +86,7 @@ def main(args=None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see catheter_driver.nodes.RCLError)
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
             raise
     finally:
         if node is not None:

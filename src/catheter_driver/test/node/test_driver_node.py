@@ -29,6 +29,7 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverStatus
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
 from catheter_driver.nodes.driver_node import DriverNode
+from cgail_node_utils.lifecycle import lifecycle_state
 
 COMMAND_RATE_HZ = 50.0
 
@@ -297,7 +298,7 @@ def test_driver_latch_engaged_elsewhere_is_a_warning(harness):
 
 
 def _state(node):
-    return node._state_machine.current_state[1]
+    return lifecycle_state(node)
 
 
 def _own_topics(node):

@@ -34,7 +34,7 @@ unless ``autostart`` is false, which leaves it unconfigured for a lifecycle mana
 
 Parameters are read at configure: a change is accepted only while the node is unconfigured
 (validated, applied by the next configure); in any other state ``set_parameters`` answers
-``successful=False`` with the reason (:mod:`em_tracker.nodes.params`). ``autostart`` is
+``successful=False`` with the reason (:mod:`cgail_node_utils.parameters`). ``autostart`` is
 read-only.
 
 The link (:class:`~em_tracker.hw.tracker_loop.TrackerLoop`) runs the start-up sequence, polls
@@ -56,7 +56,6 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.guard_condition import GuardCondition
@@ -66,12 +65,13 @@ from rclpy.timer import Timer
 from std_msgs.msg import Float64
 from tf2_msgs.msg import TFMessage
 
+from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, descriptor
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.pose import Registration, TipPose
 from em_tracker.core.tracking import TrackerHealth
 from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
 from em_tracker.hw.tracker_loop import TrackerLoop
-from em_tracker.nodes import RCLError, spin, try_shutdown
 from em_tracker.nodes.conversions import (
     diagnostic_status,
     registration_tf,
@@ -79,7 +79,6 @@ from em_tracker.nodes.conversions import (
     tip_pose_to_msg,
     tip_tf,
 )
-from em_tracker.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 DeviceFactory = Callable[[TrackerConfig], AuroraDevice]
 
@@ -128,18 +127,6 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
 #: Parameters fixed for the node's life (the others are read at configure).
 _READ_ONLY = frozenset({'autostart'})
 _CONFIGURE_TIME = tuple(name for name in _PARAMS if name not in _READ_ONLY)
-
-
-def _descriptor(name: str, description: str, bounds: tuple[float, float] | None,
-                default: object) -> ParameterDescriptor:
-    desc = ParameterDescriptor(description=description, read_only=name in _READ_ONLY)
-    if bounds is not None and isinstance(default, int) and not isinstance(default, bool):
-        desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]),
-                                           step=1)]
-    elif bounds is not None:
-        desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]),
-                                                        to_value=float(bounds[1]), step=0.0)]
-    return desc
 
 
 def build_config(values: Mapping[str, Any]) -> TrackerConfig:
@@ -191,8 +178,9 @@ class AuroraNode(LifecycleNode):
     def __init__(self, *, device_factory: DeviceFactory | None = None, **kwargs) -> None:
         super().__init__('aurora', **kwargs)
         for name, (default, description, bounds) in _PARAMS.items():
-            self.declare_parameter(name, default, _descriptor(name, description, bounds,
-                                                              default))
+            self.declare_parameter(name, default, descriptor(
+                name, description, default=default, bounds=bounds,
+                read_only=name in _READ_ONLY))
         self.autostart: bool = self.get_parameter('autostart').value
         self.config = build_config(self._parameter_values())
         self.add_on_set_parameters_callback(
@@ -403,7 +391,7 @@ def main(args=None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see em_tracker.nodes.RCLError)
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
             raise
     finally:
         if node is not None:

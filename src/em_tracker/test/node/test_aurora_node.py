@@ -21,6 +21,7 @@ from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, Rel
 from std_msgs.msg import Float64
 from tf2_msgs.msg import TFMessage
 
+from cgail_node_utils.lifecycle import lifecycle_state
 from em_tracker.core.errors import DeviceDisconnected, DeviceError, ProtocolError
 from em_tracker.hw.aurora import ToolReading, TrackingReply
 from em_tracker.hw.sim_aurora import ScriptedTrajectory, SimAurora
@@ -442,7 +443,7 @@ DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/tip_pose_cov', '/em_tracke
 
 
 def _state(node):
-    return node._state_machine.current_state[1]
+    return lifecycle_state(node)
 
 
 def test_lifecycle_transitions_start_and_stop_the_device(ros):

@@ -8,7 +8,7 @@ it unconfigured for a lifecycle manager). Topics, QoS and parameters: see
 Parameters are validated in the constructor (bad values raise ``ValueError``) and read again at
 configure: a change is accepted only while the node is unconfigured; in any other state
 ``set_parameters`` answers ``successful=False`` with the reason
-(:mod:`pam_controller.nodes.params`). ``autostart`` is read-only.
+(:mod:`cgail_node_utils.parameters`). ``autostart`` is read-only.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ import math
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
@@ -30,6 +29,8 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import SetBool
 
+from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, descriptor
 from pam_controller.core.bending_model import (
     BendingModel,
     BendingModelConfig,
@@ -50,8 +51,6 @@ from pam_controller.hw import can_protocol as proto
 from pam_controller.hw.regulator_bank import CanRegulatorBank, LinkConfig
 from pam_controller.hw.sim_regulators import SimRegulatorBank, SimRegulatorConfig
 from pam_controller.nodes import conversions as conv
-from pam_controller.nodes import RCLError, spin, try_shutdown
-from pam_controller.nodes.params import AUTOSTART_DESCRIPTION, configure_time_guard
 
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 DIAGNOSTICS_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -217,8 +216,10 @@ class PamNode(LifecycleNode):
 
     def __init__(self, **kwargs: object) -> None:
         super().__init__('pam_controller', **kwargs)  # type: ignore[arg-type]
-        for name, spec in PARAMETERS.items():
-            self._declare(name, *spec)
+        for name, (default, description, bounds) in PARAMETERS.items():
+            self.declare_parameter(name, default, descriptor(
+                name, description, default=default, bounds=bounds,
+                read_only=name in _READ_ONLY))
         self.autostart = bool(self.get_parameter('autostart').value)
         self.sim: SimRegulatorBank | None = None
         self._apply(build_settings(self._parameter_values()))
@@ -230,18 +231,6 @@ class PamNode(LifecycleNode):
         self._sub_command: Subscription | None = None
         self._srv_estop: Service | None = None
         self._reset_link_state()
-
-    def _declare(self, name: str, default: object, description: str,
-                 bounds: tuple[float, float] | None) -> object:
-        desc = ParameterDescriptor(name=name, description=description,
-                                   read_only=name in _READ_ONLY)
-        if bounds is not None and isinstance(default, float):
-            desc.floating_point_range = [FloatingPointRange(
-                from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
-        elif bounds is not None and isinstance(default, int) and not isinstance(default, bool):
-            desc.integer_range = [IntegerRange(
-                from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
-        return self.declare_parameter(name, default, desc).value
 
     def _parameter_values(self) -> dict[str, object]:
         return {name: self.get_parameter(name).value for name in _CONFIGURE_TIME}
@@ -507,7 +496,7 @@ def main(args: list[str] | None = None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see pam_controller.nodes.RCLError)
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
             raise
     finally:
         if node is not None:
