@@ -1,12 +1,13 @@
-"""Every package.xml declares what its Python code imports (full-install parity).
+"""Every package.xml declares what its Python code imports, and no more (full-install parity).
 
 On a full ROS 2 install ``rosdep install --from-paths src`` installs what the package.xml files
-declare, and nothing else; this test holds each one to the imports of its package.
+declare, and nothing else; this test holds each one to the imports of its package, both ways.
+That each key resolves (rosdistro or ``rosdep/cgail.yaml``) is test/test_rosdep_keys.py's.
 
 How imports become rosdep keys (the convention):
 
 * Scanned: ``src/<pkg>/<pkg>/**.py`` (runtime code) and ``src/<pkg>/test/**.py`` (tests). Not
-  ``setup.py``: its ``setuptools`` comes with the ``ament_python`` buildtool_depend.
+  ``setup.py``: its ``setuptools`` is the ``python3-setuptools`` buildtool_depend.
 * Every absolute ``import X`` / ``from X import ...`` counts, at any depth: an import inside a
   function or a ``try`` (an optional feature, a fallback) is still needed by a full install. The
   key is looked up by the top-level name, or the first two names for namespace packages
@@ -23,6 +24,9 @@ How imports become rosdep keys (the convention):
   is added to the table (which is also the one place to correct a key).
 * A module the runtime code imports must be a ``<depend>`` or an ``<exec_depend>``; one that only
   tests import may also be a ``<test_depend>``.
+* The other way round: every ``<depend>``/``<exec_depend>`` key must be imported by the runtime
+  code (one only the tests import belongs in ``<test_depend>``), and every ``<test_depend>`` key
+  by the tests or the runtime code, unless :data:`NOT_IMPORTED` says why the package needs it.
 * ``install_requires`` of ``setup.py`` (besides ``setuptools``) must be declared the same way, by
   the PyPI column of :data:`PYTHON_KEYS`; and every PyPI distribution of the table that a package
   imports is pinned in ``requirements.txt`` (the pip-only workspace installs from it).
@@ -51,9 +55,10 @@ class Key(NamedTuple):
 
 
 #: Import name -> rosdep key (python3-<debian name>, or python3-<pypi name>-pip) and PyPI name.
+#: Each key is rosdistro's where it has one (rosdep/rosdistro_keys.txt), otherwise ours
+#: (rosdep/cgail.yaml); test/test_rosdep_keys.py checks that.
 PYTHON_KEYS = {
     'can': Key('python3-can', 'python-can'),
-    'cantools': Key('python3-cantools', 'cantools'),
     'matplotlib': Key('python3-matplotlib', 'matplotlib'),
     'mpl_toolkits': Key('python3-matplotlib', 'matplotlib'),
     'networkx': Key('python3-networkx', 'networkx'),
@@ -68,11 +73,11 @@ PYTHON_KEYS = {
     'skimage': Key('python3-skimage', 'scikit-image'),
     'torch': Key('python3-torch', 'torch'),
     'tqdm': Key('python3-tqdm', 'tqdm'),
-    'trimesh': Key('python3-trimesh', 'trimesh'),
     'websockets': Key('python3-websockets', 'websockets'),
     'yaml': Key('python3-yaml', 'PyYAML'),
     'zstandard': Key('python3-zstandard', 'zstandard'),
-    # PyPI only
+    # PyPI only (rosdep installs them with pip)
+    'cantools': Key('python3-cantools-pip', 'cantools'),
     'fast_simplification': Key('python3-fast-simplification-pip', 'fast-simplification'),
     'gymnasium': Key('python3-gymnasium-pip', 'gymnasium'),
     'nrrd': Key('python3-pynrrd-pip', 'pynrrd'),
@@ -81,6 +86,7 @@ PYTHON_KEYS = {
     'onnxruntime': Key('python3-onnxruntime-pip', 'onnxruntime'),
     'pyigtl': Key('python3-pyigtl-pip', 'pyigtl'),
     'rosbags': Key('python3-rosbags-pip', 'rosbags'),
+    'trimesh': Key('python3-trimesh-pip', 'trimesh'),
 }
 #: ROS packages that the naming rule (*_msgs, *_srvs, *_interfaces) does not catch.
 ROS_PACKAGES = {'ament_index_python', 'rclpy', 'rosidl_runtime_py'}
@@ -89,6 +95,10 @@ NO_KEY = {
     'compression': 'standard library from Python 3.14 (compression.zstd)',
     'backports.zstd': "what rosbags imports for zstd before Python 3.14 (rosbags' dependency)",
 }
+#: ``'<package>: <key>'`` -> why the package declares a key that none of its code imports
+#: (a launch file's node, a plugin loaded by name, a runtime resource). Empty: every declared key
+#: is imported.
+NOT_IMPORTED: dict[str, str] = {}
 RUNTIME_TAGS = ('depend', 'exec_depend')
 TEST_TAGS = (*RUNTIME_TAGS, 'test_depend')
 
@@ -200,10 +210,59 @@ def missing_dependencies(pkg_dir: Path, workspace: set[str]) -> list[str]:
     return problems
 
 
+def _keys(modules: dict[str, str], workspace: set[str]) -> dict[str, str]:
+    """``{rosdep key: first importing file}`` of imported modules (those with a known key)."""
+    keys: dict[str, str] = {}
+    for module, path in sorted(modules.items()):
+        try:
+            key = rosdep_key(module, workspace)
+        except LookupError:  # missing_dependencies reports it
+            continue
+        if key is not None:
+            keys.setdefault(key, path)
+    return keys
+
+
+def unused_dependencies(pkg_dir: Path, workspace: set[str],
+                        not_imported: dict[str, str] | None = None) -> list[str]:
+    """One line per declared key that the package's code does not import (see the docstring)."""
+    allowed = NOT_IMPORTED if not_imported is None else not_imported
+    tags = declared(pkg_dir / 'package.xml')
+    runtime, tests = (_keys(scan, workspace) for scan in _imports(pkg_dir))
+    where = (pkg_dir / 'package.xml').relative_to(pkg_dir.parent)
+    problems = []
+    for tag in TEST_TAGS:
+        for key in sorted(tags[tag]):
+            if f'{pkg_dir.name}: {key}' in allowed or key in runtime:
+                continue
+            if tag == 'test_depend' and key in tests:
+                continue
+            if key in tests:
+                problems.append(f'{where}: <{tag}>{key}</{tag}> only the tests import (first '
+                                f'{tests[key]}): make it a <test_depend>')
+            else:
+                problems.append(f'{where}: <{tag}>{key}</{tag}> is imported by no code of '
+                                f'{pkg_dir.name}: remove it (or say why in NOT_IMPORTED)')
+    return problems
+
+
 @pytest.mark.parametrize('package', PACKAGES)
 def test_package_xml_declares_every_import(package: str) -> None:
     problems = missing_dependencies(ROOT / 'src' / package, set(PACKAGES))
     assert not problems, '\n' + '\n'.join(problems)
+
+
+@pytest.mark.parametrize('package', PACKAGES)
+def test_package_xml_declares_nothing_its_code_does_not_import(package: str) -> None:
+    problems = unused_dependencies(ROOT / 'src' / package, set(PACKAGES))
+    assert not problems, '\n' + '\n'.join(problems)
+
+
+def test_not_imported_entries_name_a_declared_key() -> None:
+    declared_keys = {f'{package}: {key}' for package in PACKAGES
+                     for keys in declared(ROOT / 'src' / package / 'package.xml').values()
+                     for key in keys}
+    assert sorted(set(NOT_IMPORTED) - declared_keys) == []
 
 
 def test_every_imported_pypi_distribution_is_pinned_in_requirements() -> None:
@@ -273,3 +332,27 @@ def test_checker_passes_a_complete_package_and_names_unknown_imports(tmp_path: P
     assert missing_dependencies(pkg, {'fake_pkg', 'em_tracker'}) == [
         "fake_pkg/package.xml: unknown import 'frobnicate' (fake_pkg/fake_pkg/extra.py): add "
         'its rosdep key to PYTHON_KEYS (or ROS_PACKAGES) in test/test_package_deps.py']
+
+
+def test_unused_checker_reports_each_key_no_code_imports(tmp_path: Path) -> None:
+    deps = '\n'.join(f'  <{tag}>{key}</{tag}>' for tag, key in (
+        ('depend', 'rclpy'), ('exec_depend', 'std_msgs'), ('exec_depend', 'python3-numpy'),
+        ('exec_depend', 'python3-scipy'), ('exec_depend', 'python3-serial'),
+        ('exec_depend', 'python3-yaml'), ('exec_depend', 'python3-websockets'),
+        ('test_depend', 'python3-pytest'), ('test_depend', 'em_tracker'),
+        ('test_depend', 'python3-torch'), ('test_depend', 'python3-numpy')))
+    pkg = _fake_package(tmp_path, deps)
+    assert unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {}) == [
+        'fake_pkg/package.xml: <exec_depend>python3-serial</exec_depend> is imported by no code '
+        'of fake_pkg: remove it (or say why in NOT_IMPORTED)',
+        'fake_pkg/package.xml: <exec_depend>python3-websockets</exec_depend> is imported by no '
+        'code of fake_pkg: remove it (or say why in NOT_IMPORTED)',
+        'fake_pkg/package.xml: <exec_depend>python3-yaml</exec_depend> only the tests import '
+        '(first fake_pkg/test/unit/test_thing.py): make it a <test_depend>',
+        'fake_pkg/package.xml: <test_depend>python3-torch</test_depend> is imported by no code '
+        'of fake_pkg: remove it (or say why in NOT_IMPORTED)',
+    ]
+    # a reason in NOT_IMPORTED silences exactly that key of that package
+    assert unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {
+        'fake_pkg: python3-serial': 'opened by URL', 'other_pkg: python3-torch': 'elsewhere'},
+    ) == unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {})[1:]
