@@ -572,8 +572,9 @@ def _diagnosis(failed: list[tuple[ExpertTrial, list[ExpertTrial]]], env: Any) ->
             bends.append(t.collision_bend_mm)
     if not bends:
         return ""
+    lo, hi = f"{min(bends):.0f}", f"{max(bends):.0f}"
     return (f": every miss is a collision where the centreline bends with a "
-            f"{min(bends):.0f}-{max(bends):.0f} mm radius, against the catheter's smallest bend "
+            f"{lo if lo == hi else f'{lo}-{hi}'} mm radius, against the catheter's smallest bend "
             f"radius of {r_bend:.1f} mm (L / theta_max), and the lumen there is too narrow for "
             "the catheter to cut that corner without touching the wall")
 

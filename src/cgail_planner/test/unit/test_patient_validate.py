@@ -120,5 +120,7 @@ def test_a_collision_is_placed_on_the_centreline_and_a_tight_bend_is_diagnosed()
     assert _diagnosis(tight, env).startswith(
         ': every miss is a collision where the centreline bends with a 11-14 mm radius, '
         "against the catheter's smallest bend radius of 31.8 mm")
+    assert _diagnosis([(trial('collision', 10.2), [trial('collision', 9.8)])], env).startswith(
+        ': every miss is a collision where the centreline bends with a 10 mm radius, ')
     assert _diagnosis([(trial('timeout', math.inf), [trial('timeout', math.inf)])], env) == ''
     assert _diagnosis([(trial('collision', 40.0), [trial('collision', 40.0)])], env) == ''
