@@ -181,12 +181,8 @@ class Anatomy:
         Raises:
             StudyError: ``spec`` is neither a built-in name nor a usable anatomy path.
         """
-        from cgail_planner.sim.anatomy import (
-            anatomy_label,
-            AnatomyError,
-            check_anatomy_spec,
-            is_builtin,
-        )
+        from cgail_planner.sim.anatomy import AnatomyError
+        from cgail_planner.sim.anatomy_spec import anatomy_label, check_anatomy_spec, is_builtin
 
         try:
             check_anatomy_spec(spec)

@@ -429,7 +429,7 @@ def test_sim_rig_in_process_runs_phantom_planner_and_gui_in_a_prepared_anatomy(
     """``anatomy:=DIR policy_path:=...`` reaches the nodes: each resolves the same anatomy and
     the planner accepts a policy contracted for it."""
     from cgail_planner.learning.export import default_contract, write_contract
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
     models = SIM_RIG.parents[2] / 'cgail_planner' / 'learning' / 'models'
     policy = write_contract(models / 'cgail_default_static.onnx',

@@ -181,7 +181,7 @@ def ct_frame_from_record(record: Mapping[str, Any], source: str = "prepare.yaml"
 def prepare_record_path(spec: str | os.PathLike[str]) -> Path | None:
     """The ``prepare.yaml`` that describes an anatomy argument, or None (a name, or a mesh
     that ``prepare_anatomy`` did not write)."""
-    from cgail_planner.sim.anatomy import is_named, PREPARED_MESH
+    from cgail_planner.sim.anatomy_spec import is_named, PREPARED_MESH
 
     if isinstance(spec, str) and is_named(spec):
         return None
@@ -199,7 +199,7 @@ def ct_frame_of(spec: str | os.PathLike[str], content_hash: str | None = None) -
     """
     import yaml
 
-    from cgail_planner.sim.anatomy import is_named
+    from cgail_planner.sim.anatomy_spec import is_named
 
     path = prepare_record_path(spec)
     if path is None:

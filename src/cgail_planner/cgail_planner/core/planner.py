@@ -336,7 +336,7 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
             overridden anatomy disagrees, and always for a population policy
             (``contract.anatomies == 'population'``), which runs in any anatomy.
         anatomy_hash: the content hash of a path anatomy, ``""`` for a built-in one
-            (:func:`cgail_planner.sim.anatomy.anatomy_identity`). What identifies the anatomy
+            (:func:`cgail_planner.sim.anatomy_spec.anatomy_identity`). What identifies the anatomy
             is compared: the hashes when either side has one (a path anatomy: its label may
             differ), else the built-in names.
 

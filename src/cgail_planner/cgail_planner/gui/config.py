@@ -26,7 +26,8 @@ class GuiConfig:
     ``marker_rate_hz`` bounds it too."""
     anatomy: str = 'default'
     """Anatomy shown: a built-in name, a prepared anatomy directory or a mesh file with its
-    ``<stem>.yaml`` landmarks (:func:`cgail_planner.sim.anatomy.resolve_anatomy`); '' = none."""
+    ``<stem>.yaml`` landmarks (:func:`cgail_planner.sim.anatomy_spec.resolve_anatomy`);
+    '' = none."""
     dynamic: bool = False
     """Dynamic mode: the wall drawn and raycast is the phantom's deforming one, taken from its
     ``lumen`` marker on ``phantom/markers`` (the anatomy's rest shape until that arrives)."""
@@ -70,7 +71,7 @@ class GuiConfig:
         if not (math.isfinite(self.ray_cone_rad) and 0.0 <= self.ray_cone_rad <= math.pi / 2):
             raise ValueError(f'ray_cone_rad must be in [0, pi/2], found {self.ray_cone_rad}')
         if self.anatomy:
-            from cgail_planner.sim.anatomy import check_anatomy_spec
+            from cgail_planner.sim.anatomy_spec import check_anatomy_spec
 
             check_anatomy_spec(self.anatomy)  # (an AnatomyError is a ValueError)
 

@@ -236,7 +236,8 @@ def write_demo_bag(path: Path, episodes: list[DemoEpisode], *, anatomy: str, mod
     if env_options != 'ours':
         info['env_options'] = env_options
     if population:
-        from cgail_planner.sim.anatomy import ANATOMY_NAMES, is_named
+        from cgail_planner.sim.anatomy import ANATOMY_NAMES
+        from cgail_planner.sim.anatomy_spec import is_named
 
         missing = [e for e, ep in enumerate(episodes) if not is_named(ep.anatomy or '')]
         if missing:
@@ -514,7 +515,7 @@ def replay_demo_bag(path: Path, only_successful: bool = True, *,
         DemoError: unreadable bag, no successful episode, a replay beyond ``tolerance_m``, or
             a bag recorded in a path anatomy that is no longer there (pass ``anatomy``).
     """
-    from cgail_planner.sim.anatomy import is_named
+    from cgail_planner.sim.anatomy_spec import is_named
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -577,9 +578,10 @@ def _replay_population(path: Path, meta: dict[str, Any], episodes: list[DemoEpis
     """:func:`replay_demo_bag` of a population bag: each episode re-simulated in its own
     population anatomy (``DemoEpisode.anatomy``, rebuilt with
     :func:`~cgail_planner.sim.population.sample_anatomy`; a built-in name, ``make_demos
-    --include``, with :func:`~cgail_planner.sim.anatomy.resolve_anatomy`), the drift checked as
-    for any bag."""
-    from cgail_planner.sim.anatomy import ANATOMY_NAMES, is_named, resolve_anatomy
+    --include``, with :func:`~cgail_planner.sim.anatomy_spec.resolve_anatomy`), the drift
+    checked as for any bag."""
+    from cgail_planner.sim.anatomy import ANATOMY_NAMES
+    from cgail_planner.sim.anatomy_spec import is_named, resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 

@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.population:
         return _population_main(args)
-    from cgail_planner.sim.anatomy import anatomy_label, is_named
+    from cgail_planner.sim.anatomy_spec import anatomy_label, is_named
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -195,7 +195,7 @@ def _from_bags_main(args: argparse.Namespace) -> int:
     from cgail_planner.bags.reader import find_trials
     from cgail_planner.learning.demo_bags import replay_demo_bag
     from cgail_planner.learning.teleop_demos import ConversionConfig, convert_bags
-    from cgail_planner.sim.anatomy import anatomy_label, is_named
+    from cgail_planner.sim.anatomy_spec import anatomy_label, is_named
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -275,7 +275,8 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
         ValueError: a seed outside the training seeds (demonstrations never touch a held-out
             anatomy), or an ``include`` name that is no built-in anatomy.
     """
-    from cgail_planner.sim.anatomy import ANATOMY_NAMES, resolve_anatomy
+    from cgail_planner.sim.anatomy import ANATOMY_NAMES
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.population import check_training_seeds, population_name

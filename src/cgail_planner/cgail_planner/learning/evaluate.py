@@ -328,7 +328,7 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
                 break
         fault = bool(info.get('simulation_fault', False))
         if fault:
-            from cgail_planner.sim.anatomy import anatomy_label
+            from cgail_planner.sim.anatomy_spec import anatomy_label
 
             _LOG.warning('simulation fault in %s, trial %d (start %d, target %d, seed %d) at '
                          'step %d: %s', anatomy_label(env.unwrapped.config.anatomy), k,
@@ -627,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
                         '--trials per anatomy, the results pooled, with a per-anatomy table')
     p.add_argument('--out', type=Path, default=Path('reports/insilico'))
     args = p.parse_args(argv)
-    from cgail_planner.sim.anatomy import anatomy_identity, check_anatomy_spec
+    from cgail_planner.sim.anatomy_spec import anatomy_identity, check_anatomy_spec
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.ftl_model import describe_anatomy

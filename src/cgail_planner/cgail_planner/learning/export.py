@@ -22,9 +22,9 @@ from typing import Any
 import onnx
 import torch
 
+from cgail_planner.learning.checkpoint import actor_from_checkpoint, load_checkpoint
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.networks import Actor, DeterministicPolicy
-from cgail_planner.learning.trainer import actor_from_checkpoint, load_checkpoint
 from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
 OPSET = 17
@@ -146,8 +146,8 @@ def default_contract(anatomy: Any, mode: str,
     """The contract of the simulator's default configuration in ``anatomy`` (a built-in name,
     a prepared anatomy directory, a mesh file or an ``Anatomy``) and ``mode``; a path anatomy
     is recorded by its label and content hash
-    (:func:`cgail_planner.sim.anatomy.anatomy_identity`)."""
-    from cgail_planner.sim.anatomy import anatomy_identity
+    (:func:`cgail_planner.sim.anatomy_spec.anatomy_identity`)."""
+    from cgail_planner.sim.anatomy_spec import anatomy_identity
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import observation_spec
 
@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
             raise LearningError('--anatomy: expected with --add-contract (a checkpoint carries '
                                 'its contract), found it alone')
         if args.add_contract:
-            from cgail_planner.sim.anatomy import check_anatomy_spec, is_builtin
+            from cgail_planner.sim.anatomy_spec import check_anatomy_spec, is_builtin
 
             if args.anatomy is not None:
                 check_anatomy_spec(args.anatomy)  # (before the model is read)

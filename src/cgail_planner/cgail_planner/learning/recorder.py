@@ -374,7 +374,7 @@ class DemoRecorder:
         Raises:
             DemoError: the bag cannot be written.
         """
-        from cgail_planner.sim.anatomy import anatomy_label, is_named
+        from cgail_planner.sim.anatomy_spec import anatomy_label, is_named
 
         env = self.env.unwrapped
         partial = self.out.with_name(self.out.name + '.partial')

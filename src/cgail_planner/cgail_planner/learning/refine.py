@@ -134,10 +134,11 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         LearningError: a checkpoint that is not a static population run's (without
             ``anatomy``), or unusable demonstrations (one line each).
     """
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.config import config_from_dict, load_config
     from cgail_planner.learning.dagger import expert_labels
     from cgail_planner.learning.train import load_training_demos, make_envs
-    from cgail_planner.learning.trainer import evaluate_policy, load_checkpoint, Trainer
+    from cgail_planner.learning.trainer import evaluate_policy, Trainer
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -158,7 +159,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
                                 'labels are drawn in the rigid aorta), found mode '
                                 f'{meta.get("mode")!r}')
     else:
-        from cgail_planner.sim.anatomy import resolve_anatomy
+        from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
         resolve_anatomy(anatomy)  # (a bad anatomy fails before the demonstrations load)
         if checkpoint.suffix != '.onnx':
@@ -186,7 +187,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         def restore() -> None:  # (networks, normaliser, step, curriculum, rng)
             trainer.resume(ckpt, checkpoint)
     else:
-        from cgail_planner.sim.anatomy import is_builtin
+        from cgail_planner.sim.anatomy_spec import is_builtin
 
         demo_obs, demo_act, demo_episodes, _ = load_training_demos(
             cfg, demos, None if is_builtin(anatomy) else anatomy, prog='refine')

@@ -53,7 +53,7 @@ def sim_metadata(env_cfg: Any, anatomies: str = 'one') -> dict[str, Any]:
     training envs. :func:`cgail_planner.learning.export.export_checkpoint` adds the curriculum
     lesson the exported checkpoint was trained at.
     """
-    from cgail_planner.sim.anatomy import anatomy_identity
+    from cgail_planner.sim.anatomy_spec import anatomy_identity
     from cgail_planner.sim.env import observation_spec
     from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 
@@ -92,7 +92,7 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
         return (CatheterNavVecEnv(env_cfg, num_envs), CatheterNavEnv(env_cfg),
                 sim_metadata(env_cfg))
     from cgail_planner.learning.envs import AnatomyCycleEnv, PopulationVecEnv
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
     from cgail_planner.sim.population import sample_anatomy
 
     train_seeds, eval_seeds = population.seeds()
@@ -215,8 +215,8 @@ def latest_checkpoint(run: Path) -> Path:
     Raises:
         PolicyLoadError: no checkpoint in ``run``.
     """
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.errors import PolicyLoadError
-    from cgail_planner.learning.trainer import load_checkpoint
 
     found = [(int(p.stem.split('_')[1]), p) for p in (run / 'checkpoints').glob('step_*.pt')
              if p.stem.split('_')[1].isdigit()]
@@ -265,12 +265,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
     try:
-        from cgail_planner.sim.anatomy import is_builtin, resolve_anatomy
+        from cgail_planner.sim.anatomy_spec import is_builtin, resolve_anatomy
 
         resolve_anatomy(args.anatomy)  # a bad anatomy fails before the demonstrations load
         ckpt: dict[str, Any] | None = None
         if args.resume is not None:
-            from cgail_planner.learning.trainer import load_checkpoint
+            from cgail_planner.learning.checkpoint import load_checkpoint
 
             if args.init_from is not None:
                 raise ValueError('--resume continues a run; --init-from starts a new one from '

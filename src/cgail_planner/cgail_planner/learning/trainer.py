@@ -14,7 +14,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 import math
 from pathlib import Path
-import pickle
 import random
 from typing import Any
 
@@ -23,6 +22,7 @@ import torch
 
 from cgail_planner.learning.bc import bc_passes, BehavioralCloning
 from cgail_planner.learning.buffer import RolloutBuffer
+from cgail_planner.learning.checkpoint import load_checkpoint
 from cgail_planner.learning.config import config_to_dict, TrainConfig
 from cgail_planner.learning.curiosity import Curiosity
 from cgail_planner.learning.curriculum import Curriculum
@@ -499,33 +499,6 @@ class Trainer:
         except RuntimeError as exc:
             raise PolicyLoadError(f'{path}: network shapes differ from this preset: {exc}') \
                 from None
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """Read a checkpoint written by :meth:`Trainer.save`, with clear errors."""
-    if not Path(path).is_file():
-        raise PolicyLoadError(f'checkpoint not found: expected a file at {path}')
-    try:
-        ckpt: dict[str, Any] = torch.load(path, map_location='cpu', weights_only=False)
-    except (RuntimeError, EOFError, OSError, ValueError, pickle.UnpicklingError) as exc:
-        raise PolicyLoadError(f'{path}: not a readable checkpoint ({exc})') from None
-    for key in ('actor', 'obs_dim', 'act_dim', 'config'):
-        if key not in ckpt:
-            raise PolicyLoadError(f'{path}: expected key {key!r} in the checkpoint, found '
-                                  f'{sorted(ckpt)}')
-    return ckpt
-
-
-def actor_from_checkpoint(ckpt: dict[str, Any]) -> Actor:
-    """Rebuild the actor (with its normaliser) of a checkpoint, in eval mode."""
-    from cgail_planner.learning.config import config_from_dict
-
-    cfg = config_from_dict(ckpt['config'])
-    norm = RunningNormalizer(ckpt['obs_dim']) if ckpt.get('normalizer') is not None else None
-    actor = Actor(ckpt['obs_dim'], ckpt['act_dim'], cfg.network, norm)
-    actor.load_state_dict(ckpt['actor'])
-    actor.eval()
-    return actor
 
 
 def evaluate_policy(policy: Callable[[np.ndarray], np.ndarray], env: Any, episodes: int,

@@ -287,7 +287,7 @@ class GuiNode(Node):
     def _resolve_anatomy(self) -> Any:
         """The configured anatomy (None: none). A built-in one is built (or read from the disk
         cache) in the loading thread; a path is read now, so a bad mesh fails construction."""
-        from cgail_planner.sim.anatomy import is_builtin, resolve_anatomy
+        from cgail_planner.sim.anatomy_spec import is_builtin, resolve_anatomy
 
         spec = self.config.anatomy
         if not spec or is_builtin(spec):
@@ -297,7 +297,7 @@ class GuiNode(Node):
     def _load_anatomy(self) -> None:
         if self._anatomy_source is None:
             return
-        from cgail_planner.sim.anatomy import resolve_anatomy
+        from cgail_planner.sim.anatomy_spec import resolve_anatomy
         from cgail_planner.sim.wall import StaticWall
         try:
             anatomy = resolve_anatomy(self._anatomy_source)

@@ -60,7 +60,7 @@ class IgtlBridge(Node):
                             'file')
         self.frame_id = conv.declare(self, 'frame_id', 'phantom', 'frame of the inputs')
 
-        from cgail_planner.sim.anatomy import resolve_anatomy
+        from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
         try:
             anatomy = resolve_anatomy(spec)

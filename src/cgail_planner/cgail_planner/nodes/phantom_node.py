@@ -161,7 +161,7 @@ class PhantomNode(Node):
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
                                    lo=0.05, hi=60.0)
 
-        from cgail_planner.sim.anatomy import anatomy_label
+        from cgail_planner.sim.anatomy_spec import anatomy_label
         from cgail_planner.sim.scenarios import load_world
         from cgail_planner.sim.wall import DeformableWall, StaticWall
 

@@ -151,7 +151,7 @@ class PlannerNode(Node):
                                    'planner/markers (sent when they changed), Hz',
                                    lo=0.1, hi=100.0)
 
-        from cgail_planner.sim.anatomy import anatomy_identity
+        from cgail_planner.sim.anatomy_spec import anatomy_identity
         from cgail_planner.sim.scenarios import load_world
         from cgail_planner.sim.wall import DeformableWall, StaticWall
 

@@ -263,7 +263,7 @@ def _demo_set(anatomy: str, mode: str, scenario_seed: int, seed: int, out: Path
     number of episodes (a worker of :func:`_record_demos`)."""
     from cgail_planner.learning.demo_bags import write_demo_bag
     from cgail_planner.learning.demos_cli import Pairs, record_episodes
-    from cgail_planner.sim.anatomy import anatomy_label
+    from cgail_planner.sim.anatomy_spec import anatomy_label
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
 
@@ -581,7 +581,7 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
     )
     from cgail_planner.learning.export import export_checkpoint
     from cgail_planner.learning.onnx_policy import OnnxPolicy
-    from cgail_planner.sim.anatomy import check_anatomy_spec
+    from cgail_planner.sim.anatomy_spec import check_anatomy_spec
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
     from cgail_planner.sim.scenarios import load_world
@@ -727,7 +727,7 @@ def _write_record(result: PlanResult, anatomy: str, base: str, options: PlanOpti
                   demo_stats: dict[str, float], policies: dict[str, Path]) -> None:
     import yaml
 
-    from cgail_planner.sim.anatomy import anatomy_identity
+    from cgail_planner.sim.anatomy_spec import anatomy_identity
 
     label, content_hash = anatomy_identity(anatomy)
     record = {
@@ -789,7 +789,7 @@ def _plot_history(result: PlanResult, options: PlanOptions, path: Path) -> None:
 
 def _write_report(result: PlanResult, anatomy: str, base: str, options: PlanOptions,
                   demo_stats: dict[str, float], policies: dict[str, Path]) -> None:
-    from cgail_planner.sim.anatomy import anatomy_identity
+    from cgail_planner.sim.anatomy_spec import anatomy_identity
 
     label, content_hash = anatomy_identity(anatomy)
     ts = result.timings_s

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import math
 from typing import Any
 
-from cgail_planner.sim.anatomy import AnatomySpec, check_anatomy_spec
+from cgail_planner.sim.anatomy_spec import AnatomySpec, check_anatomy_spec
 from cgail_planner.sim.ftl_model import CatheterConfig, OBS_KINDS, ObservationConfig
 from cgail_planner.sim.heartbeat import HeartbeatConfig, PAPER_CODE_HEARTBEAT
 from cgail_planner.sim.reward import PAPER_CODE_REWARD, RewardConfig

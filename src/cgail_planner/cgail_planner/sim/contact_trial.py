@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cgail_planner.sim.anatomy import AnatomySpec
+from cgail_planner.sim.anatomy_spec import AnatomySpec
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import NavEngine
 from cgail_planner.sim.ftl_model import steer_towards

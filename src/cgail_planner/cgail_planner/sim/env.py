@@ -18,7 +18,7 @@ from gymnasium import spaces
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.anatomy import anatomy_label, AnatomySpec
+from cgail_planner.sim.anatomy_spec import anatomy_label, AnatomySpec
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.exits import crossed_discs
 from cgail_planner.sim.ftl_model import (
@@ -79,7 +79,7 @@ def obs_layout_dict(config: EnvConfig | None = None) -> dict[str, Any]:
         config: when given, the whole :class:`~cgail_planner.sim.ftl_model.ObservationSpec` of
             that configuration (``origin``, ``position_scale``, ``d_max``, ``ray_length``: the
             numbers needed to rebuild observations outside the simulator) and its ``anatomy``
-            (:func:`~cgail_planner.sim.anatomy.anatomy_label`).
+            (:func:`~cgail_planner.sim.anatomy_spec.anatomy_label`).
     """
     if config is not None:
         return {**observation_spec(config).to_dict(), "anatomy": anatomy_label(config.anatomy)}

@@ -1101,7 +1101,7 @@ CONTRACT_VERSION = 1
 
 
 def describe_anatomy(label: str, content_hash: str) -> str:
-    """An anatomy identity (:func:`cgail_planner.sim.anatomy.anatomy_identity`) in words."""
+    """An anatomy identity (:func:`cgail_planner.sim.anatomy_spec.anatomy_identity`) in words."""
     if not content_hash:
         return f"built-in {label!r}"
     return f"{label!r} (content hash {content_hash})"
@@ -1130,7 +1130,7 @@ class PolicyContract:
     """Notes on the training run (preset, steps, curriculum); informational."""
     anatomy_hash: str = ""
     """Content hash of a path anatomy (:attr:`cgail_planner.sim.anatomy.Anatomy.content_hash`,
-    what identifies it; :func:`cgail_planner.sim.anatomy.anatomy_identity`); ``""`` for a
+    what identifies it; :func:`cgail_planner.sim.anatomy_spec.anatomy_identity`); ``""`` for a
     built-in anatomy, which its name identifies."""
     env_options: str = "ours"
     """The env option set the policy was trained in (:data:`cgail_planner.sim.config.

@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError, resolve_anatomy
+from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
 
 __all__ = ["VIEWS", "heartbeat_phases", "main", "render_anatomy", "render_population_grid"]

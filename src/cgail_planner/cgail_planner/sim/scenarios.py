@@ -31,9 +31,9 @@
 
 The set is a pure function of the anatomy, the centerlines and the seed; :func:`load_world`
 takes an anatomy as a built-in name, a prepared directory, a mesh file or an
-:class:`~cgail_planner.sim.anatomy.Anatomy` (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`)
-and caches the world per ``(anatomy content hash, name, n_waypoints, seed)`` so many
-environments share one copy.
+:class:`~cgail_planner.sim.anatomy.Anatomy`
+(:func:`~cgail_planner.sim.anatomy_spec.resolve_anatomy`) and caches the world per
+``(anatomy content hash, name, n_waypoints, seed)`` so many environments share one copy.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from cgail_planner.sim.anatomy import Anatomy, AnatomyError, AnatomySpec, resolve_anatomy
+from cgail_planner.sim.anatomy import Anatomy, AnatomyError
+from cgail_planner.sim.anatomy_spec import AnatomySpec, resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
 from cgail_planner.sim.ftl_model import CatheterConfig, frame_from_heading
 from cgail_planner.sim.ftl_model import introducer_tail as ftl_introducer_tail
@@ -501,7 +502,7 @@ def load_world(anatomy: AnatomySpec, n_waypoints: int = 100, seed: int = 0) -> W
     Args:
         anatomy: a built-in name, a prepared anatomy directory, a mesh file with its
             ``<stem>.yaml`` landmarks, or an :class:`~cgail_planner.sim.anatomy.Anatomy`
-            (:func:`~cgail_planner.sim.anatomy.resolve_anatomy`).
+            (:func:`~cgail_planner.sim.anatomy_spec.resolve_anatomy`).
         n_waypoints: waypoints per centerline.
         seed: seed of the target sampling.
 

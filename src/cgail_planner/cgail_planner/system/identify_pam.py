@@ -109,10 +109,9 @@ def run_bench(bag: Path, *, plant: str = 'true', plant_seed: int = 0, seed: int 
 
     from cgail_planner.bags.record import BagRecorder, RecorderConfig
     from cgail_planner.nodes import conversions as conv
-    from cgail_planner.system.launch_spec import load_launch_file
+    from cgail_planner.system.launch_spec import default_launch_file, load_launch_file
     from cgail_planner.system.launcher import build_node
     from cgail_planner.system.lockstep import LockstepExecutor
-    from cgail_planner.system.session import default_launch_file
     from pam_controller.core import identification as idf
 
     exc_cfg = excitation if excitation is not None else idf.ExcitationConfig()

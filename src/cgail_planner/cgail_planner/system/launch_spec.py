@@ -447,6 +447,19 @@ def load_launch_file(path: str | Path, arguments: dict[str, str] | None = None) 
     return parse_launch(data, p.parent, arguments, name=name)
 
 
+def default_launch_file() -> Path:
+    """``config/launch/sim_rig.yaml`` of ``cgail_planner`` (source tree or install share): the
+    simulated rig that ``invitro_session`` and ``identify_pam --sim`` run."""
+    here = Path(__file__).resolve().parents[2] / 'config' / 'launch' / 'sim_rig.yaml'
+    if here.is_file():
+        return here
+    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
+        cand = Path(prefix) / 'share' / 'cgail_planner' / 'config' / 'launch' / 'sim_rig.yaml'
+        if prefix and cand.is_file():
+            return cand
+    return here
+
+
 def ros_params_yaml(node: NodeSpec) -> dict[str, Any]:
     """The node's name/value parameters as a ROS params file for ``--params-file`` (the file is
     the node's own, so the ``/**`` wildcard, as ``launch_ros`` writes it)."""

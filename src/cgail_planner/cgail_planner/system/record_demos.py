@@ -120,7 +120,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         'scripted expert' if args.driver == 'scripted' else getpass.getuser())
     from cgail_planner.learning.errors import LearningError
     from cgail_planner.learning.recorder import RecorderConfig
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
     try:
         config = RecorderConfig(episodes=args.episodes, order=args.order, seed=args.seed,

@@ -77,6 +77,8 @@ import tempfile
 import time
 from typing import Any
 
+from cgail_planner.system.launch_spec import default_launch_file
+
 #: Recorded in every trial's bag: what the metrics read, and what RViz2 / Foxglove show (TF, the
 #: tip with its covariance, the markers: the wall as it deforms, the catheter body, the plan).
 TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
@@ -101,18 +103,6 @@ SETTLE_S = 1.0
 TAIL_S = 0.2
 #: ros-args of every rig context: node logs go to the log file only.
 ROS_ARGS = ['--ros-args', '--disable-stdout-logs', '--disable-rosout-logs']
-
-
-def default_launch_file() -> Path:
-    """``config/launch/sim_rig.yaml`` of this package (source tree or install share)."""
-    here = Path(__file__).resolve().parents[2] / 'config' / 'launch' / 'sim_rig.yaml'
-    if here.is_file():
-        return here
-    for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
-        cand = Path(prefix) / 'share' / 'cgail_planner' / 'config' / 'launch' / 'sim_rig.yaml'
-        if prefix and cand.is_file():
-            return cand
-    return here
 
 
 def default_policy(anatomy: str = 'default', mode: str = 'static') -> Path:
@@ -628,7 +618,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'):
         return fail('ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); run through '
                     'scripts/ws')
-    from cgail_planner.sim.anatomy import anatomy_label, AnatomyError, is_builtin
+    from cgail_planner.sim.anatomy import AnatomyError
+    from cgail_planner.sim.anatomy_spec import anatomy_label, is_builtin
     from cgail_planner.sim.scenarios import load_world
 
     builtin = is_builtin(args.anatomy)

@@ -22,7 +22,8 @@ from cgail_planner.nodes import gui_node, phantom_node, planner_node
 from cgail_planner.nodes.gui_node import GuiNode
 from cgail_planner.nodes.phantom_node import PhantomNode
 from cgail_planner.nodes.planner_node import PlannerNode
-from cgail_planner.sim.anatomy import AnatomyError, resolve_anatomy
+from cgail_planner.sim.anatomy import AnatomyError
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
 TEST = Path(__file__).resolve().parents[1]
 POLICY = TEST.parent / 'cgail_planner' / 'learning' / 'models' / 'cgail_default_static.onnx'

@@ -29,7 +29,7 @@ from cgail_planner.core.markers import LumenMesh
 from cgail_planner.hw import igtl_server as srv
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.igtl_bridge import IgtlBridge
-from cgail_planner.sim.anatomy import resolve_anatomy
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
 TIMEOUT = 30.0
 RAS_FROM_LPS = np.diag([-1.0, -1.0, 1.0])

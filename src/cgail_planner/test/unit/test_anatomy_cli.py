@@ -15,7 +15,8 @@ from cgail_planner.learning import demos_cli, evaluate, export, train
 from cgail_planner.learning.demos import load_demos
 from cgail_planner.learning.errors import DemoError
 from cgail_planner.sim import render
-from cgail_planner.sim.anatomy import build_anatomy, resolve_anatomy
+from cgail_planner.sim.anatomy import build_anatomy
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.ftl_model import CONTRACT_KEY, PolicyContract
 from cgail_planner.system import session

@@ -18,14 +18,16 @@ from curved_aorta import curved_anatomy
 import cgail_planner.sim  # noqa: F401  (registers the gymnasium ids)
 from cgail_planner.sim.anatomy import (
     Anatomy,
-    anatomy_label,
     AnatomyError,
     build_anatomy,
+    MeshLoadError,
+    save_anatomy_mesh,
+)
+from cgail_planner.sim.anatomy_spec import (
+    anatomy_label,
     check_anatomy_spec,
     is_builtin,
-    MeshLoadError,
     resolve_anatomy,
-    save_anatomy_mesh,
 )
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import CatheterNavEnv
@@ -47,7 +49,7 @@ def test_a_name_is_the_cached_built_in_anatomy() -> None:
 
 
 def test_a_population_name_is_that_sample_everywhere() -> None:
-    from cgail_planner.sim.anatomy import anatomy_identity, anatomy_label, check_anatomy_spec
+    from cgail_planner.sim.anatomy_spec import anatomy_identity, anatomy_label, check_anatomy_spec
     from cgail_planner.sim.population import sample_anatomy
 
     a = resolve_anatomy('population-10003')

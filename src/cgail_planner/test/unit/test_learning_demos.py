@@ -409,7 +409,7 @@ def test_train_resume_continues_a_run_from_its_latest_checkpoint(tmp_path: Path)
     steps = sorted({int(r[0]) for r in rows})
     assert steps[0] == 1024 and steps[-1] == 3072
     assert len(rows) == len({(r[0], r[1]) for r in rows})  # no step logged twice
-    from cgail_planner.learning.trainer import load_checkpoint
+    from cgail_planner.learning.checkpoint import load_checkpoint
 
     final = load_checkpoint(run / 'final.pt')
     assert final['step'] == 3072 and final['seed'] == 5 and final['run']['next_ckpt'] == 4096
@@ -427,9 +427,9 @@ def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys)
     import torch
     import yaml
 
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.config import config_from_dict
     from cgail_planner.learning.train import main
-    from cgail_planner.learning.trainer import load_checkpoint
 
     rng = np.random.default_rng(0)
     obs = rng.normal(size=(512, 41)).astype(np.float32)

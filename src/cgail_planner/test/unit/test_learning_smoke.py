@@ -184,7 +184,7 @@ def test_a_trainer_at_the_imitation_librarys_settings_runs_and_checkpoints(tmp_p
     value clipping, no observation normaliser) and ``imitation``'s discriminator (its own input
     normaliser on (s, a), 2 steps of 100 a buffer): one iteration trains every part, and the
     discriminator's statistics survive a checkpoint."""
-    from cgail_planner.learning.trainer import load_checkpoint
+    from cgail_planner.learning.checkpoint import load_checkpoint
     trainer = _trainer(0, **IMITATION_LIKE)
     assert trainer.normalizer is None and list(trainer.signals) == ['gail']
     scalars = trainer.train_iteration()
@@ -215,8 +215,8 @@ def test_a_resumed_trainer_continues_where_its_checkpoint_stood(tmp_path: Path):
     """``Trainer.resume``: step, update count, networks, optimisers, random streams, curriculum
     and episode statistics are those of the checkpoint; a checkpoint of another configuration
     or without the resume state is refused in one line."""
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.errors import PolicyLoadError
-    from cgail_planner.learning.trainer import load_checkpoint
 
     a = _trainer(3, max_steps=8192)
     while a.step < 2048:

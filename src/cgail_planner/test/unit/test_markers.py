@@ -8,7 +8,7 @@ import pytest
 
 from cgail_planner.core import markers as mk
 from cgail_planner.core.guidance import suggested_bend
-from cgail_planner.sim.anatomy import resolve_anatomy
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 from cgail_planner.sim.ftl_model import CatheterBatch, CatheterConfig
 
 EYE = np.eye(3)

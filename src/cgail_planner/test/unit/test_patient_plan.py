@@ -80,7 +80,7 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
 
     from cgail_planner.learning.demo_bags import read_demo_bag
     from cgail_planner.learning.onnx_policy import OnnxPolicy
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
     out = tmp_path / 'run'
     status = main([str(prepared), '--out', str(out), '--budget-min', '1', '--trials', '2',

@@ -236,7 +236,7 @@ def test_train_refuses_an_anatomy_with_a_population_preset(capsys) -> None:
 
 def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:
     from cgail_planner.learning.train import make_envs
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
     import cgail_planner.sim.population as population
 
     built: list[int] = []
@@ -253,7 +253,7 @@ def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:
 
 def test_the_selection_can_run_the_included_built_in_anatomies_too(monkeypatch) -> None:
     from cgail_planner.learning.train import make_envs
-    from cgail_planner.sim.anatomy import resolve_anatomy
+    from cgail_planner.sim.anatomy_spec import resolve_anatomy
     import cgail_planner.sim.population as population
 
     monkeypatch.setattr(population, "sample_anatomy", lambda s: resolve_anatomy("default"))

@@ -16,7 +16,7 @@ from cgail_planner.learning.config import (
 )
 from cgail_planner.learning.dagger import expert_labels
 from cgail_planner.learning.refine import label_anatomies, main, refine, RefineOptions
-from cgail_planner.sim.anatomy import resolve_anatomy
+from cgail_planner.sim.anatomy_spec import resolve_anatomy
 from cgail_planner.sim.config import EnvConfig
 from cgail_planner.sim.env import CatheterNavEnv
 
@@ -102,9 +102,9 @@ def test_refine_labels_the_policys_states_clones_them_and_keeps_the_contract(
         tmp_path, monkeypatch) -> None:
     import torch
 
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.export import export_checkpoint
     from cgail_planner.learning.onnx_policy import OnnxPolicy
-    from cgail_planner.learning.trainer import load_checkpoint
 
     ckpt = _population_checkpoint(tmp_path, monkeypatch)
     out = tmp_path / 'refined'
@@ -176,10 +176,10 @@ def test_refine_in_one_anatomy_fine_tunes_an_exported_policy(tmp_path, monkeypat
     leaves refined.pt that policy."""
     import torch
 
+    from cgail_planner.learning.checkpoint import load_checkpoint
     from cgail_planner.learning.export import export_checkpoint
     from cgail_planner.learning.onnx_policy import OnnxPolicy
     import cgail_planner.learning.trainer as trainer_mod
-    from cgail_planner.learning.trainer import load_checkpoint
 
     onnx_path = export_checkpoint(_population_checkpoint(tmp_path, monkeypatch),
                                   tmp_path / 'gen.onnx')
