@@ -230,8 +230,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
+    from cgail_node_utils.entry_point import try_shutdown
     from cgail_planner.bags.rosutil import stop_on_signals
-    from cgail_planner.nodes import try_shutdown
 
     parser = build_parser()
     args, ros_args = parser.parse_known_args(argv)

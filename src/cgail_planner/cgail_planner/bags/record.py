@@ -203,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
-    from cgail_planner.nodes import try_shutdown
+    from cgail_node_utils.entry_point import try_shutdown
 
     parser = build_parser()
     args, ros_args = parser.parse_known_args(argv)
