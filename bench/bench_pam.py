@@ -69,7 +69,7 @@ def bench_latency(commands: int) -> None:
     node.trigger_configure()
     node.trigger_activate()
     peer = Node('pam_bench_peer')
-    pub = peer.create_publisher(JointState, 'catheter/bend_command',
+    pub = peer.create_publisher(JointState, '/pam_controller/bend_command',
                                 QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
     executor = SingleThreadedExecutor()
     executor.add_node(node)

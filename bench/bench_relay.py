@@ -71,7 +71,7 @@ def node_state_rate(seconds: float = 3.0) -> float:
             raise SystemExit('bench_relay: driver_node did not become active')
         probe = rclpy.create_node('bench_probe')
         got: list[float] = []
-        probe.create_subscription(JointState, 'catheter/insertion_state',
+        probe.create_subscription(JointState, '/sleeve_driver/insertion_state',
                                   lambda _m: got.append(time.monotonic()), conv.SENSOR_QOS)
         ex = SingleThreadedExecutor()
         ex.add_node(node)

@@ -2,7 +2,8 @@
 
 Runs the simulated Aurora on a pty in its own process (as a real device would be: it does not
 compete for this interpreter's GIL) and ``aurora_node`` in this process (its reader thread and
-the ndicapi child process as in production), with a subscriber on ``em_tracker/tip_pose``.
+the ndicapi child process as in production), with a subscriber on its ``~/tip_pose`` (the
+rig's ``em_tracker/tip_pose``).
 
 Latency = time the subscriber receives the message - time the device generated the frame
 (the simulated device's frame ``k`` exists from ``TSTART + k / 40 Hz``). The generation time
@@ -80,7 +81,7 @@ def run(mode: str, duration_s: float, isolate: bool) -> dict[str, float]:
         stamp_s = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         arrivals.append((time.monotonic(), msg.pose.position.x, time.time() - stamp_s))
 
-    listener.create_subscription(PoseStamped, 'em_tracker/tip_pose', on_pose,
+    listener.create_subscription(PoseStamped, '/aurora/tip_pose', on_pose,
                                  qos_profile_sensor_data)
     executor = SingleThreadedExecutor()
     executor.add_node(node)

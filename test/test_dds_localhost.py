@@ -47,6 +47,9 @@ def test_teleop_child_talks_over_localhost_dds(rclpy_context, tmp_path):
         'name': 'teleop', 'pkg': 'catheter_driver', 'exec': 'teleop_node',
         'param': [{'name': 'enable_button', 'value': 4}, {'name': 'axis_insertion', 'value': 1},
                   {'name': 'scale_insertion', 'value': 0.004}],
+        # as the rig's launch files: the node's own names onto the rig's (-r on its command line)
+        'remap': [{'from': '~/joy', 'to': 'joy'},
+                  {'from': '~/insertion_command', 'to': 'catheter/insertion_command'}],
     }}]}, tmp_path, name='dds')
     log = io.StringIO()
     launcher = ProcessLauncher(spec, out=log, shutdown_timeout=5.0)

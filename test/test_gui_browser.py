@@ -32,6 +32,7 @@ from cgail_planner.gui.demo import centerline_scene
 from cgail_planner.nodes.gui_node import GuiNode
 from cgail_planner.sim.anatomy import build_anatomy
 from cgail_planner.sim.centerline import compute_centerlines
+from cgail_planner.system.launch_spec import default_launch_file, load_launch_file
 
 pytestmark = pytest.mark.skipif(find_chromium() is None,
                                 reason='chromium not installed (apt-get install -y chromium)')
@@ -107,10 +108,15 @@ def free_port() -> int:
 @pytest.fixture
 def gui() -> Iterator[tuple[GuiNode, Scene]]:
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)  # SIGTERM ends the run
+    # the scene publishes on the rig's names: the gui takes the sim rig's remaps onto them
+    (spec,) = load_launch_file(default_launch_file()).select(['gui']).nodes
+    remaps = ['--ros-args',
+              *(w for rule in spec.remappings.items() for w in ('-r', ':='.join(rule)))]
     node = GuiNode(parameter_overrides=[Parameter('port', value=free_port()),
                                         Parameter('anatomy', value='default'),
                                         Parameter('stale_after_s', value=3.0),
-                                        Parameter('bags_dir', value=str(REPO / 'bags'))])
+                                        Parameter('bags_dir', value=str(REPO / 'bags'))],
+                   cli_args=remaps)
     pub = rclpy.create_node('gui_browser_scene')
     scene = Scene(pub)
     executor = SingleThreadedExecutor()

@@ -16,6 +16,7 @@ import yaml
 
 from cgail_node_utils.lifecycle import lifecycle_state
 from cgail_planner.system.launch_spec import (
+    default_launch_file,
     LaunchSpecError,
     load_launch_file,
     load_params_file,
@@ -24,8 +25,8 @@ from cgail_planner.system.launch_spec import (
 )
 from cgail_planner.system.launcher import build_node, main, node_command, ProcessLauncher
 
-SIM_RIG = Path(__file__).resolve().parents[1] / 'src' / 'cgail_planner' / 'config' / 'launch' \
-    / 'sim_rig.yaml'
+PACKAGE = Path(__file__).resolve().parents[1] / 'src' / 'cgail_planner'
+SIM_RIG = PACKAGE / 'launch' / 'sim_rig.launch.yaml'
 
 # A child that records the signal it got, then exits 0 on SIGINT (like an rclpy node).
 GOOD_CHILD = textwrap.dedent('''
@@ -89,6 +90,21 @@ def _wait_ready(out: io.StringIO, names, timeout=15.0):
      "cannot split 'cmd' into words"),
     ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'remap': [{'from': 'x'}]}}],
      r"remap\[0\]: expected exactly from and to, found \['from'\]"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                'remap': [{'from': '~/tip pose', 'to': 'x'}]}}],
+     r"^launch 't': node 'a'\.remap\[0\]: remap from '~/tip pose' is not a topic name; "
+     r"expected a relative, absolute \(/\.\.\.\) or private \(~/\.\.\.\) name"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                'remap': [{'from': '~/x', 'to': 'rig/2x'}]}}],
+     r"remap\[0\]: remap to 'rig/2x' is not a topic name"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                'remap': [{'from': '~/x', 'to': 'rig/x/'}]}}],
+     r"remap to 'rig/x/' is not a topic name"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e', 'remap': [{'from': '__node', 'to': 'b'}]}}],
+     r"remap from '__node': the node name and namespace are set with name and namespace"),
+    ([{'node': {'name': 'a', 'pkg': 'p', 'exec': 'e',
+                'remap': [{'from': '~/x', 'to': 'y'}, {'from': '~/x', 'to': 'z'}]}}],
+     r"remap\[1\]: '~/x' is remapped twice \(to 'y' and 'z'\); expected once"),
 ])
 def test_bad_specs_name_the_problem(tmp_path, actions, match):
     with pytest.raises(LaunchSpecError, match=match):
@@ -119,13 +135,13 @@ def test_ros_node_command_has_name_params_and_remaps(tmp_path, monkeypatch):
         'name': 'n1', 'pkg': 'pkg', 'exec': 'exe', 'namespace': 'rig', 'output': 'screen',
         'args': '--verbose "two words"', 'ros_args': '--log-level debug',
         'param': [{'from': '$(dirname)/a.yaml'}, {'name': 'rate_hz', 'value': 40.0}],
-        'remap': [{'from': 'joy', 'to': 'gamepad'}]}}])
+        'remap': [{'from': '~/joy', 'to': 'gamepad'}]}}])
     node = spec.nodes[0]
     assert node.plugin == 'pkg.nodes.exe:Exe'
     assert node.fully_qualified_name == '/rig/n1'
     cmd = node_command(node, tmp_path)
     assert cmd[:-1] == [str(exe), '--verbose', 'two words', '--ros-args', '-r', '__node:=n1',
-                        '-r', '__ns:=/rig', '-r', 'joy:=gamepad', '--log-level', 'debug',
+                        '-r', '__ns:=/rig', '-r', '~/joy:=gamepad', '--log-level', 'debug',
                         '--params-file', str(tmp_path / 'a.yaml'), '--params-file']
     assert yaml.safe_load(Path(cmd[-1]).read_text()) == {'/**': {'ros__parameters':
                                                                  {'rate_hz': 40.0}}}
@@ -234,6 +250,53 @@ def test_load_launch_file_reports_yaml_errors(tmp_path):
         load_launch_file(f)
     with pytest.raises(LaunchSpecError, match='does not exist'):
         load_launch_file(tmp_path / 'missing.yaml')
+
+
+def test_launch_files_are_in_the_packages_launch_folder_and_installed_there():
+    """ROS users look in share/<pkg>/launch/*.launch.yaml: the source tree has them there, the
+    install too, and an installed one finds its parameter files."""
+    assert default_launch_file() == SIM_RIG
+    names = ['rig.launch.yaml', 'sim_rig.launch.yaml']
+    assert sorted(p.name for p in (PACKAGE / 'launch').iterdir()) == names
+    shares = [Path(p) / 'share' / 'cgail_planner' for p in
+              os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)
+              if p and (Path(p) / 'share' / 'cgail_planner').is_dir()]
+    assert shares, 'cgail_planner is not installed (bash scripts/setup.sh)'
+    installed = shares[0] / 'launch'
+    assert sorted(p.name for p in installed.glob('*.launch.yaml')) == names
+    spec = load_launch_file(installed / 'sim_rig.launch.yaml')
+    assert spec.name == 'sim_rig'
+    assert all(Path(f).is_file() for n in spec.nodes for f in n.parameters_files)
+
+
+def test_an_old_layout_path_reads_the_moved_file_with_a_deprecation_warning(tmp_path, caplog):
+    pkg = tmp_path / 'pkg'
+    (pkg / 'launch').mkdir(parents=True)
+    moved = pkg / 'launch' / 'r.launch.yaml'
+    moved.write_text(yaml.safe_dump({'launch': [_exe('a', ['true'])]}))
+    old = pkg / 'config' / 'launch' / 'r.yaml'
+    with caplog.at_level('WARNING'):
+        spec = load_launch_file(old)
+    assert spec.name == 'r' and [n.name for n in spec.nodes] == ['a']
+    assert f'launch file {old} moved to {moved}; the old path is deprecated' in caplog.text
+    with pytest.raises(LaunchSpecError, match='does not exist'):
+        load_launch_file(pkg / 'config' / 'launch' / 'other.yaml')
+
+
+def test_in_process_nodes_take_the_launch_files_remaps(rclpy_context):
+    """build_node (rig_launch --in-process, the simulated session) applies a node's remaps:
+    teleop's own ~/joy and ~/..._command become the rig's joy and catheter/..."""
+    (spec,) = load_launch_file(SIM_RIG).select(['teleop']).nodes
+    bare = NodeSpec(name='teleop', package=spec.package, executable=spec.executable,
+                    plugin=spec.plugin)
+    for node_spec, prefix, joy in ((spec, '/catheter', '/joy'), (bare, '/teleop', '/teleop/joy')):
+        node = build_node(node_spec, lean=True)
+        try:
+            assert {f'{prefix}/insertion_command', f'{prefix}/bend_command'} <= \
+                {p.topic_name for p in node.publishers}, node_spec.remappings
+            assert joy in {s.topic_name for s in node.subscriptions}, node_spec.remappings
+        finally:
+            node.destroy_node()
 
 
 def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_context):
@@ -348,7 +411,7 @@ ANATOMY_NODES = ('phantom', 'planner', 'gui', 'igtl_bridge')
 
 
 def test_sim_rig_nodes_build_from_their_packages_node_classes():
-    """sim_rig.yaml holds only what ``ros2 launch`` reads; the in-process class of each node
+    """sim_rig.launch.yaml holds only what ``ros2 launch`` reads; the in-process class of each node
     comes from its pkg and exec, and its parameter files from next to the launch file."""
     import importlib
 
@@ -357,7 +420,7 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
     for node in spec.nodes:
         module, _, cls = node.plugin.partition(':')
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
-    config = SIM_RIG.parents[1]
+    config = PACKAGE / 'config'
     assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
         name: (str(config / f'{name}.yaml'),)
         for name in ('phantom', 'planner', 'operator', 'igtl_bridge')}
@@ -365,7 +428,7 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
 
 
 def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(tmp_path):
-    """rig.yaml: every node builds from its package's class, every device talks to hardware
+    """rig.launch.yaml: every node builds from its package's class, every device talks to hardware
     (SocketCAN, the serial port given), and the calibration file comes after the aurora's
     defaults, so its registration and tool_transform win."""
     import importlib
@@ -373,7 +436,7 @@ def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(
     calibration = tmp_path / 'calibration.yaml'
     calibration.write_text('aurora:\n  ros__parameters:\n    tool_transform: '
                            '[0.0, 0.012, 0.0, 0.0, 0.0, 0.0, 1.0]\n')
-    spec = load_launch_file(SIM_RIG.with_name('rig.yaml'),
+    spec = load_launch_file(SIM_RIG.with_name('rig.launch.yaml'),
                             {'aurora_port': '/dev/ttyUSB3', 'calibration': str(calibration),
                              'can_channel': 'can1'})
     nodes = {n.name: n for n in spec.nodes}
@@ -431,7 +494,7 @@ def test_sim_rig_in_process_runs_phantom_planner_and_gui_in_a_prepared_anatomy(
     from cgail_planner.learning.export import default_contract, write_contract
     from cgail_planner.sim.anatomy_spec import resolve_anatomy
 
-    models = SIM_RIG.parents[2] / 'cgail_planner' / 'learning' / 'models'
+    models = PACKAGE / 'cgail_planner' / 'learning' / 'models'
     policy = write_contract(models / 'cgail_default_static.onnx',
                             default_contract(prepared_anatomy, 'static'), tmp_path / 'p07.onnx')
     spec = load_launch_file(SIM_RIG, {'anatomy': str(prepared_anatomy),
@@ -457,7 +520,7 @@ def test_rig_launch_refuses_a_bad_anatomy_in_one_line(tmp_path, capsys):
     missing = tmp_path / 'nowhere'
     assert main([str(SIM_RIG), '--in-process', '--only', 'planner', f'anatomy:={missing}']) == 2
     err = capsys.readouterr().err
-    assert err.startswith("rig_launch: node 'planner': ") and err.count('\n') == 1, err
+    assert err.startswith("cgail launch: error: node 'planner': ") and err.count('\n') == 1, err
     assert f"found '{missing}': no such file or directory" in err
 
 
@@ -469,12 +532,12 @@ def test_rig_launch_refuses_a_bad_anatomy_in_one_line(tmp_path, capsys):
 ])
 def test_rig_launch_refuses_bad_launch_arguments(capsys, words, text):
     assert main([str(SIM_RIG), *words]) == 2
-    assert capsys.readouterr().err == f'rig_launch: {text}\n'
+    assert capsys.readouterr().err == f'cgail launch: error: {text}\n'
 
 
 def test_launch_arguments_may_follow_the_options(capsys):
     """As the README writes it: ``rig_launch FILE --in-process NAME:=VALUE``."""
     assert main([str(SIM_RIG), '--in-process', '--max-duration', '1', 'anatomyy:=x']) == 2
-    assert capsys.readouterr().err == ("rig_launch: launch 'sim_rig' has no argument(s) "
+    assert capsys.readouterr().err == ("cgail launch: error: launch 'sim_rig' has no argument(s) "
                                        "['anatomyy']; expected some of ['anatomy', "
                                        "'policy_path']\n")

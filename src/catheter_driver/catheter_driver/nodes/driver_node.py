@@ -2,6 +2,8 @@
 
 Run: ``ros2 run catheter_driver driver_node`` (or ``scripts/ws driver_node`` in the pip-only
 workspace); with the defaults it drives a simulated driver on a python-can virtual bus.
+Topics are the node's own (``~/insertion_command`` in, ``~/insertion_state`` out, the e-stop
+service ``~/estop``); the rig's launch files remap the topics to ``catheter/...``.
 
 A lifecycle node (``rclpy.lifecycle.LifecycleNode``; ``main`` configures and activates it
 unless ``autostart`` is false, which leaves it unconfigured for a lifecycle manager):
@@ -212,13 +214,13 @@ class DriverNode(LifecycleNode):
         self._next_attempt = 0.0
         self._open(conv.node_seconds(self))
         self._state_pub = self.create_lifecycle_publisher(
-            JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+            JointState, '~/insertion_state', conv.SENSOR_QOS)
         self._diag_pub = self.create_lifecycle_publisher(
             DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
         self._sub_command = self.create_subscription(
-            JointState, 'catheter/insertion_command', self._on_insertion_command,
+            JointState, '~/insertion_command', self._on_insertion_command,
             conv.COMMAND_QOS)
-        self._srv_estop = self.create_service(SetBool, 'sleeve_driver/estop', self._on_estop)
+        self._srv_estop = self.create_service(SetBool, '~/estop', self._on_estop)
         self._timers = [self.create_timer(self._period, self._on_control),
                         self.create_timer(self.supervision.diagnostics_period,
                                           self._on_diagnostics)]

@@ -2,7 +2,8 @@
 
 Run: ``ros2 run catheter_driver joy_node`` (or ``scripts/ws joy_node``). Parameters have the
 names of the ROS 2 ``joy`` package (``device_id``, ``device_name``, ``deadzone``,
-``autorepeat_rate``, ``coalesce_interval_ms``, ``sticky_buttons``).
+``autorepeat_rate``, ``coalesce_interval_ms``, ``sticky_buttons``). It publishes ``~/joy``
+(``/joy/joy``); the rig's launch files remap it to ``joy`` (``-r ~/joy:=joy`` by hand).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class JoyNode(Node):
         self._error = 'not opened yet'
         self.open_attempts = 0
         self.published = 0
-        self._joy_pub = self.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+        self._joy_pub = self.create_publisher(Joy, '~/joy', conv.SENSOR_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
         self.create_timer(1.0 / poll_rate, self._on_poll)

@@ -1,7 +1,9 @@
 """Teleop node (``teleop``): Joy -> insertion velocity and bend commands, with a deadman.
 
 Run: ``ros2 run catheter_driver teleop_node`` (or ``scripts/ws teleop_node``). See
-:mod:`catheter_driver.core.teleop` for the deadman convention and the bend modes.
+:mod:`catheter_driver.core.teleop` for the deadman convention and the bend modes. It reads
+``~/joy`` and publishes ``~/insertion_command`` and ``~/bend_command`` (under its name); the
+rig's launch files remap them to ``joy`` and ``catheter/...`` (docs/interfaces.md).
 """
 
 from __future__ import annotations
@@ -47,11 +49,10 @@ class TeleopNode(Node):
             joy_timeout=declare(self, 'joy_timeout_s', d.joy_timeout,
                                 'enabled and no Joy for this long: one stop, s'))
         self.teleop = Teleop(self.config)
-        self._insertion_pub = self.create_publisher(JointState, 'catheter/insertion_command',
+        self._insertion_pub = self.create_publisher(JointState, '~/insertion_command',
                                                     conv.COMMAND_QOS)
-        self._bend_pub = self.create_publisher(JointState, 'catheter/bend_command',
-                                               conv.COMMAND_QOS)
-        self.create_subscription(Joy, 'joy', self._on_joy, conv.SENSOR_QOS)
+        self._bend_pub = self.create_publisher(JointState, '~/bend_command', conv.COMMAND_QOS)
+        self.create_subscription(Joy, '~/joy', self._on_joy, conv.SENSOR_QOS)
         self.create_timer(0.05, self._on_tick)
 
     def _on_joy(self, msg: Joy) -> None:

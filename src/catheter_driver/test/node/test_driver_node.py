@@ -99,16 +99,16 @@ def test_topics_services_and_qos(harness):
     node = _node(harness)
     # the graph cache learns of the node's own endpoints asynchronously: wait for them
     assert harness.spin_until(lambda: all(node.get_publishers_info_by_topic(t) for t in (
-        '/catheter/insertion_state', '/diagnostics')) and node.get_subscriptions_info_by_topic(
-        '/catheter/insertion_command'))
+        '/sleeve_driver/insertion_state', '/diagnostics'))
+        and node.get_subscriptions_info_by_topic('/sleeve_driver/insertion_command'))
     pubs = {name: node.get_publishers_info_by_topic(name) for name in
-            ('/catheter/insertion_state', '/diagnostics')}
-    state_qos = pubs['/catheter/insertion_state'][0].qos_profile
+            ('/sleeve_driver/insertion_state', '/diagnostics')}
+    state_qos = pubs['/sleeve_driver/insertion_state'][0].qos_profile
     assert state_qos.reliability == ReliabilityPolicy.BEST_EFFORT
     diag_qos = pubs['/diagnostics'][0].qos_profile
     assert diag_qos.reliability == ReliabilityPolicy.RELIABLE
     assert diag_qos.durability == DurabilityPolicy.VOLATILE
-    subs = node.get_subscriptions_info_by_topic('/catheter/insertion_command')
+    subs = node.get_subscriptions_info_by_topic('/sleeve_driver/insertion_command')
     assert subs[0].qos_profile.reliability == ReliabilityPolicy.RELIABLE
     # the graph cache learns of the node's own service asynchronously: wait for it
     def services():
@@ -119,8 +119,8 @@ def test_topics_services_and_qos(harness):
 
 def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
     node, sim = _rig(harness)
-    states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    states = harness.collect(JointState, '/sleeve_driver/insertion_state', conv.SENSOR_QOS)
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert harness.spin_until(lambda: states and _driving(node))
     _commanding(harness, pub, _cmd(0.005))
@@ -137,7 +137,7 @@ def test_insertion_command_moves_the_catheter_and_state_reports_it(harness):
 
 def test_watchdog_stops_on_stale_commands(harness):
     node, sim = _rig(harness, command_timeout_s=0.2)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert harness.spin_until(lambda: _driving(node))
     sent_at: list[float] = []
@@ -163,7 +163,7 @@ def test_watchdog_stops_on_stale_commands(harness):
 ])
 def test_bad_commands_are_rejected_and_nothing_is_sent(harness, msg, reason):
     node, sim = _rig(harness)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert harness.spin_until(lambda: _driving(node))
     start = sim.mechanism.catheter_position
@@ -178,7 +178,7 @@ def test_bad_commands_are_rejected_and_nothing_is_sent(harness, msg, reason):
 def test_estop_service_holds_the_sleeve_and_reports(harness):
     node, sim = _rig(harness)
     diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     client = harness.probe.create_client(SetBool, 'sleeve_driver/estop')
     assert harness.spin_until(lambda: _driving(node))
@@ -225,7 +225,7 @@ def test_garbage_frames_do_not_crash_the_node(harness):
 
 def test_stall_is_reported_in_diagnostics(harness):
     node, sim = _rig(harness)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert harness.spin_until(lambda: _driving(node))
     sim.set_stall(True)
@@ -261,8 +261,8 @@ def test_bad_parameters_raise_at_construction(harness, params, error, match):
 def test_position_is_tracked_across_a_disconnect(harness):
     node, sim = _rig(harness, status_timeout_s=0.25, reconnect_backoff_initial_s=0.05,
                      reconnect_backoff_max_s=0.1)
-    states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    states = harness.collect(JointState, '/sleeve_driver/insertion_state', conv.SENSOR_QOS)
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert harness.spin_until(lambda: _driving(node))
     commands = _commanding(harness, pub, _cmd(0.005))
@@ -304,7 +304,7 @@ def _state(node):
 def _own_topics(node):
     """The node's device publishers (rosout, parameter and lifecycle events aside)."""
     names = {pub.topic_name for pub in node.publishers}
-    return names & {'/catheter/insertion_state', '/diagnostics'}
+    return names & {'/sleeve_driver/insertion_state', '/diagnostics'}
 
 
 def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
@@ -313,14 +313,14 @@ def test_lifecycle_configure_activate_deactivate_cleanup_configure(harness):
     configure + activate drives again."""
     channel = f'drv_{uuid.uuid4().hex}'
     node = harness.add(DriverNode(parameter_overrides=[Parameter('can_channel', value=channel)]))
-    states = harness.collect(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
+    states = harness.collect(JointState, '/sleeve_driver/insertion_state', conv.SENSOR_QOS)
     diags = harness.collect(DiagnosticArray, '/diagnostics', conv.DIAGNOSTICS_QOS)
-    pub = harness.probe.create_publisher(JointState, 'catheter/insertion_command',
+    pub = harness.probe.create_publisher(JointState, '/sleeve_driver/insertion_command',
                                          conv.COMMAND_QOS)
     assert _state(node) == 'unconfigured' and node.sim is None and node._link is None
     assert node.trigger_configure() == TransitionCallbackReturn.SUCCESS
     assert _state(node) == 'inactive' and node.sim is not None and node._link is not None
-    assert _own_topics(node) == {'/catheter/insertion_state', '/diagnostics'}
+    assert _own_topics(node) == {'/sleeve_driver/insertion_state', '/diagnostics'}
     mech = node.sim.mechanism
     # commands at 50 Hz from here to the end, through every transition
     _commanding(harness, pub, _cmd(0.005))

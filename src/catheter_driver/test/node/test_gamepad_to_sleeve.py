@@ -9,13 +9,23 @@ from catheter_driver.nodes.driver_node import DriverNode
 from catheter_driver.nodes.joy_node import JoyNode
 from catheter_driver.nodes.teleop_node import TeleopNode
 
+# Each node names its topics under its own name; the rig's launch files (docs/interfaces.md)
+# remap them onto the shared ones, as here.
+JOY_REMAPS = ['--ros-args', '-r', '~/joy:=joy']
+TELEOP_REMAPS = ['--ros-args', '-r', '~/joy:=joy',
+                 '-r', '~/insertion_command:=catheter/insertion_command',
+                 '-r', '~/bend_command:=catheter/bend_command']
+DRIVER_REMAPS = ['--ros-args', '-r', '~/insertion_command:=catheter/insertion_command',
+                 '-r', '~/insertion_state:=catheter/insertion_state']
+
 
 def test_deadman_drives_the_simulated_sleeve_and_release_stops_it(harness):
     pad = FakeGamepad(n_axes=6, n_buttons=8, n_hats=0)
-    harness.add(JoyNode(gamepad_factory=FakeGamepadFactory(pad)))
-    harness.add(TeleopNode())  # defaults: deadman button 4, insertion axis 1
+    harness.add(JoyNode(gamepad_factory=FakeGamepadFactory(pad), cli_args=JOY_REMAPS))
+    # defaults: deadman button 4, insertion axis 1
+    harness.add(TeleopNode(cli_args=TELEOP_REMAPS))
     driver = harness.add(DriverNode(parameter_overrides=[
-        Parameter('can_channel', value=f'chain_{uuid.uuid4().hex}')]))
+        Parameter('can_channel', value=f'chain_{uuid.uuid4().hex}')], cli_args=DRIVER_REMAPS))
     driver.trigger_configure()
     driver.trigger_activate()
     mech = driver.sim.mechanism

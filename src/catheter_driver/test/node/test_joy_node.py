@@ -20,8 +20,8 @@ def _node(harness, factory, **params):
 def test_publishes_with_joy_conventions_and_sensor_qos(harness):
     pad = FakeGamepad(n_axes=2, n_buttons=3, n_hats=1)
     node = _node(harness, FakeGamepadFactory(pad), autorepeat_rate=0.0)
-    msgs = harness.collect(Joy, 'joy', conv.SENSOR_QOS)
-    info = node.get_publishers_info_by_topic('/joy')[0]
+    msgs = harness.collect(Joy, '/joy/joy', conv.SENSOR_QOS)
+    info = node.get_publishers_info_by_topic('/joy/joy')[0]
     assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
     assert harness.spin_until(lambda: len(msgs) >= 1)
     assert list(msgs[0].axes) == [0.0, 0.0, 0.0, 0.0] and list(msgs[0].buttons) == [0, 0, 0]
@@ -36,7 +36,7 @@ def test_publishes_with_joy_conventions_and_sensor_qos(harness):
 
 def test_autorepeat_rate(harness):
     _node(harness, FakeGamepadFactory(FakeGamepad()), autorepeat_rate=20.0)
-    msgs = harness.collect(Joy, 'joy', conv.SENSOR_QOS)
+    msgs = harness.collect(Joy, '/joy/joy', conv.SENSOR_QOS)
     assert harness.spin_until(lambda: len(msgs) >= 1)
     first = len(msgs)
     harness.spin_for(1.0)
@@ -46,7 +46,7 @@ def test_autorepeat_rate(harness):
 def test_no_device_is_a_clear_error_and_it_keeps_retrying(harness):
     factory = FakeGamepadFactory(None)
     node = _node(harness, factory, reconnect_interval_s=0.05)
-    msgs = harness.collect(Joy, 'joy', conv.SENSOR_QOS)
+    msgs = harness.collect(Joy, '/joy/joy', conv.SENSOR_QOS)
     assert harness.spin_until(lambda: factory.attempts >= 3)
     diag = node.diagnostics_message().status[0]
     assert diag.level == DiagnosticStatus.ERROR

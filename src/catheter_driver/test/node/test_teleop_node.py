@@ -54,20 +54,20 @@ class Gamepad:
 @pytest.fixture
 def rig(harness):
     node = _node(harness)
-    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
-    bend = harness.collect(JointState, 'catheter/bend_command', conv.COMMAND_QOS)
-    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
-    assert harness.spin_until(lambda: node.count_publishers('joy') >= 1
+    insertion = harness.collect(JointState, '/teleop/insertion_command', conv.COMMAND_QOS)
+    bend = harness.collect(JointState, '/teleop/bend_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, '/teleop/joy', conv.SENSOR_QOS)
+    assert harness.spin_until(lambda: node.count_publishers('/teleop/joy') >= 1
                               and joy.get_subscription_count() >= 1)
     return node, joy, insertion, bend
 
 
 def test_qos_matches_the_contract(harness, rig):
     node = rig[0]
-    for topic in ('/catheter/insertion_command', '/catheter/bend_command'):
+    for topic in ('/teleop/insertion_command', '/teleop/bend_command'):
         info = node.get_publishers_info_by_topic(topic)[0]
         assert info.qos_profile.reliability == ReliabilityPolicy.RELIABLE
-    sub = node.get_subscriptions_info_by_topic('/joy')[0]
+    sub = node.get_subscriptions_info_by_topic('/teleop/joy')[0]
     assert sub.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
 
 
@@ -108,8 +108,8 @@ def _enable(harness, joy, insertion) -> float:
 
 def test_joy_timeout_sends_one_stop(harness):
     _node(harness, joy_timeout_s=0.3)
-    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
-    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+    insertion = harness.collect(JointState, '/teleop/insertion_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, '/teleop/joy', conv.SENSOR_QOS)
     last_joy = _enable(harness, joy, insertion)  # joy goes silent while the deadman is held
     assert harness.spin_until(lambda: insertion[-1].velocity[0] == 0.0)
     assert time.monotonic() - last_joy >= 0.3  # never before joy_timeout_s
@@ -131,9 +131,9 @@ def test_nan_joy_while_enabled_fails_safe(harness, rig):
 
 def test_position_mode_and_caps(harness):
     _node(harness, bend_mode='position', scale_bend=math.pi / 2)
-    bend = harness.collect(JointState, 'catheter/bend_command', conv.COMMAND_QOS)
-    insertion = harness.collect(JointState, 'catheter/insertion_command', conv.COMMAND_QOS)
-    joy = harness.probe.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+    bend = harness.collect(JointState, '/teleop/bend_command', conv.COMMAND_QOS)
+    insertion = harness.collect(JointState, '/teleop/insertion_command', conv.COMMAND_QOS)
+    joy = harness.probe.create_publisher(Joy, '/teleop/joy', conv.SENSOR_QOS)
     Gamepad(harness, joy, _joy([0, -1.0, -1.0, 0.5], True))
     assert harness.spin_until(lambda: len(bend) >= 2)
     # full alpha and half gamma deflection: the total bend is capped at pi/2 (the cap the PAM

@@ -6,11 +6,14 @@ target, next waypoint, suggested bend, diagnostics, trial clock. In dynamic mode
 phantom's: the ``lumen`` marker of ``phantom/markers`` (the deformed wall, a TRIANGLE_LIST) is
 indexed into a mesh once and its vertices are forwarded as deformation frames (at most
 ``mesh_rate_hz``), and the wall rays hit it; the rest mesh of ``anatomy`` is shown until it
-arrives. The page can replay a bag from ``bags_dir``: the bag player
-(:class:`~cgail_planner.bags.play.BagPlayer`) publishes into a sink that decodes the messages
-and feeds a second model, so a replay never reaches the live topics and the page switches
-between the two sources. The server runs asyncio in its own thread; a port that cannot be
-bound is an ERROR on ``/diagnostics`` and is retried every 2 s, never a crash.
+arrives. The node's own topic names are ``~/tip_pose``, ``~/path``, ``~/goal``,
+``~/next_waypoint``, ``~/suggested_bend`` and ``~/wall_markers``; the rig's launch files remap
+them to the names used here (docs/interfaces.md). The page can replay a bag from
+``bags_dir``: the bag player (:class:`~cgail_planner.bags.play.BagPlayer`) publishes into a sink
+that decodes the messages and feeds a second model, so a replay never reaches the live topics
+and the page switches between the two sources. The server runs asyncio in its own thread; a
+port that cannot be bound is an ERROR on ``/diagnostics`` and is retried every 2 s, never a
+crash.
 """
 
 from __future__ import annotations
@@ -76,6 +79,11 @@ _PARAMS: dict[str, tuple[Any, str, tuple[float, float] | None]] = {
 }
 _TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
            'planner/suggested_bend', '/diagnostics')
+#: The page's live inputs: each topic as the rig names it (and a bag records it, so a replay
+#: feeds it by that name) -> the node's own name, which the rig's launch files remap to it.
+_OWN_NAMES = {'em_tracker/tip_pose': '~/tip_pose', 'planner/path': '~/path',
+              'planner/goal': '~/goal', 'planner/next_waypoint': '~/next_waypoint',
+              'planner/suggested_bend': '~/suggested_bend', '/diagnostics': '/diagnostics'}
 _LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _COMMAND = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -225,10 +233,10 @@ class GuiNode(Node):
                  'planner/goal': PoseStamped, 'planner/next_waypoint': PointStamped,
                  'planner/suggested_bend': JointState, '/diagnostics': DiagnosticArray}
         for topic, handler in self._feed.handlers().items():
-            self.create_subscription(types[topic], topic, handler, qos[topic])
+            self.create_subscription(types[topic], _OWN_NAMES[topic], handler, qos[topic])
         self._last_lumen = -math.inf
         if self.config.dynamic:
-            self.create_subscription(MarkerArray, 'phantom/markers', self._on_markers, _LATCHED)
+            self.create_subscription(MarkerArray, '~/wall_markers', self._on_markers, _LATCHED)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self._bind_error = ''
         self._next_bind = 0.0

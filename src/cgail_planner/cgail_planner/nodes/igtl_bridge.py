@@ -3,7 +3,9 @@
 Run: ``ros2 run cgail_planner igtl_bridge --ros-args -p anatomy:=DIR`` (pip-only:
 ``scripts/ros2run cgail_planner igtl_bridge ...``), then in Slicer's OpenIGTLinkIF module add a
 client connector to ``localhost:18944``. What is sent, in which frame and why:
-:mod:`cgail_planner.core.igtl`; the server: :mod:`cgail_planner.hw.igtl_server`.
+:mod:`cgail_planner.core.igtl`; the server: :mod:`cgail_planner.hw.igtl_server`. Its topics
+are its own, under its name (``~/tip_pose``, ``~/path``, ``~/goal``, ``~/wall_markers``); below
+they are named as in the rig, whose launch files remap them (docs/interfaces.md).
 
 * ``em_tracker/tip_pose`` (PoseStamped, frame ``phantom``) -> TRANSFORM ``CatheterTip``, the
   newest pose at most ``tip_rate_hz`` times a second, stamped with the pose's stamp;
@@ -85,12 +87,11 @@ class IgtlBridge(Node):
             super().destroy_node()
             raise OSError(exc.errno, f'expected to listen on {self.config.host}:'
                           f'{self.config.port} for OpenIGTLink, found: {exc.strerror}') from None
-        self.create_subscription(PoseStamped, 'em_tracker/tip_pose', self._on_tip,
-                                 conv.SENSOR_QOS)
-        self.create_subscription(Path, 'planner/path', self._on_path, conv.LATCHED_QOS)
-        self.create_subscription(PoseStamped, 'planner/goal', self._on_goal, conv.COMMAND_QOS)
+        self.create_subscription(PoseStamped, '~/tip_pose', self._on_tip, conv.SENSOR_QOS)
+        self.create_subscription(Path, '~/path', self._on_path, conv.LATCHED_QOS)
+        self.create_subscription(PoseStamped, '~/goal', self._on_goal, conv.COMMAND_QOS)
         if self.config.follow_wall:
-            self.create_subscription(MarkerArray, 'phantom/markers', self._on_markers,
+            self.create_subscription(MarkerArray, '~/wall_markers', self._on_markers,
                                      conv.LATCHED_QOS)
         # (a viewer: wall-clock pacing even when the rig runs on simulated time)
         self.create_timer(1.0 / self.config.tip_rate_hz, self._on_tick,

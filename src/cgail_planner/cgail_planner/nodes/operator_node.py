@@ -1,7 +1,10 @@
 """Operator node (``operator``): a scripted person at the gamepad, following the guidance.
 
 Run: ``ros2 run cgail_planner operator_node`` (pip-only: ``scripts/ros2run cgail_planner
-operator_node``). Behaviour: :mod:`cgail_planner.core.operator`.
+operator_node``). Behaviour: :mod:`cgail_planner.core.operator`. Its topics are its own,
+under its name (``~/path``, ``~/suggested_bend``, ``~/next_waypoint``, ``~/goal``,
+``~/tip_pose``, ``~/joy``, ``~/done``); below they are named as in the rig, whose launch files
+remap them (docs/interfaces.md).
 
 * Starts a trial when a ``planner/path`` arrives while idle (the clinician begins once the path
   is shown); ``operator/reset`` (std_srvs/Trigger) makes it idle again for the next trial.
@@ -121,17 +124,15 @@ class OperatorNode(Node):
         self._n_buttons = self.enable_button + 1
         self._was_running = False
 
-        self._joy_pub = self.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
-        self._done_pub = self.create_publisher(Bool, 'operator/done', conv.LATCHED_QOS)
-        self.create_subscription(Path, 'planner/path', self._on_path, conv.LATCHED_QOS)
-        self.create_subscription(JointState, 'planner/suggested_bend', self._on_bend,
+        self._joy_pub = self.create_publisher(Joy, '~/joy', conv.SENSOR_QOS)
+        self._done_pub = self.create_publisher(Bool, '~/done', conv.LATCHED_QOS)
+        self.create_subscription(Path, '~/path', self._on_path, conv.LATCHED_QOS)
+        self.create_subscription(JointState, '~/suggested_bend', self._on_bend, conv.SENSOR_QOS)
+        self.create_subscription(PointStamped, '~/next_waypoint', self._on_waypoint,
                                  conv.SENSOR_QOS)
-        self.create_subscription(PointStamped, 'planner/next_waypoint', self._on_waypoint,
-                                 conv.SENSOR_QOS)
-        self.create_subscription(PoseStamped, 'planner/goal', self._on_goal, conv.COMMAND_QOS)
-        self.create_subscription(PoseStamped, 'em_tracker/tip_pose', self._on_tip,
-                                 conv.SENSOR_QOS)
-        self.create_service(Trigger, 'operator/reset', self._on_reset)
+        self.create_subscription(PoseStamped, '~/goal', self._on_goal, conv.COMMAND_QOS)
+        self.create_subscription(PoseStamped, '~/tip_pose', self._on_tip, conv.SENSOR_QOS)
+        self.create_service(Trigger, '~/reset', self._on_reset)
         self.create_timer(1.0 / rate, self._on_tick)
         self._done_pub.publish(Bool(data=False))
 

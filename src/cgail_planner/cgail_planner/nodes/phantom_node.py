@@ -2,7 +2,10 @@
 
 Run: ``ros2 run cgail_planner phantom_node`` (pip-only workspace: ``scripts/ros2run
 cgail_planner phantom_node``); normally started by ``invitro_session`` or ``rig_launch
-config/launch/sim_rig.yaml --in-process``.
+launch/sim_rig.launch.yaml --in-process``. Its topics are its own, under its name
+(``~/tip_pose``, ``~/target``, ``~/aurora_port``, ``~/markers``, ``~/pressures``,
+``~/insertion_state``); below they are named as in the rig, whose launch files remap them
+(docs/interfaces.md).
 
 It hosts the simulated devices in this process and the catheter-in-aorta physics
 (:mod:`cgail_planner.core.phantom`):
@@ -216,23 +219,21 @@ class PhantomNode(Node):
                                     clock=lambda: self.sim_time).start()
             self.aurora_port = self.aurora.port
 
-        self._pose_pub = self.create_publisher(PoseStamped, 'phantom/tip_pose', conv.SENSOR_QOS)
-        self._target_pub = self.create_publisher(PointStamped, 'phantom/target',
-                                                 conv.LATCHED_QOS)
-        self._port_pub = self.create_publisher(String, 'phantom/aurora_port', conv.LATCHED_QOS)
+        self._pose_pub = self.create_publisher(PoseStamped, '~/tip_pose', conv.SENSOR_QOS)
+        self._target_pub = self.create_publisher(PointStamped, '~/target', conv.LATCHED_QOS)
+        self._port_pub = self.create_publisher(String, '~/aurora_port', conv.LATCHED_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
-        self._markers_pub = self.create_publisher(MarkerArray, 'phantom/markers',
-                                                  conv.LATCHED_QOS)
+        self._markers_pub = self.create_publisher(MarkerArray, '~/markers', conv.LATCHED_QOS)
         self._clock_pub = self.create_publisher(ClockMsg, '/clock', 10) \
             if self.publish_clock else None
         if self.driver is None:  # (a hosted driver's gripper is read directly)
-            self.create_subscription(JointState, 'catheter/insertion_state',
-                                     self._on_insertion, conv.SENSOR_QOS)
-        if self.bank is None:  # (a hosted bank's pressures are read directly)
-            self.create_subscription(Float64MultiArray, 'pam/pressures', self._on_pressures,
+            self.create_subscription(JointState, '~/insertion_state', self._on_insertion,
                                      conv.SENSOR_QOS)
-        self.create_service(Trigger, 'phantom/reset', self._on_reset)
+        if self.bank is None:  # (a hosted bank's pressures are read directly)
+            self.create_subscription(Float64MultiArray, '~/pressures', self._on_pressures,
+                                     conv.SENSOR_QOS)
+        self.create_service(Trigger, '~/reset', self._on_reset)
         self._port_pub.publish(String(data=self.aurora_port))
         self._ticks = 0
         self.publish_target()

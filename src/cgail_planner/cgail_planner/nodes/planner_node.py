@@ -5,6 +5,9 @@ curvature-constrained RRT of :mod:`cgail_planner.core.rrt_planner`, parameters `
 
 Run: ``ros2 run cgail_planner planner_node --ros-args -p policy_path:=model.onnx`` (pip-only
 workspace: ``scripts/ros2run cgail_planner planner_node ...``). numpy + onnxruntime only.
+Its topics are its own, under its name (``~/tip_pose``, ``~/goal``, ``~/path``,
+``~/next_waypoint``, ``~/suggested_bend``, ``~/markers``); below they are named as in the rig,
+whose launch files remap them (docs/interfaces.md).
 
 * ``planner/goal`` (PoseStamped): plans from the latest tip pose (a goal that arrives before a
   fresh tip pose waits for one) and publishes ``planner/path`` (latched).
@@ -225,18 +228,14 @@ class PlannerNode(Node):
         self._markers_changed = True
         self._markers_sent = False
 
-        self._path_pub = self.create_publisher(Path, 'planner/path', conv.LATCHED_QOS)
-        self._wp_pub = self.create_publisher(PointStamped, 'planner/next_waypoint',
-                                             conv.SENSOR_QOS)
-        self._bend_pub = self.create_publisher(JointState, 'planner/suggested_bend',
-                                               conv.SENSOR_QOS)
+        self._path_pub = self.create_publisher(Path, '~/path', conv.LATCHED_QOS)
+        self._wp_pub = self.create_publisher(PointStamped, '~/next_waypoint', conv.SENSOR_QOS)
+        self._bend_pub = self.create_publisher(JointState, '~/suggested_bend', conv.SENSOR_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
-        self._markers_pub = self.create_publisher(MarkerArray, 'planner/markers',
-                                                  conv.LATCHED_QOS)
-        self.create_subscription(PoseStamped, 'em_tracker/tip_pose', self._on_tip_pose,
-                                 conv.SENSOR_QOS)
-        self.create_subscription(PoseStamped, 'planner/goal', self._on_goal, conv.COMMAND_QOS)
+        self._markers_pub = self.create_publisher(MarkerArray, '~/markers', conv.LATCHED_QOS)
+        self.create_subscription(PoseStamped, '~/tip_pose', self._on_tip_pose, conv.SENSOR_QOS)
+        self.create_subscription(PoseStamped, '~/goal', self._on_goal, conv.COMMAND_QOS)
         self.create_timer(diag_period, self._on_diagnostics)
         self.create_timer(1.0 / marker_rate, self._on_marker_timer)
         if self.mode == 'dynamic':

@@ -12,6 +12,10 @@
 * :class:`ExpertJoyNode` (``expert_joy``) is the scripted demonstrator at the gamepad: the
   scripted expert's action (:class:`~cgail_planner.learning.expert.ScriptedExpert`) for the
   current state, as stick deflections for teleop's ``position`` bend mode (frame ``scripted``).
+
+Topics are named as in the rig; each node declares them under its own name (``~/tip_pose``,
+``~/keyboard_joy`` and ``~/joy``, ``~/bend_command``, ``~/insertion_command``; ``expert_joy``:
+``~/joy``) and ``record_demos`` remaps them (:data:`cgail_planner.system.record_demos.REMAPS`).
 """
 
 from __future__ import annotations
@@ -115,14 +119,12 @@ class RecorderNode(Node):
         self.rejected: dict[str, int] = {}
         self._last_joy: dict[str, float] = {}
         self._next_devices = 0.0
-        self._tip_pub = self.create_publisher(PoseStamped, 'em_tracker/tip_pose',
-                                              conv.SENSOR_QOS)
-        self._joy_pub = self.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
-        self.create_subscription(JointState, 'catheter/bend_command', self._on_bend,
+        self._tip_pub = self.create_publisher(PoseStamped, '~/tip_pose', conv.SENSOR_QOS)
+        self._joy_pub = self.create_publisher(Joy, '~/keyboard_joy', conv.SENSOR_QOS)
+        self.create_subscription(JointState, '~/bend_command', self._on_bend, conv.COMMAND_QOS)
+        self.create_subscription(JointState, '~/insertion_command', self._on_insertion,
                                  conv.COMMAND_QOS)
-        self.create_subscription(JointState, 'catheter/insertion_command', self._on_insertion,
-                                 conv.COMMAND_QOS)
-        self.create_subscription(Joy, 'joy', self._on_joy, conv.SENSOR_QOS)
+        self.create_subscription(Joy, '~/joy', self._on_joy, conv.SENSOR_QOS)
 
     # ------------------------------------------------------------------ inputs
     def _on_bend(self, msg: JointState) -> None:
@@ -234,7 +236,7 @@ class ExpertJoyNode(Node):
         self.expert = ScriptedExpert(recorder.env)
         self._serial = -1
         self._released = True
-        self._pub = self.create_publisher(Joy, 'joy', conv.SENSOR_QOS)
+        self._pub = self.create_publisher(Joy, '~/joy', conv.SENSOR_QOS)
         self.create_timer(period_s, self._on_tick)
 
     def _on_tick(self) -> None:

@@ -1,8 +1,9 @@
 """Launch files in ROS 2's YAML launch format, read by our launcher (ROS ``launch`` has no wheel).
 
 A launch file is what ``ros2 launch`` reads (the ``launch_yaml`` frontend of ``launch`` and
-``launch_ros``), so on a full ROS 2 install ``ros2 launch cgail_planner sim_rig.yaml`` reads the
-same file. This module reads the part of that format the workspace uses:
+``launch_ros``), so on a full ROS 2 install ``ros2 launch cgail_planner sim_rig.launch.yaml``
+reads the same file. A package keeps its launch files in ``launch/*.launch.yaml`` (installed to
+``share/<pkg>/launch/``). This module reads the part of that format the workspace uses:
 
 .. code-block:: yaml
 
@@ -24,8 +25,8 @@ same file. This module reads the part of that format the workspace uses:
         - from: $(dirname)/../aurora.yaml
         - {name: rate_hz, value: 40.0}
         - {name: port, value: $(var port)}
-        remap:
-        - {from: joy, to: gamepad}
+        remap:                            # the node's own name -> the rig's (-r from:=to)
+        - {from: ~/tip_pose, to: em_tracker/tip_pose}
         env:
         - {name: RCUTILS_COLORIZED_OUTPUT, value: '0'}
     - executable:                         # a plain (non-ROS) process
@@ -40,6 +41,11 @@ and ``let`` values are strings, and a relative ``from`` path is relative to the 
 directory (hence ``$(dirname)``). ``rig_launch FILE NAME:=VALUE`` sets an argument; an argument
 without a default must be given.
 
+A remapping's ``from`` and ``to`` are topic or service names: relative (``joy``), absolute
+(``/joy``) or private (``~/joy``: under the node's name, how the workspace's nodes name their
+topics), tokens of letters, digits and underscores that do not start with a digit, separated by
+``/``. Each ``from`` appears once per node.
+
 ``--in-process`` builds each node from its class: ``<pkg>.nodes.<exec>:<Exec>``, the
 executable's module and its name in CamelCase (STYLE.md: ``planner_node.py`` holds
 ``PlannerNode``), so launch files carry nothing ``ros2 launch`` would refuse.
@@ -50,6 +56,7 @@ This module is pure python (no rclpy) so specs can be validated without ROS.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import logging
 import os
 from pathlib import Path
 import re
@@ -61,6 +68,29 @@ import yaml
 
 class LaunchSpecError(ValueError):
     """A launch file is malformed; the message names the entry and the field."""
+
+
+#: A topic or service name as a remapping may name it: relative, absolute or private (``~/``).
+_REMAP_NAME = re.compile(r'(~/|/)?[A-Za-z_]\w*(/[A-Za-z_]\w*)*', re.ASCII)
+
+
+def check_remapping(source: str, target: str, where: str) -> None:
+    """Raise :class:`LaunchSpecError` unless ``source:=target`` is a topic remapping rcl reads.
+
+    Args:
+        source: the name the node uses (``from``), e.g. ``~/tip_pose``.
+        target: the name it gets (``to``), e.g. ``em_tracker/tip_pose``.
+        where: the entry, for the message (``launch 'rig': node 'aurora'.remap[0]``).
+    """
+    for side, value in (('from', source), ('to', target)):
+        if value.startswith('__'):
+            raise LaunchSpecError(f'{where}: remap {side} {value!r}: the node name and namespace '
+                                  'are set with name and namespace, not remapped')
+        if not _REMAP_NAME.fullmatch(value):
+            raise LaunchSpecError(
+                f'{where}: remap {side} {value!r} is not a topic name; expected a relative, '
+                "absolute (/...) or private (~/...) name of letters, digits and underscores "
+                "separated by '/', each part not starting with a digit")
 
 
 @dataclass(frozen=True)
@@ -122,6 +152,8 @@ class NodeSpec:
         if self.respawn_delay is not None and not self.respawn_delay >= 0.0:
             raise LaunchSpecError(f'node {self.name!r}: respawn_delay must be >= 0 s, found '
                                   f'{self.respawn_delay}')
+        for source, target in self.remappings.items():
+            check_remapping(source, target, f'node {self.name!r}')
 
     @property
     def fully_qualified_name(self) -> str:
@@ -309,8 +341,14 @@ def _pairs(body: dict[str, Any], key: str, first: str, second: str, scope: _Scop
         if set(entry) != {first, second}:
             raise LaunchSpecError(f'{here}: expected exactly {first} and {second}, found '
                                   f'{sorted(entry)}')
-        out[scope.substitute(str(_text(entry, first, here)), here)] = \
-            scope.substitute(str(_text(entry, second, here)), here)
+        source = scope.substitute(str(_text(entry, first, here)), here)
+        target = scope.substitute(str(_text(entry, second, here)), here)
+        if key == 'remap':
+            check_remapping(source, target, here)
+            if source in out:
+                raise LaunchSpecError(f'{here}: {source!r} is remapped twice (to '
+                                      f'{out[source]!r} and {target!r}); expected once')
+        out[source] = target
     return out
 
 
@@ -434,9 +472,29 @@ def parse_launch(data: Any, base_dir: Path | None = None,
     return LaunchSpec(name, tuple(nodes), values)
 
 
+def _moved_launch_file(path: Path) -> Path | None:
+    """Where a launch file of the old layout (``<pkg>/config/launch/NAME.yaml``) is now:
+    ``<pkg>/launch/NAME.launch.yaml``, if that exists. The old paths are read for one release."""
+    if path.suffix != '.yaml' or path.parent.name != 'launch' or \
+            path.parent.parent.name != 'config':
+        return None
+    moved = path.parents[2] / 'launch' / f'{path.stem}.launch.yaml'
+    return moved if moved.is_file() else None
+
+
 def load_launch_file(path: str | Path, arguments: dict[str, str] | None = None) -> LaunchSpec:
-    """Load and validate a ROS 2 YAML launch file (``arguments``: values over its defaults)."""
+    """Load and validate a ROS 2 YAML launch file (``arguments``: values over its defaults).
+
+    A path of the old layout (``<pkg>/config/launch/NAME.yaml``) that no longer exists is read
+    from ``<pkg>/launch/NAME.launch.yaml`` with a deprecation warning, until the next release.
+    """
     p = Path(path)
+    moved = None if p.is_file() else _moved_launch_file(p)
+    if moved is not None:
+        logging.getLogger(__name__).warning(
+            'launch file %s moved to %s; the old path is deprecated and will stop working in '
+            'the next release', p, moved)
+        p = moved
     if not p.is_file():
         raise LaunchSpecError(f'launch file {str(p)!r} does not exist')
     try:
@@ -448,13 +506,14 @@ def load_launch_file(path: str | Path, arguments: dict[str, str] | None = None) 
 
 
 def default_launch_file() -> Path:
-    """``config/launch/sim_rig.yaml`` of ``cgail_planner`` (source tree or install share): the
-    simulated rig that ``invitro_session`` and ``identify_pam --sim`` run."""
-    here = Path(__file__).resolve().parents[2] / 'config' / 'launch' / 'sim_rig.yaml'
+    """``launch/sim_rig.launch.yaml`` of ``cgail_planner`` (source tree, else the install's
+    ``share/cgail_planner/launch/``): the simulated rig that ``invitro_session`` and
+    ``identify_pam --sim`` run."""
+    here = Path(__file__).resolve().parents[2] / 'launch' / 'sim_rig.launch.yaml'
     if here.is_file():
         return here
     for prefix in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep):
-        cand = Path(prefix) / 'share' / 'cgail_planner' / 'config' / 'launch' / 'sim_rig.yaml'
+        cand = Path(prefix) / 'share' / 'cgail_planner' / 'launch' / 'sim_rig.launch.yaml'
         if prefix and cand.is_file():
             return cand
     return here

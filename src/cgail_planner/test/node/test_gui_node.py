@@ -32,20 +32,21 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 
 class Running:
     """A GuiNode plus a publisher node (and ``extra`` nodes), spun by one executor in a
-    background thread."""
+    background thread. The publisher uses the GUI's own topic names (``/gui/...``); ``cli_args``
+    may remap them onto an ``extra`` node's."""
 
-    def __init__(self, *extra: Any, **params: Any) -> None:
+    def __init__(self, *extra: Any, cli_args: list[str] | None = None, **params: Any) -> None:
         overrides = [Parameter('port', value=0), Parameter('anatomy', value='')]
         overrides += [Parameter(k, value=v) for k, v in params.items()]
-        self.node = GuiNode(parameter_overrides=overrides)
+        self.node = GuiNode(parameter_overrides=overrides, cli_args=cli_args)
         self.pub = rclpy.create_node('gui_test_pub')
-        self.tip = self.pub.create_publisher(PoseStamped, 'em_tracker/tip_pose',
+        self.tip = self.pub.create_publisher(PoseStamped, '/gui/tip_pose',
                                              qos_profile_sensor_data)
-        self.path = self.pub.create_publisher(PathMsg, 'planner/path', LATCHED)
-        self.goal = self.pub.create_publisher(PoseStamped, 'planner/goal', 10)
-        self.wp = self.pub.create_publisher(PointStamped, 'planner/next_waypoint',
+        self.path = self.pub.create_publisher(PathMsg, '/gui/path', LATCHED)
+        self.goal = self.pub.create_publisher(PoseStamped, '/gui/goal', 10)
+        self.wp = self.pub.create_publisher(PointStamped, '/gui/next_waypoint',
                                             qos_profile_sensor_data)
-        self.bend = self.pub.create_publisher(JointState, 'planner/suggested_bend',
+        self.bend = self.pub.create_publisher(JointState, '/gui/suggested_bend',
                                               qos_profile_sensor_data)
         self.diag = self.pub.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.executor = SingleThreadedExecutor()
@@ -346,7 +347,8 @@ def test_dynamic_mode_draws_the_phantoms_deforming_wall(ros: None) -> None:
     def frame(s: dict[str, Any], item: str) -> np.ndarray:
         return np.frombuffer(base64.b64decode(s[item]['vertices']), '<f4').reshape(-1, 3)
 
-    r = Running(phantom, anatomy='default', dynamic=True, mesh_rate_hz=20.0)
+    r = Running(phantom, cli_args=['--ros-args', '-r', '~/wall_markers:=phantom/markers'],
+                anatomy='default', dynamic=True, mesh_rate_hz=20.0)
     try:
         with r.ws() as ws:
             s = recv_until(ws, lambda m, msg: m.get('mesh', {}).get('vertex_count')

@@ -63,12 +63,12 @@ class Rig:
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.executor.add_node(self.probe)
-        self.tip_pub = self.probe.create_publisher(PoseStamped, 'em_tracker/tip_pose',
+        self.tip_pub = self.probe.create_publisher(PoseStamped, '/igtl_bridge/tip_pose',
                                                    conv.SENSOR_QOS)
-        self.path_pub = self.probe.create_publisher(PathMsg, 'planner/path', conv.LATCHED_QOS)
-        self.goal_pub = self.probe.create_publisher(PoseStamped, 'planner/goal',
+        self.path_pub = self.probe.create_publisher(PathMsg, '/igtl_bridge/path', conv.LATCHED_QOS)
+        self.goal_pub = self.probe.create_publisher(PoseStamped, '/igtl_bridge/goal',
                                                     conv.COMMAND_QOS)
-        self.markers_pub = self.probe.create_publisher(MarkerArray, 'phantom/markers',
+        self.markers_pub = self.probe.create_publisher(MarkerArray, '/igtl_bridge/wall_markers',
                                                        conv.LATCHED_QOS)
         self.tip_stamp = self.probe.get_clock().now().to_msg()
         self.probe.create_timer(0.025, lambda: self.tip_pub.publish(conv.pose_msg(

@@ -122,7 +122,7 @@ def test_planner_publishes_target_path_waypoint_and_bend(ros) -> None:
     try:
         latched(node, '/planner/markers')
         probe.create_subscription(MarkerArray, 'planner/markers', got.append, conv.LATCHED_QOS)
-        poses = probe.create_publisher(PoseStamped, 'em_tracker/tip_pose', conv.SENSOR_QOS)
+        poses = probe.create_publisher(PoseStamped, '/planner/tip_pose', conv.SENSOR_QOS)
         goals = probe.create_publisher(PoseStamped, 'planner/goal', conv.COMMAND_QOS)
         assert spin_until(ex, lambda: got)
         assert kinds(got[-1]) == []                         # nothing to show yet

@@ -37,12 +37,12 @@ def test_operator_drives_with_the_deadman_and_stops_at_the_target(ros) -> None:
     try:
         joys: list[Joy] = []
         done: list[Bool] = []
-        probe.create_subscription(Joy, 'joy', joys.append, conv.SENSOR_QOS)
+        probe.create_subscription(Joy, '/operator/joy', joys.append, conv.SENSOR_QOS)
         probe.create_subscription(Bool, 'operator/done', done.append, conv.LATCHED_QOS)
-        path_pub = probe.create_publisher(Path, 'planner/path', conv.LATCHED_QOS)
-        goal_pub = probe.create_publisher(PoseStamped, 'planner/goal', conv.COMMAND_QOS)
-        tip_pub = probe.create_publisher(PoseStamped, 'em_tracker/tip_pose', conv.SENSOR_QOS)
-        bend_pub = probe.create_publisher(JointState, 'planner/suggested_bend',
+        path_pub = probe.create_publisher(Path, '/operator/path', conv.LATCHED_QOS)
+        goal_pub = probe.create_publisher(PoseStamped, '/operator/goal', conv.COMMAND_QOS)
+        tip_pub = probe.create_publisher(PoseStamped, '/operator/tip_pose', conv.SENSOR_QOS)
+        bend_pub = probe.create_publisher(JointState, '/operator/suggested_bend',
                                           conv.SENSOR_QOS)
         spin_until(ex, lambda: False, 0.3)
         assert joys == []  # idle: no Joy at all

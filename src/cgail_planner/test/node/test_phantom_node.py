@@ -53,8 +53,9 @@ def test_held_bend_curves_the_tip_by_bend_dl_over_l(ros, tmp_path) -> None:
 
     node, probe, ex = make(tmp_path, plant='ideal')
     try:
-        ins = probe.create_publisher(JointState, 'catheter/insertion_state', conv.SENSOR_QOS)
-        pressures = probe.create_publisher(Float64MultiArray, 'pam/pressures', conv.SENSOR_QOS)
+        ins = probe.create_publisher(JointState, '/phantom/insertion_state', conv.SENSOR_QOS)
+        pressures = probe.create_publisher(Float64MultiArray, '/phantom/pressures',
+                                           conv.SENSOR_QOS)
         poses: list[PoseStamped] = []
         probe.create_subscription(PoseStamped, 'phantom/tip_pose', poses.append,
                                   conv.SENSOR_QOS)
@@ -94,7 +95,7 @@ def test_the_phantom_never_listens_to_a_controller_estimate(ros, tmp_path, hoste
     try:
         topics = {sub.topic_name for sub in node.subscriptions}
         assert not any(t.endswith('bend_state') for t in topics)
-        expected = set() if hosted else {'/catheter/insertion_state', '/pam/pressures'}
+        expected = set() if hosted else {'/phantom/insertion_state', '/phantom/pressures'}
         assert topics == expected
     finally:
         ex.shutdown()

@@ -38,7 +38,7 @@ class Rig:
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
         self.executor.add_node(self.probe)
-        self.pose_pub = self.probe.create_publisher(PoseStamped, 'em_tracker/tip_pose',
+        self.pose_pub = self.probe.create_publisher(PoseStamped, '/planner/tip_pose',
                                                     conv.SENSOR_QOS)
         self.goal_pub = self.probe.create_publisher(PoseStamped, 'planner/goal',
                                                     conv.COMMAND_QOS)

@@ -19,13 +19,16 @@ RVIZ_TYPES = {'rviz_default_plugins/MarkerArray': 'visualization_msgs/msg/Marker
 
 
 def published() -> dict[str, tuple[str, str]]:
-    """Absolute topic -> (type, QoS name) over every node's contract."""
+    """Absolute rig topic -> (type, QoS name) over every node's contract (a node's own
+    ``~/name`` under the rig name its ``remaps`` give it)."""
     text = (REPO / 'docs' / 'interfaces.md').read_text()
     out = {}
     for block in re.findall(r'```contract\n(.*?)```', text, re.S):
-        for topic, spec in (yaml.safe_load(block)['publishes'] or {}).items():
+        contract = yaml.safe_load(block)
+        remaps = contract.get('remaps') or {}
+        for topic, spec in (contract['publishes'] or {}).items():
             msg_type, qos = re.match(r'([\w/]+)\s*\[(\w+)\]', spec).groups()
-            out['/' + topic.lstrip('/')] = (msg_type, qos)
+            out['/' + remaps.get(topic, topic).lstrip('/')] = (msg_type, qos)
     return out
 
 

@@ -1,4 +1,7 @@
-"""``aurora_node``: NDI Aurora tip pose -> ``em_tracker/tip_pose`` (node name ``aurora``).
+"""``aurora_node``: NDI Aurora tip pose -> ``~/tip_pose`` (node name ``aurora``).
+
+Topics are the node's own (``~/tip_pose``, ``~/tip_pose_cov``, ``~/rms_error``: under its
+name); the rig's launch files remap them to ``em_tracker/...`` (docs/interfaces.md).
 
 The published pose is the catheter tip's in the ``phantom`` frame (``frame_id``):
 ``T_phantom_aurora @ T_aurora_sensor @ T_sensor_tip``, with the ``registration`` (aurora ->
@@ -6,7 +9,7 @@ phantom, from ``register_phantom``) and the ``tool_transform`` (sensor -> tip, f
 ``pivot_calibrate``) parameters. Tip frame: origin at the tip, **+y along the shaft towards the
 tip** (the catheter heading), x/z the sensor's turned onto the shaft (roll not calibrated; see
 :mod:`em_tracker.core.calibration`). With the default identity ``tool_transform`` the pose is the
-sensor's. ``em_tracker/tip_pose_cov`` carries the same pose with a covariance from the
+sensor's. ``~/tip_pose_cov`` carries the same pose with a covariance from the
 reported RMS error (position variance ``rms^2 / 3`` per axis; orientation not estimated, see
 :func:`em_tracker.core.pose.pose_covariance`).
 
@@ -208,11 +211,11 @@ class AuroraNode(LifecycleNode):
         self.config = build_config(self._parameter_values())
         self._clocked = self.config.poll_mode == 'clock'
         self._device = self._device_factory(self.config)
-        self._pose_pub = self.create_lifecycle_publisher(PoseStamped, 'em_tracker/tip_pose',
+        self._pose_pub = self.create_lifecycle_publisher(PoseStamped, '~/tip_pose',
                                                          qos_profile_sensor_data)
         self._cov_pub = self.create_lifecycle_publisher(
-            PoseWithCovarianceStamped, 'em_tracker/tip_pose_cov', qos_profile_sensor_data)
-        self._rms_pub = self.create_lifecycle_publisher(Float64, 'em_tracker/rms_error',
+            PoseWithCovarianceStamped, '~/tip_pose_cov', qos_profile_sensor_data)
+        self._rms_pub = self.create_lifecycle_publisher(Float64, '~/rms_error',
                                                         qos_profile_sensor_data)
         self._diag_pub = self.create_lifecycle_publisher(DiagnosticArray, '/diagnostics',
                                                          QoSProfile(depth=10))

@@ -61,7 +61,7 @@ def rig():
     time_source.attach_clock(listener.get_clock())
     poses: list[PoseStamped] = []
     diags: list[DiagnosticStatus] = []
-    listener.create_subscription(PoseStamped, 'em_tracker/tip_pose', poses.append,
+    listener.create_subscription(PoseStamped, '/aurora/tip_pose', poses.append,
                                  qos_profile_sensor_data)
     listener.create_subscription(DiagnosticArray, '/diagnostics',
                                  lambda m: diags.extend(m.status), QoSProfile(depth=10))

@@ -75,11 +75,11 @@ class Harness:
         self.cov_poses: list[PoseWithCovarianceStamped] = []
         self.rms: list[float] = []
         self.diags: list[DiagnosticStatus] = []
-        self.sub_node.create_subscription(PoseStamped, 'em_tracker/tip_pose', self.poses.append,
+        self.sub_node.create_subscription(PoseStamped, '/aurora/tip_pose', self.poses.append,
                                           qos_profile_sensor_data)
-        self.sub_node.create_subscription(PoseWithCovarianceStamped, 'em_tracker/tip_pose_cov',
+        self.sub_node.create_subscription(PoseWithCovarianceStamped, '/aurora/tip_pose_cov',
                                           self.cov_poses.append, qos_profile_sensor_data)
-        self.sub_node.create_subscription(Float64, 'em_tracker/rms_error',
+        self.sub_node.create_subscription(Float64, '/aurora/rms_error',
                                           lambda m: self.rms.append(m.data),
                                           qos_profile_sensor_data)
         self.sub_node.create_subscription(
@@ -139,14 +139,14 @@ def test_publishers_qos_and_defaults(ros):
                     if i.node_name == 'aurora' and i.node_namespace == '/']
 
         assert h.spin_until(lambda: all(own(t) for t in DEVICE_TOPICS), timeout=15.0)
-        assert own('/em_tracker/tip_pose')[0].topic_type == 'geometry_msgs/msg/PoseStamped'
-        assert own('/em_tracker/rms_error')[0].topic_type == 'std_msgs/msg/Float64'
-        assert (own('/em_tracker/tip_pose_cov')[0].topic_type
+        assert own('/aurora/tip_pose')[0].topic_type == 'geometry_msgs/msg/PoseStamped'
+        assert own('/aurora/rms_error')[0].topic_type == 'std_msgs/msg/Float64'
+        assert (own('/aurora/tip_pose_cov')[0].topic_type
                 == 'geometry_msgs/msg/PoseWithCovarianceStamped')
-        cov_info = own('/em_tracker/tip_pose_cov')[0]
+        cov_info = own('/aurora/tip_pose_cov')[0]
         assert cov_info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
         assert own('/diagnostics')[0].topic_type == 'diagnostic_msgs/msg/DiagnosticArray'
-        info = own('/em_tracker/tip_pose')[0]
+        info = own('/aurora/tip_pose')[0]
         assert info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
         diag = own('/diagnostics')[0]
         assert diag.qos_profile.reliability == ReliabilityPolicy.RELIABLE
@@ -438,7 +438,7 @@ def _published(node):
     return {pub.topic_name for pub in node.publishers} & set(DEVICE_TOPICS)
 
 
-DEVICE_TOPICS = ('/em_tracker/tip_pose', '/em_tracker/tip_pose_cov', '/em_tracker/rms_error',
+DEVICE_TOPICS = ('/aurora/tip_pose', '/aurora/tip_pose_cov', '/aurora/rms_error',
                  '/diagnostics', '/tf', '/tf_static')
 
 

@@ -39,7 +39,7 @@ def test_node_publishes_the_true_tip_with_the_calibration_from_the_commands(ros,
                                            Parameter('reconnect_initial_s', value=0.05)])
     listener = rclpy.create_node('calibrated_tip_listener')
     poses: list[PoseStamped] = []
-    listener.create_subscription(PoseStamped, 'em_tracker/tip_pose', poses.append,
+    listener.create_subscription(PoseStamped, '/aurora/tip_pose', poses.append,
                                  qos_profile_sensor_data)
     executor = SingleThreadedExecutor()
     executor.add_node(node)

@@ -2,8 +2,10 @@
 
 Lifecycle node (``main`` configures and activates it unless ``autostart`` is false, which leaves
 it unconfigured for a lifecycle manager). Topics, QoS and parameters: see
-``docs/interfaces.md``. All maths and safety rules live in ``core/`` (``BendingModel``,
-``PamSupervisor``) and the CAN protocol in ``hw/``; this file only wires them to ROS.
+``docs/interfaces.md``; the topics are the node's own (``~/bend_command``, ``~/pressures``,
+``~/bend_state``), remapped to the rig's names by its launch files. All maths and safety rules
+live in ``core/`` (``BendingModel``, ``PamSupervisor``) and the CAN protocol in ``hw/``; this
+file only wires them to ROS.
 
 Parameters are validated in the constructor (bad values raise ``ValueError``) and read again at
 configure: a change is accepted only while the node is unconfigured; in any other state
@@ -268,15 +270,15 @@ class PamNode(LifecycleNode):
             self.sim = SimRegulatorBank(self.sim_config)
             self.sim.start()
         self.pub_pressures = self.create_lifecycle_publisher(
-            Float64MultiArray, 'pam/pressures', qos_profile_sensor_data)
+            Float64MultiArray, '~/pressures', qos_profile_sensor_data)
         self.pub_bend = self.create_lifecycle_publisher(
-            JointState, 'catheter/bend_state', qos_profile_sensor_data)
+            JointState, '~/bend_state', qos_profile_sensor_data)
         self.pub_diag = self.create_lifecycle_publisher(
             DiagnosticArray, '/diagnostics', DIAGNOSTICS_QOS)
         self._lifecycle_pubs = [self.pub_pressures, self.pub_bend, self.pub_diag]
         self._sub_command = self.create_subscription(
-            JointState, 'catheter/bend_command', self._on_bend_command, COMMAND_QOS)
-        self._srv_estop = self.create_service(SetBool, 'pam_controller/estop', self._on_estop)
+            JointState, '~/bend_command', self._on_bend_command, COMMAND_QOS)
+        self._srv_estop = self.create_service(SetBool, '~/estop', self._on_estop)
         self._timers = [self.create_timer(self.control_period_s, self._on_control_timer),
                         self.create_timer(self.diagnostics_period_s, self._on_diagnostics_timer)]
         return TransitionCallbackReturn.SUCCESS

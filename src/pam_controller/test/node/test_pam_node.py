@@ -76,16 +76,17 @@ class Harness:
         self.pressures: list[Float64MultiArray] = []
         self.bends: list[JointState] = []
         self.diags: list[DiagnosticStatus] = []
-        self.peer.create_subscription(Float64MultiArray, 'pam/pressures', self.pressures.append,
-                                      qos_profile_sensor_data)
-        self.peer.create_subscription(JointState, 'catheter/bend_state', self.bends.append,
+        # the node's own topics (~/...: under its name), relative to the shared namespace
+        self.peer.create_subscription(Float64MultiArray, 'pam_controller/pressures',
+                                      self.pressures.append, qos_profile_sensor_data)
+        self.peer.create_subscription(JointState, 'pam_controller/bend_state', self.bends.append,
                                       qos_profile_sensor_data)
         self.peer.create_subscription(
             DiagnosticArray, '/diagnostics', lambda m: self.diags.extend(m.status),
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.pub = self.peer.create_publisher(
-            JointState, 'catheter/bend_command', QoSProfile(depth=10,
-                                                            reliability=ReliabilityPolicy.RELIABLE))
+            JointState, 'pam_controller/bend_command',
+            QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         self.estop = self.peer.create_client(SetBool, 'pam_controller/estop')
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
@@ -230,16 +231,17 @@ def test_endpoints_and_qos_match_the_contract(harness):
                 dict(node.get_service_names_and_types_by_node('pam_controller', ns)))
 
     # The graph cache fills through discovery, even for the node's own endpoints.
-    assert h.spin_until(lambda: f'{ns}/pam/pressures' in graph()[0]
+    assert h.spin_until(lambda: f'{ns}/pam_controller/pressures' in graph()[0]
                         and f'{ns}/pam_controller/estop' in graph()[2])
     pubs, subs, srvs = graph()
-    assert pubs[f'{ns}/pam/pressures'] == ['std_msgs/msg/Float64MultiArray']
-    assert pubs[f'{ns}/catheter/bend_state'] == ['sensor_msgs/msg/JointState']
+    assert pubs[f'{ns}/pam_controller/pressures'] == ['std_msgs/msg/Float64MultiArray']
+    assert pubs[f'{ns}/pam_controller/bend_state'] == ['sensor_msgs/msg/JointState']
     assert pubs['/diagnostics'] == ['diagnostic_msgs/msg/DiagnosticArray']
-    assert subs == {f'{ns}/catheter/bend_command': ['sensor_msgs/msg/JointState']}
+    assert subs == {f'{ns}/pam_controller/bend_command': ['sensor_msgs/msg/JointState']}
     assert srvs[f'{ns}/pam_controller/estop'] == ['std_srvs/srv/SetBool']
     lifecycle_only = {f'{ns}/pam_controller/transition_event'}
-    assert set(pubs) - lifecycle_only == {f'{ns}/pam/pressures', f'{ns}/catheter/bend_state',
+    assert set(pubs) - lifecycle_only == {f'{ns}/pam_controller/pressures',
+                                          f'{ns}/pam_controller/bend_state',
                                           '/diagnostics', '/parameter_events', '/rosout'}
 
     def reliability(topic: str, publisher: bool) -> ReliabilityPolicy:
@@ -247,10 +249,10 @@ def test_endpoints_and_qos_match_the_contract(harness):
                  else node.get_subscriptions_info_by_topic(topic))
         return next(i for i in infos if i.node_name == 'pam_controller').qos_profile.reliability
 
-    assert reliability(f'{ns}/pam/pressures', True) == ReliabilityPolicy.BEST_EFFORT
-    assert reliability(f'{ns}/catheter/bend_state', True) == ReliabilityPolicy.BEST_EFFORT
+    assert reliability(f'{ns}/pam_controller/pressures', True) == ReliabilityPolicy.BEST_EFFORT
+    assert reliability(f'{ns}/pam_controller/bend_state', True) == ReliabilityPolicy.BEST_EFFORT
     assert reliability('/diagnostics', True) == ReliabilityPolicy.RELIABLE
-    assert reliability(f'{ns}/catheter/bend_command', False) == ReliabilityPolicy.RELIABLE
+    assert reliability(f'{ns}/pam_controller/bend_command', False) == ReliabilityPolicy.RELIABLE
 
 
 # ---- behaviour ----------------------------------------------------------------------------
@@ -443,10 +445,10 @@ def test_cleanup_then_configure_again_gives_one_set_of_endpoints(harness):
     h.node.trigger_configure()
     h.node.trigger_activate()
     assert h.spin_until(lambda: len(h.pressures) > 3)
-    infos = [i for i in h.node.get_publishers_info_by_topic(f'{ns}/pam/pressures')
+    infos = [i for i in h.node.get_publishers_info_by_topic(f'{ns}/pam_controller/pressures')
              if i.node_name == 'pam_controller']
     assert len(infos) == 1
-    assert len(h.node.get_subscriptions_info_by_topic(f'{ns}/catheter/bend_command')) == 1
+    assert len(h.node.get_subscriptions_info_by_topic(f'{ns}/pam_controller/bend_command')) == 1
 
 
 # ---- parameters: read at configure, changeable only while unconfigured --------------------
