@@ -1,4 +1,5 @@
-"""plan_patient end to end on the project's synthetic patients: time and success on unseen targets.
+"""``cgail plan-patient`` end to end on the project's synthetic patients: time and success on
+unseen targets.
 
 Run: ``scripts/ws python bench/bench_plan_patient.py [--budget-min 15] [--out runs/bench_plan]
 [--patients ct mesh]``.
@@ -11,12 +12,12 @@ downloaded):
   the committed default policy reaches 0% (it was trained on ``default``);
 * ``mesh``: a noisy lumen surface (0.3 mm vertex noise) of the ``default`` aorta in RAS.
 
-Each goes through ``prepare_anatomy`` and then ``plan_patient --budget-min B`` (its whole
-pipeline: expert demonstrations, a behavioural-cloning warm start, a DAgger round when the warm
-start validates under the static goal plus 5 points, and C-GAIL fine-tuning from the committed
-policy, export, evaluation on unseen target sets with the centerline follower). Prints one line
-per stage and the table the README shows; writes ``OUT/bench.md``. The machine, its cores and
-its load are printed with the figures, since training speed is what the budget buys.
+Each goes through ``cgail prepare-anatomy`` and then ``cgail plan-patient --budget-min B`` (its
+whole pipeline: expert demonstrations, a behavioural-cloning warm start, a DAgger round when the
+warm start validates under the static goal plus 5 points, and C-GAIL fine-tuning from the
+committed policy, export, evaluation on unseen target sets with the centerline follower). Prints
+one line per stage and the table the README shows; writes ``OUT/bench.md``. The machine, its
+cores and its load are printed with the figures, since training speed is what the budget buys.
 """
 
 from __future__ import annotations
@@ -86,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
             cmd = [str(inputs[0]), "--frame", "RAS"]
         status = prepare_main([*cmd, "--out", str(base / "anatomy"), "--name", f"syn_{name}"])
         t_prep = time.monotonic() - t0
-        print(f"{name}: prepare_anatomy exit {status}, {t_prep:.0f} s", flush=True)
+        print(f"{name}: cgail prepare-anatomy exit {status}, {t_prep:.0f} s", flush=True)
         if status != 0:
             return 1
         t1 = time.monotonic()
@@ -107,11 +108,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{100 * s['dynamic']['C-GAIL (this run)']:.0f}% | "
             f"{100 * s['static']['centerline']:.0f}% / {100 * s['dynamic']['centerline']:.0f}% | "
             f"{'yes' if rec['goals_met'] else 'no'} |")
-        print(f"{name}: plan_patient exit {status}, {t_plan:.0f} s; static "
+        print(f"{name}: cgail plan-patient exit {status}, {t_plan:.0f} s; static "
               f"{100 * s['static']['C-GAIL (this run)']:.0f}%, dynamic "
               f"{100 * s['dynamic']['C-GAIL (this run)']:.0f}% ({n} trials each)", flush=True)
     table = [
-        f"plan_patient, budget {args.budget_min:g} min, on {cpu_name()} ({os.cpu_count()} "
+        f"cgail plan-patient, budget {args.budget_min:g} min, on {cpu_name()} ({os.cpu_count()} "
         f"logical CPUs, load {load0:.1f} at the start); success on unseen targets "
         f"({args.trials * len(PlanOptions().test_seeds)} trials per mode, simulated EM "
         "tracker noise):", "",

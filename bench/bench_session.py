@@ -30,7 +30,7 @@ def tables(stdout: str) -> str:
     """The printed metrics tables (from '## Trials' on), without the wall-time lines."""
     start = stdout.find('## Trials')
     return '\n'.join(line for line in stdout[start:].splitlines()
-                     if not line.startswith('invitro_session: wrote'))
+                     if not line.startswith('cgail session: wrote'))
 
 
 def digests(out: Path) -> dict[str, object]:
@@ -51,7 +51,7 @@ def main() -> int:
     parser.add_argument('--trials', type=int, default=10, help='trials per condition')
     parser.add_argument('--busy', type=int, default=0,
                         help='busy-loop processes during the runs after the first')
-    parser.add_argument('extra', nargs='*', help='more invitro_session arguments (after --)')
+    parser.add_argument('extra', nargs='*', help='more cgail session arguments (after --)')
     args = parser.parse_args()
     results = []
     with tempfile.TemporaryDirectory(prefix='bench_session_') as tmp:

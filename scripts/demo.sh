@@ -2,11 +2,11 @@
 # The main job: set up if needed, then run the simulated in-vitro session of the paper
 # (section IV-B) end to end on the built-in defaults: default anatomy, the committed C-GAIL
 # policy, the phantom's true catheter plant with the PAM model identified on it first
-# (identify_pam on the simulated bench), 30 trials following the C-GAIL path and 30 following
+# (cgail identify-pam on the simulated bench), 30 trials following the C-GAIL path and 30 following
 # the centerline (3-minute limit each), every trial recorded to a bag, then the metrics table
 # and box plots.
 #   bash scripts/demo.sh                       # defaults, output in runs/invitro_session
-#   bash scripts/demo.sh --trials 3 --mode dynamic --out runs/dyn   # any invitro_session option
+#   bash scripts/demo.sh --trials 3 --mode dynamic --out runs/dyn   # any cgail session option
 set -euo pipefail
 WS="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$WS"
@@ -20,4 +20,4 @@ if ! printf '%s\n' "${args[@]}" | grep -q -- '^--out'; then
     args+=(--out runs/invitro_session)
 fi
 echo "[demo] simulated in-vitro session; Ctrl-C stops it and evaluates the trials done so far"
-exec "$WS/scripts/ros2run" cgail_planner invitro_session "${args[@]}"
+exec "$WS/scripts/ws" cgail session "${args[@]}"

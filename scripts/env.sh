@@ -33,7 +33,7 @@ if [ -f "$CGAIL_WS/install/setup.bash" ]; then
     eval "$_cgail_u"
 fi
 # Every package's executables (install/<pkg>/lib/<pkg>, where `ros2 run` looks; colcon's setup
-# does not put them on PATH) at the end of PATH, so that `scripts/ws make_demos ...` works
+# does not put them on PATH) at the end of PATH, so that `scripts/ws cgail make-demos ...` works
 # without ros2cli (scripts/ros2run <pkg> <executable> is the `ros2 run` form).
 for _cgail_pkg in "$CGAIL_WS"/install/*/; do
     _cgail_bin="${_cgail_pkg}lib/$(basename "$_cgail_pkg")"

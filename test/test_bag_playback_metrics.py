@@ -120,7 +120,7 @@ def test_truncated_fixture_gives_a_clear_player_error(tmp_path: Path) -> None:
     result = run_module('cgail_planner.bags.play', str(bag))
     assert result.returncode == 2
     assert 'Traceback' not in result.stderr
-    assert f'bag_play: error: {bag}: truncated or corrupt bag' in result.stderr
+    assert f'cgail bag play: error: {bag}: truncated or corrupt bag' in result.stderr
 
 
 def test_truncated_fixture_gives_a_clear_metrics_error(tmp_path: Path, capsys) -> None:
@@ -129,7 +129,7 @@ def test_truncated_fixture_gives_a_clear_metrics_error(tmp_path: Path, capsys) -
     bag = truncated_fixture(tmp_path)
     assert main([str(bag), '-o', str(tmp_path / 'out')]) == 2
     err = capsys.readouterr().err
-    assert f'bag_metrics: error: {bag}: truncated or corrupt bag' in err
+    assert f'cgail bag metrics: error: {bag}: truncated or corrupt bag' in err
     assert 'File end magic is invalid' in err
 
 

@@ -106,5 +106,5 @@ def test_bad_input_gives_one_clear_line(tmp_path, capsys, make, expected) -> Non
     bag = make(tmp_path)
     assert main(['--bag', str(bag), '--out', str(tmp_path / 'out')]) == 2
     err = capsys.readouterr().err
-    assert err.count('\n') == 1 and err.startswith('identify_pam: error: '), err
+    assert err.count('\n') == 1 and err.startswith('cgail identify-pam: error: '), err
     assert pytest.importorskip('re').search(expected, err), err

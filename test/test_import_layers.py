@@ -60,6 +60,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
     # The planned split of issue 32 (cgail_sim, cgail_planner, cgail_bags, cgail_gui,
     # cgail_learning, cgail_patient, the rig bring-up), bottom up:
     'cgail_planner': (
+        'cli_help',  # help text of the cgail tools (stdlib only): every tool's parser uses it
         'sim',       # the in-silico world: anatomy, catheter model, wall, env (no ROS, no torch)
         'core',      # pure-python planner and rig logic, built on the simulator's model
         'hw',        # device adapters (the OpenIGTLink server)
@@ -69,6 +70,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
         'patient',   # prepare a patient's anatomy and plan for it (trains through learning)
         'nodes',     # rclpy wrappers of the layers below
         'system',    # the rig bring-up: launcher, lockstep, sessions, identification
+        'cli',       # `cgail <verb>`: imports every tool's module (by name, when the verb runs)
     ),
 }
 

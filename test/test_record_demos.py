@@ -66,7 +66,7 @@ def test_scripted_demonstrations_are_a_demo_bag_that_replays(scripted_bag) -> No
     from cgail_planner.learning.recorder import read_recording
 
     out, stdout = scripted_bag
-    assert stdout.count('record_demos: episode ') == 2
+    assert stdout.count('cgail record-demos: episode ') == 2
     summary = json.loads(stdout.strip().splitlines()[-1])
     assert summary['saved'] == 2 and summary['rejected_inputs'] == {}
     meta, episodes = read_demo_bag(out)
@@ -92,7 +92,7 @@ def test_train_smoke_accepts_the_recorded_bag(scripted_bag, tmp_path: Path) -> N
                           '--num-envs', '2', '--out', str(tmp_path / 'run'), '--no-progress'],
                          capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
-    assert 'train: demonstrations:' in run.stdout + run.stderr
+    assert 'cgail train: demonstrations:' in run.stdout + run.stderr
     assert (tmp_path / 'run' / 'final.pt').is_file()
 
 
@@ -107,7 +107,7 @@ def test_bad_input_is_one_line(args: list[str], message: str, tmp_path: Path) ->
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 2
     lines = run.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('record_demos: error: '), run.stderr
+    assert len(lines) == 1 and lines[0].startswith('cgail record-demos: error: '), run.stderr
     assert message in lines[0]
     assert not (tmp_path / 'd').exists()
 
@@ -117,9 +117,9 @@ def test_an_existing_out_is_refused(tmp_path: Path) -> None:
     run = subprocess.run(record_demos('--out', str(tmp_path / 'd')), capture_output=True,
                          text=True, timeout=120)
     assert run.returncode == 2
-    assert run.stderr.strip() == (f'record_demos: error: --out {tmp_path / "d"}: expected a new '
-                                  'bag directory, found it exists (choose another name or '
-                                  'remove it)')
+    assert run.stderr.strip() == (f'cgail record-demos: error: --out {tmp_path / "d"}: expected '
+                                  'a new bag directory, found it exists (choose another name '
+                                  'or remove it)')
 
 
 def test_a_nan_joy_axis_is_one_line_and_loses_nothing(rclpy_context, tmp_path: Path) -> None:
@@ -151,9 +151,9 @@ def test_a_nan_joy_axis_is_one_line_and_loses_nothing(rclpy_context, tmp_path: P
             proc.kill()
     lines = (text + more + rest).splitlines()
     nan_lines = [line for line in lines if 'found nan' in line]
-    assert nan_lines == ['record_demos: joy (gamepad): expected Joy axis 1 finite in [-1, 1], '
-                         'found nan: teleop stopped the catheter (deadman released); fix the '
-                         'device or its axes'], lines
+    assert nan_lines == ['cgail record-demos: joy (gamepad): expected Joy axis 1 finite in '
+                         '[-1, 1], found nan: teleop stopped the catheter (deadman released); '
+                         'fix the device or its axes'], lines
     assert proc.returncode == 0
     summary = json.loads(lines[-1])
     assert summary['interrupted'] is True and summary['saved'] >= 2

@@ -20,7 +20,7 @@ FIXTURES = ROOT / 'bags' / 'fixtures'
 def test_cgail_condition_needs_a_policy(tmp_path, capsys) -> None:
     missing = tmp_path / 'missing.onnx'
     assert main(['--out', str(tmp_path), '--trials', '1', '--policy', str(missing)]) == 2
-    assert f'needs --policy <model.onnx> (export_onnx), found no file at {missing}' \
+    assert f'needs --policy <model.onnx> (cgail export-onnx), found no file at {missing}' \
         in capsys.readouterr().err
 
 

@@ -59,7 +59,7 @@ def _run(argv: list[str]) -> subprocess.CompletedProcess[str]:
 
 def test_every_documented_scripts_ws_command_resolves() -> None:
     commands = _documented_commands()
-    assert {'python', 'make_demos', 'aurora_node'} <= commands.keys()
+    assert {'python', 'cgail', 'aurora_node'} <= commands.keys()
     result = _run(['bash', str(WS), 'bash', '-c',
                    'for c in "$@"; do command -v "$c" >/dev/null || echo "$c"; done', '_',
                    *commands])
@@ -69,6 +69,18 @@ def test_every_documented_scripts_ws_command_resolves() -> None:
         f'{ {c: commands[c] for c in missing} }'
 
 
+def test_documents_run_the_tools_as_cgail_verbs() -> None:
+    """The README, docs, scripts and benchmarks invoke tools as ``cgail <verb>``, never by the
+    previous release's console-script names (which only remain for one release)."""
+    from cgail_planner.cli import VERBS
+
+    olds = '|'.join(sorted((v.old for v in VERBS if v.old), key=len, reverse=True))
+    invocation = re.compile(rf'(?:scripts/ws|scripts/ros2run \w+|ros2 run \w+|\$R) ({olds})\b')
+    found = [f'{path.relative_to(ROOT)}: {m.group(0)}' for path in _documents()
+             for m in invocation.finditer(path.read_text(errors='replace'))]
+    assert not found, f'expected cgail <verb> commands, found the old names: {found}'
+
+
 def test_scripts_ws_finds_the_installed_node_executable() -> None:
     result = _run(['bash', str(WS), 'bash', '-c', 'command -v aurora_node'])
     assert result.returncode == 0, result.stderr
@@ -76,13 +88,22 @@ def test_scripts_ws_finds_the_installed_node_executable() -> None:
                             ROOT / 'install' / 'em_tracker' / 'lib' / 'em_tracker' / 'aurora_node')
 
 
-@pytest.mark.parametrize('argv', [
-    ['scripts/ws', 'make_demos', '--help'],    # as bags/demos/README.md shows it
-    ['scripts/ws', 'sim_aurora', '--help'],
-    ['scripts/ros2run', 'em_tracker', 'sim_aurora', '--help'],
+@pytest.mark.parametrize(('argv', 'usage'), [
+    (['scripts/ws', 'cgail', 'make-demos', '--help'], 'cgail make-demos'),  # bags/demos/README
+    (['scripts/ws', 'sim_aurora', '--help'], 'sim_aurora'),
+    (['scripts/ros2run', 'em_tracker', 'sim_aurora', '--help'], 'sim_aurora'),
+    (['scripts/ros2run', 'cgail_planner', 'cgail', 'bag', 'play', '--help'], 'cgail bag play'),
 ])
-def test_package_executables_run_through_the_scripts(argv: list[str]) -> None:
+def test_package_executables_run_through_the_scripts(argv: list[str], usage: str) -> None:
     result = _run(['bash', *argv])
     assert result.returncode == 0, result.stderr
-    executable = argv[1] if argv[0] == 'scripts/ws' else argv[2]
-    assert result.stdout.startswith(f'usage: {executable}')
+    assert result.stdout.startswith(f'usage: {usage} ')
+
+
+def test_an_old_tool_name_still_runs_with_a_deprecation_line() -> None:
+    """The console scripts of the last release run their ``cgail`` verb for one more."""
+    result = _run(['bash', 'scripts/ws', 'make_demos', '--help'])
+    assert result.returncode == 0, result.stderr
+    assert result.stderr == ("make_demos: deprecated: use 'cgail make-demos' (the name "
+                             "'make_demos' goes in the next release)\n")
+    assert result.stdout.startswith('usage: cgail make-demos ')

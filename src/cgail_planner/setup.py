@@ -14,7 +14,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
         ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.dbc')),
-        ('share/' + PACKAGE + '/config/launch', glob('config/launch/*.yaml')),
+        ('share/' + PACKAGE + '/launch', glob('launch/*.launch.yaml')),
         ('share/' + PACKAGE + '/config/presets', glob('config/presets/*.yaml')),
         # RViz2 and Foxglove views of the markers (phantom/markers, planner/markers)
         ('share/' + PACKAGE + '/config/rviz', glob('config/rviz/*.rviz')),
@@ -43,29 +43,21 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            # Nodes: ROS executables (ros2 run cgail_planner <node>; scripts/ros2run here).
             'planner_node = cgail_planner.nodes.planner_node:main',
             'phantom_node = cgail_planner.nodes.phantom_node:main',
             'operator_node = cgail_planner.nodes.operator_node:main',
             'gui_node = cgail_planner.nodes.gui_node:main',
             'igtl_bridge = cgail_planner.nodes.igtl_bridge:main',
-            'rig_launch = cgail_planner.system.launcher:main',
-            'bag_record = cgail_planner.bags.record:main',
-            'bag_play = cgail_planner.bags.play:main',
-            'bag_metrics = cgail_planner.bags.metrics_cli:main',
-            'session_compare = cgail_planner.bags.compare_cli:main',
-            'bag_recover = cgail_planner.bags.recover:main',
-            'sim_render = cgail_planner.sim.render:main',
-            'prepare_anatomy = cgail_planner.patient.prepare_cli:main',
-            'synthetic_ct = cgail_planner.patient.synthetic:main',
-            'plan_patient = cgail_planner.patient.plan:main',
-            'make_demos = cgail_planner.learning.demos_cli:main',
-            'record_demos = cgail_planner.system.record_demos:main',
-            'train = cgail_planner.learning.train:main',
-            'refine = cgail_planner.learning.refine:main',
-            'evaluate = cgail_planner.learning.evaluate:main',
-            'export_onnx = cgail_planner.learning.export:main',
-            'invitro_session = cgail_planner.system.session:main',
-            'identify_pam = cgail_planner.system.identify_pam:main',
+            # Tools: one command line, `cgail <verb>` (cgail_planner/cli.py holds the verbs).
+            'cgail = cgail_planner.cli:main',
+            # The tools' names of the last release: a deprecation line, then `cgail <verb>`.
+            # Remove in the next release.
+            *(f'{old} = cgail_planner.cli:legacy_{old}' for old in (
+                'rig_launch', 'bag_record', 'bag_play', 'bag_metrics', 'session_compare',
+                'bag_recover', 'sim_render', 'prepare_anatomy', 'synthetic_ct', 'plan_patient',
+                'make_demos', 'record_demos', 'train', 'refine', 'evaluate', 'export_onnx',
+                'invitro_session', 'identify_pam')),
         ],
     },
 )

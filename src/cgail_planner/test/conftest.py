@@ -25,7 +25,8 @@ def bad_anatomy(request: pytest.FixtureRequest, tmp_path: Path) -> tuple[Path, s
         d = tmp_path / 'empty'
         d.mkdir()
         return d, (f'anatomy {d}: expected a prepared anatomy directory holding lumen.stl and '
-                   'lumen.yaml (prepare_anatomy makes one), found no lumen.stl and no lumen.yaml')
+                   'lumen.yaml (cgail prepare-anatomy makes one), found no lumen.stl and no '
+                   'lumen.yaml')
     d = tmp_path / 'junk'
     d.mkdir()
     (d / 'lumen.stl').write_text('solid junk\nendsolid junk\n')

@@ -1,10 +1,10 @@
-"""``session_compare``: several in-vitro sessions side by side (plants, modes, seeds).
+"""``cgail bag compare``: several in-vitro sessions side by side (plants, modes, seeds).
 
-    scripts/ros2run cgail_planner session_compare identified/static=runs/s16/identified_static \\
+    cgail bag compare identified/static=runs/s16/identified_static \\
         ideal/static=runs/s16/ideal_static -o runs/s16/compare
 
 Each argument is ``LABEL=DIR`` (or just ``DIR``, labelled by its name): the output directory of
-an ``invitro_session`` (or of ``bag_metrics``), whose ``metrics.csv`` holds one row per trial.
+a ``cgail session`` (or of ``cgail bag metrics``), whose ``metrics.csv`` holds one row per trial.
 Writes ``<out>/compare.md`` (per session and condition: trials, success with its Wilson
 interval, T_r and T_a as mean ± std with the bootstrap interval of the mean; per session the
 C-GAIL path against the centerline: improvement, Kruskal-Wallis p and Cliff's delta; the paper's
@@ -21,6 +21,7 @@ from pathlib import Path
 import sys
 
 from cgail_planner.bags.report import read_csv, session_box_plots, session_comparison
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.core.metrics import MetricsError
 
 
@@ -35,8 +36,8 @@ def parse_session(spec: str) -> tuple[str, Path]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``session_compare``."""
-    p = argparse.ArgumentParser(prog='session_compare', description=__doc__.splitlines()[0])
+    """Command-line options of ``cgail bag compare``."""
+    p = tool_parser('bag compare', __doc__, details=True)
     p.add_argument('sessions', nargs='+', metavar='LABEL=DIR',
                    help='session output directories (holding metrics.csv), optionally labelled')
     p.add_argument('-o', '--output', type=Path, default=Path('runs/session_compare'),
@@ -46,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``session_compare``; returns the exit status."""
+    """Entry point of ``cgail bag compare``; returns the exit status."""
     args = build_parser().parse_args(argv)
     sessions = {}
     try:
@@ -57,7 +58,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                    'labels (LABEL=DIR)')
             sessions[label] = read_csv(where / 'metrics.csv')
     except MetricsError as exc:
-        print(f'session_compare: error: {exc}', file=sys.stderr)
+        print(f'cgail bag compare: error: {exc}', file=sys.stderr)
         return 2
     text = session_comparison(sessions)
     args.output.mkdir(parents=True, exist_ok=True)
@@ -66,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     written = [args.output / 'compare.md']
     if not args.no_plot:
         written.append(session_box_plots(sessions, args.output / 'compare_boxplot.png'))
-    print('session_compare: wrote ' + ' and '.join(str(p) for p in written))
+    print('cgail bag compare: wrote ' + ' and '.join(str(p) for p in written))
     return 0
 
 

@@ -1,12 +1,14 @@
-"""``bag_metrics``: the paper's in-vitro metrics from trial bags, a markdown table and box plots.
+"""``cgail bag metrics``: the paper's in-vitro metrics from trial bags, a markdown table and box
+plots.
 
-    scripts/ros2run cgail_planner bag_metrics bags/fixtures            # every bag in the directory
-    scripts/ros2run cgail_planner bag_metrics runs/cgail runs/centerline -o out   # dir = condition
-    scripts/ros2run cgail_planner bag_metrics trial1 trial2 --condition cgail     # label given
+    cgail bag metrics bags/fixtures            # every bag in the directory
+    cgail bag metrics runs/cgail runs/centerline -o out   # dir = condition
+    cgail bag metrics trial1 trial2 --condition cgail     # label given
 
 A trial is one bag (directory with metadata.yaml or a bare .mcap). A directory argument that is
 not itself a bag holds one bag per trial. The condition of a trial is, first match wins:
-``--condition``, the bag's ``custom_data`` ``condition`` (``bag_record --condition``), the name of
+``--condition``, the bag's ``custom_data`` ``condition`` (``cgail bag record --condition``), the
+name of
 the directory argument holding it, else ``unlabelled``. Metric definitions:
 :mod:`cgail_planner.core.metrics`. Writes ``<out>/metrics.md``,
 ``<out>/metrics.csv`` (per trial, SI units) and ``<out>/metrics_boxplot.png`` and prints the
@@ -23,6 +25,7 @@ import sys
 from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.reader import find_trials, read_trial, TrialTopics
 from cgail_planner.bags.report import box_plots, markdown_report, write_csv
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.core.metrics import (
     compute_trial_metrics,
     kruskal_by_condition,
@@ -56,8 +59,8 @@ def evaluate_bags(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``bag_metrics``."""
-    parser = argparse.ArgumentParser(prog='bag_metrics', description=__doc__.splitlines()[0])
+    """Command-line options of ``cgail bag metrics``."""
+    parser = tool_parser('bag metrics', __doc__, details=True)
     parser.add_argument('bags', nargs='+', type=Path, help='trial bags or directories of bags')
     parser.add_argument('-o', '--output', type=Path, default=Path('metrics_out'),
                         help='directory for metrics.md and metrics_boxplot.png')
@@ -75,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``bag_metrics``; returns the exit status."""
+    """Entry point of ``cgail bag metrics``; returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -87,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         trials = evaluate_bags(args.bags, config, condition=args.condition)
     except (BagError, MetricsError) as exc:
-        print(f'bag_metrics: error: {exc}', file=sys.stderr)
+        print(f'cgail bag metrics: error: {exc}', file=sys.stderr)
         return 2
     tests = kruskal_by_condition(trials)
     text = markdown_report(trials, tests)
@@ -95,10 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     (args.output / 'metrics.md').write_text('# Offline metrics\n\n' + text)
     write_csv(trials, args.output / 'metrics.csv')
     print(text)
-    print(f'bag_metrics: wrote {args.output / "metrics.md"} and {args.output / "metrics.csv"}')
+    print(f'cgail bag metrics: wrote {args.output / "metrics.md"} and '
+          f'{args.output / "metrics.csv"}')
     if not args.no_plot:
         png = box_plots(trials, tests, args.output / 'metrics_boxplot.png')
-        print(f'bag_metrics: wrote {png}')
+        print(f'cgail bag metrics: wrote {png}')
     return 0
 
 

@@ -1,9 +1,10 @@
-"""``bag_play``: play a rosbag2 MCAP bag back into live topics (rosbags + rclpy raw publish).
+"""``cgail bag play``: play a rosbag2 MCAP bag back into live topics (rosbags + rclpy raw
+publish).
 
-    scripts/ros2run cgail_planner bag_play bags/fixtures/cgail_trial
-    scripts/ros2run cgail_planner bag_play RUN --rate 2 --loop --start-offset 5
-    scripts/ros2run cgail_planner bag_play RUN --topics em_tracker/tip_pose planner/path
-    scripts/ros2run cgail_planner bag_play RUN --clock          # /clock at 40 Hz (--clock 100)
+    cgail bag play bags/fixtures/cgail_trial
+    cgail bag play RUN --rate 2 --loop --start-offset 5
+    cgail bag play RUN --topics em_tracker/tip_pose planner/path
+    cgail bag play RUN --clock          # /clock at 40 Hz (--clock 100)
 
 * Publishers are recreated with the QoS recorded in the bag's ``offered_qos_profiles``
   (reliable/transient-local only when every recorded publisher was), so a latched topic such as
@@ -18,9 +19,9 @@
   every message logged at or after that bag time. Nodes with ``use_sim_time`` then run on the
   bag's clock, sped up with ``--rate``; each ``--loop`` pass starts the clock again from
   ``start``. The ticks stop with the last message (ros2 bag play keeps its clock running).
-  Write the bag before ``--clock`` (``bag_play RUN --clock``): in ``--clock RUN`` the bag would
-  be read as HZ. A bag that records ``/clock`` itself is refused with ``--clock``.
-* A missing, truncated or corrupt bag ends with ``bag_play: error: <path>: ...`` and exit
+  Write the bag before ``--clock`` (``cgail bag play RUN --clock``): in ``--clock RUN`` the bag
+  would be read as HZ. A bag that records ``/clock`` itself is refused with ``--clock``.
+* A missing, truncated or corrupt bag ends with ``cgail bag play: error: <path>: ...`` and exit
   status 2, not a traceback (:class:`~cgail_planner.bags.errors.BagError`).
 """
 
@@ -42,6 +43,7 @@ from cgail_planner.bags.bagio import iter_raw, open_bag
 from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.qos import to_rclpy
 from cgail_planner.bags.rosutil import get_message_class
+from cgail_planner.cli_help import tool_parser
 
 #: ``/clock`` rate of ``--clock`` without a value (ros2 bag play's default).
 DEFAULT_CLOCK_HZ = 40.0
@@ -205,8 +207,8 @@ def _wait_until(due: float, halt: threading.Event) -> bool:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``bag_play``."""
-    parser = argparse.ArgumentParser(prog='bag_play', description=__doc__.splitlines()[0])
+    """Command-line options of ``cgail bag play``."""
+    parser = tool_parser('bag play', __doc__, details=True)
     parser.add_argument('bag', type=Path, help='bag directory or .mcap file')
     parser.add_argument('-r', '--rate', type=float, default=1.0, help='speed factor (default 1)')
     parser.add_argument('-l', '--loop', action='store_true', help='play again and again')
@@ -226,7 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``bag_play``; returns the exit status (2 on a bad bag)."""
+    """Entry point of ``cgail bag play``; returns the exit status (2 on a bad bag)."""
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
@@ -249,13 +251,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             player = BagPlayer(node, config)
             clock = f', {CLOCK_TOPIC} at {config.clock_hz:g} Hz' if config.clock_hz else ''
-            print(f'bag_play: playing {config.bag} ({", ".join(player.publishers)}) at '
+            print(f'cgail bag play: playing {config.bag} ({", ".join(player.publishers)}) at '
                   f'rate {config.rate:g}{clock}', flush=True)
             count = player.play(stop)
-            print(f'bag_play: published {count} messages', flush=True)
+            print(f'cgail bag play: published {count} messages', flush=True)
             stop.wait(max(0.0, args.linger))
         except BagError as exc:
-            print(f'bag_play: error: {exc}', file=sys.stderr)
+            print(f'cgail bag play: error: {exc}', file=sys.stderr)
             status = 2
         finally:
             node.destroy_node()

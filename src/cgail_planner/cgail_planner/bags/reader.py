@@ -10,7 +10,7 @@ Times are the messages' ``header.stamp`` (the measurement time, unchanged by a r
 rate); a zero stamp falls back to the bag's log time. Positions are in metres (phantom frame).
 
 Condition label of a trial, first match wins: the ``condition`` argument (CLI ``--condition``),
-the bag's ``metadata.yaml`` ``custom_data: {condition: ...}`` (written by ``bag_record
+the bag's ``metadata.yaml`` ``custom_data: {condition: ...}`` (written by ``cgail bag record
 --condition``), the name of the directory the bag sits in when that directory was given as a
 set of trials, else ``unlabelled``.
 """

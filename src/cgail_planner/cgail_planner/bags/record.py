@@ -1,7 +1,8 @@
-"""``bag_record``: record ROS 2 topics to a rosbag2 MCAP bag (rosbags + rclpy raw subscriptions).
+"""``cgail bag record``: record ROS 2 topics to a rosbag2 MCAP bag (rosbags + rclpy raw
+subscriptions).
 
-    scripts/ros2run cgail_planner bag_record -o runs/cgail/t1 --condition cgail planner/goal
-    scripts/ros2run cgail_planner bag_record -o runs/all_topics --all --max-duration 200
+    cgail bag record -o runs/cgail/t1 --condition cgail planner/goal
+    cgail bag record -o runs/all_topics --all --max-duration 200
 
 * Topics are discovered from the graph (``get_topic_names_and_types``) every
   ``--discovery-period`` s; a topic is subscribed once it has a publisher, with a QoS compatible
@@ -32,6 +33,7 @@ from cgail_planner.bags.bagio import BagWriter
 from cgail_planner.bags.errors import BagError
 from cgail_planner.bags.qos import from_rclpy, subscription_qos
 from cgail_planner.bags.rosutil import get_message_class, stop_on_signals
+from cgail_planner.cli_help import tool_parser
 
 #: Topics never recorded by ``--all`` (ROS 2 infrastructure).
 EXCLUDED_BY_ALL = ('/rosout', '/parameter_events')
@@ -180,8 +182,8 @@ class BagRecorder:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``bag_record``."""
-    parser = argparse.ArgumentParser(prog='bag_record', description=__doc__.splitlines()[0])
+    """Command-line options of ``cgail bag record``."""
+    parser = tool_parser('bag record', __doc__, details=True)
     parser.add_argument('topics', nargs='*', help='topics to record (e.g. em_tracker/tip_pose)')
     parser.add_argument('-a', '--all', action='store_true', help='record all topics')
     parser.add_argument('-o', '--output', type=Path, default=None,
@@ -198,7 +200,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``bag_record``; returns the exit status."""
+    """Entry point of ``cgail bag record``; returns the exit status."""
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -225,11 +227,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             recorder = BagRecorder(node, config)
         except BagError as exc:
-            print(f'bag_record: error: {exc}', file=sys.stderr)
+            print(f'cgail bag record: error: {exc}', file=sys.stderr)
             node.destroy_node()
             try_shutdown()
             return 2
-        print(f'bag_record: recording to {output}', flush=True)
+        print(f'cgail bag record: recording to {output}', flush=True)
         start = time.monotonic()
         while not stop.is_set():
             executor.spin_once(timeout_sec=0.05)
@@ -246,10 +248,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 idle_until = time.monotonic() + 0.2
         try:
             count = recorder.stop()
-            print(f'bag_record: wrote {count} messages on {len(recorder.topics) or "no"} '
+            print(f'cgail bag record: wrote {count} messages on {len(recorder.topics) or "no"} '
                   f'topics to {output}', flush=True)
         except BagError as exc:
-            print(f'bag_record: error: {exc}', file=sys.stderr)
+            print(f'cgail bag record: error: {exc}', file=sys.stderr)
             status = 2
         finally:
             executor.shutdown()

@@ -1,9 +1,9 @@
 """Recover the messages of an MCAP bag whose recorder was killed before closing it.
 
-    scripts/ws python -m cgail_planner.bags.recover CRASHED_BAG -o RECOVERED_BAG
+    cgail bag recover CRASHED_BAG -o RECOVERED_BAG
 
-``bag_record`` closes its bag cleanly on SIGINT/SIGTERM. After a hard kill (SIGKILL, power loss)
-the file has the chunks flushed so far (every ``--flush-period``) but no summary, index or
+``cgail bag record`` closes its bag cleanly on SIGINT/SIGTERM. After a hard kill (SIGKILL, power
+loss) the file has the chunks flushed so far (every ``--flush-period``) but no summary, index or
 ``metadata.yaml``, so readers refuse it. This tool scans the file's records from the start,
 keeps every complete chunk's schemas, channels (with their ``offered_qos_profiles``) and
 messages, stops at the first incomplete record, and writes them to a new, complete bag.
@@ -23,6 +23,7 @@ from rosbags.rosbag2.metadata import parse_qos
 
 from cgail_planner.bags.bagio import BagWriter
 from cgail_planner.bags.errors import BagError
+from cgail_planner.cli_help import tool_parser
 
 MAGIC = b'\x89MCAP0\r\n'
 OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x03, 0x04, 0x05, 0x06
@@ -139,19 +140,24 @@ def recover_bag(source: Path | str, output: Path | str) -> Recovered:
     return Recovered(count, tuple(sorted(t for t, _, _ in channels.values())), complete)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point (``python -m cgail_planner.bags.recover``); exit status 2 on failure."""
-    parser = argparse.ArgumentParser(prog='bag_recover', description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line options of ``cgail bag recover``."""
+    parser = tool_parser('bag recover', __doc__, details=True)
     parser.add_argument('bag', type=Path, help='crashed bag directory or .mcap file')
     parser.add_argument('-o', '--output', type=Path, required=True, help='new bag directory')
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``cgail bag recover``; exit status 2 on failure."""
+    args = build_parser().parse_args(argv)
     try:
         result = recover_bag(args.bag, args.output)
     except BagError as exc:
-        print(f'bag_recover: error: {exc}', file=sys.stderr)
+        print(f'cgail bag recover: error: {exc}', file=sys.stderr)
         return 2
     tail = '' if result.complete else ' (the source ends mid-record: that part is lost)'
-    print(f'bag_recover: wrote {result.messages} messages on {len(result.topics)} topics to '
+    print(f'cgail bag recover: wrote {result.messages} messages on {len(result.topics)} topics to '
           f'{args.output}{tail}')
     return 0
 

@@ -186,12 +186,12 @@ def write_csv(trials: Sequence[TrialMetrics], path: Path) -> Path:
 
 def read_csv(path: Path) -> list[TrialMetrics]:
     """The trials of a ``metrics.csv`` written by :func:`write_csv` (a session's or
-    ``bag_metrics``'). Raises :class:`MetricsError` naming the file, the row and what was wrong
-    (missing file or column, a value that is not a number or a boolean)."""
+    ``cgail bag metrics``'). Raises :class:`MetricsError` naming the file, the row and what was
+    wrong (missing file or column, a value that is not a number or a boolean)."""
     import csv
 
     if not Path(path).is_file():
-        raise MetricsError(f'{path}: expected a metrics.csv (invitro_session / bag_metrics '
+        raise MetricsError(f'{path}: expected a metrics.csv (cgail session / cgail bag metrics '
                            f'output), found no file')
     with Path(path).open(newline='') as stream:
         rows = list(csv.reader(stream))

@@ -16,7 +16,7 @@ The ``phantom`` frame (metres, LPS axes, the annulus centre at the origin;
 
     p_ct_mm = rotation @ (1000 * p_phantom_m) + translation_mm          (:class:`CtFrame`)
 
-* a **prepared anatomy** (``prepare_anatomy``'s directory) records how its lumen relates to
+* a **prepared anatomy** (``cgail prepare-anatomy``'s directory) records how its lumen relates to
   its input in ``prepare.yaml`` under ``frame_conversion`` (``p_phantom_m = R @ (p_input_mm -
   t_input_mm) / 1000``, input frame ``RAS`` for a NIfTI label map, the declared ``--frame`` of
   a surface mesh). :func:`ct_frame_from_record` inverts that record, it recomputes nothing,
@@ -172,7 +172,7 @@ def ct_frame_from_record(record: Mapping[str, Any], source: str = "prepare.yaml"
         if recorded != content_hash:
             raise CtFrameError(f"expected {source} to describe the loaded lumen (content hash "
                                f"{content_hash}), found content hash {recorded!r}: the lumen "
-                               "changed after prepare_anatomy; run it again")
+                               "changed after cgail prepare-anatomy; run it again")
     # p_input = R^-1 (1000 p) + t (prepare_anatomy's own inverse), then RAS axes.
     to_ras = np.eye(3) if frame == "RAS" else RAS_FROM_LPS
     return CtFrame(to_ras @ np.linalg.inv(r), to_ras @ t, f"{source} (input frame {frame})")
@@ -180,7 +180,7 @@ def ct_frame_from_record(record: Mapping[str, Any], source: str = "prepare.yaml"
 
 def prepare_record_path(spec: str | os.PathLike[str]) -> Path | None:
     """The ``prepare.yaml`` that describes an anatomy argument, or None (a name, or a mesh
-    that ``prepare_anatomy`` did not write)."""
+    that ``cgail prepare-anatomy`` did not write)."""
     from cgail_planner.sim.anatomy_spec import is_named, PREPARED_MESH
 
     if isinstance(spec, str) and is_named(spec):

@@ -442,7 +442,7 @@ def resimulate(env: Any, episodes: list[DemoEpisode], *,
             raise DemoError(
                 f'{source}: {what}: expected it within {tolerance_m * 1e3:g} mm of the '
                 f'recording, found {dist * 1e3:.3f} mm{anatomy_note}: re-record the '
-                'demonstrations (make_demos)')
+                'demonstrations (cgail make-demos)')
 
     for k, ep in enumerate(episodes):
         if not (0 <= ep.start < len(sc.starts) and 0 <= ep.target < len(sc.targets)):

@@ -37,7 +37,7 @@ def demo_source(path: Path) -> str:
         return 'npz arrays'
     rec = read_recording(path)
     if rec is not None:
-        return f"record_demos ({rec.get('driver', '?')} driver, by {rec.get('who', '?')})"
+        return f"cgail record-demos ({rec.get('driver', '?')} driver, by {rec.get('who', '?')})"
     try:
         doc = yaml.safe_load((path / 'metadata.yaml').read_text())
         custom = doc['rosbag2_bagfile_information'].get('custom_data')
@@ -45,8 +45,8 @@ def demo_source(path: Path) -> str:
     except (OSError, yaml.YAMLError, KeyError, TypeError, DemoError):
         return 'unknown (no readable metadata.yaml)'
     if info.get('source'):
-        return 'teleoperated session bags (make_demos --from-bags)'
-    return 'scripted expert (make_demos)'
+        return 'teleoperated session bags (cgail make-demos --from-bags)'
+    return 'scripted expert (cgail make-demos)'
 
 
 def load_demos(paths: Sequence[Path], report: Callable[[str], None] | None = None,

@@ -1,14 +1,14 @@
-"""``make_demos``: record scripted-expert demonstrations into rosbag2 MCAP bags.
+"""``cgail make-demos``: record scripted-expert demonstrations into rosbag2 MCAP bags.
 
 Example::
 
-    scripts/ws make_demos --anatomy default --episodes 70 --out bags/demos/default
+    cgail make-demos --anatomy default --episodes 70 --out bags/demos/default
 
 Episode k uses start ``k % 3`` and target ``(k // 3) % 5`` (every start x target pair, then
 again), seeded by ``--seed``; the expert's success rate is printed and stored in the bag, with
 the content hash of the anatomy the episodes were recorded in. ``--env-options paper_code``
 records in the authors' option set (:data:`cgail_planner.sim.config.OPTION_SETS`); the bag holds
-poses and commands, not observations, so ``train`` replays it in its preset's option set
+poses and commands, not observations, so ``cgail train`` replays it in its preset's option set
 either way.
 
 Population form (``--population N``): the episodes are spread over the first ``N`` population
@@ -18,21 +18,21 @@ targets of their own sets), grouped by anatomy in the bag. Each episode's ``demo
 JSON names its anatomy (``population-<seed>``) and content hash, so ``load_demos``
 re-simulates each in its own anatomy::
 
-    scripts/ws make_demos --population 32 --episodes 96 --out bags/demos/population
+    cgail make-demos --population 32 --episodes 96 --out bags/demos/population
 
 ``--include default elongated`` adds built-in anatomies after the population's (episode k runs
 in anatomy ``k % (N + 2)``), named by their built-in names in the episodes' JSON.
 
 From session bags (``--from-bags``): teleoperated trial bags (the simulated in-vitro session's,
-``invitro_session``, or a rig's) become demonstrations of ``--anatomy`` (the one they were
+``cgail session``, or a rig's) become demonstrations of ``--anatomy`` (the one they were
 recorded in), one episode per goal, with actions inferred from the tip motion by closed-loop
 inverse kinematics of the catheter model (:mod:`cgail_planner.learning.teleop_demos`)::
 
-    scripts/ws make_demos --from-bags runs/invitro/bags/centerline --out bags/demos/teleop
+    cgail make-demos --from-bags runs/invitro/bags/centerline --out bags/demos/teleop
 
 A BAG is a trial bag or a directory of them. One line per episode (steps, how it ended,
 clipped steps, deviation from the recorded tip) and per input that could not be converted
-goes to stderr, then the JSON report to stdout; the bag is replayed as ``train`` will
+goes to stderr, then the JSON report to stdout; the bag is replayed as ``cgail train`` will
 (:func:`~cgail_planner.learning.demo_bags.replay_demo_bag`) before the command succeeds.
 Exit status 2 when no episode could be converted or the replay fails.
 """
@@ -48,6 +48,7 @@ import time
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.learning.demo_bags import DemoEpisode, write_demo_bag
 from cgail_planner.learning.errors import LearningError
@@ -110,14 +111,16 @@ def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None, *,
                       'mean_targeting_error_mm': 1e3 * float(np.mean(t_a))}
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``make_demos``."""
-    p = argparse.ArgumentParser(prog='make_demos', description=__doc__.split('\n')[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``cgail make-demos``."""
+    p = tool_parser('make-demos', __doc__, details=True)
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
                         'or mesh file with its <stem>.yaml landmarks')
-    p.add_argument('--episodes', type=int, default=70)
-    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--episodes', type=int, default=70,
+                   help='episodes to record; episode k: start k %% 3, target (k // 3) %% 5')
+    p.add_argument('--seed', type=int, default=0,
+                   help='seed of episode 0 (episode k: seed + k)')
     p.add_argument('--scenario-seed', type=int, default=0,
                    help="the anatomy's target set (EnvConfig.scenario_seed; 0: the standard "
                         'one the rig uses), recorded in the bag for its replay')
@@ -130,9 +133,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--include', nargs='+', default=[], metavar='NAME',
                    help='with --population: built-in anatomies (default, elongated) that get '
                         "episodes too, after the population's (the pool of a preset's "
-                        '`population.include`)')
+                        'population.include)')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
-    g = p.add_argument_group('from session bags (module docstring)')
+    g = p.add_argument_group('from session bags',
+                             'teleoperated trial bags instead of the scripted expert')
     g.add_argument('--from-bags', nargs='+', type=Path, default=None, metavar='BAG',
                    help='convert teleoperated trial bags (or directories of them) recorded in '
                         '--anatomy instead of running the scripted expert')
@@ -150,15 +154,20 @@ def main(argv: list[str] | None = None) -> int:
                         'start, mm')
     g.add_argument('--target-tolerance-mm', type=float, default=5.0,
                    help='largest distance of a goal from a scenario target, mm')
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cgail make-demos``."""
+    args = build_parser().parse_args(argv)
     if args.from_bags is not None:
         return _from_bags_main(args)
     if args.include and not args.population:
-        print('make_demos: error: --include: expected --population N beside it (it adds '
+        print('cgail make-demos: error: --include: expected --population N beside it (it adds '
               'built-in anatomies to a population bag)', file=sys.stderr)
         return 2
     if args.episodes < 1:
-        print(f'make_demos: error: --episodes must be >= 1, found {args.episodes}',
+        print(f'cgail make-demos: error: --episodes must be >= 1, found {args.episodes}',
               file=sys.stderr)
         return 2
     if args.population:
@@ -181,14 +190,14 @@ def main(argv: list[str] | None = None) -> int:
                        else str(Path(args.anatomy).expanduser().resolve()),
                        scenario_seed=args.scenario_seed, env_options=args.env_options)
     except (LearningError, ValueError) as exc:
-        print(f'make_demos: error: {exc}', file=sys.stderr)
+        print(f'cgail make-demos: error: {exc}', file=sys.stderr)
         return 2
     print(json.dumps({'anatomy': label, 'env_options': args.env_options, **stats}))
     return 0
 
 
 def _from_bags_main(args: argparse.Namespace) -> int:
-    """``make_demos --from-bags BAG [BAG ...]`` (module docstring)."""
+    """``cgail make-demos --from-bags BAG [BAG ...]`` (module docstring)."""
     from dataclasses import asdict
 
     from cgail_planner.bags.errors import BagError
@@ -200,11 +209,11 @@ def _from_bags_main(args: argparse.Namespace) -> int:
     from cgail_planner.sim.env import CatheterNavEnv
 
     def fail(text: str) -> int:
-        print(f'make_demos: error: {text}', file=sys.stderr)
+        print(f'cgail make-demos: error: {text}', file=sys.stderr)
         return 2
 
     def log(text: str) -> None:
-        print(f'make_demos: {text}', file=sys.stderr, flush=True)
+        print(f'cgail make-demos: {text}', file=sys.stderr, flush=True)
 
     if args.population or args.include:
         return fail('--from-bags: expected no --population or --include (the bags were '
@@ -311,7 +320,7 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
 
 
 def _population_main(args: argparse.Namespace) -> int:
-    """``make_demos --population N``."""
+    """``cgail make-demos --population N``."""
     from cgail_planner.learning.demo_bags import population_hash
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.population import split_seeds
@@ -327,7 +336,7 @@ def _population_main(args: argparse.Namespace) -> int:
                        anatomy_hash=population_hash([str(e.anatomy_hash) for e in episodes]),
                        env_options=args.env_options, population=True)
     except (LearningError, ValueError) as exc:
-        print(f'make_demos: error: {exc}', file=sys.stderr)
+        print(f'cgail make-demos: error: {exc}', file=sys.stderr)
         return 2
     print(json.dumps({'anatomy': 'population', 'population_seeds': [seeds[0], seeds[-1] + 1],
                       'include': args.include, 'env_options': args.env_options, **stats}))

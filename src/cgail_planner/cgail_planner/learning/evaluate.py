@@ -1,8 +1,8 @@
-"""``evaluate``: the paper's in-silico experiments as a markdown report with box plots.
+"""``cgail evaluate``: the paper's in-silico experiments as a markdown report with box plots.
 
 Example::
 
-    scripts/ws evaluate --policy C-GAIL=models/cgail_default.onnx --policy GAIL=runs/gail.onnx \
+    cgail evaluate --policy C-GAIL=models/cgail_default.onnx --policy GAIL=runs/gail.onnx \\
         --baselines centerline expert --modes static dynamic --trials 100 --out reports/insilico
 
 Each method runs ``--trials`` episodes; trial k uses start ``k % 3``, target ``(k // 3) % 5`` and
@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.core.rotations import rotvec_to_matrix
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.onnx_policy import OnnxPolicy
@@ -591,22 +592,28 @@ def _append_per_anatomy(report: Path, outcomes: dict[str, dict[str, dict[str, li
         f.write('\n'.join(lines) + '\n')
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``evaluate``."""
-    p = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n')[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``cgail evaluate``."""
+    p = tool_parser('evaluate', __doc__)
     p.add_argument('--policy', action='append', default=[], metavar='NAME=PATH.onnx',
-                   help='a learned policy to evaluate (repeatable)')
+                   help='a learned policy to evaluate, shown as NAME in the report (repeatable)')
     p.add_argument('--baselines', nargs='*', default=['centerline', 'expert'],
                    choices=('centerline', 'expert', 'rrt'),
-                   help='rrt: the curvature-constrained RRT (core/rrt_planner.py) planned at '
-                        'each reset (its iteration budget, a 30 s time limit: host-independent) '
-                        'and followed by the centerline pure pursuit')
-    p.add_argument('--modes', nargs='+', default=['static'], choices=('static', 'dynamic'))
+                   help='the non-learned methods beside the policies: centerline (pure pursuit '
+                        'of the centerline), expert (the scripted demonstrator, with the '
+                        "simulator's state) and rrt (the curvature-constrained RRT of "
+                        'core/rrt_planner.py, planned at each reset within its iteration '
+                        'budget and a 30 s limit, then followed by the centerline pure pursuit)')
+    p.add_argument('--modes', nargs='+', default=['static'], choices=('static', 'dynamic'),
+                   help='rigid aorta (static) and/or deformable beating wall (dynamic)')
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
                         'or mesh file with its <stem>.yaml landmarks')
-    p.add_argument('--trials', type=int, default=100)
-    p.add_argument('--seed', type=int, default=1000)
+    p.add_argument('--trials', type=int, default=100,
+                   help='trials per method and mode (per anatomy with --population); trial k: '
+                        'start k %% 3, target (k // 3) %% 5')
+    p.add_argument('--seed', type=int, default=1000,
+                   help='seed of trial 0; trial k uses seed + k, the same for every method')
     p.add_argument('--scenario-seed', type=int, default=0,
                    help="the anatomy's target set (EnvConfig.scenario_seed): 0 is the set the "
                         'demonstrations and presets train on; another gives unseen targets')
@@ -625,8 +632,14 @@ def main(argv: list[str] | None = None) -> int:
                    help='evaluate on the first N held-out population anatomies (seeds 10000 on, '
                         'which no training uses; sim/population.py) instead of --anatomy: '
                         '--trials per anatomy, the results pooled, with a per-anatomy table')
-    p.add_argument('--out', type=Path, default=Path('reports/insilico'))
-    args = p.parse_args(argv)
+    p.add_argument('--out', type=Path, default=Path('reports/insilico'),
+                   help='directory for report.md, results.json and the box plots')
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cgail evaluate``."""
+    args = build_parser().parse_args(argv)
     from cgail_planner.sim.anatomy_spec import anatomy_identity, check_anatomy_spec
     from cgail_planner.sim.config import EnvConfig
     from cgail_planner.sim.env import CatheterNavEnv
@@ -708,7 +721,7 @@ def main(argv: list[str] | None = None) -> int:
         if held_out:
             _append_per_anatomy(path, outcomes)
     except (LearningError, ValueError) as exc:
-        print(f'evaluate: error: {exc}', file=sys.stderr)
+        print(f'cgail evaluate: error: {exc}', file=sys.stderr)
         return 2
     print(path)
     return 0

@@ -1,4 +1,9 @@
-"""``export_onnx``: the deterministic policy (normaliser baked in) as an ONNX model.
+"""``cgail export-onnx``: the deterministic policy (normaliser baked in) as an ONNX model.
+
+Examples::
+
+    cgail export-onnx runs/cgail_static/best.pt --out runs/cgail_static/policy.onnx
+    cgail export-onnx old_policy.onnx --add-contract --anatomy runs/patients/p07
 
 The graph maps ``obs`` (B, obs_dim) float32 raw observations to ``action`` (B, 3) float32 in
 [-1, 1]. ``metadata_props`` carry JSON strings: ``catheter_contract`` (the whole contract the
@@ -22,6 +27,7 @@ from typing import Any
 import onnx
 import torch
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.learning.checkpoint import actor_from_checkpoint, load_checkpoint
 from cgail_planner.learning.errors import LearningError
 from cgail_planner.learning.networks import Actor, DeterministicPolicy
@@ -119,7 +125,7 @@ def actor_state_from_onnx(path: Path) -> dict[str, torch.Tensor]:
     state = {k[len('actor.'):]: torch.as_tensor(v.copy()) for k, v in inits.items()
              if k.startswith('actor.') and k != 'actor.log_std'}
     if 'mu.weight' not in state:
-        raise PolicyLoadError(f'{path}: expected the actor initializers of export_onnx '
+        raise PolicyLoadError(f'{path}: expected the actor initializers of cgail export-onnx '
                               f'(actor.body.*, actor.mu.*), found {sorted(inits)}')
     nodes = {n.op_type: n for n in model.graph.node if n.op_type in ('Sub', 'Div')}
     if 'Sub' in nodes and 'Div' in nodes:  # the baked-in normaliser
@@ -178,12 +184,12 @@ def write_contract(model_path: Path, contract: PolicyContract, out: Path | None 
     return target
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``export_onnx``."""
-    p = argparse.ArgumentParser(prog='export_onnx', description=__doc__.split('\n')[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``cgail export-onnx``."""
+    p = tool_parser('export-onnx', __doc__, details=True)
     p.add_argument('checkpoint', type=Path,
-                   help='checkpoint written by train (best.pt, final.pt); with --add-contract '
-                        'an exported .onnx')
+                   help='checkpoint written by cgail train (best.pt, final.pt); with '
+                        '--add-contract an exported .onnx')
     p.add_argument('--out', type=Path, default=None, help='output .onnx (default: next to it; '
                    'with --add-contract: the input file)')
     p.add_argument('--add-contract', action='store_true',
@@ -195,7 +201,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --add-contract: the anatomy the policy was trained on, a built-in "
                         "name, prepared anatomy directory or mesh file (default: the model's "
                         "metadata, which names a built-in anatomy or a path anatomy's label)")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cgail export-onnx``."""
+    args = build_parser().parse_args(argv)
     try:
         if args.anatomy is not None and not args.add_contract:
             raise LearningError('--anatomy: expected with --add-contract (a checkpoint carries '
@@ -222,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
             out = export_checkpoint(args.checkpoint,
                                     args.out or args.checkpoint.with_suffix('.onnx'))
     except (LearningError, ValueError) as exc:
-        print(f'export_onnx: error: {exc}', file=sys.stderr)
+        print(f'cgail export-onnx: error: {exc}', file=sys.stderr)
         return 2
     print(out)
     return 0

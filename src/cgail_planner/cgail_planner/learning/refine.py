@@ -1,13 +1,14 @@
-"""``refine``: DAgger refinement of a trained population policy on its own training distribution.
+"""``cgail refine``: DAgger refinement of a trained population policy on its own training
+distribution.
 
 Usage::
 
-    scripts/ws refine runs/generalist/best.pt --demos bags/demos/population \\
-        bags/demos/elongated --out runs/generalist_refined
-    scripts/ws export_onnx runs/generalist_refined/refined.pt --out generalist.onnx
+    cgail refine runs/generalist/best.pt --demos bags/demos/population bags/demos/elongated \\
+        --out runs/generalist_refined
+    cgail export-onnx runs/generalist_refined/refined.pt --out generalist.onnx
     # fine-tuning: the committed generalist refined in one new anatomy
-    scripts/ws make_demos --anatomy population-10007 --episodes 15 --out runs/ft/demos
-    scripts/ws refine generalist.onnx --anatomy population-10007 --episodes 60 \
+    cgail make-demos --anatomy population-10007 --episodes 15 --out runs/ft/demos
+    cgail refine generalist.onnx --anatomy population-10007 --episodes 60 \\
         --demos runs/ft/demos --out runs/ft
 
 **What it does.** The policy of a ``train`` checkpoint of a population preset (``generalist``)
@@ -69,9 +70,10 @@ import torch
 from tqdm import tqdm
 import yaml
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.learning.errors import LearningError
 
-__all__ = ['RefineOptions', 'label_anatomies', 'main', 'refine']
+__all__ = ['RefineOptions', 'build_parser', 'label_anatomies', 'main', 'refine']
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     from cgail_planner.sim.env import CatheterNavEnv
 
     options = options or RefineOptions()
-    say = log or (lambda line: print(f'refine: {line}', file=sys.stderr))
+    say = log or (lambda line: print(f'cgail refine: {line}', file=sys.stderr))
     t0 = time.monotonic()
     checkpoint = Path(checkpoint)
     if anatomy is None:
@@ -176,7 +178,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     if not demos:
         raise LearningError('--demos: expected the demonstration sources, found none')
     if anatomy is None:
-        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos, prog='refine')
+        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos, prog='cgail refine')
         env, eval_env, _ = make_envs('static', 'default', cfg.num_envs, cfg.env_options,
                                      cfg.population, report=say)
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act,
@@ -190,7 +192,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         from cgail_planner.sim.anatomy_spec import is_builtin
 
         demo_obs, demo_act, demo_episodes, _ = load_training_demos(
-            cfg, demos, None if is_builtin(anatomy) else anatomy, prog='refine')
+            cfg, demos, None if is_builtin(anatomy) else anatomy, prog='cgail refine')
         env, eval_env, meta = make_envs('static', anatomy, cfg.num_envs, cfg.env_options)
         meta['preset'] = cfg.name
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act, seed=options.seed,
@@ -225,7 +227,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         t_round = time.monotonic()
         groups: dict[str, list[float]] = {}
         with tqdm(total=sum(n for _, n, _ in envs), disable=not progress, unit='episode',
-                  desc=f'refine: round {r} labels', dynamic_ncols=True) as bar:
+                  desc=f'cgail refine: round {r} labels', dynamic_ncols=True) as bar:
             for j, (e, n, group) in enumerate(envs):
                 o, a, st = expert_labels(e, trainer.act_deterministic, n,
                                          options.seed + 100_000 * (r - 1) + 1000 * j,
@@ -274,17 +276,19 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     return summary
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``refine`` console script."""
-    p = argparse.ArgumentParser(prog='refine', description=__doc__.split('\n')[0])
-    p.add_argument('checkpoint', type=Path, help="a population run's train checkpoint "
-                   '(best.pt, final.pt); with --anatomy also an exported .onnx')
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``cgail refine``."""
+    p = tool_parser('refine', __doc__)
+    p.add_argument('checkpoint', type=Path,
+                   help="a population run's checkpoint of cgail train (best.pt, final.pt); with "
+                        '--anatomy also an exported .onnx')
     p.add_argument('--anatomy', default=None,
                    help='refine in this one anatomy (fine-tuning: a built-in name, '
                         'population-<seed> or a prepared anatomy directory)')
     p.add_argument('--preset', default='finetune',
                    help="with --anatomy: the preset whose settings apply (default finetune)")
-    p.add_argument('--demos', nargs='+', default=[], help="the run's demonstration sources")
+    p.add_argument('--demos', nargs='+', default=[], metavar='DEMO',
+                   help="the run's demonstration sources (bag directories, .mcap, .npz)")
     p.add_argument('--out', type=Path, required=True, help='directory to write')
     d = RefineOptions()
     for name, help_ in (('rounds', 'DAgger rounds'),
@@ -300,7 +304,12 @@ def main(argv: list[str] | None = None) -> int:
                        help=f'{help_} (default {getattr(d, name)})')
     p.add_argument('--threads', type=int, default=1, help='torch CPU threads')
     p.add_argument('--no-progress', action='store_true', help='hide the progress bar')
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cgail refine``."""
+    args = build_parser().parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
     try:
         opts = RefineOptions(rounds=args.rounds, anatomies=args.anatomies,
@@ -309,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress,
                anatomy=args.anatomy, preset=args.preset)
     except (LearningError, ValueError) as exc:
-        print(f'refine: error: {exc}', file=sys.stderr)
+        print(f'cgail refine: error: {exc}', file=sys.stderr)
         return 2
     print(args.out / 'refined.pt')
     return 0

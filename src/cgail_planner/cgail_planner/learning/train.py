@@ -1,12 +1,11 @@
-"""``train``: train a policy (C-GAIL, GAIL or an ablation) in the catheter simulator.
+"""``cgail train``: train a policy (C-GAIL, GAIL or an ablation) in the catheter simulator.
 
 Examples::
 
-    scripts/ws train --preset cgail --mode static --demos bags/demos/default \
-        --out runs/cgail_static
-    scripts/ws train --preset cgail --mode dynamic --init-from runs/cgail_static/final.pt \
-        --demos bags/demos/default --out runs/cgail_dynamic
-    scripts/ws train --preset generalist --demos bags/demos/population --out runs/generalist
+    cgail train --preset cgail --mode static --demos bags/demos/default --out runs/cgail_static
+    cgail train --preset cgail --mode dynamic --demos bags/demos/default \\
+        --init-from runs/cgail_static/final.pt --out runs/cgail_dynamic
+    cgail train --preset generalist --demos bags/demos/population --out runs/generalist
 
 A preset with ``population.anatomies`` > 0 (``generalist``) trains across that many population
 anatomies (:mod:`cgail_planner.sim.population`, training seeds only) instead of ``--anatomy``,
@@ -33,6 +32,7 @@ import torch
 from tqdm import tqdm
 import yaml
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.learning.config import (
     config_from_dict,
     config_to_dict,
@@ -127,7 +127,7 @@ def make_envs(mode: str, anatomy: Any, num_envs: int, env_options: str = 'ours',
 
 
 def load_training_demos(cfg: Any, demos: list[str] | list[Path], anatomy: Any = None,
-                        prog: str = 'train') -> tuple[Any, Any, Any, list[dict[str, Any]]]:
+                        prog: str = 'cgail train') -> tuple[Any, Any, Any, list[dict[str, Any]]]:
     """The demonstrations a preset learns from (``None``s when it uses neither GAIL nor BC):
     ``(obs, act, episodes, sources)``, each bag's re-simulation and the episodes per source
     reported on stderr after ``prog:``; ``anatomy``: the one-anatomy run's non-built-in anatomy
@@ -229,18 +229,20 @@ def latest_checkpoint(run: Path) -> Path:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line interface of ``train``."""
-    p = argparse.ArgumentParser(prog='train', description=__doc__.split('\n')[0])
+    """Command-line interface of ``cgail train``."""
+    p = tool_parser('train', __doc__, details=True)
     p.add_argument('--preset', default='cgail',
                    help='preset name (cgail, gail, mu0, lambda0, nu0, smoke, paper_code_cgail, '
                         '...: config/presets/) or a YAML path; its env_options (ours, '
                         'paper_code) select the simulator option set')
-    p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
+    p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
+                   help='rigid aorta (static) or deformable beating wall with a moving target '
+                        '(dynamic)')
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
                         'or mesh file with its <stem>.yaml landmarks (not with a population '
                         'preset such as generalist, which trains on population anatomies)')
-    p.add_argument('--demos', nargs='*', default=[],
+    p.add_argument('--demos', nargs='*', default=[], metavar='DEMO',
                    help='demonstration bag directories / .mcap files / .npz (GAIL, BC); with '
                         'a path --anatomy, demo bags are re-simulated in that anatomy')
     p.add_argument('--init-from', type=Path, default=None,
@@ -253,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "rather than replaying it bit for bit")
     p.add_argument('--max-steps', type=int, default=None, help='override the preset max_steps')
     p.add_argument('--num-envs', type=int, default=None, help='override the preset num_envs')
-    p.add_argument('--threads', type=int, default=1, help='torch CPU threads (1-2)')
+    p.add_argument('--threads', type=int, default=1, help='torch CPU threads (1-2; default 1)')
     p.add_argument('--out', type=Path, default=None,
                    help='run directory (default runs/<preset>_<mode>)')
     p.add_argument('--no-progress', action='store_true', help='hide the progress bar')
@@ -261,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of the ``train`` console script."""
+    """Entry point of ``cgail train``."""
     args = build_parser().parse_args(argv)
     torch.set_num_threads(max(1, args.threads))
     try:
@@ -296,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
             else args.anatomy)
         env, eval_env, meta = make_envs(
             args.mode, args.anatomy, cfg.num_envs, cfg.env_options, cfg.population,
-            report=lambda line: print(f'train: population: {line}', file=sys.stderr))
+            report=lambda line: print(f'cgail train: population: {line}', file=sys.stderr))
         meta['preset'] = cfg.name
         if sources:
             meta['demonstrations'] = sources
@@ -306,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
             trainer.load_weights(args.init_from)
         if cfg.bc.pretrain_epochs and ckpt is None:
             warm = trainer.pretrain_bc(cfg.bc.pretrain_epochs)
-            print(f'train: BC warm start: {cfg.bc.pretrain_epochs} epochs, last loss '
+            print(f'cgail train: BC warm start: {cfg.bc.pretrain_epochs} epochs, last loss '
                   f'{warm["losses/bc_pretrain_loss"]:.4g}', file=sys.stderr)
         if ckpt is not None:
             was = {k: ckpt['metadata'].get(k) for k in ('mode', 'anatomy', 'anatomy_hash')}
@@ -315,14 +317,14 @@ def main(argv: list[str] | None = None) -> int:
                 raise ValueError(f'--resume {args.resume}: expected the run\'s simulator '
                                  f'{was}, found {now} (give its --mode and --anatomy)')
             trainer.resume(ckpt, args.resume)
-            print(f'train: resuming {args.resume} at step {trainer.step} of {cfg.max_steps}',
-                  file=sys.stderr)
+            print(f'cgail train: resuming {args.resume} at step {trainer.step} of '
+                  f'{cfg.max_steps}', file=sys.stderr)
         out = args.out or Path('runs') / f'{cfg.name}_{args.mode}'
         result = run_training(trainer, eval_env, out, progress=not args.no_progress,
                               seed=args.seed, run_state=None if ckpt is None else
                               ckpt.get('run', {}))
     except (LearningError, ValueError) as exc:
-        print(f'train: error: {exc}', file=sys.stderr)
+        print(f'cgail train: error: {exc}', file=sys.stderr)
         return 2
     print(yaml.safe_dump({k: round(float(v), 5) for k, v in sorted(result.items())
                           if isinstance(v, float | int) and np.isfinite(v)}))

@@ -1,7 +1,7 @@
 """Phantom node (``phantom``): the simulated world that closes the rig's loop.
 
 Run: ``ros2 run cgail_planner phantom_node`` (pip-only workspace: ``scripts/ros2run
-cgail_planner phantom_node``); normally started by ``invitro_session`` or ``rig_launch
+cgail_planner phantom_node``); normally started by ``cgail session`` or ``cgail launch
 launch/sim_rig.launch.yaml --in-process``. Its topics are its own, under its name
 (``~/tip_pose``, ``~/target``, ``~/aurora_port``, ``~/markers``, ``~/pressures``,
 ``~/insertion_state``); below they are named as in the rig, whose launch files remap them
@@ -30,7 +30,7 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   dl the heading turns by bend * dl / L), the wall (static, or deformable + heartbeat)
   constrains it and the compliant tip turns away from it. With ``fixture: bench`` the catheter
   is clamped at the base of its steerable segment (the start pose) in free air instead, and
-  the tip is the arc of the plant's current bend (``identify_pam`` identifies the actuators
+  the tip is the arc of the plant's current bend (``cgail identify-pam`` identifies the actuators
   so, as a rig team does on the bench);
 * ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
   (TRIANGLE_LIST on the wall's current vertices: deformed in dynamic mode; decimated above
@@ -40,11 +40,11 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
 
 Time, two ways:
 
-* ``lockstep: true`` (``invitro_session``): the lockstep executor
+* ``lockstep: true`` (``cgail session``): the lockstep executor
   (:mod:`cgail_planner.system.lockstep`) owns the simulated clock of every node of the rig and
   calls :meth:`PhantomNode.advance` at the start of each tick; stamps are the node clock
   (simulated time from 0). Results are then a function of seed and configuration only.
-* otherwise (``rig_launch ... --in-process``): one steady-clock timer steps devices and physics
+* otherwise (``cgail launch ... --in-process``): one steady-clock timer steps devices and physics
   by ``1 / physics_rate_hz`` simulated seconds every ``1 / (physics_rate_hz * time_scale)`` wall
   seconds. With ``publish_clock`` the simulated time goes out on ``/clock`` and the other nodes
   run with ``use_sim_time``, so the rig runs ``time_scale`` times faster than real time (it slows
@@ -107,7 +107,7 @@ class PhantomNode(Node):
         fixture = conv.declare(self, 'fixture', d.fixture, "'none' (the catheter in the "
                                "aorta) or 'bench' (clamped at the base of the steerable segment, "
                                'in free air: the tip is the arc of the bend, the insertion is '
-                               'ignored; identify_pam)')
+                               'ignored; cgail identify-pam)')
         if fixture not in FIXTURES:
             raise ValueError(f'fixture must be one of {FIXTURES}, found {fixture!r}')
         self.config = replace(self.config, fixture=fixture)

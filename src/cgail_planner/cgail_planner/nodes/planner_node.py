@@ -78,8 +78,8 @@ class PlannerNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('planner', **kwargs)
         d, g, r = PlannerConfig(), GuidanceConfig(), ReplanConfig()
-        policy_path = conv.declare(self, 'policy_path', '', 'ONNX policy written by export_onnx '
-                                   "(required by planner_type 'cgail')")
+        policy_path = conv.declare(self, 'policy_path', '', 'ONNX policy written by cgail '
+                                   "export-onnx (required by planner_type 'cgail')")
         settings = PlannerConfig(
             planner_type=conv.declare(self, 'planner_type', d.planner_type,
                                       "'cgail' (policy rollout), 'centerline' (baseline) or "
@@ -249,7 +249,7 @@ class PlannerNode(Node):
 
         if not path:
             self.policy_error = ("no policy: planner_type 'cgail' needs policy_path (an ONNX "
-                                 'file from export_onnx); goals will be refused')
+                                 'file from cgail export-onnx); goals will be refused')
         else:
             try:
                 return OnnxPolicy(path)

@@ -1,15 +1,16 @@
-"""``plan_patient``: from a prepared anatomy to a trained, evaluated planner and the rig command.
+"""``cgail plan-patient``: from a prepared anatomy to a trained, evaluated planner and the rig
+command.
 
 Usage::
 
-    plan_patient runs/patient7 --out runs/patient7_plan [--budget-min 15]
+    cgail plan-patient runs/patient7 --out runs/patient7_plan [--budget-min 15]
 
 One command, in this order (each stage prints one line as it ends, training shows a progress
 bar; everything lands in ``RUN``):
 
 1. **Demonstrations**: the scripted expert (:mod:`cgail_planner.learning.expert`) drives every
    start x target pair of the demonstration target sets (by default set 0 and every training
-   set), recorded as demo bags (``RUN/demos/seed_<s>``, replayable with ``train --demos``).
+   set), recorded as demo bags (``RUN/demos/seed_<s>``, replayable with ``cgail train --demos``).
 2. **Training, static**: C-GAIL (the ``cgail`` preset: the paper's mechanics and weights) starts
    from a committed policy (fine-tuning; ``--base``), with the training envs spread over several
    target sets of this anatomy (``EnvConfig.scenario_seed``). It opens with a behavioural-cloning
@@ -80,12 +81,14 @@ from typing import Any, TYPE_CHECKING
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
+
 if TYPE_CHECKING:
     from cgail_planner.learning.demos import Demos
 
-__all__ = ['PlanOptions', 'PlanResult', 'main', 'plan_patient']
+__all__ = ['PlanOptions', 'PlanResult', 'build_parser', 'main', 'plan_patient']
 
-_PROG = 'plan_patient'
+_PROG = 'cgail plan-patient'
 _DYNAMIC_MARGIN = 0.10
 """How far the static policy's dynamic validation must clear the dynamic goal to skip the
 dynamic phase: it runs 30 trials, and a mesh-patient run that stopped at exactly 80% measured
@@ -329,7 +332,7 @@ def _record_demos(anatomy: str, options: PlanOptions, out: Path, log: Callable[[
 
         raise PatientError(f'anatomy {anatomy}: expected the scripted expert to reach some '
                            'targets, found no successful demonstration: check the report of '
-                           'prepare_anatomy (lumen too narrow, bends too tight?)')
+                           'cgail prepare-anatomy (lumen too narrow, bends too tight?)')
     obs = np.concatenate([o for o, _ in pairs])
     act = np.concatenate([a for _, a in pairs])
     return Demos(obs, act, len(pairs)), {
@@ -707,15 +710,15 @@ def plan_patient(anatomy_dir: Path, out: Path, options: PlanOptions | None = Non
 
 def rig_commands(anatomy: str, policies: dict[str, Path]) -> list[str]:
     """The commands that run this anatomy and policy: the simulated in-vitro session with the
-    guidance GUI (static, dynamic), the free-running simulated rig (``rig_launch``, GUI
+    guidance GUI (static, dynamic), the free-running simulated rig (``cgail launch``, GUI
     included), and the planner and GUI nodes of a real rig."""
     static, dynamic = (str(Path(policies[m]).resolve()) for m in ('static', 'dynamic'))
     return [
-        f'scripts/ros2run cgail_planner invitro_session --anatomy {anatomy} --policy {static} '
+        f'scripts/ws cgail session --anatomy {anatomy} --policy {static} '
         f'--mode static --trials 1 --gui --out runs/session_static',
-        f'scripts/ros2run cgail_planner invitro_session --anatomy {anatomy} --policy {dynamic} '
+        f'scripts/ws cgail session --anatomy {anatomy} --policy {dynamic} '
         f'--mode dynamic --trials 1 --gui --out runs/session_dynamic',
-        f'scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml '
+        f'scripts/ws cgail launch src/cgail_planner/launch/sim_rig.launch.yaml '
         f'--in-process anatomy:={anatomy} policy_path:={static}',
         f'scripts/ros2run cgail_planner planner_node --ros-args -p anatomy:={anatomy} '
         f'-p policy_path:={static}',
@@ -861,11 +864,11 @@ def _write_report(result: PlanResult, anatomy: str, base: str, options: PlanOpti
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command line of ``plan_patient``."""
+    """Command line of ``cgail plan-patient``."""
     d = PlanOptions()
-    p = argparse.ArgumentParser(prog=_PROG, description=__doc__.split('\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('anatomy', type=Path, help='prepared anatomy directory (prepare_anatomy)')
+    p = tool_parser('plan-patient', __doc__)
+    p.add_argument('anatomy', type=Path,
+                   help='prepared anatomy directory (cgail prepare-anatomy)')
     p.add_argument('--out', type=Path, required=True, help='run directory to create')
     p.add_argument('--budget-min', type=float, default=d.budget_min,
                    help='wall-clock budget of the whole run, minutes (training leaves time '
@@ -881,7 +884,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='success rate wanted on unseen targets in the beating aorta, in (0, 1] '
                         f'(default {d.goal_dynamic:g})')
     p.add_argument('--trials', type=int, default=d.trials,
-                   help='evaluation trials per method and mode')
+                   help='final evaluation trials per method, mode and test target set')
     p.add_argument('--seed', type=int, default=d.seed,
                    help='seed of the demonstrations, the training and the evaluation '
                         f'(default {d.seed})')
@@ -906,7 +909,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``plan_patient`` (exit status: module docstring)."""
+    """Entry point of ``cgail plan-patient`` (exit status: module docstring)."""
     from cgail_planner.learning.errors import LearningError
     from cgail_planner.sim.anatomy import AnatomyError
 

@@ -1,12 +1,14 @@
-"""``prepare_anatomy``: a patient's CT label map or lumen surface in, a prepared anatomy out.
+"""``cgail prepare-anatomy``: a patient's CT label map or lumen surface in, a prepared anatomy
+out.
 
 Usage::
 
-    prepare_anatomy aorta.nii.gz --out runs/patient7 [--label 1] [--lv lv.nii.gz]
-                    [--coronary coronaries.nii.gz] [--name patient7]
-    prepare_anatomy Segmentation.seg.nrrd --label aorta [--lv-label "left ventricle"] --out DIR
-    prepare_anatomy total.nii.gz --label total:aorta --out DIR
-    prepare_anatomy lumen.stl --frame LPS --out runs/patient7 [--units mm]
+    cgail prepare-anatomy aorta.nii.gz --out runs/patient7 [--label 1] [--lv lv.nii.gz]
+                          [--coronary coronaries.nii.gz] [--name patient7]
+    cgail prepare-anatomy Segmentation.seg.nrrd --label aorta [--lv-label "left ventricle"] \\
+                          --out DIR
+    cgail prepare-anatomy total.nii.gz --label total:aorta --out DIR
+    cgail prepare-anatomy lumen.stl --frame LPS --out runs/patient7 [--units mm]
 
 Label maps: NIfTI (``.nii``, ``.nii.gz``), NRRD (``.nrrd``, ``.nhdr``) and 3D Slicer
 segmentations (``.seg.nrrd``, also multi-layer), in any orientation and with anisotropic voxels
@@ -53,6 +55,7 @@ from typing import Any
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.patient import PatientError
 from cgail_planner.patient.prepare import (
     LandmarkOverrides,
@@ -75,9 +78,9 @@ from cgail_planner.patient.volume import (
 )
 from cgail_planner.sim.anatomy import AnatomyError, load_anatomy_mesh, save_anatomy_mesh
 
-__all__ = ["PrepareResult", "main", "prepare_anatomy"]
+__all__ = ["PrepareResult", "build_parser", "main", "prepare_anatomy"]
 
-_PROG = "prepare_anatomy"
+_PROG = "cgail prepare-anatomy"
 
 
 class PrepareResult:
@@ -98,10 +101,9 @@ class PrepareResult:
         return not self.validation.errors
 
 
-def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog=_PROG, description=__doc__.split("\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="\n".join(__doc__.split("\n")[2:]))
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line interface of ``cgail prepare-anatomy``."""
+    ap = tool_parser("prepare-anatomy", __doc__, details=True)
     ap.add_argument("input", help="label map (NIfTI .nii/.nii.gz, NRRD .nrrd/.nhdr, 3D Slicer "
                                   ".seg.nrrd) or closed lumen surface (.stl/.obj/.ply/.vtp)")
     ap.add_argument("--out", required=True, help="directory to write the prepared anatomy to")
@@ -148,7 +150,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                     help="skip the expert check, the proof that the anatomy is usable (the "
                          "scripted expert to every standard target, static and dynamic; "
                          "~15 s): for quick runs only")
-    return ap.parse_args(argv)
+    return ap
 
 
 def _versions() -> dict[str, str]:
@@ -269,7 +271,7 @@ def prepare_anatomy(argv: Sequence[str] | None = None) -> PrepareResult:
         PatientError: the input cannot be used (one line why); nothing is written.
         AnatomyError: the written lumen does not load back (a bug: report it).
     """
-    args = _parse(argv)
+    args = build_parser().parse_args(argv)
     stage = _Staging(Path(args.out))
     if stage.final.exists() and not stage.final.is_dir():
         raise PatientError(f"expected --out to be a directory, found a file at {stage.final}")
@@ -331,7 +333,7 @@ def _prepare(args: argparse.Namespace, argv: Sequence[str] | None,
     record = {
         "name": name,
         "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "command": [_PROG, *(sys.argv[1:] if argv is None else list(argv))],
+        "command": [*_PROG.split(), *(sys.argv[1:] if argv is None else list(argv))],
         "input": in_record,
         "lv": None if lv_source is None else {
             "path": str(Path(args.lv or args.input).resolve()), "label": args.lv_label},
@@ -520,7 +522,7 @@ def record_len(v: Validation, branch: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``prepare_anatomy``; returns the exit status (module doc)."""
+    """Entry point of ``cgail prepare-anatomy``; returns the exit status (module doc)."""
     try:
         result = prepare_anatomy(argv)
     except (PatientError, AnatomyError, OSError) as err:

@@ -30,6 +30,7 @@ field at a fine spacing, optional vertex noise), in RAS or LPS millimetres.
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 import functools
@@ -37,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.patient import PatientError
 from cgail_planner.sim.anatomy import anatomy_params, AortaGeometry
 
@@ -423,26 +425,31 @@ def synthetic_surface(anatomy: str = "default", *, frame: str = "RAS", spacing_m
     return out, np.asarray(faces, dtype=np.int64), truth
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Console script ``synthetic_ct``: write a synthetic CT label map or lumen surface.
+def build_parser() -> argparse.ArgumentParser:
+    """Command line of ``cgail synthetic-ct``: a synthetic CT label map or lumen surface.
 
-    ``synthetic_ct --out data/`` writes ``synthetic_aorta.nii.gz`` and ``synthetic_lv.nii.gz``
-    (``--coronaries``: ``synthetic_coronary.nii.gz``); ``--mesh RAS|LPS`` writes
-    ``synthetic_lumen.stl`` instead (``--noise-mm`` vertex noise). ``truth.yaml`` holds the
-    landmarks the data were made from (scanner RAS, mm). Then ``prepare_anatomy`` turns it into
-    a prepared anatomy.
+    ``cgail synthetic-ct --out data/`` writes ``synthetic_aorta.nii.gz`` and
+    ``synthetic_lv.nii.gz`` (``--coronaries``: ``synthetic_coronary.nii.gz``); ``--mesh RAS|LPS``
+    writes ``synthetic_lumen.stl`` instead (``--noise-mm`` vertex noise). ``truth.yaml`` holds
+    the landmarks the data were made from (scanner RAS, mm). Then ``cgail prepare-anatomy``
+    turns it into a prepared anatomy::
+
+        cgail synthetic-ct --out runs/ct --coronaries
+        cgail prepare-anatomy runs/ct/synthetic_aorta.nii.gz --lv runs/ct/synthetic_lv.nii.gz \\
+            --out runs/patients/synthetic
     """
-    import argparse
-    import sys
-
-    import yaml
-
-    summary = (main.__doc__ or "").split("\n")[0]
-    p = argparse.ArgumentParser(prog="synthetic_ct", description=summary)
+    p = tool_parser("synthetic-ct", build_parser.__doc__, details=True,
+                    description="Write a synthetic CT label map (or lumen surface) of a "
+                                "built-in aorta, with the truth it was made from: test data "
+                                "for cgail prepare-anatomy.")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--anatomy", default="default", help="built-in anatomy to voxelise")
-    p.add_argument("--voxel-order", choices=_VOXEL_ORDERS, default="LPS")
-    p.add_argument("--spacing-mm", type=float, nargs=3, default=(0.84, 0.84, 1.0))
+    p.add_argument("--voxel-order", choices=_VOXEL_ORDERS, default="LPS",
+                   help="directions of the voxel axes: L, P, S (the DICOM order) or R, A, S")
+    p.add_argument("--spacing-mm", type=float, nargs=3, default=(0.84, 0.84, 1.0),
+                   metavar=("X", "Y", "Z"),
+                   help="voxel size along the three voxel axes, mm, each in [0.3, 3.5] "
+                        "(default: 0.84 0.84 1.0)")
     p.add_argument("--no-lv", action="store_true", help="no left-ventricle label map")
     p.add_argument("--coronaries", action="store_true", help="also a coronary label map")
     p.add_argument("--abdominal", action="store_true",
@@ -450,8 +457,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--mesh", choices=_VOXEL_ORDERS, default=None,
                    help="write a lumen surface (STL) in this frame instead of label maps")
     p.add_argument("--noise-mm", type=float, default=0.0, help="vertex noise of --mesh, mm")
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the partial-volume noise (and of --noise-mm)")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``cgail synthetic-ct``; returns the exit status."""
+    import sys
+
+    import yaml
+
+    args = build_parser().parse_args(argv)
     try:
         if args.mesh:
             import trimesh
@@ -470,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
             written = ct.write(args.out)
             truth = ct.truth
     except (ValueError, PatientError) as exc:
-        print(f"synthetic_ct: {exc}", file=sys.stderr)
+        print(f"cgail synthetic-ct: error: {exc}", file=sys.stderr)
         return 2
     landmarks = {k: [round(float(x), 4) for x in np.asarray(v).ravel()]
                  for k, v in truth.landmarks.items()}
@@ -478,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         {"frame": "RAS", "units": "mm (root_axis: unit vector)", **landmarks},
         sort_keys=False))
     for key, path in written.items():
-        print(f"synthetic_ct: {key}: {path}")
+        print(f"cgail synthetic-ct: {key}: {path}")
     return 0
 
 

@@ -74,12 +74,13 @@ def _mesh_of(spec: str | os.PathLike[str]) -> Path:
         if missing and (path / REJECTED_MESH).is_file():
             raise AnatomyError(
                 f"anatomy {path}: expected a usable prepared anatomy ({PREPARED_MESH}), found "
-                f"one prepare_anatomy refused ({REJECTED_MESH}; the reasons are in "
+                f"one cgail prepare-anatomy refused ({REJECTED_MESH}; the reasons are in "
                 f"{path / 'report.md'})")
         if missing:
             raise AnatomyError(
                 f"anatomy {path}: expected a prepared anatomy directory holding {PREPARED_MESH} "
-                f"and lumen.yaml (prepare_anatomy makes one), found no {' and no '.join(missing)}")
+                f"and lumen.yaml (cgail prepare-anatomy makes one), found no "
+                f"{' and no '.join(missing)}")
         return mesh
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise AnatomyError(f"anatomy {path}: expected a mesh file ({'/'.join(MESH_SUFFIXES)}) "

@@ -1,11 +1,11 @@
 """Render an anatomy to PNG: vessel, centrelines, targets, starts, rollouts, heartbeat phases.
 
-Command line (console script ``sim_render``)::
+Command line (``cgail render``)::
 
-    sim_render --anatomy default --out docs/img/anatomy_default.png
-    sim_render --anatomy elongated --rollout tip_points.npy --phases 4 --out /tmp/a.png
-    sim_render --anatomy runs/patients/p07          # a prepared anatomy: anatomy_p07.png
-    sim_render --population 12 --seed 0 --out docs/img/population_grid.png
+    cgail render --anatomy default --out docs/img/anatomy_default.png
+    cgail render --anatomy elongated --rollout tip_points.npy --phases 4 --out /tmp/a.png
+    cgail render --anatomy runs/patients/p07          # a prepared anatomy: anatomy_p07.png
+    cgail render --population 12 --seed 0 --out docs/img/population_grid.png
 
 Two views side by side: anterior (coronal; viewer looking at the patient's front, the
 patient's left on the right of the image) and left-lateral (viewer at the patient's left,
@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.sim.anatomy import Anatomy, ANATOMY_NAMES, AnatomyError
 from cgail_planner.sim.anatomy_spec import resolve_anatomy
 from cgail_planner.sim.centerline import Centerline, compute_centerlines
@@ -92,7 +93,7 @@ def _scenarios(anatomy: Anatomy,
         scen = importlib.import_module("cgail_planner.sim.scenarios")
         s = scen.build_scenarios(anatomy, centerlines)
     except (ImportError, AttributeError, ValueError) as err:
-        print(f"sim_render: no scenarios drawn ({err})", file=sys.stderr)
+        print(f"cgail render: no scenarios drawn ({err})", file=sys.stderr)
         return None
     targets = np.array([t.position for t in s.targets], dtype=float).reshape(-1, 3)
     starts = np.array([q.position for q in s.starts], dtype=float).reshape(-1, 3)
@@ -315,8 +316,9 @@ def render_population_grid(seeds: Sequence[int], out: str | Path, *, cols: int =
     return _save(fig, out, dpi)
 
 
-def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="sim_render", description=__doc__.split("\n")[0])
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line options of ``cgail render``."""
+    ap = tool_parser("render", __doc__, details=True)
     ap.add_argument("--anatomy", default="default",
                     help=f"built-in anatomy {list(ANATOMY_NAMES)}, a prepared anatomy directory "
                          "or a mesh file (mm) with a <stem>.yaml landmark sidecar")
@@ -328,18 +330,18 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
                     help="overlay the root at N heartbeat phases (needs sim.wall)")
     ap.add_argument("--no-centerlines", action="store_true", help="skip the centrelines")
     ap.add_argument("--no-scenarios", action="store_true", help="skip targets and starts")
-    ap.add_argument("--dpi", type=int, default=110)
+    ap.add_argument("--dpi", type=int, default=110, help="resolution of the PNG, dots per inch")
     ap.add_argument("--population", type=int, default=0, metavar="N",
                     help="draw a grid of N population samples (sim.population) instead of "
                          "--anatomy (default out: population_grid.png)")
     ap.add_argument("--seed", type=int, default=0,
                     help="first population seed of the grid (--population)")
-    return ap.parse_args(argv)
+    return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``sim_render``; returns the exit status."""
-    args = _parse(argv)
+    """Entry point of ``cgail render``; returns the exit status."""
+    args = build_parser().parse_args(argv)
     try:
         if args.population:
             if args.population < 0 or args.seed < 0:
@@ -362,7 +364,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             try:
                 phases = heartbeat_phases(anatomy, args.phases)
             except ImportError as err:
-                print(f"sim_render: --phases needs sim.wall.DeformableWall ({err})",
+                print(f"cgail render: --phases needs sim.wall.DeformableWall ({err})",
                       file=sys.stderr)
                 return 2
         if args.phases < 0:
@@ -371,7 +373,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         path = render_anatomy(anatomy, out, centerlines=centerlines, rollout=rollout,
                               phases=phases, scenarios=not args.no_scenarios, dpi=args.dpi)
     except (AnatomyError, ValueError, OSError) as err:
-        print(f"sim_render: {err}", file=sys.stderr)
+        print(f"cgail render: error: {err}", file=sys.stderr)
         return 2
     print(path)
     return 0

@@ -1,11 +1,11 @@
-"""``identify_pam``: identify the PAM controller's bending model on the bench (issue 16).
+"""``cgail identify-pam``: identify the PAM controller's bending model on the bench.
 
-    scripts/ros2run cgail_planner identify_pam --sim --plant-seed 3 --out runs/identify_s3
-    scripts/ros2run cgail_planner identify_pam --bag runs/bench_bag --out runs/identify_rig
+    cgail identify-pam --sim --plant-seed 3 --out runs/identify_s3
+    cgail identify-pam --bag runs/bench_bag --out runs/identify_rig
 
 **Bench.** The catheter is clamped at the base of its steerable segment, in free air, with the
 EM sensor at the tip; the insertion is held. ``--sim`` builds that rig on a lockstep executor
-(:mod:`cgail_planner.system.lockstep`) from the nodes of ``config/launch/sim_rig.yaml``: the
+(:mod:`cgail_planner.system.lockstep`) from the nodes of ``launch/sim_rig.launch.yaml``: the
 ``phantom`` with ``fixture: bench`` (the tip is the arc of the true plant's bend, through the
 simulated Aurora with its EM noise), ``aurora`` and ``pam_controller``. It runs the scripted
 excitation (:mod:`pam_controller.core.identification`: vented rest, triangular sweeps of
@@ -49,6 +49,8 @@ import time
 from typing import Any
 
 import numpy as np
+
+from cgail_planner.cli_help import tool_parser
 
 #: Recorded on the bench: what the fit reads (the first two), the commands and the true pose.
 TOPICS = ('em_tracker/tip_pose', 'pam/pressures', 'catheter/bend_command', 'phantom/tip_pose')
@@ -97,7 +99,7 @@ def run_bench(bag: Path, *, plant: str = 'true', plant_seed: int = 0, seed: int 
         excitation: an :class:`~pam_controller.core.identification.ExcitationConfig`
             (default: the full one).
         domain_id: the ROS domain of the bench.
-        launch_file: rig launch YAML (default: the package's ``sim_rig.yaml``).
+        launch_file: rig launch YAML (default: the package's ``sim_rig.launch.yaml``).
 
     Returns:
         Recorded messages per topic.
@@ -402,9 +404,8 @@ def identify_sim(out: Path, *, plant_seed: int, plant: str = 'true', seed: int =
 
 # ---------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``identify_pam``."""
-    p = argparse.ArgumentParser(prog='identify_pam', description=__doc__.split('\n\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Command-line options of ``cgail identify-pam``."""
+    p = tool_parser('identify-pam', __doc__)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument('--sim', action='store_true',
                      help='run the excitation on the simulated bench (phantom fixture: bench), '
@@ -415,7 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help='output directory (pam_identified.yaml, loops.png, report.md)')
     p.add_argument('--plant-seed', type=int, default=0, help="seed of the true plant's draw")
     p.add_argument('--plant', choices=('true', 'nominal', 'ideal'), default='true',
-                   help="the phantom's plant (--sim)")
+                   help="the phantom's plant (--sim): true (drawn from its sourced ranges "
+                        "with --plant-seed), nominal (its nominal values) or ideal (the PAM "
+                        "controller's nominal model)")
     p.add_argument('--seed', type=int, default=0, help='seed of the EM noise (--sim)')
     p.add_argument('--short', action='store_true',
                    help='the short excitation (about 37 s of rig time instead of about 200 s)')
@@ -423,7 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``identify_pam``; returns the exit status."""
+    """Entry point of ``cgail identify-pam``; returns the exit status."""
     from cgail_planner.bags.errors import BagError
     from cgail_planner.system.domain import DomainError
     from pam_controller.core import identification as idf
@@ -431,7 +434,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
 
     def fail(text: str) -> int:
-        print(f'identify_pam: error: {text}', file=sys.stderr)
+        print(f'cgail identify-pam: error: {text}', file=sys.stderr)
         return 2
 
     excitation = idf.SHORT_EXCITATION if args.short else idf.ExcitationConfig()
@@ -448,7 +451,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (BagError, idf.IdentificationError, DomainError, BenchError) as exc:
         return fail(str(exc))
     e = result.errors
-    print(f'identify_pam: RMS bend error nominal {e["nominal"]["all"]:.4f} rad '
+    print(f'cgail identify-pam: RMS bend error nominal {e["nominal"]["all"]:.4f} rad '
           f'({math.degrees(e["nominal"]["all"]):.2f} deg), identified '
           f'{e["identified"]["all"]:.4f} rad ({math.degrees(e["identified"]["all"]):.2f} deg); '
           f'wrote {args.out / "pam_identified.yaml"}, loops.png, report.md')

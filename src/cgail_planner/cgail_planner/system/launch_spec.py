@@ -8,7 +8,7 @@ reads the same file. A package keeps its launch files in ``launch/*.launch.yaml`
 .. code-block:: yaml
 
     launch:
-    - arg: {name: anatomy, default: default, description: the aorta}   # rig_launch F anatomy:=X
+    - arg: {name: anatomy, default: default, description: the aorta}   # cgail launch F anatomy:=X
     - let: {name: config, value: $(dirname)/..}                        # a launch configuration
     - node:
         pkg: em_tracker                   # install/<pkg>/lib/<pkg>/<exec>
@@ -38,7 +38,7 @@ Substitutions, inside any string: ``$(var NAME)`` (an ``arg`` or ``let`` above),
 ``$(env NAME [DEFAULT])``. As in ``launch_ros``, a parameter value written as a string is typed
 by YAML after substitution (``'8780'`` is an integer, ``''`` stays a string), ``arg`` defaults
 and ``let`` values are strings, and a relative ``from`` path is relative to the working
-directory (hence ``$(dirname)``). ``rig_launch FILE NAME:=VALUE`` sets an argument; an argument
+directory (hence ``$(dirname)``). ``cgail launch FILE NAME:=VALUE`` sets an argument; an argument
 without a default must be given.
 
 A remapping's ``from`` and ``to`` are topic or service names: relative (``joy``), absolute
@@ -376,7 +376,7 @@ def _process(kind: str, body: dict[str, Any], scope: _Scope, where: str) -> Node
                               f'{delay!r}')
     name = text('name')
     if not name:
-        raise LaunchSpecError(f'{where}: expected a name (rig_launch prefixes the output with '
+        raise LaunchSpecError(f'{where}: expected a name (cgail launch prefixes the output with '
                               'it and selects nodes by it), found none')
     common: dict[str, Any] = {
         'name': name, 'required': on_exit == 'shutdown', 'respawn': respawn,
@@ -507,8 +507,8 @@ def load_launch_file(path: str | Path, arguments: dict[str, str] | None = None) 
 
 def default_launch_file() -> Path:
     """``launch/sim_rig.launch.yaml`` of ``cgail_planner`` (source tree, else the install's
-    ``share/cgail_planner/launch/``): the simulated rig that ``invitro_session`` and
-    ``identify_pam --sim`` run."""
+    ``share/cgail_planner/launch/``): the simulated rig that ``cgail session`` and
+    ``cgail identify-pam --sim`` run."""
     here = Path(__file__).resolve().parents[2] / 'launch' / 'sim_rig.launch.yaml'
     if here.is_file():
         return here

@@ -1,4 +1,5 @@
-"""A small multi-node launcher (ROS 2 ``launch`` is not installable from PyPI).
+"""``cgail launch``: start the nodes of a launch file, as ``ros2 launch`` does (ROS 2's
+``launch`` is not installable from PyPI, so this is a small launcher of our own).
 
 Reads a launch file in ROS 2's YAML launch format (:mod:`cgail_planner.system.launch_spec`;
 the same file works with ``ros2 launch`` on a full install) and starts its nodes with their
@@ -7,17 +8,16 @@ all in this process on one multi-threaded executor (``--in-process``), forwards 
 and shuts everything down cleanly: SIGINT to every child, then SIGTERM after
 ``--shutdown-timeout`` seconds, then SIGKILL.
 
-Usage (pip-only workspace; ``ros2 run cgail_planner rig_launch ...`` on a full ROS install)::
+Usage::
 
-    scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml \
-        --in-process
-    scripts/ros2run cgail_planner rig_launch my_rig.yaml --only aurora planner
-    scripts/ros2run cgail_planner rig_launch src/cgail_planner/config/launch/sim_rig.yaml \
-        --in-process anatomy:=runs/patients/p07    # a launch argument (NAME:=VALUE)
+    cgail launch src/cgail_planner/launch/sim_rig.launch.yaml --in-process
+    cgail launch my_rig.yaml --only aurora planner
+    cgail launch src/cgail_planner/launch/sim_rig.launch.yaml --in-process \\
+        anatomy:=runs/patients/p07    # a launch argument (NAME:=VALUE)
 
 The launcher refuses to start when ``ROS_AUTOMATIC_DISCOVERY_RANGE`` is unset (DDS would
-multicast onto the network): run it through ``scripts/ros2run`` / ``scripts/ws`` (which source
-``scripts/env.sh``) or pass ``--allow-unset-discovery-range`` on purpose.
+multicast onto the network): run it through ``scripts/ws`` (``scripts/ws cgail launch ...``,
+which sources ``scripts/env.sh``) or pass ``--allow-unset-discovery-range`` on purpose.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ from typing import Any, IO
 
 import yaml
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.system.launch_spec import (
     LaunchSpec,
     LaunchSpecError,
@@ -373,18 +374,19 @@ def run_in_process(spec: LaunchSpec, *, max_duration: float | None = None,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog='rig_launch', description=__doc__.split('\n\n')[0],
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Command line of ``cgail launch``."""
+    parser = tool_parser('launch', __doc__, details=True)
     parser.add_argument('launch_file', help="launch file in ROS 2's YAML launch format (see "
                         'cgail_planner.system.launch_spec)')
     parser.add_argument('launch_arguments', nargs='*', metavar='NAME:=VALUE',
                         help="launch arguments over the file's defaults (e.g. anatomy:=DIR)")
-    parser.add_argument('--only', nargs='+', metavar='NODE', help='start only these nodes')
+    parser.add_argument('--only', nargs='+', metavar='NODE',
+                        help='start only these nodes (by name; default: all)')
     parser.add_argument('--in-process', action='store_true',
                         help='run all ROS nodes in this process on one executor')
     parser.add_argument('--max-duration', type=float, default=None,
-                        help='stop everything after this many seconds')
+                        help='stop everything after this many seconds (default: run until '
+                             'SIGINT/SIGTERM)')
     parser.add_argument('--shutdown-timeout', type=float, default=5.0,
                         help='seconds between SIGINT, SIGTERM and SIGKILL at shutdown')
     parser.add_argument('--allow-unset-discovery-range', action='store_true',
@@ -393,20 +395,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # intermixed: NAME:=VALUE may follow options (rig_launch FILE --in-process anatomy:=DIR)
+    """Entry point of ``cgail launch``; returns the exit status."""
+    # intermixed: NAME:=VALUE may follow options (cgail launch FILE --in-process anatomy:=DIR)
     args = build_parser().parse_intermixed_args(argv)
     if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') and \
             not args.allow_unset_discovery_range:
-        print('rig_launch: ROS_AUTOMATIC_DISCOVERY_RANGE is unset, so DDS would multicast onto '
-              'the network; run through scripts/ws (sources scripts/env.sh) or pass '
-              '--allow-unset-discovery-range', file=sys.stderr)
+        print('cgail launch: error: ROS_AUTOMATIC_DISCOVERY_RANGE is unset, so DDS would '
+              'multicast onto the network; run through scripts/ws (sources scripts/env.sh) or '
+              'pass --allow-unset-discovery-range', file=sys.stderr)
         return 2
     # (NAME:=VALUE after --only NODE... lands in --only; a node name never holds ':=')
     words = [*args.launch_arguments, *[w for w in args.only or () if ':=' in w]]
     only = [w for w in args.only or () if ':=' not in w]
     bad = [w for w in words if ':=' not in w or not w.partition(':=')[0]]
     if bad:
-        print(f'rig_launch: launch arguments must read NAME:=VALUE, found {bad}',
+        print(f'cgail launch: error: launch arguments must read NAME:=VALUE, found {bad}',
               file=sys.stderr)
         return 2
     arguments = dict(w.split(':=', 1) for w in words)
@@ -416,7 +419,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_in_process(spec, max_duration=args.max_duration)
         launcher = ProcessLauncher(spec, shutdown_timeout=args.shutdown_timeout)
     except LaunchSpecError as exc:
-        print(f'rig_launch: {exc}', file=sys.stderr)
+        print(f'cgail launch: error: {exc}', file=sys.stderr)
         return 2
     signal.signal(signal.SIGINT, launcher.request_stop)
     signal.signal(signal.SIGTERM, launcher.request_stop)

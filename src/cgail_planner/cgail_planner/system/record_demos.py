@@ -1,10 +1,11 @@
-"""``record_demos``: record your own demonstrations in the simulator, with a gamepad or keyboard.
+"""``cgail record-demos``: record your own demonstrations in the simulator, with a gamepad or
+keyboard.
 
-    scripts/ws record_demos --anatomy default --out bags/demos/mine              # gamepad
-    scripts/ws record_demos --anatomy default --out bags/demos/mine --driver keyboard
-    scripts/ws record_demos --anatomy default --out runs/demos_scripted --driver scripted \\
-        --episodes 10 --time-scale 8                                          # no person
-    scripts/ws train --preset cgail --demos bags/demos/mine --out runs/my_demos
+    cgail record-demos --anatomy default --out bags/demos/mine              # gamepad
+    cgail record-demos --anatomy default --out bags/demos/mine --driver keyboard
+    cgail record-demos --anatomy default --out runs/demos_scripted --driver scripted \\
+        --episodes 10 --time-scale 8                                     # no person
+    cgail train --preset cgail --demos bags/demos/mine --out runs/my_demos
 
 Options: ``--anatomy NAME|PATH`` (a built-in name, a prepared anatomy directory or a mesh file
 with its landmarks), ``--out DIR`` (the demo bag to create), ``--mode static|dynamic``,
@@ -48,8 +49,8 @@ leaving the anatomy, the time limit, or a discard (the same start and target com
 ``demo/episode``, ``demo/tip_pose``, ``demo/action``, ``demo/target``), rewritten after every
 saved episode, so an interrupted recording keeps what it saved. Its ``metadata.yaml`` custom
 data ``cgail_planner.record_demos`` holds who recorded each episode, the device
-(``gamepad``, ``keyboard``, ``scripted``), the outcome and the duration. ``train --demos DIR``
-takes it as it takes ``make_demos``' bags (the successful episodes).
+(``gamepad``, ``keyboard``, ``scripted``), the outcome and the duration. ``cgail train --demos
+DIR`` takes it as it takes ``cgail make-demos``' bags (the successful episodes).
 
 Exit status: 0 when done or interrupted (Ctrl-C; the bag holds the saved episodes), 2 on bad
 input (one line on stderr), 1 when the rig fails.
@@ -67,25 +68,42 @@ import sys
 import time
 from typing import Any
 
+from cgail_planner.cli_help import tool_parser
+
 #: ros-args of the process: teleop's warnings (a rejected or stale Joy) are reported once by the
 #: recorder node instead; joy_node's (no gamepad) stay on the console.
 ROS_ARGS = ['--ros-args', '--disable-rosout-logs', '--log-level', 'teleop:=error']
 DRIVERS = ('gamepad', 'keyboard', 'scripted')
+#: Each node's own topic names -> the rig's (``-r`` rules), per node name: teleop and joy as
+#: the rig's launch files remap them (docs/interfaces.md), the recorder in the place of the
+#: tracker and the devices, the keyboard and the scripted expert as gamepads.
+REMAPS: dict[str, dict[str, str]] = {
+    'record_demos': {'~/tip_pose': 'em_tracker/tip_pose', '~/keyboard_joy': 'joy',
+                     '~/joy': 'joy', '~/bend_command': 'catheter/bend_command',
+                     '~/insertion_command': 'catheter/insertion_command'},
+    'teleop': {'~/joy': 'joy', '~/insertion_command': 'catheter/insertion_command',
+               '~/bend_command': 'catheter/bend_command'},
+    'expert_joy': {'~/joy': 'joy'},
+    'joy': {'~/joy': 'joy'},
+}
 MAX_TIME_SCALE = 1000.0
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line interface of ``record_demos``."""
-    p = argparse.ArgumentParser(prog='record_demos', description=__doc__.split('\n')[0])
+    """Command-line interface of ``cgail record-demos``."""
+    p = tool_parser('record-demos', __doc__)
     p.add_argument('--anatomy', default='default',
                    help='built-in anatomy name (default, elongated), prepared anatomy directory '
                         'or mesh file with its <stem>.yaml landmarks')
     p.add_argument('--out', type=Path, required=True, help='demo bag directory to create')
-    p.add_argument('--mode', choices=('static', 'dynamic'), default='static')
+    p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
+                   help='rigid aorta (static) or deformable beating wall with a moving target '
+                        '(dynamic)')
     p.add_argument('--episodes', type=int, default=10, help='episodes to save (default 10)')
     p.add_argument('--order', choices=('sequential', 'random'), default='sequential',
-                   help='starts x targets in order (as make_demos) or drawn with --seed')
-    p.add_argument('--seed', type=int, default=0)
+                   help='starts x targets in order (as cgail make-demos) or drawn with --seed')
+    p.add_argument('--seed', type=int, default=0,
+                   help="seed of the random order (and of the scripted driver's episodes)")
     p.add_argument('--who', default=None,
                    help='who records (default: the login name; "scripted expert" for '
                         '--driver scripted)')
@@ -104,11 +122,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``record_demos``."""
+    """Entry point of ``cgail record-demos``."""
     args = build_parser().parse_args(argv)
 
     def fail(text: str, code: int = 2) -> int:
-        print(f'record_demos: error: {text}', file=sys.stderr, flush=True)
+        print(f'cgail record-demos: error: {text}', file=sys.stderr, flush=True)
         return code
 
     if not (math.isfinite(args.time_scale) and 0.0 < args.time_scale <= MAX_TIME_SCALE):
@@ -171,7 +189,7 @@ def _record(args: argparse.Namespace, config: Any, anatomy: Any) -> int:
     from cgail_planner.system.lockstep import LockstepExecutor
 
     def log(text: str) -> None:
-        print(f'record_demos: {text}', flush=True)
+        print(f'cgail record-demos: {text}', flush=True)
 
     t_build = time.monotonic()
     base = EnvConfig(mode=args.mode, anatomy=anatomy)
@@ -202,6 +220,10 @@ def _record(args: argparse.Namespace, config: Any, anatomy: Any) -> int:
             f'steps, {what}{note}; {recorder.successes} successful, {recorder.discarded} '
             f'discarded, {time.monotonic() - started:.1f} s')
 
+    def remapped(name: str) -> list[str]:
+        return ['--ros-args', *(w for rule in REMAPS[name].items()
+                                for w in ('-r', ':='.join(rule)))]
+
     rclpy.init(args=ROS_ARGS, signal_handler_options=SignalHandlerOptions.NO)
     nodes: list[Any] = []
     errors: list[str] = []
@@ -214,19 +236,23 @@ def _record(args: argparse.Namespace, config: Any, anatomy: Any) -> int:
         if args.driver == 'scripted':  # the expert's actions are bends: position mode
             teleop_overrides += [Parameter('bend_mode', value='position'),
                                  Parameter('scale_bend', value=float(env.config.theta_max))]
-        node = RecorderNode(recorder, page, layout, on_end=on_end, report=log, **lean)
+        node = RecorderNode(recorder, page, layout, on_end=on_end, report=log,
+                            cli_args=remapped('record_demos'), **lean)
         nodes.append(node)
-        nodes.append(TeleopNode(parameter_overrides=teleop_overrides, **lean))
+        nodes.append(TeleopNode(parameter_overrides=teleop_overrides,
+                                cli_args=remapped('teleop'), **lean))
         if args.driver == 'scripted':
             nodes.append(ExpertJoyNode(recorder, layout, seed=config.seed,
-                                       period_s=env.config.dt, **lean))
+                                       period_s=env.config.dt, cli_args=remapped('expert_joy'),
+                                       **lean))
         elif args.driver == 'gamepad':
             from catheter_driver.nodes.joy_node import JoyNode
 
             rate = min(1000.0, 20.0 * max(1.0, args.time_scale))
             nodes.append(JoyNode(parameter_overrides=[
                 Parameter('autorepeat_rate', value=rate),
-                Parameter('poll_rate_hz', value=1.0 / env.config.dt)], **lean))
+                Parameter('poll_rate_hz', value=1.0 / env.config.dt)],
+                cli_args=remapped('joy'), **lean))
         for n in nodes:
             executor.add_node(n)
         executor.add_hook(node.world_step)

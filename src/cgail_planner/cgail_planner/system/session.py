@@ -1,13 +1,13 @@
-"""``invitro_session``: the simulated in-vitro session of the paper (section IV-B), end to end.
+"""``cgail session``: the simulated in-vitro session of the paper (section IV-B), end to end.
 
-    scripts/ros2run cgail_planner invitro_session --out runs/invitro     # the main job
-    scripts/ws python -m cgail_planner.system.session --trials 2 --policy model.onnx --mode dynamic
+    cgail session --out runs/invitro                                   # the main job
+    cgail session --trials 2 --policy model.onnx --mode dynamic --out runs/invitro_dynamic
 
 **Protocol.** ``--trials`` trials (default 30, against the paper's 10: at 10 per condition no
 difference was significant in our sessions) following the C-GAIL path, then as many following
 the centerline (``planner_type: centerline``); trial ``k`` of a condition starts at start
 ``k mod 3`` with target ``k mod 5``. Each trial runs on a rig of its own, built from
-``config/launch/sim_rig.yaml``: ``phantom`` (the catheter-in-aorta physics, a simulated Aurora
+``launch/sim_rig.launch.yaml``: ``phantom`` (the catheter-in-aorta physics, a simulated Aurora
 on a pty, the regulator bank and the sleeve driver on virtual CAN), the real ``aurora`` node
 (ndicapi over the pty), ``pam_controller``, ``sleeve_driver``, ``teleop``, ``planner`` and the
 scripted ``operator`` at the gamepad. After 1 s of simulated time (the tracker connects, the
@@ -16,7 +16,7 @@ reached, or closest approach passed) or at the 3-minute limit, and is recorded t
 If the beating wall blows up (the phantom freezes its physics, :class:`~cgail_planner.sim.wall.
 WallError`), the trial ends at once as ``simulation fault`` with the anatomy, the seed and the
 time; its bag is evaluated as a failure, the session goes on, and the report counts the faults.
-Then the offline metrics (``bag_metrics``) print the markdown table with the paper's in-vitro
+Then the offline metrics (``cgail bag metrics``) print the markdown table with the paper's in-vitro
 numbers side by side and write the box plots.
 
 **Operator practice** (:mod:`cgail_planner.core.operator`). The paper's participant did 10
@@ -32,11 +32,12 @@ learning curve itself, record the pre-training too: ``--pretrain 0 --trials 20``
 **The plant** (:mod:`cgail_planner.core.plant`, ``docs/plant.md``). The phantom moves the
 catheter by its own true plant, drawn once per session with ``--seed``, from the regulators'
 measured pressures and the gripper's position. ``--plant identified`` (the default) first runs
-``identify_pam``'s simulated bench on that plant (cached in ``<out>/identification/``) and gives
-the PAM controller the identified model, as a rig team does before a session; ``nominal`` keeps
-the controller's nominal model on the same plant; ``ideal`` makes the plant the controller's own
-nominal model with a kinematic tip and no sleeve slip (the old rig, for comparison; not an upper
-bound: without the compliant tip, its tip strays farther from the path in the arch).
+``cgail identify-pam``'s simulated bench on that plant (cached in ``<out>/identification/``) and
+gives the PAM controller the identified model, as a rig team does before a session; ``nominal``
+keeps the controller's nominal model on the same plant; ``ideal`` makes the plant the
+controller's own nominal model with a kinematic tip and no sleeve slip (the old rig, for
+comparison; not an upper bound: without the compliant tip, its tip strays farther from the path
+in the arch).
 
 **Simulated time is the only time** (:mod:`cgail_planner.system.lockstep`). The rig's nodes run
 on one lockstep executor that owns their clocks: a tick advances the simulated clock by
@@ -77,6 +78,7 @@ import tempfile
 import time
 from typing import Any
 
+from cgail_planner.cli_help import tool_parser
 from cgail_planner.system.launch_spec import default_launch_file
 
 #: Recorded in every trial's bag: what the metrics read, and what RViz2 / Foxglove show (TF, the
@@ -136,7 +138,7 @@ class SessionSettings:
     tracker_rate: float = 40.0
     """EM tracker frame rate, Hz of simulated time (the Aurora: 40)."""
     launch_file: str = ''
-    """Rig launch YAML; '' = the package's sim_rig.yaml."""
+    """Rig launch YAML; '' = the package's sim_rig.launch.yaml."""
     time_scale: float = 0.0
     """At most this many simulated seconds per wall second; 0 = as fast as the CPU allows."""
     gui: bool = False
@@ -494,9 +496,8 @@ def run_trials(settings: SessionSettings, specs: Sequence[TrialSpec], *, jobs: i
 
 # ---------------------------------------------------------------------- command line
 def build_parser() -> argparse.ArgumentParser:
-    """Command-line options of ``invitro_session``."""
-    p = argparse.ArgumentParser(prog='invitro_session', description=__doc__.split('\n\n')[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    """Command-line options of ``cgail session``."""
+    p = tool_parser('session', __doc__)
     p.add_argument('--trials', type=int, default=30,
                    help='trials per condition (default 30, the power the comparison needs: at '
                         "the paper's 10 no difference between the conditions was significant; "
@@ -513,7 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
                    help='output directory (bags/, logs/, metrics.md, metrics.csv, box plots)')
     p.add_argument('--policy', type=Path, default=None,
-                   help='ONNX C-GAIL policy (export_onnx); default: the committed '
+                   help='ONNX C-GAIL policy (cgail export-onnx); default: the committed '
                         'learning/models/cgail_<anatomy>_<mode>.onnx (static if there is no '
                         'policy for the mode)')
     p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
@@ -532,7 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
                         'sleeve-driver control loops run at half of it)')
     p.add_argument('--tracker-rate', type=float, default=40.0,
                    help='EM tracker frame rate in simulated time, Hz (the Aurora: 40)')
-    p.add_argument('--launch-file', type=Path, default=None, help='rig launch YAML')
+    p.add_argument('--launch-file', type=Path, default=None,
+                   help="rig launch YAML (default: the package's sim_rig.launch.yaml)")
     p.add_argument('--seed', type=int, default=0,
                    help='session seed: the true plant (one catheter for the session) and each '
                         "trial's own seed (EM and stick noise)")
@@ -550,9 +552,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "phantom's true plant (its own actuator model, drawn from sourced "
                         'ranges with --seed) and the PAM controller with its '
                         "nominal model; 'identified': the same plant, and the controller with "
-                        'the model identify_pam identified on it (run first on the simulated '
-                        "bench, cached in <out>/identification/); 'ideal': the plant is the "
-                        "controller's own nominal model (for comparison)")
+                        'the model cgail identify-pam identified on it (run first on the '
+                        "simulated bench, cached in <out>/identification/); 'ideal': the plant "
+                        "is the controller's own nominal model (for comparison)")
     return p
 
 
@@ -572,11 +574,11 @@ def identified_pam_parameters(directory: Path, plant_seed: int,
     cached = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters'] \
         if path.is_file() else {}
     if not set(IDENTIFIED_KEYS) <= set(cached):  # none yet, or of an older model: identify
-        log(f'invitro_session: identifying the PAM model on plant seed {plant_seed} '
-            f'(identify_pam --sim, {where})')
+        log(f'cgail session: identifying the PAM model on plant seed {plant_seed} '
+            f'(cgail identify-pam --sim, {where})')
         result = identify_sim(where, plant_seed=plant_seed)
         e = result.errors
-        log(f'invitro_session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
+        log(f'cgail session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
             f'{e["identified"]["all"]:.4f} rad')
     values = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters']
     return tuple((key, float(values[key])) for key in IDENTIFIED_KEYS)
@@ -595,13 +597,13 @@ def _trial_line(done: int, total: int, r: TrialResult) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of ``invitro_session``; returns the exit status."""
+    """Entry point of ``cgail session``; returns the exit status."""
     from cgail_planner.system.domain import DomainError, requested_domain, reserve_domain
 
     args = build_parser().parse_args(argv)
 
     def fail(text: str) -> int:
-        print(f'invitro_session: {text}', file=sys.stderr)
+        print(f'cgail session: error: {text}', file=sys.stderr)
         return 2
 
     if args.trials < 1:
@@ -636,8 +638,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.policy is None and builtin:
         args.policy = default_policy(args.anatomy, args.mode)
     if 'cgail' in args.conditions and not args.policy.is_file():
-        return fail(f'the cgail condition needs --policy <model.onnx> (export_onnx), found no '
-                    f'file at {args.policy}')
+        return fail(f'the cgail condition needs --policy <model.onnx> (cgail export-onnx), '
+                    f'found no file at {args.policy}')
     bags_dir = args.out / 'bags'
     if bags_dir.exists() and any(bags_dir.iterdir()):
         return fail(f'{bags_dir} already holds bags; choose another --out')
@@ -690,14 +692,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     else:
         where = f'{jobs} worker processes, each on a free ROS domain of its own'
     t_start = time.monotonic()
-    log(f'invitro_session: {len(specs)} trials ({", ".join(args.conditions)}; '
+    log(f'cgail session: {len(specs)} trials ({", ".join(args.conditions)}; '
         f'{label}, {args.mode}) on {where}; policy {args.policy or "-"}; node logs in '
         f'{log_dir}' + ''.join(f'; {n}' for n in notes))
     if args.gui:
-        log(f'invitro_session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '
+        log(f'cgail session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '
             f'runs')
     if args.igtl:
-        log(f'invitro_session: OpenIGTLink server on 127.0.0.1:{args.igtl_port} while a trial '
+        log(f'cgail session: OpenIGTLink server on 127.0.0.1:{args.igtl_port} while a trial '
             f'runs (3D Slicer: OpenIGTLinkIF, a client connector to that port)')
     done = [0]
 
@@ -714,7 +716,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             lease.release()
     wall_s = time.monotonic() - t_start
     if len(results) < len(specs):
-        log(f'invitro_session: interrupted after {len(results)} of {len(specs)} trials; '
+        log(f'cgail session: interrupted after {len(results)} of {len(specs)} trials; '
             f'evaluating those')
     errors = sum(len(r.callback_errors) for r in results)
     if errors:
@@ -743,7 +745,7 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
         except (BagError, MetricsError) as exc:
             skipped.append(f'{bag.name}: {exc}')
     if not trials:
-        log('invitro_session: no trial could be evaluated')
+        log('cgail session: no trial could be evaluated')
         for s in skipped:
             log(f'  {s}')
         return 1
@@ -763,7 +765,7 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     write_csv(trials, out / 'metrics.csv')
     png = box_plots(trials, tests, out / 'metrics_boxplot.png')
     log(text)
-    log(f'invitro_session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
+    log(f'cgail session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
         f'({wall_s:.0f} s wall)')
     return 0
 

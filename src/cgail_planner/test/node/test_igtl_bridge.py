@@ -211,7 +211,7 @@ def test_prepared_anatomy_streams_in_its_ct_frame(ros, prepared: Path) -> None:
     # a record of another lumen is refused at construction
     rec['anatomy']['content_hash'] = '0' * 16
     (prepared / 'prepare.yaml').write_text(yaml.safe_dump(rec))
-    with pytest.raises(igtl.CtFrameError, match='the lumen changed after prepare_anatomy'):
+    with pytest.raises(igtl.CtFrameError, match='the lumen changed after cgail prepare-anatomy'):
         IgtlBridge(parameter_overrides=[Parameter('anatomy', value=str(prepared)),
                                         Parameter('port', value=0)])
 

@@ -1,6 +1,6 @@
-"""Every command line takes an anatomy as a name or a path (issue 12): make_demos, train,
-evaluate, export_onnx, sim_render and invitro_session; a bad one is one line and exit status 2
-(the nodes: test/node/test_anatomy_nodes.py)."""
+"""Every command line takes an anatomy as a name or a path (issue 12): cgail make-demos, train,
+evaluate, export-onnx, render and session; a bad one is one line and exit status 2 (the nodes:
+test/node/test_anatomy_nodes.py)."""
 
 from __future__ import annotations
 
@@ -30,25 +30,25 @@ PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
 def _commands(tmp_path: Path) -> dict[str, tuple]:
     out = tmp_path / 'out'
     return {
-        'make_demos': (demos_cli.main, ['--episodes', '1', '--out', str(out)]),
+        'make-demos': (demos_cli.main, ['--episodes', '1', '--out', str(out)]),
         'train': (train.main, ['--preset', 'smoke', '--no-progress', '--out', str(out)]),
         'evaluate': (evaluate.main, ['--trials', '1', '--out', str(out)]),
-        'export_onnx': (export.main, [str(FIXTURES / 'straight_policy.onnx'), '--add-contract',
+        'export-onnx': (export.main, [str(FIXTURES / 'straight_policy.onnx'), '--add-contract',
                                       '--out', str(tmp_path / 'p.onnx')]),
-        'sim_render': (render.main, ['--out', str(tmp_path / 'a.png')]),
-        'invitro_session': (session.main, ['--trials', '1', '--out', str(out)]),
+        'render': (render.main, ['--out', str(tmp_path / 'a.png')]),
+        'session': (session.main, ['--trials', '1', '--out', str(out)]),
     }
 
 
-@pytest.mark.parametrize('prog', ['make_demos', 'train', 'evaluate', 'export_onnx',
-                                  'sim_render', 'invitro_session'])
+@pytest.mark.parametrize('verb', ['make-demos', 'train', 'evaluate', 'export-onnx', 'render',
+                                  'session'])
 def test_a_bad_anatomy_is_one_line_and_exit_status_2(tmp_path, capsys, bad_anatomy,
-                                                     prog) -> None:
+                                                     verb) -> None:
     spec, text = bad_anatomy
-    main, argv = _commands(tmp_path)[prog]
+    main, argv = _commands(tmp_path)[verb]
     assert main([*argv, '--anatomy', str(spec)]) == 2
     err = capsys.readouterr().err
-    assert err.count('\n') == 1 and err.startswith(f'{prog}: ') and text in err, err
+    assert err.count('\n') == 1 and err.startswith(f'cgail {verb}: error: ') and text in err, err
     assert not (tmp_path / 'out').exists()
 
 
@@ -114,8 +114,9 @@ def test_export_onnx_adds_a_path_anatomy_contract(prepared, tmp_path, capsys) ->
     onnx.save(model, str(out))
     assert export.main([str(out), '--add-contract']) == 2
     err = capsys.readouterr().err
-    assert err == (f"export_onnx: error: --add-contract: the metadata of {out} names anatomy "
-                   "'p07', not a built-in one: give its prepared directory with --anatomy\n")
+    assert err == (f"cgail export-onnx: error: --add-contract: the metadata of {out} names "
+                   "anatomy 'p07', not a built-in one: give its prepared directory with "
+                   "--anatomy\n")
     assert export.main([str(FIXTURES / 'straight_policy.onnx'), '--anatomy', 'default']) == 2
     assert '--anatomy: expected with --add-contract' in capsys.readouterr().err
 
@@ -136,6 +137,6 @@ def test_evaluate_and_sim_render_take_a_prepared_directory(prepared, tmp_path, c
 def test_invitro_session_in_a_path_anatomy_needs_a_policy(prepared, tmp_path, capsys) -> None:
     assert session.main(['--out', str(tmp_path / 's'), '--anatomy', str(prepared)]) == 2
     assert capsys.readouterr().err == (
-        f'invitro_session: the cgail condition needs --policy <model.onnx> for anatomy '
+        f'cgail session: error: the cgail condition needs --policy <model.onnx> for anatomy '
         f'{prepared.resolve()}: expected a policy trained on it (there is a committed one only '
         'for the built-in anatomies), found no --policy\n')

@@ -99,13 +99,13 @@ def test_a_mesh_file_with_its_sidecar_is_labelled_by_its_stem(tmp_path) -> None:
     (lambda d: 'no_such_anatomy', USAGE + r"'no_such_anatomy': no such file or directory$"),
     (lambda d: d / 'missing', USAGE + r"'.*/missing': no such file or directory$"),
     (lambda d: d, r"^anatomy .*/bad: expected a prepared anatomy directory holding lumen.stl "
-                  r"and lumen.yaml \(prepare_anatomy makes one\), found no lumen.yaml$"),
+                  r"and lumen.yaml \(cgail prepare-anatomy makes one\), found no lumen.yaml$"),
     (lambda d: d / 'notes.txt', r"^anatomy .*/notes.txt: expected a mesh file \(.stl/.obj/.ply\) "
                                 r"or a prepared anatomy directory, found a .txt file$"),
     (lambda d: d / 'bare.stl', r"^anatomy .*/bare.stl: expected its landmarks in "
                                r".*/bare.yaml, found no such file$"),
     (lambda d: d / 'refused', r"^anatomy .*/refused: expected a usable prepared anatomy "
-                              r"\(lumen.stl\), found one prepare_anatomy refused "
+                              r"\(lumen.stl\), found one cgail prepare-anatomy refused "
                               r"\(lumen.rejected.stl; the reasons are in .*/refused/report.md\)$"),
     (lambda d: '', USAGE + "''$"),
     (lambda d: 3, USAGE + 'an object of type int$'),

@@ -240,7 +240,8 @@ def test_replay_reports_drift_within_the_tolerance(tmp_path: Path, recording):
 
 @pytest.mark.parametrize(('what', 'move', 'match'), [
     ('pose', 0.002, r'episode 0 step 10: the re-simulated tip: expected it within 1 mm of the '
-                    r'recording, found 2\.000 mm: re-record the demonstrations \(make_demos\)$'),
+                    r'recording, found 2\.000 mm: re-record the demonstrations '
+                    r'\(cgail make-demos\)$'),
     ('start', 0.0015, r'episode 0: the recorded start: expected it within 1 mm of the '
                       r'recording, found 1\.500 mm'),
     ('target', 0.0012, r'episode 0: the recorded target: expected it within 1 mm of the '
@@ -356,9 +357,9 @@ def test_the_sources_of_the_demonstrations_are_told_apart(tmp_path: Path, record
     sources: list[dict] = []
     load_demos([scripted, recorded, converted], sources=sources)
     assert [(s['source'], s['episodes']) for s in sources] == [
-        ('scripted expert (make_demos)', 1),
-        ('record_demos (gamepad driver, by A. Surgeon)', 1),
-        ('teleoperated session bags (make_demos --from-bags)', 1)]
+        ('scripted expert (cgail make-demos)', 1),
+        ('cgail record-demos (gamepad driver, by A. Surgeon)', 1),
+        ('teleoperated session bags (cgail make-demos --from-bags)', 1)]
 
 
 @pytest.mark.slow  # re-simulates the 70 committed demonstrations and trains 8,192 steps
@@ -371,7 +372,8 @@ def test_train_smoke_runs_on_the_committed_demonstrations(tmp_path: Path):
          str(tmp_path / 'run'), '--no-progress'],
         capture_output=True, text=True, timeout=1800, check=False)
     assert out.returncode == 0, out.stderr[-2000:]
-    line = next(x for x in out.stderr.splitlines() if x.startswith('train: demonstrations: '))
+    line = next(x for x in out.stderr.splitlines()
+                if x.startswith('cgail train: demonstrations: '))
     assert '70 episodes, 30185 steps re-simulated' in line and '(tolerance 1 mm)' in line
     assert (tmp_path / 'run' / 'final.pt').is_file()
 
@@ -445,7 +447,7 @@ def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys)
     run = tmp_path / 'run'
     base = ['--mode', 'static', '--demos', str(demos), '--no-progress']
     assert main(['--preset', str(tmp_path / 'warm.yaml'), '--out', str(run), *base]) == 0
-    assert 'train: BC warm start: 2 epochs, last loss' in capsys.readouterr().err
+    assert 'cgail train: BC warm start: 2 epochs, last loss' in capsys.readouterr().err
     # the normaliser was fitted to the 512 demonstration states (replacing the first reset's
     # num_envs observations), then saw the same env steps as a run without the warm start
     cold = dict(preset, bc={'strength': 0.0}, gail={'strength': 0.8})
@@ -520,9 +522,9 @@ def test_a_population_bag_holds_included_built_in_anatomies(tmp_path: Path, caps
                                          r"of \['default', 'elongated'\], found \['aorta'\]"):
         record_population((0,), 2, include=('aorta',))
     assert main(['--include', 'elongated', '--out', str(tmp_path / 'x')]) == 2
-    assert capsys.readouterr().err == ('make_demos: error: --include: expected --population N '
-                                       'beside it (it adds built-in anatomies to a population '
-                                       'bag)\n')
+    assert capsys.readouterr().err == ('cgail make-demos: error: --include: expected '
+                                       '--population N beside it (it adds built-in anatomies '
+                                       'to a population bag)\n')
 
 
 def test_demonstrations_in_a_population_sample_named_by_its_seed(tmp_path: Path):

@@ -166,7 +166,7 @@ def test_a_negative_scenario_seed_is_a_one_line_error(tmp_path, capsys):
     assert evaluate.main(['--baselines', '--trials', '1', '--scenario-seed', '-1',
                           '--out', str(tmp_path)]) == 2
     err = capsys.readouterr().err
-    assert err == 'evaluate: error: scenario_seed must be an int >= 0, found -1\n'
+    assert err == 'cgail evaluate: error: scenario_seed must be an int >= 0, found -1\n'
 
 
 def test_drawn_targets_give_every_method_the_same_new_target_per_trial():
@@ -213,5 +213,5 @@ def test_the_cli_draws_targets_and_says_so(tmp_path, capsys):
     assert evaluate.main(['--baselines', 'centerline', '--trials', '1', '--drawn-targets',
                           '--out', str(tmp_path / 'x')]) == 2
     err = capsys.readouterr().err
-    assert err.startswith('evaluate: error: drawn targets need an env that draws them')
+    assert err.startswith('cgail evaluate: error: drawn targets need an env that draws them')
     assert err.count('\n') == 1

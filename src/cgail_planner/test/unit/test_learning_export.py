@@ -227,7 +227,7 @@ def test_an_export_that_does_not_fit_the_preset_is_a_one_line_error(tmp_path: Pa
         for n in model.graph.node:
             n.input[:] = [i.replace('actor.', 'net.') for i in n.input]
         onnx.save(model, str(path))
-        match = 'expected the actor initializers of export_onnx'
+        match = 'expected the actor initializers of cgail export-onnx'
     with pytest.raises(PolicyLoadError, match=match) as info:
         trainer.load_weights(path)
     assert '\n' not in str(info.value)

@@ -27,7 +27,7 @@ def refused(rc: int, capsys: pytest.CaptureFixture[str], out: Path) -> str:
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2, err
     assert len(err) == 1, err
-    assert err[0].startswith("prepare_anatomy: error: expected ")
+    assert err[0].startswith("cgail prepare-anatomy: error: expected ")
     assert not out.exists()
     assert not [p.name for p in out.parent.iterdir() if p.name.endswith(".partial")]
     return err[0]

@@ -112,13 +112,13 @@ def test_prepare_anatomy_refuses_an_unreachable_target(
                  "--voxel-mm", "1.2", "--target-vertices", "1500", "--no-wall-check"]) == 1
     errors = [line for line in capsys.readouterr().err.splitlines() if ": error: " in line]
     assert errors[0].startswith(
-        "prepare_anatomy: error: expert static: expected the scripted expert to reach every "
+        "cgail prepare-anatomy: error: expert static: expected the scripted expert to reach every "
         "standard target, found target 3 ((")
     assert "mm from the annulus centre, " in errors[0]
     assert " not reached in static mode: from start 0: " in errors[0]
     assert "; from start 1: " in errors[0] and "; from start 2: " in errors[0]
     # the dynamic drive is not run on top of a refused lumen
-    assert errors[1:] == ["prepare_anatomy: error: expert dynamic: not run: fix the errors "
+    assert errors[1:] == ["cgail prepare-anatomy: error: expert dynamic: not run: fix the errors "
                           "above first"]
     # The report, the render and the rejected lumen are written; the table says why.
     for name in ("report.md", "render.png", "prepare.yaml", "lumen.rejected.stl"):

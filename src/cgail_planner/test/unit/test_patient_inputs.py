@@ -61,7 +61,7 @@ def test_cli_empty_label_one_line_and_exit_2(tmp_path: Path,
     assert main([str(path), "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    assert err[0].startswith("prepare_anatomy: error: expected non-zero voxels in ")
+    assert err[0].startswith("cgail prepare-anatomy: error: expected non-zero voxels in ")
     assert not (tmp_path / "out").exists()
 
 

@@ -12,7 +12,7 @@ def test_a_bad_anatomy_is_one_line_and_exit_status_2(bad_anatomy, tmp_path, caps
     spec, text = bad_anatomy
     assert main([str(spec), '--out', str(tmp_path / 'run'), '--no-progress']) == 2
     err = capsys.readouterr().err
-    assert err.startswith('plan_patient: error: ') and err.count('\n') == 1, err
+    assert err.startswith('cgail plan-patient: error: ') and err.count('\n') == 1, err
     assert text in err, err
     assert not (tmp_path / 'run').exists()
 
@@ -35,7 +35,7 @@ def test_bad_options_are_one_line_and_exit_status_2(prepared, tmp_path, capsys, 
     out = tmp_path / 'run'
     assert main([str(prepared), '--out', str(out), '--no-progress', *args]) == 2
     err = capsys.readouterr().err
-    assert err.startswith('plan_patient: error: ') and err.count('\n') == 1, err
+    assert err.startswith('cgail plan-patient: error: ') and err.count('\n') == 1, err
     assert text in err, err
     assert not (out / 'plan.yaml').exists()
 
@@ -52,12 +52,12 @@ def test_an_earlier_run_is_never_overwritten(prepared, tmp_path, capsys) -> None
 def test_the_rig_commands_name_the_anatomy_and_the_policies(tmp_path) -> None:
     pol = {'static': tmp_path / 's.onnx', 'dynamic': tmp_path / 'd.onnx'}
     lines = rig_commands('/p/anat', pol)
-    assert any(line.startswith('scripts/ros2run cgail_planner invitro_session --anatomy '
+    assert any(line.startswith('scripts/ws cgail session --anatomy '
                                f'/p/anat --policy {pol["static"]} --mode static')
                and '--gui' in line
                for line in lines)
     assert any(f'--policy {pol["dynamic"]} --mode dynamic' in line for line in lines)
-    assert any('rig_launch' in line and 'anatomy:=/p/anat' in line
+    assert any(line.startswith('scripts/ws cgail launch ') and 'anatomy:=/p/anat' in line
                and f'policy_path:={pol["static"]}' in line for line in lines)
     assert any('planner_node' in line and '-p anatomy:=/p/anat' in line for line in lines)
 
@@ -111,8 +111,7 @@ def test_a_one_minute_run_end_to_end(prepared, tmp_path, capsys) -> None:
     assert first['warm_start'] and first['steps'] == 0 and first['phase'] == 'static'
     assert '| static (BC warm start) | ' in (out / 'report.md').read_text()
     report = (out / 'report.md').read_text()
-    assert (f'scripts/ros2run cgail_planner invitro_session --anatomy {prepared.resolve()}'
-            in report)
+    assert f'scripts/ws cgail session --anatomy {prepared.resolve()}' in report
     assert '| static |' in report and '![validation during training](training.png)' in report
     for png in ('training.png', 'evaluation/static_T_a.png', 'evaluation/dynamic_T_s.png'):
         assert (out / png).stat().st_size > 5000, png

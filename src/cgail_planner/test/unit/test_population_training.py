@@ -221,7 +221,7 @@ def test_a_negative_held_out_count_is_one_line(tmp_path, capsys) -> None:
 
     assert evaluate.main(['--baselines', 'centerline', '--population', '-1',
                           '--out', str(tmp_path)]) == 2
-    assert capsys.readouterr().err == ('evaluate: error: --population must be >= 0 '
+    assert capsys.readouterr().err == ('cgail evaluate: error: --population must be >= 0 '
                                        '(held-out anatomies), found -1\n')
 
 
@@ -230,8 +230,8 @@ def test_train_refuses_an_anatomy_with_a_population_preset(capsys) -> None:
 
     assert train.main(['--preset', 'generalist', '--anatomy', 'elongated']) == 2
     assert capsys.readouterr().err == (
-        "train: error: --anatomy: preset 'generalist' trains on 128 population anatomies and "
-        "default and elongated: expected no --anatomy, found 'elongated'\n")
+        "cgail train: error: --anatomy: preset 'generalist' trains on 128 population anatomies "
+        "and default and elongated: expected no --anatomy, found 'elongated'\n")
 
 
 def test_the_pool_holds_the_included_built_in_anatomies(monkeypatch) -> None:

@@ -147,7 +147,7 @@ def test_refine_labels_the_policys_states_clones_them_and_keeps_the_contract(
 def test_refine_refuses_what_it_cannot_use_in_one_line(tmp_path, monkeypatch, capsys) -> None:
     assert main([str(tmp_path / 'nope.pt'), '--demos', 'x', '--out', str(tmp_path / 'o')]) == 2
     err = capsys.readouterr().err
-    assert err.startswith('refine: error: checkpoint not found: expected a file at ')
+    assert err.startswith('cgail refine: error: checkpoint not found: expected a file at ')
     assert err.count('\n') == 1
     one = _population_checkpoint(tmp_path, monkeypatch, population=False)
     assert main([str(one), '--demos', str(tmp_path / 'demos.npz'), '--out',
@@ -231,7 +231,8 @@ def test_refine_in_one_anatomy_refuses_what_it_cannot_use_in_one_line(tmp_path,
     for args, want in cases:
         assert main(args + base) == 2
         err = capsys.readouterr().err
-        assert err.startswith('refine: error: ') and want in err and err.count('\n') == 1, err
+        assert err.startswith('cgail refine: error: ') and want in err, err
+        assert err.count('\n') == 1, err
     (tmp_path / 'gen.onnx').write_bytes(b'not onnx')
     assert main([str(tmp_path / 'gen.onnx'), '--anatomy', 'default', '--preset',
                  'generalist', *base]) == 2

@@ -72,7 +72,7 @@ def test_the_command_writes_the_table_and_the_plot(tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize('content, expected', [
-    (None, 'expected a metrics.csv (invitro_session / bag_metrics output), found no file'),
+    (None, 'expected a metrics.csv (cgail session / cgail bag metrics output), found no file'),
     ('', 'expected the header name,condition,samples'),
     ('name,condition\nx,y\n', 'expected the header'),
     ('HEADER\ncgail_01,cgail,ten,0.001,0.001,0.002,0.001,80,True,70,False,1,1,0.2\n',
@@ -93,7 +93,7 @@ def test_a_bad_metrics_csv_is_one_line_and_exit_status_2(tmp_path, capsys, conte
         (where / 'metrics.csv').write_text(content.replace('HEADER', header))
     assert main([str(where), '-o', str(tmp_path / 'out')]) == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and err.startswith('session_compare: error: ')
+    assert len(err.splitlines()) == 1 and err.startswith('cgail bag compare: error: ')
     assert expected in err
 
 

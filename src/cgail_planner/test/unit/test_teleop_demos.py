@@ -151,7 +151,8 @@ def test_session_bag_converts_to_one_successful_episode(converted) -> None:
     # AVX2-only numpy, where the deviation reached 0.011 mm)
     assert report['clipped_fraction'] <= 0.01 and report['deviation_max_mm'] < 0.1
     assert report['replay']['max_drift_mm'] < 1e-6 and report['replay']['tolerance_mm'] == 1.0
-    assert len(lines) == 1 and lines[0].startswith(f'make_demos: {SESSION}: start 1 target 1: ')
+    assert len(lines) == 1
+    assert lines[0].startswith(f'cgail make-demos: {SESSION}: start 1 target 1: ')
 
 
 def test_converted_bag_holds_actions_within_the_action_space(converted) -> None:
@@ -234,7 +235,7 @@ def test_bad_inputs_are_one_line_each_and_lose_nothing_else(tmp_path) -> None:
 def test_nothing_convertible_exits_2(tmp_path) -> None:
     code, report, lines = run(['--from-bags', str(SYNTHETIC), '--out', str(tmp_path / 'd')])
     assert code == 2 and report == {}
-    assert lines[-1] == ('make_demos: error: no episode could be converted from 1 bag(s) '
+    assert lines[-1] == ('cgail make-demos: error: no episode could be converted from 1 bag(s) '
                          '(1 problem(s) above)')
     assert not (tmp_path / 'd').exists()
 
