@@ -2,7 +2,7 @@
 
 Run: ``scripts/ws python bench/bench_expert.py [--anatomy DIR] [--set 3] [--dynamic-episodes 6]``.
 
-Records expert episodes (:func:`cgail_planner.learning.demos_cli.record_episodes`, as
+Records expert episodes (:func:`cgail_learning.demos_cli.record_episodes`, as
 ``plan_patient`` and ``make_demos`` do) on one target set of a prepared anatomy (default: AVT
 D18 as committed in ``data/anatomies/avt/prepared``): every start x target pair in the rigid
 aorta, and the first ``--dynamic-episodes`` pairs in the beating one. Prints wall seconds per
@@ -23,10 +23,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from pathlib import Path
 import time
 
-from cgail_planner.learning.demos_cli import record_episodes
-from cgail_planner.learning.expert import ScriptedExpert
-from cgail_planner.sim.config import EnvConfig
-from cgail_planner.sim.env import CatheterNavEnv
+from cgail_learning.demos_cli import record_episodes
+from cgail_learning.expert import ScriptedExpert
+from cgail_sim.config import EnvConfig
+from cgail_sim.env import CatheterNavEnv
 
 REPO = Path(__file__).resolve().parents[1]
 D18 = REPO / "data" / "anatomies" / "avt" / "prepared" / "D18"

@@ -8,7 +8,7 @@ within reach), x < -0.3 ends it too, x >= 3 is the goal (30 full steps), 100 ste
 The observation is ``(x, t / 100)``. The expert walks to the goal at full speed and never
 aborts. Three rewards are trained with the same PPO, seeds and budget:
 
-* ``absorbing``: this project's (``-log(1 - D) - r_abs``, DAC; :mod:`cgail_planner.learning.gail`);
+* ``absorbing``: this project's (``-log(1 - D) - r_abs``, DAC; :mod:`cgail_learning.gail`);
 * ``standard``: ML-Agents' ``-log(1 - D)`` (never negative: going on always pays);
 * ``shifted``: ``-log(1 - D) - log 2``, this project's until 2026-12 (negative wherever the
   discriminator tells the policy apart: ending pays).
@@ -31,9 +31,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from cgail_planner.learning.config import config_from_dict
-from cgail_planner.learning.envs import SyncVecEnv
-from cgail_planner.learning.trainer import evaluate_policy, Trainer
+from cgail_learning.config import config_from_dict
+from cgail_learning.envs import SyncVecEnv
+from cgail_learning.trainer import evaluate_policy, Trainer
 
 GOAL, WALL, LIMIT = 3.0, 0.3, 100
 

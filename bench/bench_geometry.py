@@ -26,8 +26,8 @@ import numpy as np
 
 os.environ["CGAIL_PLANNER_NO_DISK_CACHE"] = "1"
 
-from cgail_planner.sim import anatomy as anatomy_mod
-from cgail_planner.sim import centerline as centerline_mod
+from cgail_sim import anatomy as anatomy_mod
+from cgail_sim import centerline as centerline_mod
 
 
 def _timed(fn: Callable[[], Any]) -> tuple[Any, float, float]:

@@ -28,11 +28,11 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from websockets.sync.client import connect
 
-from cgail_planner.gui.cdp import Chromium
-from cgail_planner.gui.demo import centerline_scene
-from cgail_planner.nodes.gui_node import GuiNode
-from cgail_planner.sim.anatomy import build_anatomy
-from cgail_planner.sim.centerline import compute_centerlines
+from cgail_gui.cdp import Chromium
+from cgail_gui.demo import centerline_scene
+from cgail_gui.nodes.gui_node import GuiNode
+from cgail_sim.anatomy import build_anatomy
+from cgail_sim.centerline import compute_centerlines
 
 
 def _node_latency(port: int | None, seconds: float) -> np.ndarray:

@@ -19,9 +19,9 @@ from typing import Any
 
 import numpy as np
 
-from cgail_planner.bags.bagio import BagWriter, TYPESTORE
-from cgail_planner.bags.qos import COMMAND, LATCHED, SENSOR
-from cgail_planner.bags.reader import read_trial
+from cgail_bags.bagio import BagWriter, TYPESTORE
+from cgail_bags.qos import COMMAND, LATCHED, SENSOR
+from cgail_bags.reader import read_trial
 from cgail_planner.core.metrics import compute_trial_metrics
 
 T = TYPESTORE.types

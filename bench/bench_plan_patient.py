@@ -4,7 +4,7 @@ unseen targets.
 Run: ``scripts/ws python bench/bench_plan_patient.py [--budget-min 15] [--out runs/bench_plan]
 [--patients ct mesh]``.
 
-Two patients, each in a scanner frame, made by :mod:`cgail_planner.patient.synthetic` (nothing is
+Two patients, each in a scanner frame, made by :mod:`cgail_patient.synthetic` (nothing is
 downloaded):
 
 * ``ct``: a CT label map of the ``elongated`` aorta (0.84 x 0.84 x 1.0 mm voxels, LPS voxel order,
@@ -61,10 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     import yaml
 
-    from cgail_planner.patient.plan import main as plan_main
-    from cgail_planner.patient.plan import PlanOptions
-    from cgail_planner.patient.prepare_cli import main as prepare_main
-    from cgail_planner.patient.synthetic import main as synthetic_main
+    from cgail_patient.plan import main as plan_main
+    from cgail_patient.plan import PlanOptions
+    from cgail_patient.prepare_cli import main as prepare_main
+    from cgail_patient.synthetic import main as synthetic_main
 
     load0 = os.getloadavg()[0]
     print(f"machine: {cpu_name()}, {os.cpu_count()} logical CPUs, load {load0:.1f}; budget "

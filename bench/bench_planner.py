@@ -16,7 +16,7 @@ for a core.
 
 Run: ``scripts/ws python bench/bench_planner.py [--policy model.onnx] [--anatomy default]
 [--compare]`` (default policy: the committed C-GAIL model
-``learning/models/cgail_default_static.onnx``).
+``cgail_planner/models/cgail_default_static.onnx``).
 """
 
 from __future__ import annotations
@@ -31,15 +31,15 @@ import numpy as np
 
 from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.guidance import PathFollower
+from cgail_planner.core.onnx_policy import OnnxPolicy
 from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
-from cgail_planner.learning.onnx_policy import OnnxPolicy
-from cgail_planner.sim.env import RAY_DIRECTIONS
-from cgail_planner.sim.ftl_model import frame_from_heading
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.wall import StaticWall
+from cgail_sim.env import RAY_DIRECTIONS
+from cgail_sim.ftl_model import frame_from_heading
+from cgail_sim.wall import StaticWall
+from cgail_sim.worlds import load_world
 
 ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_POLICY = (ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'learning' / 'models'
+DEFAULT_POLICY = (ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'models'
                   / 'cgail_default_static.onnx')
 
 

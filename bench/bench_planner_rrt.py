@@ -28,8 +28,8 @@ import numpy as np
 from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.core.rrt_planner import RrtConfig
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.wall import StaticWall
+from cgail_sim.wall import StaticWall
+from cgail_sim.worlds import load_world
 
 
 def _stats(values: list[float]) -> str:

@@ -3,7 +3,7 @@
 Run: ``scripts/ws python bench/bench_prepare.py [--seconds 3] [--target-vertices 2500]``.
 
 Makes a synthetic label map of the default aorta at CT spacing (0.84 x 0.84 x 1.0 mm, LPS voxel
-order, left-ventricle map; :mod:`cgail_planner.patient.synthetic`), runs ``prepare_anatomy`` on it
+order, left-ventricle map; :mod:`cgail_patient.synthetic`), runs ``prepare_anatomy`` on it
 (timed per step), then steps the static and the dynamic environment on the prepared anatomy
 (single env, random forward-biased actions with auto-reset, one thread, after a warm-up; the
 median CPU time of a step, as ``bench/bench_sim.py`` measures the built-in anatomies).
@@ -24,13 +24,13 @@ import time
 
 import numpy as np
 
-from cgail_planner.patient.prepare_cli import prepare_anatomy
-from cgail_planner.patient.synthetic import make_synthetic_ct, SyntheticCTConfig
-from cgail_planner.sim.anatomy import load_anatomy_mesh
-from cgail_planner.sim.centerline import compute_centerlines
-from cgail_planner.sim.config import EnvConfig
-import cgail_planner.sim.env as env_mod
-from cgail_planner.sim.scenarios import build_scenarios, World
+from cgail_patient.prepare_cli import prepare_anatomy
+from cgail_patient.synthetic import make_synthetic_ct, SyntheticCTConfig
+from cgail_sim.anatomy import load_anatomy_mesh
+from cgail_sim.centerline import compute_centerlines
+from cgail_sim.config import EnvConfig
+import cgail_sim.env as env_mod
+from cgail_sim.scenarios import build_scenarios, World
 
 
 def env_rate(world: World, mode: str, seconds: float) -> float:

@@ -6,7 +6,7 @@ see its README for the citation) the bench runs ``prepare_anatomy`` on the datas
 standard target, static and dynamic), then measures the scripted expert's and the centerline
 follower's success on three target sets the check does not use (sets 1-3, every start and
 target once per set: 15 trials a set), static and dynamic
-(:func:`cgail_planner.patient.validate.expert_success`). It prints, and writes to
+(:func:`cgail_patient.validate.expert_success`). It prints, and writes to
 ``OUT/real_patients.md`` and ``OUT/real_patients.yaml``:
 
 * prepared, or refused (exit 1: the expert check or another check failed; exit 2: the input
@@ -82,10 +82,10 @@ def run_case(seg: Path, out: Path, trials: int) -> dict[str, Any]:
     """prepare_anatomy then the success table of one case (runs in a worker process)."""
     from contextlib import redirect_stderr
 
-    from cgail_planner.patient import PatientError
-    from cgail_planner.patient.prepare_cli import prepare_anatomy
-    from cgail_planner.patient.validate import expert_success
-    from cgail_planner.sim.anatomy import AnatomyError
+    from cgail_patient import PatientError
+    from cgail_patient.prepare_cli import prepare_anatomy
+    from cgail_patient.validate import expert_success
+    from cgail_sim.anatomy import AnatomyError
 
     name = seg.parent.name
     row: dict[str, Any] = {"case": name}

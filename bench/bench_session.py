@@ -35,7 +35,7 @@ def tables(stdout: str) -> str:
 
 def digests(out: Path) -> dict[str, object]:
     code = ('import json, sys; from pathlib import Path; '
-            'from cgail_planner.bags.bagio import content_digest; '
+            'from cgail_bags.bagio import content_digest; '
             'print(json.dumps({b.name: content_digest(b) '
             'for b in sorted(Path(sys.argv[1]).glob("bags/*/*"))}))')
     done = subprocess.run([str(WS / 'scripts' / 'ws'), 'python', '-c', code, str(out)],

@@ -9,7 +9,7 @@ training. Each rate is given three ways: from the median CPU time of one step (t
 idle core; robust on a shared machine), from the total CPU time, and from the wall clock (on a
 loaded machine this also counts the time spent waiting for a core). ``--pursuit`` also runs
 the scripted sanity policy (pure pursuit of the centerline,
-:func:`cgail_planner.sim.env.pursuit_actions`) on every start x target pair and prints how far
+:func:`cgail_sim.env.pursuit_actions`) on every start x target pair and prints how far
 it gets.
 """
 
@@ -28,18 +28,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cgail_planner.sim.config import EnvConfig
-from cgail_planner.sim.env import (
+from cgail_sim.config import EnvConfig
+from cgail_sim.env import (
     CatheterNavEnv,
     DYNAMIC_PBD_CONFIG,
     pursuit_actions,
     RAY_DIRECTIONS,
 )
-from cgail_planner.sim.ftl_model import N_RAYS
-from cgail_planner.sim.pbd import PBDConfig
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.vec_env import CatheterNavVecEnv
-from cgail_planner.sim.wall import DeformableWall, StaticWall, WallError
+from cgail_sim.ftl_model import N_RAYS
+from cgail_sim.pbd import PBDConfig
+from cgail_sim.vec_env import CatheterNavVecEnv
+from cgail_sim.wall import DeformableWall, StaticWall, WallError
+from cgail_sim.worlds import load_world
 
 
 def _actions(rng: np.random.Generator, n: int) -> np.ndarray:

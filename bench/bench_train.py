@@ -17,10 +17,10 @@ import time
 import numpy as np
 import torch
 
-from cgail_planner.learning.config import load_config
-from cgail_planner.learning.demos import load_demos
-from cgail_planner.learning.train import make_envs
-from cgail_planner.learning.trainer import Trainer
+from cgail_learning.config import load_config
+from cgail_learning.demos import load_demos
+from cgail_learning.train import make_envs
+from cgail_learning.trainer import Trainer
 
 
 def main() -> None:

@@ -9,7 +9,7 @@ median wall-clock time.
   catheter, a catheter free in the lumen (contact broad phase only), and a catheter pressing the
   descending-aorta wall by 1 mm along 60 mm; default solver (VBD, 10 sweeps), VBD with 8 sweeps,
   VBD with 5 Chebyshev-accelerated sweeps (the dynamic env's default,
-  ``cgail_planner.sim.env.DYNAMIC_PBD_CONFIG``), VBD with 5 plain sweeps, and XPBD (10
+  ``cgail_sim.env.DYNAMIC_PBD_CONFIG``), VBD with 5 plain sweeps, and XPBD (10
   iterations) for comparison;
 * a 16-ray raycast against the static wall and against the deforming wall (with a refit, the
   cost the step now pays);
@@ -22,7 +22,7 @@ range of the ostium-target heartbeat amplitude (beats 3-4) relative to the refer
 evidence behind ``DYNAMIC_PBD_CONFIG``.
 
 With ``--contact`` it also runs full-length contact trials on the dynamic env
-(:func:`cgail_planner.sim.contact_trial.run_contact_trials`: the catheter riding the wall, tip
+(:func:`cgail_sim.contact_trial.run_contact_trials`: the catheter riding the wall, tip
 aimed ``--depth`` mm beyond it, ``--steps`` steps, six sides) and prints per trial the largest
 particle displacement and the body's indentation into the rest wall at that moment; any
 anatomy the env accepts (a built-in name or a prepared patient directory).
@@ -39,11 +39,11 @@ import time
 
 import numpy as np
 
-from cgail_planner.sim.anatomy import build_anatomy
-from cgail_planner.sim.env import DYNAMIC_PBD_CONFIG
-from cgail_planner.sim.pbd import PBDConfig
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.wall import DeformableWall, StaticWall
+from cgail_sim.anatomy import build_anatomy
+from cgail_sim.env import DYNAMIC_PBD_CONFIG
+from cgail_sim.pbd import PBDConfig
+from cgail_sim.wall import DeformableWall, StaticWall
+from cgail_sim.worlds import load_world
 
 RADIUS = 0.0035
 DT = 0.1
@@ -111,7 +111,7 @@ def accuracy(anatomy_name: str) -> None:
 
 def contact(anatomy: str, trials: int, steps: int, depth_mm: float) -> None:
     """Print the full-length contact trials (see module doc)."""
-    from cgail_planner.sim.contact_trial import run_contact_trials
+    from cgail_sim.contact_trial import run_contact_trials
 
     t0 = time.perf_counter()
     out = run_contact_trials(anatomy, trials=trials, steps=steps, depth=depth_mm * 1e-3)

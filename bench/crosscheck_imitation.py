@@ -12,7 +12,7 @@ its demonstrations; this script re-runs that check so anyone can repeat it. It f
 virtual environment (default ``runs/crosscheck_imitation/.venv``, reused when present) with
 ``python -m venv`` and pip: ``imitation==1.0.1``, ``stable-baselines3==2.2.1``,
 ``gymnasium==0.29.1`` (imitation needs 0.29; the workspace runs 1.x), ``torch==2.13.0`` (the
-CPU wheel; a bare ``torch`` pulls GBs of CUDA) and the packages ``cgail_planner.sim``, the demo
+CPU wheel; a bare ``torch`` pulls GBs of CUDA) and the packages ``cgail_sim``, the demo
 loader and ``evaluate`` import, at the versions ``requirements.txt`` pins. Our package is not
 installed: ``src/cgail_planner`` goes on ``PYTHONPATH``. pip needs PyPI (or the index the usual
 ``PIP_*`` variables name). The script then re-executes itself inside that environment.
@@ -22,7 +22,7 @@ What runs, per seed:
 * **env**: ``CatheterNavEnv(EnvConfig(mode='static'))``, the default anatomy, 8 copies in an SB3
   ``DummyVecEnv`` (each under SB3's ``Monitor``); start and target drawn per episode.
 * **demonstrations**: ``bags/demos/default`` (README, training section) through our own
-  :func:`cgail_planner.learning.demos.load_demos`, so the (obs, act) pairs are the ones ``train``
+  :func:`cgail_learning.demos.load_demos`, so the (obs, act) pairs are the ones ``train``
   uses; episode ends from the bag's episode headers. They become ``imitation`` ``Transitions``;
   an episode's last ``next_obs`` repeats its last ``obs`` (the bag does not hold the terminal
   observation, and the discriminator here does not read ``next_obs``).
@@ -48,7 +48,7 @@ What runs, per seed:
   5 epochs (``--bc-epochs``) over the same transitions; no env steps.
 
 **Evaluation**: the deterministic policy (mean action) over 30 episodes through our own
-:func:`cgail_planner.learning.evaluate.run_trials`: trial k uses start ``k % 3``, target
+:func:`cgail_learning.evaluate.run_trials`: trial k uses start ``k % 3``, target
 ``(k // 3) % 5``, seed ``1000 + k``, no tracking noise; in the static noise-free simulator a
 deterministic policy's outcome is a function of the pair, so each of the 15 pairs is simulated
 once and counted twice (``reuse_pairs``, as ``evaluate`` does). Printed per run: success k/30
@@ -79,13 +79,15 @@ import time
 from typing import Any
 
 WS = Path(__file__).resolve().parent.parent
-PKG_PATH = WS / 'src' / 'cgail_planner'
+#: The packages it imports (learning and the packages below it), put on the path from source.
+PKG_PATHS = [WS / 'src' / p
+             for p in ('cgail_sim', 'cgail_planner', 'cgail_bags', 'cgail_learning')]
 DEMOS = WS / 'bags' / 'demos' / 'default'
 
 #: Pinned here: the cross-check's own stack (issue 13).
 PINNED = {'imitation': '1.0.1', 'stable-baselines3': '2.2.1', 'gymnasium': '0.29.1',
           'torch': '2.13.0'}
-#: Pinned by requirements.txt: what ``cgail_planner.sim``, ``learning.demos``/``demo_bags`` and
+#: Pinned by requirements.txt: what ``cgail_sim``, ``learning.demos``/``demo_bags`` and
 #: ``learning.evaluate`` import (numba kernels, trimesh meshes, rosbags + zstd demo bags,
 #: onnxruntime through ``evaluate``'s ``OnnxPolicy`` import, matplotlib for the curve).
 FROM_REQUIREMENTS = ('numpy', 'scipy', 'numba', 'trimesh', 'embreex', 'rtree', 'networkx',
@@ -174,7 +176,7 @@ def reexec_in_venv(venv: Path, argv: list[str]) -> None:
     """Replace this process by the script running in ``venv`` with our package importable."""
     env = dict(os.environ)
     env['PYTHONPATH'] = os.pathsep.join(
-        [str(PKG_PATH)] + ([env['PYTHONPATH']] if env.get('PYTHONPATH') else []))
+        [str(p) for p in PKG_PATHS] + ([env['PYTHONPATH']] if env.get('PYTHONPATH') else []))
     env.setdefault('OMP_NUM_THREADS', '1')
     env.setdefault('TQDM_DISABLE', '1')  # imitation's per-round bar: our progress lines instead
     py = str(venv_python(venv))
@@ -196,8 +198,8 @@ def load_transitions(demos: Path) -> Any:
     from imitation.data.types import Transitions  # type: ignore[import-not-found]
     import numpy as np
 
-    from cgail_planner.learning.demo_bags import read_demo_bag
-    from cgail_planner.learning.demos import load_demos
+    from cgail_learning.demo_bags import read_demo_bag
+    from cgail_learning.demos import load_demos
 
     data = load_demos([demos], report=lambda line: print(f'crosscheck: demonstrations: {line}'))
     n = len(data.obs)
@@ -219,8 +221,8 @@ def load_transitions(demos: Path) -> Any:
 
 def make_env() -> Any:
     """Our env: default anatomy, static (rigid) wall."""
-    from cgail_planner.sim.config import EnvConfig
-    from cgail_planner.sim.env import CatheterNavEnv
+    from cgail_sim.config import EnvConfig
+    from cgail_sim.env import CatheterNavEnv
 
     return CatheterNavEnv(EnvConfig(mode='static'))
 
@@ -280,7 +282,7 @@ def evaluate(policy: Any) -> dict[str, float]:
     """Deterministic policy over ``EVAL_TRIALS`` episodes with our ``evaluate.run_trials``."""
     import numpy as np
 
-    from cgail_planner.learning.evaluate import run_trials
+    from cgail_learning.evaluate import run_trials
 
     def act(obs: Any) -> Any:
         return policy.predict(obs, deterministic=True)[0]
@@ -516,11 +518,12 @@ def crosscheck(args: argparse.Namespace) -> None:
     """Every seed of ``args.variant``, then the report (inside the venv)."""
     import warnings
 
-    if str(PKG_PATH) not in sys.path:  # (run with the venv's python directly)
-        sys.path.insert(0, str(PKG_PATH))
+    for path in reversed(PKG_PATHS):  # (run with the venv's python directly)
+        if str(path) not in sys.path:
+            sys.path.insert(0, str(path))
     import torch
 
-    from cgail_planner.learning.errors import LearningError
+    from cgail_learning.errors import LearningError
 
     torch.set_num_threads(args.threads)
     # imitation 1.0.1's BC logs a loss tensor with float(): harmless, and it would print per run

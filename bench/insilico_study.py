@@ -13,7 +13,7 @@ Issue 13 (items 4 and 5): the baselines trained as the authors trained theirs, a
 side-by-side report. For every preset of ``--methods`` (default the five "ours" presets: C-GAIL,
 GAIL and the three ablations) and every seed of ``--seeds`` it runs:
 
-1. **Static training** (``python -m cgail_planner.learning.train --preset P --mode static
+1. **Static training** (``python -m cgail_learning.train --preset P --mode static
    --seed S --max-steps N1``, 1 torch thread), in the rigid aorta on the training targets
    (scenario seed 0: the paper's 3 starts x 5 targets) with the committed demonstrations
    (``--demos``). Each larger budget of ``--steps`` **continues the same run** with
@@ -23,13 +23,13 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    continued run first decayed towards N1 and then decay from there towards N2, so a budget
    reached by continuation is not the same run as a fresh run of that budget.
 2. **Dynamic re-training** (``--modes`` with ``dynamic``), as the committed dynamic policy was
-   made (README, ``learning/models/insilico/report.md``): ``train --preset P --mode dynamic
+   made (README, ``cgail_planner/models/insilico/report.md``): ``train --preset P --mode dynamic
    --init-from steps_<N>/best.pt --max-steps D --seed S`` (``--dynamic-steps`` D, default
    102,400), in the beating aorta with the moving target, from each budget's static best; every
    method is re-trained the same way.
 3. **Export** of each policy (``export_onnx``): the run's ``best.pt`` (its best periodic
    evaluation, on the training targets; ``final.pt`` when the run made no periodic evaluation).
-4. **Evaluation** (``python -m cgail_planner.learning.evaluate``), ``--trials`` trials (default
+4. **Evaluation** (``python -m cgail_learning.evaluate``), ``--trials`` trials (default
    100) per policy through the simulated EM tracker, as ``evaluate`` does, on the training
    targets (scenario seed 0) and on unseen targets (``--unseen-scenario-seed``, default 1: a
    target set no run trained on), static policies in the static simulator and re-trained
@@ -181,8 +181,8 @@ class Anatomy:
         Raises:
             StudyError: ``spec`` is neither a built-in name nor a usable anatomy path.
         """
-        from cgail_planner.sim.anatomy import AnatomyError
-        from cgail_planner.sim.anatomy_spec import anatomy_label, check_anatomy_spec, is_builtin
+        from cgail_sim.anatomy import AnatomyError
+        from cgail_sim.anatomy_spec import anatomy_label, check_anatomy_spec, is_builtin
 
         try:
             check_anatomy_spec(spec)
@@ -879,11 +879,11 @@ def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) ->
         if at >= steps:
             raise StudyError(f'{run}: expected a run before {steps:,} steps, found one at '
                              f'{at:,}: that budget was not snapshotted; use another --out')
-        return python_module('cgail_planner.learning.train', '--resume', str(run),
+        return python_module('cgail_learning.train', '--resume', str(run),
                              '--max-steps', str(steps), *common)
     if run.exists():
         shutil.rmtree(run)  # nothing to resume (no checkpoint): start again
-    return python_module('cgail_planner.learning.train', *fresh, '--max-steps', str(steps),
+    return python_module('cgail_learning.train', *fresh, '--max-steps', str(steps),
                          '--out', str(run), *common)
 
 
@@ -912,7 +912,7 @@ def export_command(ckpt: Path, policy: Path) -> list[str]:
     """Export ``ckpt`` (``best.pt``; ``final.pt`` beside it when the run made no periodic
     evaluation) to ``policy``."""
     use = ckpt if ckpt.is_file() else ckpt.with_name('final.pt')
-    return python_module('cgail_planner.learning.export', str(use), '--out', str(policy))
+    return python_module('cgail_learning.export', str(use), '--out', str(policy))
 
 
 def static_post(layout: Layout, preset: str, seed: int, budget: int, log: Path) -> None:
@@ -933,7 +933,7 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
     budget by budget.
     """
     tasks: list[Task] = []
-    evaluate = 'cgail_planner.learning.evaluate'
+    evaluate = 'cgail_learning.evaluate'
     for anatomy in plan.anatomies:
         layout = root.of_anatomy(anatomy.name)
         at = '' if anatomy.name == DEFAULT_ANATOMY else f'{anatomy.name}/'
@@ -1211,8 +1211,8 @@ def check_args(args: argparse.Namespace) -> StudyPlan:
     Raises:
         StudyError: an unknown preset, duplicate methods or seeds, bad budgets or counts.
     """
-    from cgail_planner.learning.config import load_config
-    from cgail_planner.learning.errors import ConfigError
+    from cgail_learning.config import load_config
+    from cgail_learning.errors import ConfigError
 
     budgets = check_budgets(args.steps)
     for name, values in (('--methods', args.methods), ('--seeds', args.seeds),

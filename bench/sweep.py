@@ -139,7 +139,7 @@ def parse_anatomy(item: Any, where: str) -> study.Anatomy:
         SweepError: an unknown key, a bad name, argument list or missing demonstrations.
     """
     if isinstance(item, str):
-        from cgail_planner.sim.anatomy_spec import is_builtin
+        from cgail_sim.anatomy_spec import is_builtin
 
         spec = item if is_builtin(item) else str(_path(item))
         try:

@@ -12,7 +12,7 @@ export ROS_STATIC_PEERS=""
 export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 # ROS_DOMAIN_ID is left as the caller set it (unset: ROS's default, domain 0). The simulated
 # session picks a free domain of its own unless it is set, and refuses a domain where a rig's
-# device nodes answer (cgail_planner/system/domain.py); the test command holds one per run.
+# device nodes answer (cgail_rig/domain.py); the test command holds one per run.
 # Headless defaults for matplotlib / SDL (gamepad) so nothing opens a window.
 export MPLBACKEND="${MPLBACKEND:-Agg}"
 export SDL_VIDEODRIVER="${SDL_VIDEODRIVER:-dummy}"

@@ -37,7 +37,7 @@ else
 fi
 
 # 4. Front-end assets for the GUI (three.js from the npm registry), if npm is present.
-if [ -f src/cgail_planner/web/package.json ] && [ ! -d src/cgail_planner/web/node_modules ]; then
+if [ -f src/cgail_gui/web/package.json ] && [ ! -d src/cgail_gui/web/node_modules ]; then
     if ! command -v npm >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 \
             && [ -z "${CGAIL_NO_APT:-}" ]; then
         log "installing npm from Debian for the GUI assets"
@@ -46,7 +46,7 @@ if [ -f src/cgail_planner/web/package.json ] && [ ! -d src/cgail_planner/web/nod
     fi
     if command -v npm >/dev/null 2>&1; then
         log "installing GUI assets with npm"
-        (cd src/cgail_planner/web && npm ci --no-audit --no-fund --silent)
+        (cd src/cgail_gui/web && npm ci --no-audit --no-fund --silent)
     else
         log "warning: npm not found; the GUI needs it (Debian: apt-get install npm)"
     fi
@@ -69,6 +69,6 @@ if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
     log "warm-up: numba kernels and anatomy caches"
     # shellcheck disable=SC1091
     source scripts/env.sh  # again: install/setup.bash exists only now on a fresh clone
-    python -m cgail_planner.system.warmup >&2
+    python -m cgail_rig.warmup >&2
 fi
 log "ready"

@@ -23,14 +23,14 @@ fi
 # shellcheck disable=SC1091
 source scripts/env.sh
 # A DDS domain of this run's own, held (flock) until the run ends, so parallel runs and
-# simulated sessions on one machine never see each other (cgail_planner/system/domain.py).
+# simulated sessions on one machine never see each other (cgail_rig/domain.py).
 if [ -z "${ROS_DOMAIN_ID:-}" ]; then
     lock_dir="${XDG_RUNTIME_DIR:-/tmp}/cgail_ros_domains"
     mkdir -p "$lock_dir"
     for id in $(seq 1 101); do
         exec {domain_fd}>>"$lock_dir/$id.lock"
         if flock -n "$domain_fd"; then
-            if [ -z "$(python -m cgail_planner.system.domain --probe "$id")" ]; then
+            if [ -z "$(python -m cgail_rig.domain --probe "$id")" ]; then
                 echo "$$" > "$lock_dir/$id.lock"
                 export ROS_DOMAIN_ID=$id
                 break
@@ -51,11 +51,14 @@ if [ -n "${CGAIL_SLOW:-}" ]; then marker=(-m ""); fi
 echo "[test] ruff"
 ruff check src test bench
 echo "[test] mypy (every module of the packages, nodes included, and the bench scripts)"
-MYPYPATH="src/cgail_planner:src/em_tracker:src/pam_controller:src/catheter_driver:src/cgail_node_utils" \
-    mypy --config-file pyproject.toml src/cgail_planner/cgail_planner src/em_tracker/em_tracker \
-    src/pam_controller/pam_controller src/catheter_driver/catheter_driver \
-    src/cgail_node_utils/cgail_node_utils bench/*.py \
-    src/cgail_planner/test/fixtures/make_policies.py
+# (every ament_python package under src/: its directory on MYPYPATH, its module checked)
+pkgs=(cgail_node_utils em_tracker pam_controller catheter_driver cgail_sim cgail_planner
+      cgail_bags cgail_gui cgail_learning cgail_patient cgail_rig)
+modules=()
+for p in "${pkgs[@]}"; do modules+=("src/$p/$p"); done
+MYPYPATH="$(printf 'src/%s:' "${pkgs[@]}")" \
+    mypy --config-file pyproject.toml "${modules[@]}" bench/*.py \
+    src/cgail_learning/test/fixtures/make_policies.py
 
 echo "[test] colcon test"
 rm -rf build/*/test_results

@@ -39,7 +39,7 @@ def rclpy_context():
 def prepared_anatomy(tmp_path_factory: pytest.TempPathFactory):
     """A prepared anatomy directory ``p07`` holding the default aorta (``lumen.stl`` and
     ``lumen.yaml``, as ``prepare_anatomy`` writes them)."""
-    from cgail_planner.sim.anatomy import build_anatomy, save_anatomy_mesh
+    from cgail_sim.anatomy import build_anatomy, save_anatomy_mesh
 
     d = tmp_path_factory.mktemp('patients') / 'p07'
     d.mkdir()

@@ -32,8 +32,8 @@ def test_replayed_fixture_gives_the_known_metrics(rclpy_context, tmp_path: Path,
                                                   fixture: str) -> None:
     from rclpy.executors import SingleThreadedExecutor
 
-    from cgail_planner.bags.metrics_cli import evaluate_bags
-    from cgail_planner.bags.record import BagRecorder, RecorderConfig
+    from cgail_bags.metrics_cli import evaluate_bags
+    from cgail_bags.record import BagRecorder, RecorderConfig
 
     expected = json.loads((FIXTURES / fixture / 'expected.json').read_text())
     node = rclpy_context.create_node('playback_recorder')
@@ -43,7 +43,7 @@ def test_replayed_fixture_gives_the_known_metrics(rclpy_context, tmp_path: Path,
                                                 condition=expected['condition'],
                                                 discovery_period=0.1))
     player = subprocess.Popen(
-        [sys.executable, '-m', 'cgail_planner.bags.play', str(FIXTURES / fixture),
+        [sys.executable, '-m', 'cgail_bags.play', str(FIXTURES / fixture),
          '--rate', str(RATE), '--wait-for-subscribers', '20', '--linger', '0.5'],
         env=os.environ.copy(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -80,7 +80,7 @@ def test_replayed_fixture_gives_the_known_metrics(rclpy_context, tmp_path: Path,
 
 
 def test_committed_fixtures_give_the_known_metrics_exactly(tmp_path: Path, capsys) -> None:
-    from cgail_planner.bags.metrics_cli import evaluate_bags, main
+    from cgail_bags.metrics_cli import evaluate_bags, main
 
     assert main([str(FIXTURES), '-o', str(tmp_path)]) == 0
     assert '| cgail_trial | cgail | 401 | 2.62 |' in capsys.readouterr().out
@@ -117,14 +117,14 @@ def truncated_fixture(tmp_path: Path) -> Path:
 
 def test_truncated_fixture_gives_a_clear_player_error(tmp_path: Path) -> None:
     bag = truncated_fixture(tmp_path)
-    result = run_module('cgail_planner.bags.play', str(bag))
+    result = run_module('cgail_bags.play', str(bag))
     assert result.returncode == 2
     assert 'Traceback' not in result.stderr
     assert f'cgail bag play: error: {bag}: truncated or corrupt bag' in result.stderr
 
 
 def test_truncated_fixture_gives_a_clear_metrics_error(tmp_path: Path, capsys) -> None:
-    from cgail_planner.bags.metrics_cli import main
+    from cgail_bags.metrics_cli import main
 
     bag = truncated_fixture(tmp_path)
     assert main([str(bag), '-o', str(tmp_path / 'out')]) == 2
@@ -140,7 +140,7 @@ def test_fixtures_are_what_the_script_makes(tmp_path: Path) -> None:
         import make_fixtures
     finally:
         sys.path.remove(str(FIXTURES))
-    from cgail_planner.bags.bagio import iter_raw, open_bag
+    from cgail_bags.bagio import iter_raw, open_bag
 
     assert make_fixtures.main(['--out', str(tmp_path)]) == 0
     for name in make_fixtures.TRIALS:

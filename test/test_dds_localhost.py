@@ -19,8 +19,8 @@ import time
 
 import pytest
 
-from cgail_planner.system.launch_spec import parse_launch
-from cgail_planner.system.launcher import ProcessLauncher
+from cgail_rig.launch_spec import parse_launch
+from cgail_rig.launcher import ProcessLauncher
 
 
 def _udp_ports_of(pid: int) -> set[int]:

@@ -27,12 +27,12 @@ from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, Rel
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import JointState
 
-from cgail_planner.gui.cdp import Chromium, find_chromium
-from cgail_planner.gui.demo import centerline_scene
-from cgail_planner.nodes.gui_node import GuiNode
-from cgail_planner.sim.anatomy import build_anatomy
-from cgail_planner.sim.centerline import compute_centerlines
-from cgail_planner.system.launch_spec import default_launch_file, load_launch_file
+from cgail_gui.cdp import Chromium, find_chromium
+from cgail_gui.demo import centerline_scene
+from cgail_gui.nodes.gui_node import GuiNode
+from cgail_rig.launch_spec import default_launch_file, load_launch_file
+from cgail_sim.anatomy import build_anatomy
+from cgail_sim.centerline import compute_centerlines
 
 pytestmark = pytest.mark.skipif(find_chromium() is None,
                                 reason='chromium not installed (apt-get install -y chromium)')

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
-from cgail_planner.bags.bagio import BagWriter, TYPESTORE
-from cgail_planner.bags.qos import SENSOR
-from cgail_planner.system.identify_pam import identify_sim, main, pam_config_file
+from cgail_bags.bagio import BagWriter, TYPESTORE
+from cgail_bags.qos import SENSOR
+from cgail_rig.identify_pam import identify_sim, main, pam_config_file
 from pam_controller.core import identification as idf
 
 T = TYPESTORE.types

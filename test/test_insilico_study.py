@@ -112,7 +112,7 @@ def test_a_larger_budget_resumes_the_run(tmp_path):
     run = fake_run(tmp_path / 'run', 8192, 6144, state=4096)
     assert study.resumable_step(run) == 4096
     cmd = study.train_command(run, 8192, ['--preset', 'smoke'], ['--mode', 'static'])
-    assert cmd[1:] == ['-m', 'cgail_planner.learning.train', '--resume', str(run),
+    assert cmd[1:] == ['-m', 'cgail_learning.train', '--resume', str(run),
                        '--max-steps', '8192', '--mode', 'static']
 
 
@@ -126,7 +126,7 @@ def test_a_run_past_the_budget_cannot_give_it(tmp_path):
 def test_a_run_without_checkpoint_starts_again(tmp_path):
     run = fake_run(tmp_path / 'run', 4096, 2048, final=False)
     cmd = study.train_command(run, 4096, ['--preset', 'smoke', '--seed', '1'], ['--mode', 'x'])
-    assert cmd[1:] == ['-m', 'cgail_planner.learning.train', '--preset', 'smoke', '--seed', '1',
+    assert cmd[1:] == ['-m', 'cgail_learning.train', '--preset', 'smoke', '--seed', '1',
                        '--max-steps', '4096', '--out', str(run), '--mode', 'x']
     assert not run.exists()
 
@@ -337,7 +337,7 @@ def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_pat
 def test_the_gail_variants_of_the_readme_load_as_described(name):
     """bench/gail_variants/*.yaml (README, "GAIL at 2M steps") stay valid presets and pure
     GAIL at imitation's discriminator pace, as the README table says."""
-    from cgail_planner.learning.config import load_config
+    from cgail_learning.config import load_config
 
     cfg = load_config(name if name == 'gail' else WS / 'bench' / 'gail_variants' / f'{name}.yaml')
     assert cfg.extrinsic.strength == 0.0 and cfg.gail.strength == 1.0
@@ -354,7 +354,7 @@ def test_the_gail_variants_of_the_readme_load_as_described(name):
 
 
 def test_the_bc_initialised_gail_variant_is_the_ml_agents_gail_plus_a_warm_start():
-    from cgail_planner.learning.config import config_to_dict, load_config
+    from cgail_learning.config import config_to_dict, load_config
 
     variant = config_to_dict(load_config(WS / 'bench' / 'gail_variants' / 'gail_bc_init.yaml'))
     preset = config_to_dict(load_config(WS / 'bench' / 'gail_variants' / 'gail_ml_agents.yaml'))

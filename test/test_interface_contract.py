@@ -24,10 +24,10 @@ import re
 import pytest
 import yaml
 
-from cgail_planner.system.launch_spec import load_launch_file
+from cgail_rig.launch_spec import load_launch_file
 
 ROOT = Path(__file__).resolve().parents[1]
-LAUNCH_DIR = ROOT / 'src' / 'cgail_planner' / 'launch'
+LAUNCH_DIR = ROOT / 'src' / 'cgail_rig' / 'launch'
 CONTRACT_RE = re.compile(r'```contract\n(.*?)```', re.S)
 TYPE_RE = re.compile(r'^\s*([\w/]+)\s*(?:\[(\w+)\])?\s*$')
 RIG_NAME_RE = re.compile(r'[A-Za-z_]\w*(/[A-Za-z_]\w*)*', re.ASCII)
@@ -261,7 +261,7 @@ def test_the_remapped_rig_is_wired(launch):
 def test_the_session_records_what_the_sim_rig_publishes():
     """The bags keep their topic names: each recorded topic is a sim rig node's (remapped)
     publication, the goal the session's own."""
-    from cgail_planner.system.session import TOPICS
+    from cgail_rig.session import TOPICS
 
     published = {rig_name(CONTRACTS[n.name], t) for n in _launch('sim_rig').nodes
                  for t in topics(CONTRACTS[n.name], 'publishes')}
@@ -271,7 +271,7 @@ def test_the_session_records_what_the_sim_rig_publishes():
 
 
 def test_record_demos_wires_teleop_and_joy_as_the_rig_does():
-    from cgail_planner.system.record_demos import REMAPS
+    from cgail_rig.record_demos import REMAPS
 
     for name in ('teleop', 'joy'):
         assert REMAPS[name] == CONTRACTS[name]['remaps'], name

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from cgail_node_utils.lifecycle import lifecycle_state
-from cgail_planner.system.launch_spec import (
+from cgail_rig.launch_spec import (
     default_launch_file,
     LaunchSpecError,
     load_launch_file,
@@ -23,9 +23,9 @@ from cgail_planner.system.launch_spec import (
     NodeSpec,
     parse_launch,
 )
-from cgail_planner.system.launcher import build_node, main, node_command, ProcessLauncher
+from cgail_rig.launcher import build_node, main, node_command, ProcessLauncher
 
-PACKAGE = Path(__file__).resolve().parents[1] / 'src' / 'cgail_planner'
+PACKAGE = Path(__file__).resolve().parents[1] / 'src' / 'cgail_rig'
 SIM_RIG = PACKAGE / 'launch' / 'sim_rig.launch.yaml'
 
 # A child that records the signal it got, then exits 0 on SIGINT (like an rclpy node).
@@ -229,7 +229,7 @@ def test_cli_sigint_shuts_children_down_cleanly(tmp_path):
     f = tmp_path / 'l.yaml'
     f.write_text(yaml.safe_dump({'launch': [
         _exe(m.stem, [sys.executable, '-c', GOOD_CHILD, str(m)]) for m in marks]}))
-    proc = subprocess.Popen([sys.executable, '-m', 'cgail_planner.system.launcher', str(f)],
+    proc = subprocess.Popen([sys.executable, '-m', 'cgail_rig.launcher', str(f)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     assert proc.stdout is not None
@@ -258,10 +258,10 @@ def test_launch_files_are_in_the_packages_launch_folder_and_installed_there():
     assert default_launch_file() == SIM_RIG
     names = ['rig.launch.yaml', 'sim_rig.launch.yaml']
     assert sorted(p.name for p in (PACKAGE / 'launch').iterdir()) == names
-    shares = [Path(p) / 'share' / 'cgail_planner' for p in
+    shares = [Path(p) / 'share' / 'cgail_rig' for p in
               os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)
-              if p and (Path(p) / 'share' / 'cgail_planner').is_dir()]
-    assert shares, 'cgail_planner is not installed (bash scripts/setup.sh)'
+              if p and (Path(p) / 'share' / 'cgail_rig').is_dir()]
+    assert shares, 'cgail_rig is not installed (bash scripts/setup.sh)'
     installed = shares[0] / 'launch'
     assert sorted(p.name for p in installed.glob('*.launch.yaml')) == names
     spec = load_launch_file(installed / 'sim_rig.launch.yaml')
@@ -491,10 +491,10 @@ def test_sim_rig_in_process_runs_phantom_planner_and_gui_in_a_prepared_anatomy(
         rclpy_context, prepared_anatomy, tmp_path):
     """``anatomy:=DIR policy_path:=...`` reaches the nodes: each resolves the same anatomy and
     the planner accepts a policy contracted for it."""
-    from cgail_planner.learning.export import default_contract, write_contract
-    from cgail_planner.sim.anatomy_spec import resolve_anatomy
+    from cgail_learning.export import default_contract, write_contract
+    from cgail_sim.anatomy_spec import resolve_anatomy
 
-    models = PACKAGE / 'cgail_planner' / 'learning' / 'models'
+    models = PACKAGE.parent / 'cgail_planner' / 'cgail_planner' / 'models'
     policy = write_contract(models / 'cgail_default_static.onnx',
                             default_contract(prepared_anatomy, 'static'), tmp_path / 'p07.onnx')
     spec = load_launch_file(SIM_RIG, {'anatomy': str(prepared_anatomy),

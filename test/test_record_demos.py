@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def record_demos(*args: str) -> list[str]:
     """The command line of ``record_demos`` in this environment."""
-    return [sys.executable, '-m', 'cgail_planner.system.record_demos', *args]
+    return [sys.executable, '-m', 'cgail_rig.record_demos', *args]
 
 
 def start(args: list[str]) -> subprocess.Popen[str]:
@@ -62,8 +62,8 @@ def scripted_bag(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Pat
 
 
 def test_scripted_demonstrations_are_a_demo_bag_that_replays(scripted_bag) -> None:
-    from cgail_planner.learning.demo_bags import read_demo_bag, replay_demo_bag
-    from cgail_planner.learning.recorder import read_recording
+    from cgail_learning.demo_bags import read_demo_bag, replay_demo_bag
+    from cgail_learning.recorder import read_recording
 
     out, stdout = scripted_bag
     assert stdout.count('cgail record-demos: episode ') == 2
@@ -87,7 +87,7 @@ def test_scripted_demonstrations_are_a_demo_bag_that_replays(scripted_bag) -> No
 @pytest.mark.slow
 def test_train_smoke_accepts_the_recorded_bag(scripted_bag, tmp_path: Path) -> None:
     out, _ = scripted_bag
-    run = subprocess.run([sys.executable, '-m', 'cgail_planner.learning.train', '--preset',
+    run = subprocess.run([sys.executable, '-m', 'cgail_learning.train', '--preset',
                           'smoke', '--mode', 'static', '--demos', str(out), '--max-steps', '1024',
                           '--num-envs', '2', '--out', str(tmp_path / 'run'), '--no-progress'],
                          capture_output=True, text=True, timeout=600)
@@ -126,7 +126,7 @@ def test_a_nan_joy_axis_is_one_line_and_loses_nothing(rclpy_context, tmp_path: P
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import Joy
 
-    from cgail_planner.learning.demo_bags import read_demo_bag
+    from cgail_learning.demo_bags import read_demo_bag
 
     out = tmp_path / 'demos'
     proc = start(['--out', str(out), '--driver', 'scripted', '--episodes', '3', '--time-scale',

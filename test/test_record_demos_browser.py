@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from test_record_demos import read_until, start
 
-from cgail_planner.gui.cdp import Chromium, find_chromium, Page
+from cgail_gui.cdp import Chromium, find_chromium, Page
 
 pytestmark = pytest.mark.skipif(find_chromium() is None,
                                 reason='chromium not installed (apt-get install -y chromium)')

@@ -20,15 +20,15 @@ import sys
 
 import pytest
 
-from cgail_planner.bags.bagio import content_digest
+from cgail_bags.bagio import content_digest
 
 ARGS = ['--trials', '1', '--time-limit', '12', '--seed', '3', '--plant', 'nominal']
 
 
 def test_one_trial_twice_idle_then_loaded_gives_the_same_bag_and_metrics(tmp_path) -> None:
-    from cgail_planner.bags.metrics_cli import evaluate_bags
-    from cgail_planner.system.domain import reserve_domain
-    from cgail_planner.system.session import (
+    from cgail_bags.metrics_cli import evaluate_bags
+    from cgail_rig.domain import reserve_domain
+    from cgail_rig.session import (
         default_policy,
         plan_trials,
         run_trial,
@@ -61,7 +61,7 @@ def test_one_trial_twice_idle_then_loaded_gives_the_same_bag_and_metrics(tmp_pat
 def _run(out: Path, *extra: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
     return subprocess.run(
-        [sys.executable, '-m', 'cgail_planner.system.session', '--out', str(out), *ARGS,
+        [sys.executable, '-m', 'cgail_rig.session', '--out', str(out), *ARGS,
          *extra], env=env, capture_output=True, text=True, timeout=600, check=False)
 
 
@@ -118,7 +118,7 @@ def test_same_bags_and_metrics_idle_in_one_job_and_loaded_in_two(tmp_path) -> No
 
 def test_two_concurrent_sessions_pick_their_own_domains_and_do_not_mix(tmp_path) -> None:
     env = {k: v for k, v in os.environ.items() if k != 'ROS_DOMAIN_ID'}
-    cmd = [sys.executable, '-m', 'cgail_planner.system.session', '--trials', '1',
+    cmd = [sys.executable, '-m', 'cgail_rig.session', '--trials', '1',
            '--plant', 'nominal', '--time-limit', '4', '--jobs', '1', '--conditions', 'cgail']
     procs = [subprocess.Popen([*cmd, '--out', str(tmp_path / name)], env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
@@ -136,8 +136,8 @@ def test_refuses_to_start_next_to_a_foreign_device_node(tmp_path, monkeypatch, c
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
-    from cgail_planner.system import domain
-    from cgail_planner.system.session import main
+    from cgail_rig import domain
+    from cgail_rig.session import main
 
     # from the top of the range: a rig of an earlier test in this process may have just
     # closed on the lowest free domain, and its node names can linger in discovery for a

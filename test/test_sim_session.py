@@ -1,4 +1,4 @@
-"""The simulated in-vitro session (cgail_planner.system.session).
+"""The simulated in-vitro session (cgail_rig.session).
 
 Fast: argument checks and the report stage on the committed trial bags. Slow (-m slow): the
 whole rig in-process (phantom + simulated devices, aurora_node over the pty, pam_node,
@@ -11,7 +11,7 @@ import shutil
 import pytest
 import yaml
 
-from cgail_planner.system.session import main, report
+from cgail_rig.session import main, report
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = ROOT / 'bags' / 'fixtures'
@@ -25,7 +25,7 @@ def test_cgail_condition_needs_a_policy(tmp_path, capsys) -> None:
 
 
 def test_default_policy_is_the_committed_cgail_model_of_the_anatomy_and_mode() -> None:
-    from cgail_planner.system.session import build_parser, default_policy
+    from cgail_rig.session import build_parser, default_policy
 
     assert build_parser().parse_args([]).policy is None  # resolved from --anatomy and --mode
     for anatomy, mode, name in (('default', 'static', 'cgail_default_static.onnx'),
@@ -42,7 +42,7 @@ def test_plant_option_goes_to_the_phantom_and_the_controller(capsys, tmp_path) -
     for 'identified' the cached identified model over pam_controller's parameters."""
     from types import SimpleNamespace
 
-    from cgail_planner.system.session import (
+    from cgail_rig.session import (
         build_parser,
         identified_pam_parameters,
         SessionSettings,
@@ -104,8 +104,8 @@ def test_a_simulation_fault_ends_its_trial_as_a_counted_outcome(tmp_path, monkey
     """The beating wall blows up 3 simulated seconds into the trial: the phantom freezes, the
     trial ends at once as a simulation fault (anatomy, seed, time), the session goes on and
     its report counts the fault."""
-    from cgail_planner.core.phantom import PhantomPhysics
-    from cgail_planner.sim.wall import WallError
+    from cgail_rig.core.phantom import PhantomPhysics
+    from cgail_sim.wall import WallError
 
     step = PhantomPhysics.step
     clock = {'t': 0.0}
@@ -179,8 +179,8 @@ def test_slicer_follows_a_simulated_trial_over_openigtlink(tmp_path, monkeypatch
     import pyigtl
     import pyigtl.messages
 
-    from cgail_planner.core import igtl
-    from cgail_planner.hw.igtl_server import PolyDataReader
+    from cgail_gui.core import igtl
+    from cgail_gui.hw.igtl_server import PolyDataReader
 
     monkeypatch.setitem(pyigtl.messages.message_type_to_class_constructor, 'POLYDATA',
                         PolyDataReader)  # as Slicer reads them
@@ -226,7 +226,7 @@ def _assert_tf_and_markers_recorded(bag: Path, dynamic: bool) -> None:
     read them; the recorded lumen moves in a dynamic trial and stays put in a static one."""
     from rosbags.highlevel import AnyReader
 
-    from cgail_planner.system.session import RECORDED_LUMEN_TRIANGLES
+    from cgail_rig.session import RECORDED_LUMEN_TRIANGLES
 
     msgs: dict[str, list] = {}
     types: dict[str, str] = {}
@@ -265,10 +265,10 @@ def test_one_trial_per_condition_in_a_prepared_anatomy(prepared_anatomy, tmp_pat
     """The session in a prepared directory with a policy contracted for it: every node
     resolves the same anatomy, the planner accepts the contract, both trials reach the
     target."""
-    from cgail_planner.learning.export import default_contract, write_contract
+    from cgail_learning.export import default_contract, write_contract
 
     policy = write_contract(
-        ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'learning' / 'models'
+        ROOT / 'src' / 'cgail_planner' / 'cgail_planner' / 'models'
         / 'cgail_default_static.onnx', default_contract(prepared_anatomy, 'static'),
         tmp_path / 'cgail_p07_static.onnx')
     out = tmp_path / 'session'

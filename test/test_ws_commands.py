@@ -72,7 +72,7 @@ def test_every_documented_scripts_ws_command_resolves() -> None:
 def test_documents_run_the_tools_as_cgail_verbs() -> None:
     """The README, docs, scripts and benchmarks invoke tools as ``cgail <verb>``, never by the
     previous release's console-script names (which only remain for one release)."""
-    from cgail_planner.cli import VERBS
+    from cgail_rig.cli import VERBS
 
     olds = '|'.join(sorted((v.old for v in VERBS if v.old), key=len, reverse=True))
     invocation = re.compile(rf'(?:scripts/ws|scripts/ros2run \w+|ros2 run \w+|\$R) ({olds})\b')
@@ -92,7 +92,7 @@ def test_scripts_ws_finds_the_installed_node_executable() -> None:
     (['scripts/ws', 'cgail', 'make-demos', '--help'], 'cgail make-demos'),  # bags/demos/README
     (['scripts/ws', 'sim_aurora', '--help'], 'sim_aurora'),
     (['scripts/ros2run', 'em_tracker', 'sim_aurora', '--help'], 'sim_aurora'),
-    (['scripts/ros2run', 'cgail_planner', 'cgail', 'bag', 'play', '--help'], 'cgail bag play'),
+    (['scripts/ros2run', 'cgail_rig', 'cgail', 'bag', 'play', '--help'], 'cgail bag play'),
 ])
 def test_package_executables_run_through_the_scripts(argv: list[str], usage: str) -> None:
     result = _run(['bash', *argv])

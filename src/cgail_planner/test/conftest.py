@@ -39,7 +39,7 @@ def prepared(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFa
     """A prepared anatomy directory ``p07`` (``lumen.stl`` + ``lumen.yaml``, as
     ``prepare_anatomy`` writes them) holding a built-in aorta: the test module's
     ``PREPARED_FROM`` (default ``'default'``)."""
-    from cgail_planner.sim.anatomy import build_anatomy, save_anatomy_mesh
+    from cgail_sim.anatomy import build_anatomy, save_anatomy_mesh
 
     d = tmp_path_factory.mktemp('patients') / 'p07'
     d.mkdir()

@@ -6,7 +6,7 @@ Every error is a ``ValueError`` whose message reads "expected ..., found ...":
   * :class:`InvalidInputError` - a pose, goal or message value is unusable;
   * :class:`NoPathError` - the planner ran but found no path (carries the rolled-out points);
   * :class:`ContractError` - a setting disagrees with the policy's contract
-    (:class:`cgail_planner.sim.ftl_model.PolicyContract`).
+    (:class:`cgail_sim.ftl_model.PolicyContract`).
 """
 
 from __future__ import annotations
@@ -46,3 +46,10 @@ class NoPathError(PlannerError):
 
 class ContractError(PlannerError):
     """A planner setting (e.g. a ROS parameter) disagrees with the policy's contract."""
+
+
+class PolicyLoadError(ValueError):
+    """A checkpoint or ONNX policy is missing, corrupt or does not fit the observation size.
+
+    The planner's (it loads the ONNX policy); ``cgail_learning`` raises it for checkpoints too.
+    Not a :class:`PlannerError`: it is raised while a policy is loaded, never by a plan."""

@@ -1,6 +1,6 @@
 """Guidance along a planned path: next waypoint and the suggested bend (the paper's internal view).
 
-Pure numpy, no rclpy. Conventions follow :mod:`cgail_planner.sim.ftl_model`: the tip pose is
+Pure numpy, no rclpy. Conventions follow :mod:`cgail_sim.ftl_model`: the tip pose is
 ``[R | p]`` with the heading ``y_A = R[:, 1]``; a bend ``(alpha, gamma)`` of the steerable
 segment turns the heading about ``x_A`` (alpha, ``y_A`` towards ``z_A``) and about ``z_A``
 (gamma, ``y_A`` towards ``-x_A``) by ``bend * dl / L`` per inserted length ``dl``
@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.ftl_model import CatheterConfig
+from cgail_sim.ftl_model import CatheterConfig
 
 FloatArray = NDArray[np.float64]
 

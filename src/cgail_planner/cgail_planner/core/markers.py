@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from cgail_planner.sim.ftl_model import (
+from cgail_sim.ftl_model import (
     advance_pose,
     CatheterBatch,
     CatheterConfig,
@@ -270,9 +270,9 @@ def bend_arc(position: FloatArray, rotation: FloatArray, bend: tuple[float, floa
              ) -> tuple[FloatArray, FloatArray]:
     """Where the tip goes when it holds ``bend`` while inserting ``length``.
 
-    The catheter model's segment bend (:func:`~cgail_planner.sim.ftl_model.segment_bend_step`:
+    The catheter model's segment bend (:func:`~cgail_sim.ftl_model.segment_bend_step`:
     per inserted ``dl`` the heading turns by ``bend * dl / L``) stepped with
-    :func:`~cgail_planner.sim.ftl_model.advance_pose`.
+    :func:`~cgail_sim.ftl_model.advance_pose`.
 
     Returns:
         ``(points (steps + 1, 3), rotation (3, 3))``: the arc from the tip, and the tip

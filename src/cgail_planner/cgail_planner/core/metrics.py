@@ -1,7 +1,7 @@
 """Offline in-vitro metrics of one trial and across conditions (paper section IV-C).
 
 Pure numpy/scipy (no rclpy). A trial is given as time-stamped arrays (SI units, see
-:class:`TrialData`); :mod:`cgail_planner.bags.reader` builds them from a bag.
+:class:`TrialData`); :mod:`cgail_bags.reader` builds them from a bag.
 
 Definitions (documented choices where the paper leaves room):
 

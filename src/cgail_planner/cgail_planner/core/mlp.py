@@ -1,13 +1,13 @@
 """A small feed-forward network as a flat register program, evaluated by numba.
 
 The planner's deterministic policy is a multi-layer perceptron with the observation normaliser
-baked in (:mod:`cgail_planner.learning.export`: ``Sub``, ``Div``, ``Clip``, ``Gemm``, ``Sigmoid``,
+baked in (:mod:`cgail_learning.export`: ``Sub``, ``Div``, ``Clip``, ``Gemm``, ``Sigmoid``,
 ``Mul``...). A batch-1 call through onnxruntime costs ~10-20 us of fixed overhead per step of a
 1000-step rollout; the same network as a straight-line program of vector instructions runs in a
 few microseconds from Python and can be called from inside a numba kernel
 (:mod:`cgail_planner.core.rollout_kernel`), so a whole rollout is one native call.
 
-A program is built with :class:`MlpBuilder` (``cgail_planner.learning.onnx_policy`` translates an
+A program is built with :class:`MlpBuilder` (``cgail_planner.core.onnx_policy`` translates an
 ONNX graph into it) and frozen into an :class:`MlpProgram`. Register 0 holds the input; every
 instruction writes one new register from earlier ones and from constants. All arithmetic is in
 float64 (the float32 weights are exact in it); :meth:`MlpProgram.__call__` returns float32 like

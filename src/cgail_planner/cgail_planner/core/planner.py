@@ -1,20 +1,20 @@
 """Whole-path planning: roll a policy out in the model of the anatomy, or follow the centerline.
 
-numpy and numba (the BVH of :mod:`cgail_planner.sim.wall`, an injected policy callable); no
+numpy and numba (the BVH of :mod:`cgail_sim.wall`, an injected policy callable); no
 rclpy and no torch. Used by :mod:`cgail_planner.nodes.planner_node` with
-:class:`cgail_planner.learning.onnx_policy.OnnxPolicy`.
+:class:`cgail_planner.core.onnx_policy.OnnxPolicy`.
 
 **C-GAIL planner** (``planner_type='cgail'``): from the current tip pose ``[R | p]`` the policy
 is rolled out exactly as the simulator runs an episode, with the catheter model of
-:mod:`cgail_planner.sim.ftl_model`: its observation (:func:`~cgail_planner.sim.ftl_model.
+:mod:`cgail_sim.ftl_model`: its observation (:func:`~cgail_sim.ftl_model.
 observe_pose`), its action scaling and follow-the-leader step, and its retraction rule (the body
 behind the tip pose is the introducer an episode's start pose gets,
-:meth:`cgail_planner.sim.scenarios.World.introducer`: straight back to the exit plane when that
+:meth:`cgail_sim.scenarios.World.introducer`: straight back to the exit plane when that
 lies inside the lumen, else along the centerline; straight where neither does).
 After every step the rollout ends as an
 episode does, by the same priority: a **collision** (the tip sphere penetrates the wall:
 ``wall.tip_contact(...).penetration > 0``; the frozen model wall exerts no force), an **exit**
-(the step crossed the disc of an open end, :mod:`cgail_planner.sim.exits`, or the tip left the
+(the step crossed the disc of an open end, :mod:`cgail_sim.exits`, or the tip left the
 anatomy's bounding box grown by 10 mm), or **success** (the tip within ``goal_tolerance`` of the
 goal, which is then appended as the last point); else it fails after ``max_rollout_steps``. So a
 policy rolled out from an episode's start pose gives the episode's tip path and ending
@@ -67,8 +67,8 @@ from cgail_planner.core.path_fit import (
 )
 from cgail_planner.core.rotations import validate_pose
 from cgail_planner.core.rrt_planner import Lumen, RrtConfig, RrtPlanner
-from cgail_planner.sim.exits import crossed_disc
-from cgail_planner.sim.ftl_model import (
+from cgail_sim.exits import crossed_disc
+from cgail_sim.ftl_model import (
     advance_pose,
     CatheterConfig,
     command_nb,
@@ -96,7 +96,7 @@ ORIGIN_TOLERANCE = 1e-3
 
 
 class RayWall(Protocol):
-    """What the rollout needs from a wall (:class:`cgail_planner.sim.wall.StaticWall`)."""
+    """What the rollout needs from a wall (:class:`cgail_sim.wall.StaticWall`)."""
 
     def raycast(self, origins: np.ndarray, directions: np.ndarray, max_dist: float
                 ) -> np.ndarray:
@@ -214,17 +214,17 @@ class ModelWorld:
     exit_normal: FloatArray
     """(3,) unit normal of the descending end's plane, out of the lumen."""
     exit_discs: FloatArray
-    """(D, 7) the open cuts a rollout can leave through (:attr:`cgail_planner.sim.anatomy.
-    Anatomy.exit_discs`, :mod:`cgail_planner.sim.exits`)."""
+    """(D, 7) the open cuts a rollout can leave through (:attr:`cgail_sim.anatomy.
+    Anatomy.exit_discs`, :mod:`cgail_sim.exits`)."""
     introducer: Callable[[FloatArray, FloatArray], FloatArray] | None = None
     """``(position, rotation) -> (K, 3)`` introducer nodes behind a tip pose (proximal end
-    first, :func:`cgail_planner.sim.ftl_model.seed_body`); None: straight to
-    :func:`~cgail_planner.sim.ftl_model.introducer_tail`."""
+    first, :func:`cgail_sim.ftl_model.seed_body`); None: straight to
+    :func:`~cgail_sim.ftl_model.introducer_tail`."""
 
 
 def _sim_introducer(world: Any) -> Callable[[FloatArray, FloatArray], FloatArray]:
     """The simulator's introducer behind a tip pose, or the straight one where it has none."""
-    from cgail_planner.sim.scenarios import ScenarioError
+    from cgail_sim.scenarios import ScenarioError
 
     anatomy = world.anatomy
 
@@ -238,7 +238,7 @@ def _sim_introducer(world: Any) -> Callable[[FloatArray, FloatArray], FloatArray
 
 
 def model_world_from_sim(world: Any, observation: ObservationSpec | None = None) -> ModelWorld:
-    """Build a :class:`ModelWorld` from a :class:`cgail_planner.sim.scenarios.World`.
+    """Build a :class:`ModelWorld` from a :class:`cgail_sim.scenarios.World`.
 
     Args:
         world: the simulator's world (anatomy, centerlines, scenarios).
@@ -249,7 +249,7 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
         ContractError: the spec's origin is more than :data:`ORIGIN_TOLERANCE` from this
             anatomy's bounding-box centre (the policy was trained on another anatomy).
     """
-    from cgail_planner.sim.scenarios import episode_bounds
+    from cgail_sim.scenarios import episode_bounds
 
     anatomy = world.anatomy
     sc = world.scenarios
@@ -285,13 +285,13 @@ def _lumen(world: ModelWorld, wall: RayWall) -> Lumen:
 
 
 def _wall_arrays(wall: object) -> Any | None:
-    """The BVH arrays of a simulator wall (:attr:`cgail_planner.sim.raycast.WallBVH.
+    """The BVH arrays of a simulator wall (:attr:`cgail_sim.raycast.WallBVH.
     query_arrays`) brought up to date, or None for any other wall.
 
     A deformable wall refits its tree lazily, so a one-ray cast comes first.
     """
-    from cgail_planner.sim.raycast import WallBVH
-    from cgail_planner.sim.wall import StaticWall
+    from cgail_sim.raycast import WallBVH
+    from cgail_sim.wall import StaticWall
 
     if not isinstance(wall, StaticWall) or not isinstance(wall.bvh, WallBVH):
         return None
@@ -303,7 +303,7 @@ def world_observation_spec(scenarios: Any, contract: PolicyContract) -> Observat
     """The observation spec of the anatomy ``scenarios`` for a policy of ``contract``: that
     anatomy's ``origin``, and the ``d_max`` of the targets the policy was trained on (fixed
     targets or the sphere, from its ``env_options``), with the policy's sensors."""
-    from cgail_planner.sim.config import EnvConfig
+    from cgail_sim.config import EnvConfig
 
     try:
         targets = EnvConfig.from_options(contract.env_options).targets
@@ -336,7 +336,7 @@ def reconcile_contract(contract: PolicyContract, *, anatomy: str, mode: str,
             overridden anatomy disagrees, and always for a population policy
             (``contract.anatomies == 'population'``), which runs in any anatomy.
         anatomy_hash: the content hash of a path anatomy, ``""`` for a built-in one
-            (:func:`cgail_planner.sim.anatomy_spec.anatomy_identity`). What identifies the anatomy
+            (:func:`cgail_sim.anatomy_spec.anatomy_identity`). What identifies the anatomy
             is compared: the hashes when either side has one (a path anatomy: its label may
             differ), else the built-in names.
 
@@ -407,11 +407,11 @@ class Planner:
             used).
         policy: ``obs (dim,) float32 -> action (3,)`` in [-1, 1]; required for ``cgail``.
         ray_directions: (R, 3) ray set in the tip frame (default
-            :data:`~cgail_planner.sim.ftl_model.RAY_DIRECTIONS`; a policy's: its contract's).
+            :data:`~cgail_sim.ftl_model.RAY_DIRECTIONS`; a policy's: its contract's).
         obs_dim: the policy's observation size (checked against the spec's: ``16 + R``, or
             ``11 + P`` for the ``paper_code`` observation of ``config.observation.kind``).
         probe_offsets: (P, 3) ``paper_code`` probe points in the tip frame (default
-            :data:`~cgail_planner.sim.ftl_model.PROBE_OFFSETS`; a policy's: its contract's).
+            :data:`~cgail_sim.ftl_model.PROBE_OFFSETS`; a policy's: its contract's).
 
     Raises:
         ValueError: ``cgail`` without a policy, or an observation size mismatch.
@@ -529,7 +529,7 @@ class Planner:
     def readings(self, p: FloatArray, r: FloatArray) -> FloatArray:
         """(S,) sensor readings of tip pose ``[r | p]`` in the wall: ray hit distances, or the
         ``paper_code`` probes' nearest-wall distances (inf beyond
-        :data:`~cgail_planner.sim.ftl_model.PROBE_RANGE`), m."""
+        :data:`~cgail_sim.ftl_model.PROBE_RANGE`), m."""
         spec = self.spec
         pts = sensor_points(spec, p[None], r[None])[0]
         if spec.kind == "paper_code":
@@ -541,7 +541,7 @@ class Planner:
     def uses_kernel(self) -> bool:
         """True when :meth:`rollout` runs as one numba call (:mod:`.rollout_kernel`): the policy
         is an :class:`~cgail_planner.core.mlp.MlpProgram` (or has one as ``.mlp``, as
-        :class:`~cgail_planner.learning.onnx_policy.OnnxPolicy` has) with this planner's
+        :class:`~cgail_planner.core.onnx_policy.OnnxPolicy` has) with this planner's
         observation size and 3 actions, and the wall is a simulator wall with a numba BVH."""
         return self._program is not None and _wall_arrays(self.wall) is not None
 
@@ -644,7 +644,7 @@ class Planner:
     def rollout_reference(self, p0: FloatArray, r0: FloatArray, goal: FloatArray
                           ) -> tuple[FloatArray, int]:
         """:meth:`rollout` as a Python loop calling ``wall.raycast``, ``wall.tip_contact`` and
-        ``policy`` per step, and the single-pose forms of :mod:`cgail_planner.sim.ftl_model`.
+        ``policy`` per step, and the single-pose forms of :mod:`cgail_sim.ftl_model`.
 
         The specification of the numba kernel, and the rollout for any policy callable and
         any :class:`RayWall`. Same returns and errors as :meth:`rollout`.

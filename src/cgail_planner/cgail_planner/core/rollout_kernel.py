@@ -4,9 +4,9 @@
 that calls the wall's ray cast and contact query and the policy once per step (~60 us of
 interpreter work per step on top of the ~10-20 us ray cast). :func:`rollout_kernel` runs the same
 loop natively with the numba forms of the catheter model
-(:func:`~cgail_planner.sim.ftl_model.observe_nb`, :func:`~cgail_planner.sim.ftl_model.command_nb`,
-:func:`~cgail_planner.sim.ftl_model.advance_nb`, :func:`~cgail_planner.sim.ftl_model.
-retract_chain`), the BVH query kernels of :mod:`cgail_planner.sim.raycast` and the policy's
+(:func:`~cgail_sim.ftl_model.observe_nb`, :func:`~cgail_sim.ftl_model.command_nb`,
+:func:`~cgail_sim.ftl_model.advance_nb`, :func:`~cgail_sim.ftl_model.
+retract_chain`), the BVH query kernels of :mod:`cgail_sim.raycast` and the policy's
 :class:`~cgail_planner.core.mlp.MlpProgram` (:func:`~cgail_planner.core.mlp.mlp_forward`), with
 the observation and the action rounded to float32 exactly as the Python loop does around its
 policy call, so both give the same path (to rounding differences of numpy's 3x3 products,
@@ -25,9 +25,9 @@ import numpy as np
 
 from cgail_planner.core import mlp
 from cgail_planner.core.mlp import mlp_forward
-from cgail_planner.sim import exits, ftl_model, raycast
-from cgail_planner.sim.exits import crossed_disc
-from cgail_planner.sim.ftl_model import (
+from cgail_sim import exits, ftl_model, raycast
+from cgail_sim.exits import crossed_disc
+from cgail_sim.ftl_model import (
     advance_nb,
     command_nb,
     observe_nb,
@@ -35,7 +35,7 @@ from cgail_planner.sim.ftl_model import (
     PROBE_RANGE,
     retract_chain,
 )
-from cgail_planner.sim.raycast import (
+from cgail_sim.raycast import (
     closest_kernel,
     drop_stale_numba_cache,
     feature_normal_kernel,
@@ -55,7 +55,7 @@ COLLIDED = 1
 BAD_ACTION = 2
 """The policy returned a non-finite action (in ``action``) at step ``steps``."""
 LEFT_ANATOMY = 3
-"""The tip left through the disc of an open end (:mod:`cgail_planner.sim.exits`) or left the
+"""The tip left through the disc of an open end (:mod:`cgail_sim.exits`) or left the
 bounding box at step ``steps``."""
 STEP_LIMIT = 4
 """``max_steps`` steps without reaching the goal."""
@@ -64,7 +64,7 @@ STEP_LIMIT = 4
 @njit(cache=True)
 def _penetration(bvh, px, py, pz, radius, tolerance):
     """``(penetration, clearance)`` of the tip sphere vs the wall: the numba form of
-    :meth:`cgail_planner.sim.wall.StaticWall.tip_contact` (without the force)."""
+    :meth:`cgail_sim.wall.StaticWall.tip_contact` (without the force)."""
     p = np.empty(3)
     p[0], p[1], p[2] = px, py, pz
     dist, face, q, u, v, w = closest_kernel(bvh.vertices, bvh.faces, bvh.order, bvh.node_min,
@@ -88,7 +88,7 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code
 
     Args:
         positions: (K, 3) body node positions, seeded with ``n0`` nodes (the introducer tail
-            and the start pose, :func:`~cgail_planner.sim.ftl_model.seed_body`); output: the
+            and the start pose, :func:`~cgail_sim.ftl_model.seed_body`); output: the
             body at the end. K >= max_steps + n0.
         rotations: (K, 3, 3) the nodes' rotations (seeded likewise).
         arc: (K,) the nodes' arc lengths (seeded likewise).
@@ -105,10 +105,10 @@ def rollout_kernel(positions, rotations, arc, n0, goal, rays, probes, paper_code
         dt: step length, s (unused: the frozen wall has no contact force).
         tolerance: the wall's penetration tolerance, m.
         goal_tolerance: success distance, m.
-        exit_discs: (D, 7) the open cuts (:attr:`cgail_planner.sim.anatomy.Anatomy.exit_discs`).
+        exit_discs: (D, 7) the open cuts (:attr:`cgail_sim.anatomy.Anatomy.exit_discs`).
         low, high: (3,) bounding box, m.
         max_steps: step limit.
-        bvh: the wall's :class:`~cgail_planner.sim.raycast.BVHArrays`.
+        bvh: the wall's :class:`~cgail_sim.raycast.BVHArrays`.
         ops, consts, widths, regs, out_reg: the policy's MlpProgram (16 + R inputs, or 11 + P
             for ``paper_code``; 3 outputs).
         action: (3,) output: the last raw action (float32-rounded).

@@ -5,7 +5,7 @@ numpy and OMPL's Python bindings (``ompl`` 2.0.1 on PyPI); no rclpy and no torch
 learned planner (Fauser et al.'s curvature-constrained bi-RRT for catheters).
 
 **Catheter.** The tip moves forward along a curve whose curvature never exceeds
-``1 / r_min`` with ``r_min = L / theta_max`` (:class:`cgail_planner.sim.ftl_model.CatheterConfig`:
+``1 / r_min`` with ``r_min = L / theta_max`` (:class:`cgail_sim.ftl_model.CatheterConfig`:
 a full bend ``theta_max`` over the steerable segment ``L``; 50 mm / 90 deg = 31.8 mm).
 
 **Curves (OMPL).** Every edge of the trees is a Vana-Owen curve of
@@ -56,11 +56,11 @@ real-time safety bound of the planner node; a plan it cuts short depends on the 
 (its error says which limit ran out).
 
 **Validity.** A state is valid when the tip lies outside the exit slab of every open end
-(:func:`cgail_planner.sim.exits.in_exit_slab`, ``2 * resolution`` deep: no motion leaves
+(:func:`cgail_sim.exits.in_exit_slab`, ``2 * resolution`` deep: no motion leaves
 through a cut's disc), inside the anatomy's bounding region
-(:func:`cgail_planner.sim.scenarios.episode_bounds`) and at least ``catheter radius +
+(:func:`cgail_sim.scenarios.episode_bounds`) and at least ``catheter radius +
 clearance_margin + resolution / 2`` from the wall (the wall's own distance query,
-:meth:`cgail_planner.sim.wall.StaticWall.distance`). Motions are checked every ``resolution`` of
+:meth:`cgail_sim.wall.StaticWall.distance`). Motions are checked every ``resolution`` of
 arc length (OMPL's validity-checking resolution): the distance to the wall is 1-Lipschitz along
 the curve, so between two checked states it is at least the checked value less
 ``resolution / 2``, and the whole curve clears the wall by ``radius + clearance_margin``. Start
@@ -86,8 +86,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cgail_planner.core.errors import InvalidInputError, NoPathError
-from cgail_planner.sim.exits import in_exit_slab
-from cgail_planner.sim.ftl_model import CatheterConfig
+from cgail_sim.exits import in_exit_slab
+from cgail_sim.ftl_model import CatheterConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -174,7 +174,7 @@ class Lumen:
     ostia: dict[str, FloatArray]
     """Branch name -> (3,) coronary ostium, m."""
     exit_discs: FloatArray
-    """(D, 7) the open cuts (:attr:`cgail_planner.sim.anatomy.Anatomy.exit_discs`)."""
+    """(D, 7) the open cuts (:attr:`cgail_sim.anatomy.Anatomy.exit_discs`)."""
     bbox_low: FloatArray
     """(3,) lower corner of the region the tip may visit, m."""
     bbox_high: FloatArray

@@ -110,7 +110,7 @@ def pose_msg(stamp: Time, frame_id: str, position: np.ndarray,
 def path_msg(stamp: Time, frame_id: str, points: np.ndarray) -> Path:
     """A nav_msgs/Path through ``points`` (N, 3); each pose's orientation is the path tangent
     (y axis along the direction of travel, as the tip frame's heading)."""
-    from cgail_planner.sim.ftl_model import frame_from_heading
+    from cgail_sim.ftl_model import frame_from_heading
 
     header = Header(stamp=stamp, frame_id=frame_id)
     tangents = np.gradient(points, axis=0) if len(points) > 1 else np.array([[0.0, 1.0, 0.0]])

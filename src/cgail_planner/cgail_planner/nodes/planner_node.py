@@ -25,7 +25,7 @@ whose launch files remap them (docs/interfaces.md).
   non-unit poses, stale poses) is logged with the reason, counted and shown on ``/diagnostics``;
   nothing is planned or guided from it.
 * The catheter model (theta_max, L, step, diameter) and the observation (origin, scales, rays)
-  are the policy's contract (:class:`cgail_planner.sim.ftl_model.PolicyContract`).
+  are the policy's contract (:class:`cgail_sim.ftl_model.PolicyContract`).
   ``theta_max``, ``segment_length`` and ``anatomy`` must agree with it (0 = take the policy's;
   a path anatomy agrees when its content hash is the contract's):
   a disagreeing one raises :class:`~cgail_planner.core.errors.ContractError` at construction,
@@ -68,8 +68,8 @@ from cgail_planner.core.planner import (
 from cgail_planner.core.rrt_planner import RrtConfig
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes import RCLError, spin, try_shutdown
-from cgail_planner.sim.ftl_model import CatheterConfig
-from cgail_planner.sim.mesh_io import AnatomyError
+from cgail_sim.ftl_model import CatheterConfig
+from cgail_sim.mesh_io import AnatomyError
 
 
 class PlannerNode(Node):
@@ -154,9 +154,9 @@ class PlannerNode(Node):
                                    'planner/markers (sent when they changed), Hz',
                                    lo=0.1, hi=100.0)
 
-        from cgail_planner.sim.anatomy_spec import anatomy_identity
-        from cgail_planner.sim.scenarios import load_world
-        from cgail_planner.sim.wall import DeformableWall, StaticWall
+        from cgail_sim.anatomy_spec import anatomy_identity
+        from cgail_sim.wall import DeformableWall, StaticWall
+        from cgail_sim.worlds import load_world
 
         try:
             world = load_world(anatomy)
@@ -244,8 +244,8 @@ class PlannerNode(Node):
 
     # ------------------------------------------------------------------ setup
     def _load_policy(self, path: str):
-        from cgail_planner.learning.errors import PolicyLoadError
-        from cgail_planner.learning.onnx_policy import OnnxPolicy
+        from cgail_planner.core.errors import PolicyLoadError
+        from cgail_planner.core.onnx_policy import OnnxPolicy
 
         if not path:
             self.policy_error = ("no policy: planner_type 'cgail' needs policy_path (an ONNX "

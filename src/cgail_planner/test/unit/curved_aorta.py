@@ -10,9 +10,9 @@ Built once per process (and cached on disk, as every anatomy).
 import functools
 import math
 
-from cgail_planner.sim.anatomy import Anatomy, AnatomyParams, build_anatomy_from_params
-from cgail_planner.sim.centerline import compute_centerlines
-from cgail_planner.sim.scenarios import build_scenarios, World
+from cgail_sim.anatomy import Anatomy, AnatomyParams, build_anatomy_from_params
+from cgail_sim.centerline import compute_centerlines
+from cgail_sim.scenarios import build_scenarios, World
 
 #: The parameters of the curved anatomy.
 CURVED_PARAMS = AnatomyParams(descending_bend=math.radians(30.0), descending_bend_length=0.060)

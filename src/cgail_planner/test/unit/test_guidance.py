@@ -46,7 +46,7 @@ def test_constant_bend_arc_passes_through_the_waypoint() -> None:
     """Integrating the FTL kinematics with the suggested bend lands on the waypoint."""
     wp = np.array([0.012, 0.05, -0.007])
     alpha, gamma, _ = suggested_bend(np.zeros(3), EYE, wp, L, math.pi / 2)
-    from cgail_planner.sim.ftl_model import bend_rotation
+    from cgail_sim.ftl_model import bend_rotation
     p, r = np.zeros(3), EYE.copy()
     dl = 1e-5
     best = np.inf

@@ -8,8 +8,8 @@ import pytest
 
 from cgail_planner.core import markers as mk
 from cgail_planner.core.guidance import suggested_bend
-from cgail_planner.sim.anatomy_spec import resolve_anatomy
-from cgail_planner.sim.ftl_model import CatheterBatch, CatheterConfig
+from cgail_sim.anatomy_spec import resolve_anatomy
+from cgail_sim.ftl_model import CatheterBatch, CatheterConfig
 
 EYE = np.eye(3)
 
@@ -49,7 +49,7 @@ def test_lumen_is_decimated_onto_its_own_vertices(anatomy) -> None:
 
 
 def test_the_deformed_wall_moves_the_lumen_between_two_phases(anatomy) -> None:
-    from cgail_planner.sim.wall import DeformableWall
+    from cgail_sim.wall import DeformableWall
 
     wall = DeformableWall(anatomy)
     lumen = mk.LumenMesh(anatomy)

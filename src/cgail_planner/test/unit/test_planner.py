@@ -1,7 +1,7 @@
 """Planner core: policy rollout in a model world, centerline baseline, bad input, contract,
 replan decisions.
 
-The numbers come from the catheter model (:mod:`cgail_planner.sim.ftl_model`): the step length,
+The numbers come from the catheter model (:mod:`cgail_sim.ftl_model`): the step length,
 the bend limit and the catheter radius are read from :class:`CatheterConfig`, not typed here.
 The rollout's parity with the simulator is ``test_model_parity.py``.
 """
@@ -22,9 +22,9 @@ from cgail_planner.core.planner import (
     replan_reason,
     ReplanConfig,
 )
-from cgail_planner.sim.contact import Contact
-from cgail_planner.sim.exits import disc_array
-from cgail_planner.sim.ftl_model import (
+from cgail_sim.contact import Contact
+from cgail_sim.exits import disc_array
+from cgail_sim.ftl_model import (
     CatheterConfig,
     ObservationConfig,
     ObservationSpec,
@@ -132,7 +132,7 @@ def test_the_rollout_uses_the_configured_catheter_model(theta_max) -> None:
 
 
 def test_the_observation_is_the_models() -> None:
-    from cgail_planner.sim.ftl_model import observe_pose
+    from cgail_sim.ftl_model import observe_pose
 
     world = box_world()
     planner = Planner(PlannerConfig(), world, OpenSpace(), constant([0, 0, 1]))
@@ -219,10 +219,10 @@ def test_non_finite_policy_output_fails_the_plan() -> None:
 
 
 def test_onnx_straight_policy_fixture_plans_in_the_default_anatomy() -> None:
+    from cgail_planner.core.onnx_policy import OnnxPolicy
     from cgail_planner.core.planner import model_world_from_sim
-    from cgail_planner.learning.onnx_policy import OnnxPolicy
-    from cgail_planner.sim.scenarios import load_world
-    from cgail_planner.sim.wall import StaticWall
+    from cgail_sim.wall import StaticWall
+    from cgail_sim.worlds import load_world
 
     world = load_world('default')
     policy = OnnxPolicy(FIXTURES / 'straight_policy.onnx', expected_obs_dim=41)
@@ -346,7 +346,7 @@ def test_a_population_policy_runs_in_any_anatomy_in_its_frame() -> None:
     selected in: it runs anywhere without an override, observed with that anatomy's origin and
     the d_max of the targets it was trained on (sphere targets: the sphere's bound)."""
     from cgail_planner.core.planner import world_observation_spec
-    from cgail_planner.sim.scenarios import load_world
+    from cgail_sim.worlds import load_world
 
     c = dataclasses.replace(contract(), anatomy='population-128', anatomy_hash=H1,
                             anatomies='population', env_options='sphere_targets')
@@ -383,7 +383,7 @@ def test_an_override_applies_the_setting_and_warns() -> None:
 
 
 def test_a_planner_built_from_a_contract_runs_its_model() -> None:
-    from cgail_planner.sim.scenarios import load_world
+    from cgail_sim.worlds import load_world
 
     world = load_world('default')
     spec = ObservationSpec.for_world(world.scenarios)

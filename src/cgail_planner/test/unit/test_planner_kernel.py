@@ -5,7 +5,7 @@ rolled-out points to 1e-9 m (in practice they agree to ~1e-16 m), the step count
 error messages, in the static wall and in the deformed (beating) wall.
 
 No expected step count is a constant: the built-in mesh differs slightly between CPUs (numpy's
-SIMD ufuncs, :mod:`cgail_planner.sim.disk_cache`), which moves a wall contact or the bounding
+SIMD ufuncs, :mod:`cgail_sim.disk_cache`), which moves a wall contact or the bounding
 box by a step. Counts are derived in the test from the geometry of this run (the catheter
 model's kinematics of a constant action and the wall's contact query) or from a policy whose
 path does not depend on the wall at all.
@@ -18,19 +18,19 @@ import pytest
 
 from cgail_planner.core.errors import NoPathError
 from cgail_planner.core.mlp import MlpBuilder, MlpProgram
+from cgail_planner.core.onnx_policy import OnnxPolicy
 from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
-from cgail_planner.learning.onnx_policy import OnnxPolicy
-from cgail_planner.sim.exits import crossed_discs
-from cgail_planner.sim.ftl_model import (
+from cgail_sim.exits import crossed_discs
+from cgail_sim.ftl_model import (
     action_to_command,
     advance_pose,
     CatheterConfig,
     RAY_DIRECTIONS,
 )
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.wall import DeformableWall, StaticWall
+from cgail_sim.wall import DeformableWall, StaticWall
+from cgail_sim.worlds import load_world
 
-MODEL = (Path(__file__).resolve().parents[2] / 'cgail_planner' / 'learning' / 'models'
+MODEL = (Path(__file__).resolve().parents[2] / 'cgail_planner' / 'models'
          / 'cgail_default_static.onnx')
 FIXTURES = Path(__file__).resolve().parents[1] / 'fixtures'
 

@@ -15,9 +15,9 @@ from cgail_planner.core.errors import InvalidInputError, NoPathError
 from cgail_planner.core.path_fit import discrete_curvature
 from cgail_planner.core.planner import model_world_from_sim, Planner, PlannerConfig
 from cgail_planner.core.rrt_planner import RrtConfig
-from cgail_planner.sim.ftl_model import CatheterConfig
-from cgail_planner.sim.scenarios import load_world
-from cgail_planner.sim.wall import StaticWall
+from cgail_sim.ftl_model import CatheterConfig
+from cgail_sim.wall import StaticWall
+from cgail_sim.worlds import load_world
 
 #: Allowance of the discrete (Menger) curvature of the 0.5 mm curve samples over 1 / r_min
 #: (rounding only: the planner asks OMPL for 5% more radius than r_min, RADIUS_FACTOR).

@@ -32,7 +32,7 @@ from em_tracker.core.pose import Registration
 FloatArray = NDArray[np.float64]
 
 #: NDI Aurora 6DOF sensor, cube volume: 3-D RMS position error, m (NDI specification; the same
-#: figure as ``cgail_planner.learning.evaluate.TrackingNoise``).
+#: figure as ``cgail_learning.evaluate.TrackingNoise``).
 AURORA_POSITION_RMS_M = 0.48e-3
 #: NDI Aurora 6DOF sensor, cube volume: RMS orientation error (rotation angle), rad.
 AURORA_ORIENTATION_RMS_RAD = math.radians(0.30)

@@ -1,12 +1,12 @@
 """Identification of the bending model on the bench: excitation, bend from the EM pose, the fit.
 
 Pure numpy and scipy; no rclpy, no messages. ``identify_pam``
-(:mod:`cgail_planner.system.identify_pam`) runs the excitation on a rig (simulated or real),
+(:mod:`cgail_rig.identify_pam`) runs the excitation on a rig (simulated or real),
 records the EM tip pose and the measured pressures, and hands them here as arrays.
 
 **Bench fixture.** The catheter is clamped at the base of its steerable segment, in free air,
 with the EM sensor at the tip. The insertion is held. The segment is a constant-curvature arc
-(the catheter model's bend convention, ``cgail_planner.sim.ftl_model``): per length ``dl`` the
+(the catheter model's bend convention, ``cgail_sim.ftl_model``): per length ``dl`` the
 heading turns by ``alpha dl / L`` about ``x`` and by ``gamma dl / L`` about ``z``. Over the
 whole segment the tip's rotation relative to the base is then the rotation vector
 ``(alpha, ~0, gamma)`` in the base frame: the bend is read from ``log(R_base^T R_tip)``

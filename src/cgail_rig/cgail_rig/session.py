@@ -1,0 +1,774 @@
+"""``cgail session``: the simulated in-vitro session of the paper (section IV-B), end to end.
+
+    cgail session --out runs/invitro                                   # the main job
+    cgail session --trials 2 --policy model.onnx --mode dynamic --out runs/invitro_dynamic
+
+**Protocol.** ``--trials`` trials (default 30, against the paper's 10: at 10 per condition no
+difference was significant in our sessions) following the C-GAIL path, then as many following
+the centerline (``planner_type: centerline``); trial ``k`` of a condition starts at start
+``k mod 3`` with target ``k mod 5``. Each trial runs on a rig of its own, built from
+``launch/sim_rig.launch.yaml``: ``phantom`` (the catheter-in-aorta physics, a simulated Aurora
+on a pty, the regulator bank and the sleeve driver on virtual CAN), the real ``aurora`` node
+(ndicapi over the pty), ``pam_controller``, ``sleeve_driver``, ``teleop``, ``planner`` and the
+scripted ``operator`` at the gamepad. After 1 s of simulated time (the tracker connects, the
+first poses arrive) the goal is published; the trial ends when the operator stops (target
+reached, or closest approach passed) or at the 3-minute limit, and is recorded to its own bag.
+If the beating wall blows up (the phantom freezes its physics, :class:`~cgail_sim.wall.
+WallError`), the trial ends at once as ``simulation fault`` with the anatomy, the seed and the
+time; its bag is evaluated as a failure, the session goes on, and the report counts the faults.
+Then the offline metrics (``cgail bag metrics``) print the markdown table with the paper's in-vitro
+numbers side by side and write the box plots.
+
+**Operator practice** (:mod:`cgail_planner.core.operator`). The paper's participant did 10
+pre-training trials per condition before its 10 measured ones. The scripted operator's skill
+follows a learning curve of the number of trials it did before (the power law of practice), so
+``--pretrain N`` (default 10) starts trial ``k`` of each condition at the skill after ``N + k``
+trials of that condition (each condition pre-trained on its own, as in the paper, and never
+favoured by the order the conditions run in). The pre-training trials are modelled, not run:
+the skill depends on their number only, not on their outcome, so running them could not change
+a measured trial (a trial is a function of the session seed and its index). To watch the
+learning curve itself, record the pre-training too: ``--pretrain 0 --trials 20``.
+
+**The plant** (:mod:`cgail_rig.core.plant`, ``docs/plant.md``). The phantom moves the
+catheter by its own true plant, drawn once per session with ``--seed``, from the regulators'
+measured pressures and the gripper's position. ``--plant identified`` (the default) first runs
+``cgail identify-pam``'s simulated bench on that plant (cached in ``<out>/identification/``) and
+gives the PAM controller the identified model, as a rig team does before a session; ``nominal``
+keeps the controller's nominal model on the same plant; ``ideal`` makes the plant the
+controller's own nominal model with a kinematic tip and no sleeve slip (the old rig, for
+comparison; not an upper bound: without the compliant tip, its tip strays farther from the path
+in the arch).
+
+**Simulated time is the only time** (:mod:`cgail_rig.lockstep`). The rig's nodes run
+on one lockstep executor that owns their clocks: a tick advances the simulated clock by
+``1 / --physics-rate`` s, steps the phantom, fires the due timers and returns only when every
+message of the tick has been handled. The simulated devices are stepped by the phantom, the
+Aurora node polls from a timer of its clock (``poll_mode: clock``), and every watchdog reads
+the node clock. A trial is therefore a function of the configuration and of its seed
+(``--seed`` with the condition and trial index), never of the host: the same command gives the
+same bags and metrics at any load, in any order and in any worker. It runs as fast as the CPU
+allows (``--time-scale`` caps it, e.g. 1 to watch it live with ``--gui``).
+
+**Parallel trials.** ``--jobs N`` (default: the number of CPUs) runs the trials in N worker
+processes, each with its own rig, ROS domain and time source; the results equal ``--jobs 1``.
+
+**Isolation** (:mod:`cgail_rig.domain`). Every rig runs on a ROS domain of its own:
+a free one picked automatically and printed, or ``ROS_DOMAIN_ID`` if set (then the trials run
+one at a time on it). A session refuses to start on a domain where device nodes (``aurora``,
+``pam_controller``, ``sleeve_driver``) answer that it did not start: a simulated session must
+never command a real rig.
+
+**Console.** One line per trial, then the table; the nodes' logs go to ``<out>/logs/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable, Sequence
+import concurrent.futures
+from dataclasses import dataclass, field
+import gc
+import multiprocessing
+import os
+from pathlib import Path
+import shutil
+import signal
+import sys
+import tempfile
+import time
+from typing import Any
+
+from cgail_rig.launch_spec import default_launch_file
+from cgail_sim.cli_help import tool_parser
+
+#: Recorded in every trial's bag: what the metrics read, and what RViz2 / Foxglove show (TF, the
+#: tip with its covariance, the markers: the wall as it deforms, the catheter body, the plan).
+TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
+          'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
+          '/tf_static', 'phantom/markers', 'planner/markers')
+CONDITIONS = ('cgail', 'centerline')
+#: ``--plant``: the true plant with the controller's nominal model, the true plant with the
+#: model identified on it, or the controller's own model as the plant.
+PLANTS = ('nominal', 'identified', 'ideal')
+#: Recorded latched topics with a sample before the trial starts (published while the rig is
+#: built, before the recorder subscribes): the recorder must hold them before the first tick.
+LATCHED_AT_START = ('/tf_static', '/phantom/markers')
+#: The lumen on ``phantom/markers`` in a trial's bag: decimated to this many triangles and
+#: refreshed at ``RECORDED_MARKER_RATE_HZ`` (above twice the 70-bpm heartbeat, so the replayed
+#: wall does not alias): about 10 MB of a 75 s dynamic trial's bag. At the rig's live defaults
+#: (6000 triangles, 5 Hz) the same trial's bag held 134 MB of markers.
+RECORDED_LUMEN_TRIANGLES = 600
+RECORDED_MARKER_RATE_HZ = 3.0
+#: Simulated seconds between the rig's start and the goal (the tracker connects, poses flow).
+SETTLE_S = 1.0
+#: Simulated seconds recorded after the operator stopped.
+TAIL_S = 0.2
+#: ros-args of every rig context: node logs go to the log file only.
+ROS_ARGS = ['--ros-args', '--disable-stdout-logs', '--disable-rosout-logs']
+
+
+def default_policy(anatomy: str = 'default', mode: str = 'static') -> Path:
+    """The committed C-GAIL policy for the built-in ``anatomy`` in ``mode`` (installed with the
+    package): ``cgail_planner/models/cgail_<anatomy>_<mode>.onnx``, or the anatomy's static policy
+    when there is no policy re-trained for that mode. The path may not exist (no policy for
+    that anatomy; a path anatomy never has one)."""
+    import cgail_planner
+
+    models = Path(cgail_planner.__file__).resolve().parent / 'models'
+    path = models / f'cgail_{anatomy}_{mode}.onnx'
+    return path if path.is_file() else models / f'cgail_{anatomy}_static.onnx'
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """What every trial of a session shares (picklable: it goes to the worker processes)."""
+
+    anatomy: str = 'default'
+    """A built-in anatomy name, or the absolute path of a prepared anatomy directory or mesh
+    file (every node of every trial resolves the same one)."""
+    mode: str = 'static'
+    """'static' (rigid phantom) or 'dynamic' (deformable beating wall, moving target)."""
+    policy: str = ''
+    """ONNX C-GAIL policy of the cgail condition."""
+    time_limit: float = 180.0
+    """Trial time limit, simulated s (paper: 180)."""
+    physics_rate: float = 40.0
+    """Lockstep tick rate = phantom physics and simulated devices, Hz of simulated time (40:
+    one tick per Aurora frame, so the tracker delivers every frame; control loops at half)."""
+    tracker_rate: float = 40.0
+    """EM tracker frame rate, Hz of simulated time (the Aurora: 40)."""
+    launch_file: str = ''
+    """Rig launch YAML; '' = the package's sim_rig.launch.yaml."""
+    time_scale: float = 0.0
+    """At most this many simulated seconds per wall second; 0 = as fast as the CPU allows."""
+    gui: bool = False
+    """Also run the guidance GUI (gui_node) in the rig."""
+    gui_port: int = 8780
+    """Port of the guidance GUI."""
+    igtl: bool = False
+    """Also run ``igtl_bridge`` (3D Slicer over OpenIGTLink) in the rig."""
+    igtl_port: int = 18944
+    """Port of ``igtl_bridge``'s server (loopback)."""
+    plant: str = 'true'
+    """The phantom's catheter plant: 'true' (drawn from its sourced ranges with
+    ``plant_seed``) or 'ideal' (the PAM controller's nominal model,
+    :mod:`cgail_rig.core.plant`)."""
+    pam_parameters: tuple[tuple[str, float], ...] = ()
+    """pam_controller parameters over the rig's (``--plant identified``: the bending model
+    identified on this plant, ``identify_pam``); empty: its nominal model."""
+    plant_seed: int = 0
+    """Seed of the true plant's draw: the session's ``--seed``, so every trial of a session,
+    in both conditions, runs the same catheter (a rig has one), which the controller's nominal
+    model misses by the same amount."""
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    """One trial: its condition, index, start, target, seed and bag."""
+
+    condition: str
+    index: int
+    """0-based index within the condition."""
+    start_id: int
+    target_id: int
+    seed: int
+    """Seed of the EM noise and of the operator's stick noise of this trial."""
+    bag: str
+    practice: int = 0
+    """Trials of this condition the operator did before this one (pre-training included)."""
+    skill: float = 1.0
+    """The operator's skill level in this trial (``skill_after(practice)``; 1: practised)."""
+
+    @property
+    def label(self) -> str:
+        """``<condition>_<nn>``, as the bag is named."""
+        return f'{self.condition}_{self.index + 1:02d}'
+
+
+@dataclass
+class TrialResult:
+    """What a trial produced (besides its bag)."""
+
+    spec: TrialSpec
+    outcome: str = ''
+    """The operator's reason to stop, or why the trial could not run."""
+    sim_s: float = 0.0
+    """Simulated seconds from the goal to the end of the trial."""
+    ticks: int = 0
+    wall_s: float = 0.0
+    domain_id: int = -1
+    messages: dict[str, int] = field(default_factory=dict)
+    """Recorded messages per topic."""
+    callback_errors: list[str] = field(default_factory=list)
+    unscheduled: int = 0
+    """Messages that reached the rig from outside it during the trial (0 when isolated)."""
+    failed: bool = False
+    """The trial could not run (rig error), as opposed to a trial outcome."""
+
+
+def trial_seed(seed: int, condition: str, index: int) -> int:
+    """Seed of one trial from the session seed: independent of the order trials run in."""
+    import numpy as np
+
+    entropy = [int(seed), CONDITIONS.index(condition) if condition in CONDITIONS else 99,
+               int(index)]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+def plan_trials(conditions: Sequence[str], trials: int, seed: int, bags_dir: Path,
+                n_starts: int = 3, n_targets: int = 5, pretrain: int = 10) -> list[TrialSpec]:
+    """The session's trials in protocol order; trial ``k`` of a condition follows ``pretrain``
+    pre-training trials and ``k`` measured ones (``practice``, ``skill``)."""
+    from cgail_planner.core.operator import skill_after
+
+    return [TrialSpec(condition, k, k % n_starts, k % n_targets, trial_seed(seed, condition, k),
+                      str(bags_dir / condition / f'{condition}_{k + 1:02d}'),
+                      practice=pretrain + k, skill=skill_after(pretrain + k))
+            for condition in conditions for k in range(trials)]
+
+
+class TrialRig:
+    """One trial's simulated rig: a fresh rclpy context on ``domain_id``, every node of the
+    launch file on a :class:`~cgail_rig.lockstep.LockstepExecutor`, a recorder.
+
+    Args:
+        settings: the session's settings.
+        spec: the trial.
+        domain_id: the ROS domain of the rig.
+    """
+
+    def __init__(self, settings: SessionSettings, spec: TrialSpec, domain_id: int) -> None:
+        import rclpy
+        from rclpy.signals import SignalHandlerOptions
+
+        from cgail_rig.launch_spec import load_launch_file
+        from cgail_rig.launcher import build_node
+        from cgail_rig.lockstep import LockstepExecutor
+
+        self.settings, self.spec = settings, spec
+        self.context = rclpy.Context()
+        rclpy.init(args=ROS_ARGS, context=self.context, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.nodes: dict[str, Any] = {}
+        self.recorder: Any = None
+        self._tmp = tempfile.mkdtemp(prefix='cgail_trial_')
+        self.executor = LockstepExecutor(period_s=1.0 / settings.physics_rate)
+        try:
+            path = Path(settings.launch_file or default_launch_file())
+            launch = load_launch_file(path)
+            given = {'anatomy': settings.anatomy, 'policy_path': settings.policy}
+            if any(k in launch.arguments for k in given):  # (and the overrides below)
+                launch = load_launch_file(path, {k: v for k, v in given.items()
+                                                 if k in launch.arguments})
+            overrides = self._overrides(Path(self._tmp) / 'aurora')
+            for spec_node in launch.nodes:
+                if not {'gui': settings.gui, 'igtl_bridge': settings.igtl}.get(spec_node.name,
+                                                                                True):
+                    continue  # started only when asked for
+                self.nodes[spec_node.name] = build_node(
+                    spec_node, overrides.get(spec_node.name, {}), lean=True,
+                    context=self.context, prepare=self.executor.add_node)
+            self.phantom = self.nodes['phantom']
+            self.planner = self.nodes['planner']
+            self.operator = self.nodes['operator']
+            self.executor.add_hook(self.phantom.advance)
+            self.session = rclpy.create_node('session', context=self.context,
+                                             start_parameter_services=False,
+                                             enable_rosout=False)
+            self.executor.add_node(self.session)
+            self._start_recorder()
+        except BaseException:
+            self.close()
+            raise
+
+    def _overrides(self, link: Path) -> dict[str, dict[str, Any]]:
+        s, spec = self.settings, self.spec
+        control = s.physics_rate / 2.0  # host control loops: every second tick
+        return {
+            'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
+                        'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
+                        'plant': s.plant, 'plant_seed': s.plant_seed,
+                        'start_id': spec.start_id, 'target_id': spec.target_id,
+                        'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
+                        'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
+            'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
+            'pam_controller': {'control_rate_hz': control, **dict(s.pam_parameters)},
+            'sleeve_driver': {'control_rate_hz': control},
+            'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,
+                        'planner_type': spec.condition},
+            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill},
+            'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
+            'igtl_bridge': {'anatomy': s.anatomy, 'port': s.igtl_port},
+        }
+
+    def _start_recorder(self) -> None:
+        from geometry_msgs.msg import PoseStamped
+
+        from cgail_bags.record import BagRecorder, RecorderConfig
+        from cgail_planner.nodes import conversions as conv
+
+        self._goal_pub = self.session.create_publisher(PoseStamped, 'planner/goal',
+                                                       conv.COMMAND_QOS)
+        self.recorder = BagRecorder(self.session, RecorderConfig(
+            output=Path(self.spec.bag), topics=TOPICS, condition=self.spec.condition))
+        # discovery of the rig's own publishers takes wall time, not simulated time
+        deadline = time.monotonic() + 30.0
+        while len(self.recorder.topics) < len(TOPICS):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f'expected the recorder to find {list(TOPICS)} within 30 s, '
+                                   f'found {self.recorder.topics}')
+            time.sleep(0.01)
+            self.recorder.discover()
+        self.executor.seal()
+        # the latched samples published before the recorder subscribed (aurora's /tf_static
+        # at configure, the phantom's first markers) reach it asynchronously: wait for them
+        # at simulated time 0, or a loaded machine would log them at a later tick
+        recorder = self.recorder
+        self.executor.settle(lambda: all(recorder.counts.get(t, 0) >= 1
+                                         for t in LATCHED_AT_START))
+
+    def publish_goal(self) -> None:
+        """Publish the phantom's current target on ``planner/goal``, stamped now."""
+        import numpy as np
+
+        from cgail_planner.nodes import conversions as conv
+
+        self._goal_pub.publish(conv.pose_msg(self.session.get_clock().now().to_msg(), 'phantom',
+                                             self.phantom.target_position(), np.eye(3)))
+
+    def run(self) -> TrialResult:
+        """The trial's protocol; returns its result (the bag is closed by :meth:`close`)."""
+        ex = self.executor
+        result = TrialResult(self.spec)
+        unscheduled_before = ex.stats.unscheduled
+        wall0 = time.monotonic()
+        pace = self.settings.time_scale
+
+        def tick() -> None:
+            ex.tick()
+            if pace > 0.0:
+                ahead = ex.now_s / pace - (time.monotonic() - wall0)
+                if ahead > 0.0:
+                    time.sleep(ahead)
+
+        while ex.now_s < SETTLE_S - 1e-9:
+            tick()
+        if self.planner.last_pose is None:
+            result.outcome = f'no tip pose from the tracker within {SETTLE_S} s (simulated)'
+            result.failed = True
+        else:
+            self.publish_goal()
+            t0 = ex.now_s
+            failed_before = self.planner.counts['failed_plans']
+            last_goal = t0
+            while not result.outcome:
+                tick()
+                now = ex.now_s
+                if self.phantom.physics_error:
+                    # the phantom froze (a deformable wall beyond its bound): the trial ends
+                    # here as a counted outcome, its bag kept and evaluated as a failure
+                    result.outcome = (f'simulation fault at {now - t0:.1f} s (anatomy '
+                                      f'{self.settings.anatomy}, seed {self.spec.seed}): '
+                                      f'{self.phantom.physics_error}')
+                elif self.operator.done:
+                    result.outcome = self.operator.operator.reason
+                elif self.planner.counts['failed_plans'] > failed_before and \
+                        self.planner.follower is None and self.operator.operator.state == 'idle':
+                    result.outcome = f'no path: {self.planner.last_error}'
+                elif now - t0 > self.settings.time_limit + 5.0:
+                    result.outcome = 'time limit (operator still running)'
+                if self.settings.mode == 'dynamic' and now - last_goal >= 1.0 - 1e-9:
+                    last_goal = now
+                    self.publish_goal()
+            result.sim_s = ex.now_s - t0
+            end = ex.now_s + TAIL_S
+            while ex.now_s < end - 1e-9:
+                tick()
+        result.ticks = ex.stats.ticks
+        result.unscheduled = ex.stats.unscheduled - unscheduled_before
+        result.callback_errors = list(ex.errors)
+        return result
+
+    def close(self) -> dict[str, int]:
+        """Stop recording (the bag is closed), destroy the nodes and the context; returns the
+        recorded messages per topic."""
+        import rclpy
+
+        counts: dict[str, int] = {}
+        if self.recorder is not None:
+            self.recorder.stop()
+            counts = dict(self.recorder.counts)
+            self.recorder = None
+        for node in [*reversed(list(self.nodes.values())), getattr(self, 'session', None)]:
+            if node is not None:
+                node.destroy_node()
+        self.nodes.clear()
+        for name in ('phantom', 'planner', 'operator', 'session', 'executor'):
+            self.__dict__.pop(name, None)  # the rig is spent: drop its references
+        rclpy.try_shutdown(context=self.context)
+        # the lifecycle nodes' handles are freed with the last reference to them (cycles): until
+        # then the context's participant would still announce aurora/pam_controller/
+        # sleeve_driver to the domain (a later refusal check would see "device nodes")
+        gc.collect()
+        self.context.destroy()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+        return counts
+
+
+def run_trial(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> TrialResult:
+    """Build the trial's rig on ``domain_id``, run it, close it; never raises for a rig error
+    (the result says ``failed``), only for KeyboardInterrupt."""
+    import traceback
+
+    wall0 = time.monotonic()
+    rig: TrialRig | None = None
+    try:
+        rig = TrialRig(settings, spec, domain_id)
+        result = rig.run()
+    except KeyboardInterrupt:
+        raise
+    except Exception as exc:
+        result = TrialResult(spec, outcome=f'rig error: {type(exc).__name__}: {exc}',
+                             failed=True, callback_errors=[traceback.format_exc()])
+    finally:
+        if rig is not None:
+            counts = rig.close()
+    if rig is not None:
+        result.messages = counts
+    result.domain_id = domain_id
+    result.wall_s = time.monotonic() - wall0
+    return result
+
+
+# ---------------------------------------------------------------------- worker processes
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_init(log_dir: str) -> None:
+    """A worker: Ctrl-C is the parent's to handle; a domain of its own; logs to ``log_dir``."""
+    from cgail_rig.domain import reserve_domain
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.environ['ROS_LOG_DIR'] = log_dir
+    _WORKER['lease'] = reserve_domain(env={})
+
+
+def _worker_run(settings: SessionSettings, spec: TrialSpec) -> TrialResult:
+    return run_trial(settings, spec, _WORKER['lease'].domain_id)
+
+
+def run_trials(settings: SessionSettings, specs: Sequence[TrialSpec], *, jobs: int,
+               domain_id: int | None, log_dir: Path,
+               on_result: Callable[[TrialResult], None]) -> list[TrialResult]:
+    """Run ``specs``: in this process on ``domain_id`` (``jobs == 1``), or in ``jobs`` worker
+    processes with a domain each. ``on_result`` sees each result as it completes; the list
+    comes back in ``specs`` order. Ctrl-C stops early: the finished trials come back."""
+    results: dict[TrialSpec, TrialResult] = {}
+    if jobs == 1:
+        assert domain_id is not None
+        try:
+            for spec in specs:
+                results[spec] = run_trial(settings, spec, domain_id)
+                on_result(results[spec])
+        except KeyboardInterrupt:
+            pass
+        return [results[s] for s in specs if s in results]
+    ctx = multiprocessing.get_context('spawn')
+    pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
+                                                  initializer=_worker_init,
+                                                  initargs=(str(log_dir),))
+    futures = {pool.submit(_worker_run, settings, spec): spec for spec in specs}
+    try:
+        for future in concurrent.futures.as_completed(futures):
+            spec = futures[future]
+            try:
+                results[spec] = future.result()
+            except Exception as exc:
+                results[spec] = TrialResult(spec, outcome=f'worker error: {exc}', failed=True)
+            on_result(results[spec])
+    except KeyboardInterrupt:
+        for f in futures:
+            f.cancel()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [results[s] for s in specs if s in results]
+
+
+# ---------------------------------------------------------------------- command line
+def build_parser() -> argparse.ArgumentParser:
+    """Command-line options of ``cgail session``."""
+    p = tool_parser('session', __doc__)
+    p.add_argument('--trials', type=int, default=30,
+                   help='trials per condition (default 30, the power the comparison needs: at '
+                        "the paper's 10 no difference between the conditions was significant; "
+                        'paper: 10)')
+    p.add_argument('--pretrain', type=int, default=10,
+                   help="the operator's pre-training trials per condition before the measured "
+                        'ones (paper: 10); modelled by its skill, not run')
+    p.add_argument('--anatomy', default='default',
+                   help="built-in anatomy name ('default', 'elongated'), prepared anatomy "
+                        'directory or mesh file with its <stem>.yaml landmarks (a path needs '
+                        '--policy for the cgail condition)')
+    p.add_argument('--mode', choices=('static', 'dynamic'), default='static',
+                   help='rigid phantom or deformable beating wall')
+    p.add_argument('--out', type=Path, default=Path('runs/invitro_session'),
+                   help='output directory (bags/, logs/, metrics.md, metrics.csv, box plots)')
+    p.add_argument('--policy', type=Path, default=None,
+                   help='ONNX C-GAIL policy (cgail export-onnx); default: the committed '
+                        'cgail_planner/models/cgail_<anatomy>_<mode>.onnx (static if there is no '
+                        'policy for the mode)')
+    p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
+                   help='conditions to run, in order')
+    p.add_argument('--jobs', type=int, default=None,
+                   help='worker processes running trials in parallel (default: the number of '
+                        'CPUs); the results do not depend on it')
+    p.add_argument('--time-scale', type=float, default=None,
+                   help='at most this many simulated seconds per wall second (default: as '
+                        'fast as the CPU allows; 1 with --gui)')
+    p.add_argument('--time-limit', type=float, default=180.0,
+                   help='trial time limit, simulated s (paper: 180)')
+    p.add_argument('--physics-rate', type=float, default=40.0,
+                   help='lockstep tick rate: phantom physics and simulated devices, Hz of '
+                        'simulated time (default 40: one tick per Aurora frame; the pam and '
+                        'sleeve-driver control loops run at half of it)')
+    p.add_argument('--tracker-rate', type=float, default=40.0,
+                   help='EM tracker frame rate in simulated time, Hz (the Aurora: 40)')
+    p.add_argument('--launch-file', type=Path, default=None,
+                   help="rig launch YAML (default: the package's sim_rig.launch.yaml)")
+    p.add_argument('--seed', type=int, default=0,
+                   help='session seed: the true plant (one catheter for the session) and each '
+                        "trial's own seed (EM and stick noise)")
+    p.add_argument('--gui', action='store_true',
+                   help='also start the guidance GUI (gui_node) and print its URL (one trial '
+                        'at a time, paced at --time-scale 1 unless given)')
+    p.add_argument('--gui-port', type=int, default=8780, help='port of the guidance GUI')
+    p.add_argument('--igtl', action='store_true',
+                   help='also start igtl_bridge: 3D Slicer follows the trial over OpenIGTLink '
+                        '(one trial at a time)')
+    p.add_argument('--igtl-port', type=int, default=18944,
+                   help="port of igtl_bridge (Slicer's default 18944)")
+    p.add_argument('--plant', choices=PLANTS, default='identified',
+                   help="default 'identified', as a rig team runs it; 'nominal': the "
+                        "phantom's true plant (its own actuator model, drawn from sourced "
+                        'ranges with --seed) and the PAM controller with its '
+                        "nominal model; 'identified': the same plant, and the controller with "
+                        'the model cgail identify-pam identified on it (run first on the '
+                        "simulated bench, cached in <out>/identification/); 'ideal': the plant "
+                        "is the controller's own nominal model (for comparison)")
+    return p
+
+
+def identified_pam_parameters(directory: Path, plant_seed: int,
+                              log: Callable[[str], None]) -> tuple[tuple[str, float], ...]:
+    """The pam_controller model identified on the true plant of ``plant_seed``: read from
+    ``<directory>/plant_seed_<seed>/pam_identified.yaml``, after running ``identify_pam``'s
+    simulated bench there if it is not cached yet (or was identified for an older model, without
+    every key of ``IDENTIFIED_KEYS``)."""
+    import yaml
+
+    from cgail_rig.identify_pam import identify_sim
+    from pam_controller.core.identification import IDENTIFIED_KEYS
+
+    where = directory / f'plant_seed_{plant_seed}'
+    path = where / 'pam_identified.yaml'
+    cached = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters'] \
+        if path.is_file() else {}
+    if not set(IDENTIFIED_KEYS) <= set(cached):  # none yet, or of an older model: identify
+        log(f'cgail session: identifying the PAM model on plant seed {plant_seed} '
+            f'(cgail identify-pam --sim, {where})')
+        result = identify_sim(where, plant_seed=plant_seed)
+        e = result.errors
+        log(f'cgail session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
+            f'{e["identified"]["all"]:.4f} rad')
+    values = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters']
+    return tuple((key, float(values[key])) for key in IDENTIFIED_KEYS)
+
+
+def _trial_line(done: int, total: int, r: TrialResult) -> str:
+    s = r.spec
+    extra = ''
+    if r.callback_errors:
+        extra += f'  {len(r.callback_errors)} callback error(s), see logs/'
+    if r.unscheduled:
+        extra += f'  {r.unscheduled} message(s) from outside the rig'
+    return (f'[{done:{len(str(total))}d}/{total}] {s.label:<14} start {s.start_id} target '
+            f'{s.target_id}  {r.outcome:<38} T {r.sim_s:6.1f} s  ({r.wall_s:5.1f} s wall, '
+            f'domain {r.domain_id}){extra}')
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``cgail session``; returns the exit status."""
+    from cgail_rig.domain import DomainError, requested_domain, reserve_domain
+
+    args = build_parser().parse_args(argv)
+
+    def fail(text: str) -> int:
+        print(f'cgail session: error: {text}', file=sys.stderr)
+        return 2
+
+    if args.trials < 1:
+        return fail(f'--trials must be >= 1, found {args.trials}')
+    if args.pretrain < 0:
+        return fail(f'--pretrain must be >= 0, found {args.pretrain}')
+    if args.jobs is not None and args.jobs < 1:
+        return fail(f'--jobs must be >= 1, found {args.jobs}')
+    if args.time_scale is not None and not args.time_scale >= 0.0:
+        return fail(f'--time-scale must be >= 0 (0: as fast as possible), found '
+                    f'{args.time_scale}')
+    if not 1.0 <= args.physics_rate <= 1000.0:
+        return fail(f'--physics-rate must be in [1, 1000] Hz, found {args.physics_rate}')
+    if not os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE'):
+        return fail('ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); run through '
+                    'scripts/ws')
+    from cgail_sim.anatomy import AnatomyError
+    from cgail_sim.anatomy_spec import anatomy_label, is_builtin
+    from cgail_sim.worlds import load_world
+
+    builtin = is_builtin(args.anatomy)
+    try:  # one line for a bad anatomy, and the caches (centerlines) warm before the workers
+        load_world(args.anatomy)
+    except AnatomyError as exc:
+        return fail(str(exc))
+    anatomy = args.anatomy if builtin else str(Path(args.anatomy).expanduser().resolve())
+    label = anatomy_label(args.anatomy)
+    if args.policy is None and 'cgail' in args.conditions and not builtin:
+        return fail(f'the cgail condition needs --policy <model.onnx> for anatomy {anatomy}: '
+                    f'expected a policy trained on it (there is a committed one only for the '
+                    f'built-in anatomies), found no --policy')
+    if args.policy is None and builtin:
+        args.policy = default_policy(args.anatomy, args.mode)
+    if 'cgail' in args.conditions and not args.policy.is_file():
+        return fail(f'the cgail condition needs --policy <model.onnx> (cgail export-onnx), '
+                    f'found no file at {args.policy}')
+    bags_dir = args.out / 'bags'
+    if bags_dir.exists() and any(bags_dir.iterdir()):
+        return fail(f'{bags_dir} already holds bags; choose another --out')
+    try:
+        user_domain = requested_domain()
+    except DomainError as exc:
+        return fail(str(exc))
+    specs = plan_trials(args.conditions, args.trials, args.seed, bags_dir,
+                        pretrain=args.pretrain)
+    jobs = args.jobs or os.cpu_count() or 1
+    jobs = max(1, min(jobs, len(specs)))
+    notes = []
+    for flag, on in (('--gui', args.gui), ('--igtl', args.igtl)):
+        if on and jobs > 1:
+            jobs = 1
+            notes.append(f'{flag}: one trial at a time')
+    if user_domain is not None and jobs > 1:
+        jobs = 1
+        notes.append(f'ROS_DOMAIN_ID={user_domain} is set: one trial at a time on it (unset it '
+                     f'to run trials in parallel on free domains)')
+    time_scale = args.time_scale if args.time_scale is not None else (1.0 if args.gui else 0.0)
+    pam_parameters: tuple[tuple[str, float], ...] = ()
+    if args.plant == 'identified':
+        try:
+            pam_parameters = identified_pam_parameters(args.out / 'identification', args.seed,
+                                                       print)
+        except (OSError, ValueError, RuntimeError) as exc:  # bag, fit, domain, bench
+            return fail(f'identification of plant seed {args.seed} failed: {exc}')
+    settings = SessionSettings(
+        anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
+        time_limit=args.time_limit, physics_rate=args.physics_rate,
+        tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
+        time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, igtl=args.igtl,
+        igtl_port=args.igtl_port, plant='ideal' if args.plant == 'ideal' else 'true',
+        plant_seed=args.seed, pam_parameters=pam_parameters)
+    log_dir = (args.out / 'logs').resolve()
+    log_dir.mkdir(parents=True, exist_ok=True)
+    os.environ['ROS_LOG_DIR'] = str(log_dir)
+
+    def log(text: str) -> None:
+        print(text, flush=True)
+
+    lease = None
+    if jobs == 1:
+        try:
+            lease = reserve_domain()
+        except DomainError as exc:
+            return fail(str(exc))
+        where = f'ROS domain {lease.domain_id} ({lease.source})'
+    else:
+        where = f'{jobs} worker processes, each on a free ROS domain of its own'
+    t_start = time.monotonic()
+    log(f'cgail session: {len(specs)} trials ({", ".join(args.conditions)}; '
+        f'{label}, {args.mode}) on {where}; policy {args.policy or "-"}; node logs in '
+        f'{log_dir}' + ''.join(f'; {n}' for n in notes))
+    if args.gui:
+        log(f'cgail session: guidance GUI on http://127.0.0.1:{args.gui_port}/ while a trial '
+            f'runs')
+    if args.igtl:
+        log(f'cgail session: OpenIGTLink server on 127.0.0.1:{args.igtl_port} while a trial '
+            f'runs (3D Slicer: OpenIGTLinkIF, a client connector to that port)')
+    done = [0]
+
+    def on_result(result: TrialResult) -> None:
+        done[0] += 1
+        log(_trial_line(done[0], len(specs), result))
+
+    try:
+        results = run_trials(settings, specs, jobs=jobs,
+                             domain_id=lease.domain_id if lease else None, log_dir=log_dir,
+                             on_result=on_result)
+    finally:
+        if lease is not None:
+            lease.release()
+    wall_s = time.monotonic() - t_start
+    if len(results) < len(specs):
+        log(f'cgail session: interrupted after {len(results)} of {len(specs)} trials; '
+            f'evaluating those')
+    errors = sum(len(r.callback_errors) for r in results)
+    if errors:
+        (log_dir / 'callback_errors.txt').write_text(
+            '\n'.join(f'--- {r.spec.label}\n{e}' for r in results for e in r.callback_errors))
+    outcomes = [(r.spec.condition, r.spec.index + 1, r.outcome) for r in results]
+    code = report(args.out, bags_dir, outcomes, log, wall_s=wall_s, callback_errors=errors,
+                  jobs=jobs)
+    return code if all(not r.failed for r in results) else max(code, 1)
+
+
+def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
+           log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
+           jobs: int = 1) -> int:
+    """Metrics of every evaluable trial bag: markdown table, CSV, box plots."""
+    from cgail_bags.errors import BagError
+    from cgail_bags.metrics_cli import evaluate_bags
+    from cgail_bags.report import box_plots, markdown_report, write_csv
+    from cgail_planner.core.metrics import kruskal_by_condition, MetricsError
+
+    trials = []
+    skipped = []
+    for bag in sorted(p for p in bags_dir.glob('*/*') if p.is_dir()):
+        try:
+            trials += evaluate_bags([bag], condition=bag.parent.name)
+        except (BagError, MetricsError) as exc:
+            skipped.append(f'{bag.name}: {exc}')
+    if not trials:
+        log('cgail session: no trial could be evaluated')
+        for s in skipped:
+            log(f'  {s}')
+        return 1
+    tests = kruskal_by_condition(trials)
+    text = markdown_report(trials, tests)
+    faults = sum(o.startswith('simulation fault') for _, _, o in outcomes)
+    lines = ['# Simulated in-vitro session', '',
+             f'{len(outcomes)} trials, {wall_s:.0f} s wall time ({jobs} job(s)), callback '
+             f'errors: {callback_errors}, simulation faults: {faults} (a trial a fault ended '
+             'counts as a failure).', '', '## Outcomes', '',
+             '| trial | condition | operator outcome |', '|---|---|---|']
+    lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
+    if skipped:
+        lines += ['', '## Trials without metrics', ''] + [f'- {s}' for s in skipped]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / 'metrics.md').write_text('\n'.join(lines) + '\n\n' + text)
+    write_csv(trials, out / 'metrics.csv')
+    png = box_plots(trials, tests, out / 'metrics_boxplot.png')
+    log(text)
+    log(f'cgail session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
+        f'({wall_s:.0f} s wall)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

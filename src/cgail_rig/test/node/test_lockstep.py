@@ -1,0 +1,241 @@
+"""The lockstep executor: one simulated clock, ordered causal delivery, a barrier per tick."""
+
+from __future__ import annotations
+
+import gc
+import threading
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import qos_profile_sensor_data, QoSProfile
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import Int64
+from std_srvs.srv import Trigger
+
+from cgail_rig.lockstep import LockstepError, LockstepExecutor
+
+_CREATED: list = []
+
+
+@pytest.fixture
+def context():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        yield ctx
+    finally:
+        _destroy_created()
+        rclpy.try_shutdown(context=ctx)
+
+
+def _destroy_created() -> None:
+    """Destroy the nodes a test made and collect them: a leaked DDS participant can spin."""
+    while _CREATED:
+        _CREATED.pop().destroy_node()
+    gc.collect()
+
+
+def _node(ctx, name):
+    node = rclpy.create_node(name, context=ctx, start_parameter_services=False,
+                             enable_rosout=False)
+    _CREATED.append(node)
+    return node
+
+
+def _graph(ctx, log, executor, prefix=''):
+    """A timer at 40 Hz feeding a 3-stage relay, six listeners with 25 Hz timers."""
+    nodes = [_node(ctx, f'{prefix}n{i}') for i in range(6)]
+    for node in nodes:
+        executor.add_node(node)
+    q = QoSProfile(depth=10)
+    src = nodes[0]
+    pub0 = src.create_publisher(Int64, f'{prefix}x0', q)
+
+    def on_source():
+        now = src.get_clock().now().nanoseconds
+        log.append(('t0', now))
+        pub0.publish(Int64(data=now))
+
+    src.create_timer(0.025, on_source)
+    for i in (1, 2):
+        pub = nodes[i].create_publisher(Int64, f'{prefix}x{i}', q)
+
+        def relay(msg, pub=pub, i=i):
+            log.append((f'r{i}', msg.data))
+            pub.publish(msg)
+
+        nodes[i].create_subscription(Int64, f'{prefix}x{i - 1}', relay, q)
+    for i in range(3, 6):
+        node = nodes[i]
+        node.create_subscription(Int64, f'{prefix}x2',
+                                 lambda m, i=i: log.append((f's{i}', m.data)),
+                                 qos_profile_sensor_data)
+        node.create_timer(0.04, lambda i=i, node=node: log.append(
+            (f'T{i}', node.get_clock().now().nanoseconds)))
+    return nodes
+
+
+def test_every_message_of_a_tick_is_handled_before_the_tick_returns(context) -> None:
+    log: list[tuple[str, int]] = []
+    ex = LockstepExecutor(period_s=0.02)
+    _graph(context, log, ex)
+    ex.seal()
+    ex.tick()  # t = 20 ms: nothing due
+    assert log == []
+    ex.tick()  # t = 40 ms: the 25 ms source timer and the 40 ms listener timers
+    now = 40_000_000
+    assert log[:6] == [('t0', now), ('r1', now), ('r2', now), ('s3', now), ('s4', now),
+                       ('s5', now)]  # the source's message went through all stages, in order
+    assert sorted(log[6:]) == [('T3', now), ('T4', now), ('T5', now)]
+    assert ex.now_ns == now and ex.stats.ticks == 2
+    assert ex.stats.published == 3 and ex.stats.messages == 5 and ex.stats.unscheduled == 0
+
+
+def test_one_clock_for_every_node_and_timers_in_simulated_time(context) -> None:
+    ex = LockstepExecutor(period_s=0.01, start_s=2.0)
+    nodes = [_node(context, f'c{i}') for i in range(3)]
+    for node in nodes:
+        ex.add_node(node)
+    fired: list[int] = []
+    nodes[1].create_timer(0.05, lambda: fired.append(nodes[1].get_clock().now().nanoseconds))
+    ex.seal()
+    ex.spin_for(0.2)
+    assert ex.now_ns == 2_200_000_000
+    assert {n.get_clock().now().nanoseconds for n in nodes} == {2_200_000_000}
+    assert fired == [2_050_000_000, 2_100_000_000, 2_150_000_000, 2_200_000_000]
+
+
+def test_two_runs_give_the_same_order_of_callbacks() -> None:
+    logs = []
+    for _ in range(2):
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+        try:
+            log: list[tuple[str, int]] = []
+            ex = LockstepExecutor(period_s=0.02)
+            _graph(ctx, log, ex)
+            ex.seal()
+            ex.spin_for(2.0)
+            logs.append(log)
+        finally:
+            _destroy_created()
+            rclpy.try_shutdown(context=ctx)
+    assert len(logs[0]) > 500
+    assert logs[0] == logs[1]
+
+
+def test_world_hooks_step_first_and_callback_errors_do_not_stop_the_run(context) -> None:
+    ex = LockstepExecutor(period_s=0.1)
+    node = _node(context, 'hooked')
+    ex.add_node(node)
+    seen: list[tuple[str, float]] = []
+    ex.add_hook(lambda dt: seen.append(('hook', ex.now_s)))
+
+    def bad_timer():
+        seen.append(('timer', ex.now_s))
+        raise ValueError('boom')
+
+    node.create_timer(0.1, bad_timer)
+    ex.seal()
+    ex.spin_for(0.3)
+    assert [k for k, _ in seen] == ['hook', 'timer'] * 3
+    assert len(ex.errors) == 3 and 'ValueError: boom' in ex.errors[0]
+
+
+def test_messages_from_outside_the_graph_are_swept_and_counted(context) -> None:
+    ex = LockstepExecutor(period_s=0.02)
+    inside = _node(context, 'inside')
+    ex.add_node(inside)
+    got: list[int] = []
+    inside.create_subscription(Int64, 'outside_topic', lambda m: got.append(m.data), 10)
+    ex.seal()
+    outsider = _node(context, 'outsider')  # not in the executor: an external publisher
+    pub = outsider.create_publisher(Int64, 'outside_topic', 10)
+    while pub.get_subscription_count() < 1:
+        threading.Event().wait(0.01)
+    pub.publish(Int64(data=7))
+    ex.tick()
+    assert got == [7] and ex.stats.unscheduled == 1
+
+
+def test_services_are_served_in_the_tick(context) -> None:
+    ex = LockstepExecutor(period_s=0.02)
+    server = _node(context, 'server')
+    ex.add_node(server)
+    calls = []
+
+    def serve(request, response):
+        calls.append(1)
+        response.success = True
+        response.message = 'ok'
+        return response
+
+    server.create_service(Trigger, 'lockstep_test/trigger', serve)
+    ex.seal()
+    caller = _node(context, 'caller')  # outside the graph, like a user's tool
+    client = caller.create_client(Trigger, 'lockstep_test/trigger')
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    ex.tick()
+    spinner = SingleThreadedExecutor(context=context)
+    spinner.add_node(caller)
+    spinner.spin_until_future_complete(future, timeout_sec=10.0)
+    assert calls == [1] and future.result().message == 'ok'
+
+
+def test_refuses_guard_conditions_and_clients(context) -> None:
+    ex = LockstepExecutor(period_s=0.02)
+    node = _node(context, 'threaded')
+    ex.add_node(node)
+    node.create_guard_condition(lambda: None)
+    with pytest.raises(LockstepError, match='expected no guard conditions'):
+        ex.seal()
+    ex2 = LockstepExecutor(period_s=0.02)
+    node2 = _node(context, 'client_owner')
+    ex2.add_node(node2)
+    node2.create_client(Trigger, 'some_service')
+    with pytest.raises(LockstepError, match='expected no service clients'):
+        ex2.seal()
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'period_s': 0.0}, 'period_s must be > 0'),
+    ({'period_s': 0.01, 'start_s': -1.0}, 'start_s must be >= 0')])
+def test_bad_arguments(kwargs, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        LockstepExecutor(**kwargs)
+
+
+def test_the_phantom_steps_with_the_lockstep_clock(context, tmp_path) -> None:
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.parameter import Parameter
+    from rclpy.time import Time
+
+    from cgail_rig.nodes.phantom_node import PhantomNode
+
+    ex = LockstepExecutor(period_s=0.02)
+    phantom = PhantomNode(context=context, enable_rosout=False, parameter_overrides=[
+        Parameter('lockstep', value=True), Parameter('aurora_link', value=str(tmp_path / 'a')),
+        Parameter('pose_rate_hz', value=10.0)])
+    listener = _node(context, 'pose_listener')
+    stamps: list[int] = []
+    listener.create_subscription(
+        PoseStamped, 'phantom/tip_pose',
+        lambda m: stamps.append(Time.from_msg(m.header.stamp).nanoseconds),
+        qos_profile_sensor_data)
+    for node in (phantom, listener):
+        ex.add_node(node)
+    ex.add_hook(phantom.advance)
+    ex.seal()
+    try:
+        ex.spin_for(0.5)
+        assert phantom.sim_time == pytest.approx(0.5, abs=1e-12)
+        # the true pose every 5th tick (10 Hz), stamped with the simulated time
+        assert stamps == [100_000_000, 200_000_000, 300_000_000, 400_000_000, 500_000_000]
+        # no steady-clock stepping timer: only the diagnostics and the markers (5 Hz) timers,
+        # of the node clock
+        assert [t.timer_period_ns for t in phantom.timers] == [1_000_000_000, 200_000_000]
+        assert all(t.clock is phantom.get_clock() for t in phantom.timers)
+    finally:
+        phantom.destroy_node()
