@@ -420,10 +420,11 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
     for node in spec.nodes:
         module, _, cls = node.plugin.partition(':')
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
-    config = PACKAGE / 'config'
+    owners = {'phantom': 'cgail_rig', 'planner': 'cgail_planner', 'operator': 'cgail_planner',
+              'igtl_bridge': 'cgail_gui'}  # each node's parameter file is its package's
     assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
-        name: (str(config / f'{name}.yaml'),)
-        for name in ('phantom', 'planner', 'operator', 'igtl_bridge')}
+        name: (str(PACKAGE.parent / owner / 'config' / f'{name}.yaml'),)
+        for name, owner in owners.items()}
     assert [n.name for n in spec.nodes if n.required] == ['phantom']
 
 

@@ -299,8 +299,6 @@ def test_bad_parameters_raise_at_construction(ros, name, value) -> None:
 
 
 @pytest.mark.parametrize(('cls_path', 'yaml_name', 'skip'), [
-    ('cgail_planner.nodes.planner_node:PlannerNode', 'planner.yaml', ()),
-    ('cgail_planner.nodes.operator_node:OperatorNode', 'operator.yaml', ()),
     ('cgail_rig.nodes.phantom_node:PhantomNode', 'phantom.yaml', ('aurora_link',)),
 ])
 def test_yaml_defaults_equal_the_declared_defaults(ros, cls_path, yaml_name, skip) -> None:
