@@ -630,7 +630,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "policies were trained in (their contracts'), else ours")
     p.add_argument('--population', type=int, default=0, metavar='N',
                    help='evaluate on the first N held-out population anatomies (seeds 10000 on, '
-                        'which no training uses; sim/population.py) instead of --anatomy: '
+                        'which no training uses; cgail_sim/population.py) instead of --anatomy: '
                         '--trials per anatomy, the results pooled, with a per-anatomy table')
     p.add_argument('--out', type=Path, default=Path('reports/insilico'),
                    help='directory for report.md, results.json and the box plots')

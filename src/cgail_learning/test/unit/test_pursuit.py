@@ -1,4 +1,4 @@
-"""The pure-pursuit rule and its numba rollout (learning/pursuit.py) against the catheter
+"""The pure-pursuit rule and its numba rollout (cgail_learning/pursuit.py) against the catheter
 model's numpy forms."""
 
 import numpy as np

@@ -4,7 +4,7 @@ D11's arch is about as tight as the catheter's smallest bend radius (31.8 mm): a
 reaches its apex on the wrong line cannot turn in time, 50-60 mm after the choice that put it
 there. The expert that scored only the next 16 mm reached none of D11's standard targets in
 the rigid aorta (every episode a collision at the arch's outer wall); pursuit first with the
-64 mm horizon reaches them (learning/expert.py).
+64 mm horizon reaches them (cgail_learning/expert.py).
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ SPHERE = EnvConfig(targets="sphere")
 
 
 def _check_rules(anatomy, targets) -> None:
-    """The acceptance rules of the module docstring of ``sim/scenarios.py``."""
+    """The acceptance rules of the module docstring of ``cgail_sim/scenarios.py``."""
     verts = np.asarray(anatomy.vertices)
     wall_faces = anatomy.faces[anatomy.wall_face_mask]
     wall_vids = np.unique(wall_faces)
