@@ -56,6 +56,13 @@ fi
 if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
     # shellcheck disable=SC1091
     source scripts/env.sh
+    # A build from before cgail_planner was split into packages (issue 32) keeps the tools'
+    # console scripts (cgail, phantom_node, gui_node, ...) in install/cgail_planner, where they
+    # shadow those of the packages that own them now: build that package again from scratch.
+    if [ -e install/cgail_planner/lib/cgail_planner/cgail ]; then
+        log "removing the build of cgail_planner from before the package split"
+        rm -rf build/cgail_planner install/cgail_planner
+    fi
     # The interface packages (tf2_msgs: no wheel has it) first, with the rosidl tools.
     bash scripts/build_interfaces.sh
     log "colcon build"
