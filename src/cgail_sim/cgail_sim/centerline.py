@@ -25,6 +25,7 @@ another CPU's numpy is never read back.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 import itertools
 import os
@@ -39,7 +40,7 @@ from scipy.spatial import cKDTree, Voronoi
 from cgail_sim import disk_cache
 from cgail_sim.anatomy import Anatomy, AnatomyError
 
-__all__ = ["Centerline", "CenterlineError", "compute_centerlines", "sample_wall"]
+__all__ = ["Centerline", "CenterlineError", "compute_centerlines", "medial_paths", "sample_wall"]
 
 _SAMPLE_SPACING = 0.0018
 """Mean spacing of the wall samples fed to the Voronoi diagram (m)."""
@@ -54,12 +55,14 @@ class CenterlineError(AnatomyError):
 
 @dataclass(frozen=True)
 class Centerline:
-    """A centreline from the descending aorta to one coronary ostium."""
+    """A centreline from the descending aorta to one coronary ostium (or, from
+    :func:`medial_paths`, to any goal in the lumen)."""
 
     branch: str
-    """'left' or 'right': the coronary ostium the line leads to."""
+    """'left' or 'right': the coronary ostium the line leads to (:func:`medial_paths`: the
+    goal's name)."""
     points: np.ndarray
-    """(P, 3) waypoints in m, from the descending aorta to the ostium, evenly spaced."""
+    """(P, 3) waypoints in m, from the descending aorta to the ostium (goal), evenly spaced."""
     radii: np.ndarray
     """(P,) maximal inscribed sphere radius at each waypoint, m."""
 
@@ -237,25 +240,62 @@ def compute_centerlines(anatomy: Anatomy, n_waypoints: int = 100) -> dict[str, C
     if cached is not None:
         _MEMORY[key] = cached
         return dict(cached)
+    lines = _trace(anatomy, {branch: anatomy.ostia[branch] for branch in ("left", "right")},
+                   lambda length: n_waypoints, "ostium")
+    _MEMORY[key] = lines
+    _save_disk(key, lines)
+    return dict(lines)
+
+
+def medial_paths(anatomy: Anatomy, goals: Mapping[str, np.ndarray],
+                 spacing: float = 0.001) -> dict[str, Centerline]:
+    """Centrelines from the descending aorta to any points of the lumen, traced exactly as
+    :func:`compute_centerlines` traces those to the ostia (the same medial graph, start,
+    shortest paths, smoothing and radii), resampled every ``spacing``. Not cached.
+
+    Args:
+        anatomy: the lumen (rest shape) and its landmarks.
+        goals: name -> point (3,) in m; each path ends at the medial vertex nearest its point
+            (e.g. ``anatomy.annulus_center`` for the aortic trunk, a point just inside a cap
+            for a branch).
+        spacing: distance between the waypoints, m (> 0).
+
+    Returns:
+        ``{name: Centerline}``, each from the descending start to its goal, ``branch`` set to
+        the goal's name.
+
+    Raises:
+        ValueError: ``spacing`` not positive.
+        CenterlineError: a goal cannot be reached through the lumen from the start.
+    """
+    if not spacing > 0.0:
+        raise ValueError(f"spacing must be > 0, found {spacing!r}")
+    return _trace(anatomy, {k: np.asarray(v, dtype=float) for k, v in goals.items()},
+                  lambda length: max(10, round(length / spacing) + 1), "goal")
+
+
+def _trace(anatomy: Anatomy, goals: Mapping[str, np.ndarray], count: Callable[[float], int],
+           what: str) -> dict[str, Centerline]:
+    """Shortest medial paths from the start to each goal point, smoothed and resampled to
+    ``count(length)`` points, with the inscribed radius re-measured at each."""
     medial = _Medial(anatomy)
     start = medial.start_node(anatomy)
     dist, pred = dijkstra(medial.graph, directed=False, indices=start, return_predecessors=True)
     lines: dict[str, Centerline] = {}
-    for branch in ("left", "right"):
-        goal = medial.nearest_node(anatomy.ostia[branch])
+    for branch, point in goals.items():
+        goal = medial.nearest_node(point)
         if not np.isfinite(dist[goal]):
             reach = medial.nodes[np.isfinite(dist[medial.nodes])]
             raise CenterlineError(
-                f"expected the {branch} ostium to be reachable from the exit through the lumen, "
+                f"expected the {branch} {what} to be reachable from the exit through the lumen, "
                 f"found it cut off ({len(reach)} of {len(medial.nodes)} medial nodes reachable)")
         path = [goal]
         while path[-1] != start:
             path.append(int(pred[path[-1]]))
         pts = medial.vertices[path[::-1]]
         pts = _smooth(pts, _SMOOTH_SIGMA) if len(pts) > 3 else pts
-        pts = _resample(pts, n_waypoints)
+        length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+        pts = _resample(pts, count(length))
         radii = medial.tree.query(pts)[0]
         lines[branch] = Centerline(branch=branch, points=pts, radii=radii)
-    _MEMORY[key] = lines
-    _save_disk(key, lines)
-    return dict(lines)
+    return lines
