@@ -20,26 +20,35 @@ export PYTHONUNBUFFERED=1
 
 CGAIL_WS="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export CGAIL_WS
-if [ -f "$CGAIL_WS/.venv/bin/activate" ]; then
-    # shellcheck disable=SC1091
-    source "$CGAIL_WS/.venv/bin/activate"
+# The full workspace is .venv + install/; a lean rig install (scripts/setup_rig.sh) is
+# $CGAIL_PREFIX/venv + $CGAIL_PREFIX/install.
+if [ -n "${CGAIL_PREFIX:-}" ]; then
+    _cgail_venv="$CGAIL_PREFIX/venv"
+    _cgail_install="$CGAIL_PREFIX/install"
+else
+    _cgail_venv="$CGAIL_WS/.venv"
+    _cgail_install="$CGAIL_WS/install"
 fi
-if [ -f "$CGAIL_WS/install/setup.bash" ]; then
+if [ -f "$_cgail_venv/bin/activate" ]; then
+    # shellcheck disable=SC1091
+    source "$_cgail_venv/bin/activate"
+fi
+if [ -f "$_cgail_install/setup.bash" ]; then
     # colcon's setup scripts reference unset variables; relax -u while sourcing.
     _cgail_u=$(set +o | grep nounset)
     set +u
     # shellcheck disable=SC1091
-    source "$CGAIL_WS/install/setup.bash"
+    source "$_cgail_install/setup.bash"
     eval "$_cgail_u"
 fi
 # Every package's executables (install/<pkg>/lib/<pkg>, where `ros2 run` looks; colcon's setup
 # does not put them on PATH) at the end of PATH, so that `scripts/ws cgail make-demos ...` works
 # without ros2cli (scripts/ros2run <pkg> <executable> is the `ros2 run` form).
-for _cgail_pkg in "$CGAIL_WS"/install/*/; do
+for _cgail_pkg in "$_cgail_install"/*/; do
     _cgail_bin="${_cgail_pkg}lib/$(basename "$_cgail_pkg")"
     if [ -d "$_cgail_bin" ] && [[ ":$PATH:" != *":$_cgail_bin:"* ]]; then
         PATH="$PATH:$_cgail_bin"
     fi
 done
-unset _cgail_pkg _cgail_bin
+unset _cgail_pkg _cgail_bin _cgail_venv _cgail_install
 export PATH
