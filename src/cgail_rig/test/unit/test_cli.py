@@ -13,6 +13,7 @@ import re
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from cgail_rig import cli
@@ -244,3 +245,32 @@ def test_examples_only_by_default() -> None:
     doc = '``cgail x``: do it.\n\nDetails nobody reads.\n\n    cgail x --go\n'
     text = cli_help.tool_parser('x', doc).format_help()
     assert 'examples:\n  cgail x --go\n' in text and 'Details' not in text
+
+
+def test_the_rig_calibration_verbs_run_em_trackers_commands(tmp_path, capsys) -> None:
+    """``cgail pivot-calibrate`` is ``em_tracker``'s ``pivot_calibrate``: the same result from
+    the same recording; a bad input is one line under the verb's name."""
+    from em_tracker.cli import pivot_calibrate
+    from em_tracker.sim.procedures import (
+        example_truth,
+        read_calibration,
+        record_pivot,
+        SimulatedRig,
+    )
+
+    with SimulatedRig(example_truth(1)) as rig:
+        csv = record_pivot(rig, tmp_path / 'pivot.csv', frames=200)
+    status, out, _ = _run(['pivot-calibrate', str(csv), '-o', str(tmp_path / 'verb.yaml')],
+                          capsys)
+    assert status == 0 and 'residual' in out.lower(), out
+    assert pivot_calibrate.main([str(csv), '-o', str(tmp_path / 'script.yaml')]) == 0
+    capsys.readouterr()
+    verb = read_calibration(tmp_path / 'verb.yaml')['tool_transform']
+    script = read_calibration(tmp_path / 'script.yaml')['tool_transform']
+    assert np.array_equal(verb.matrix, script.matrix)
+    for argv in (['pivot-calibrate', str(tmp_path / 'nowhere.csv'), '-o', str(tmp_path / 'x')],
+                 ['register-phantom', str(tmp_path / 'nowhere.csv'), '-o', str(tmp_path / 'x')]):
+        status, _, err = _run(argv, capsys)
+        assert status == 2 and err.startswith(f'cgail {argv[0]}: error: ') \
+            and err.count('\n') == 1, err
+    assert not (tmp_path / 'x').exists()

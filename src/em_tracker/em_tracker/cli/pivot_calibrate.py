@@ -1,5 +1,6 @@
 """``pivot_calibrate``: the sensor -> tip tool transform from a recorded pivoting motion.
 
+    cgail pivot-calibrate ...       # the same command on a full workspace
     ros2 run em_tracker pivot_calibrate poses.csv -o calibration.yaml [--shaft-axis 0,0,1]
     ros2 run em_tracker pivot_calibrate bags/pivot_run --topic em_tracker/tip_pose -o ...
 
@@ -50,7 +51,14 @@ def _axis(text: str) -> str | tuple[float, float, float]:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of the ``pivot_calibrate`` console script."""
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0])
+    add_arguments(p)
+    return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The command's arguments, on ``p`` (also ``cgail pivot-calibrate``'s parser)."""
     p.add_argument('poses', type=Path,
                    help='CSV (x_mm y_mm z_mm qx qy qz qw) or rosbag2 bag of sensor poses')
     p.add_argument('-o', '--output', type=Path, required=True,
@@ -69,7 +77,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help='refuse a residual RMS above this unless --force (default: '
                         '%(default)s)')
     p.add_argument('--force', action='store_true', help='write even when the residual is high')
-    return p
 
 
 def run(args: argparse.Namespace, config: PivotConfig) -> int:
@@ -114,10 +121,12 @@ def run(args: argparse.Namespace, config: PivotConfig) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: list[str] | None = None,
+         parser: argparse.ArgumentParser | None = None) -> int:
+    """Run the command on ``argv`` with ``parser`` (default :func:`build_parser`'s)."""
+    parser = parser or build_parser()
     args = parser.parse_args(argv)
-    return run_command(PROG, parser, args, lambda: PivotConfig(
+    return run_command(parser.prog, parser, args, lambda: PivotConfig(
         min_spread_rad=math.radians(args.min_spread_deg),
         max_residual_rms_m=args.max_residual_mm * 1e-3), run)
 

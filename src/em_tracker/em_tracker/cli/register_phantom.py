@@ -1,5 +1,6 @@
 """``register_phantom``: the ``aurora -> phantom`` registration from touched fiducials.
 
+    cgail register-phantom ...       # the same command on a full workspace
     ros2 run em_tracker register_phantom fiducials.csv -o calibration.yaml \\
         [--trajectory traced.csv --mesh lumen.stl --mesh-unit mm] [--force]
 
@@ -41,7 +42,14 @@ def _mm(value_m: float) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The parser of the ``register_phantom`` console script."""
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split('\n\n')[0])
+    add_arguments(p)
+    return p
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """The command's arguments, on ``p`` (also ``cgail register-phantom``'s parser)."""
     p.add_argument('fiducials', type=Path,
                    help='CSV (model_x_mm..., tracker_x_mm...) or YAML of the fiducial pairs')
     p.add_argument('-o', '--output', type=Path, required=True,
@@ -61,7 +69,6 @@ def build_parser() -> argparse.ArgumentParser:
                         '(default: %(default)s)')
     p.add_argument('--force', action='store_true',
                    help='write even when FRE is too high or ICP did not converge')
-    return p
 
 
 def run(args: argparse.Namespace, config: PairedPointConfig) -> int:
@@ -106,12 +113,14 @@ def run(args: argparse.Namespace, config: PairedPointConfig) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+def main(argv: list[str] | None = None,
+         parser: argparse.ArgumentParser | None = None) -> int:
+    """Run the command on ``argv`` with ``parser`` (default :func:`build_parser`'s)."""
+    parser = parser or build_parser()
     args = parser.parse_args(argv)
     if (args.trajectory is None) != (args.mesh is None):
         parser.error('--trajectory and --mesh go together')
-    return run_command(PROG, parser, args, lambda: PairedPointConfig(
+    return run_command(parser.prog, parser, args, lambda: PairedPointConfig(
         min_line_distance_m=args.min_line_distance_mm * 1e-3,
         max_fre_m=args.max_fre_mm * 1e-3), run)
 
