@@ -53,18 +53,20 @@ Descriptors (the fields of :class:`AnatomyDescriptors`, SI units)
 * ``branch_count``: the supra-aortic branches, the caps other than the descending cut and the
   coronary stubs (a cap within ``DescriptorConfig.coronary_gap`` of an ostium).
 * ``branch_positions`` (m): for each branch, in order along the trunk (a standard arch:
-  brachiocephalic trunk, left common carotid, left subclavian), the take-off position. The
-  branch centreline is the medial path from the descending start to just inside the branch's
-  cap; its **entry** is where, walking in from the cap, it first comes within the trunk's
-  inscribed radius of the trunk centreline; the **branch axis** is its chord from
-  ``branch_probe_from`` (5 mm) to ``branch_probe_to`` (15 mm) beyond the entry (past the
-  corner the path cuts into the branch); the take-off is the arc length ``s`` of the trunk
-  point nearest that axis extended back (within ``takeoff_search`` of the entry).
-* ``branch_angles`` (rad): for each branch, the angle between the branch axis (pointing out of
-  the aorta) and the trunk's downstream tangent at the take-off (towards the descending aorta,
-  the direction of blood flow; the chord over +- ``curvature_window``): 90 deg for a branch at
-  right angles to the trunk, under 90 deg for one leaning downstream, over 90 deg for one
-  leaning back towards the root.
+  brachiocephalic trunk, left common carotid, left subclavian), the take-off position: the arc
+  length ``s`` of the trunk point nearest the branch's **mouth** (its ostium on the aorta, as
+  a clinician projects it onto the aortic centreline). The branch centreline is the medial
+  path from the descending start to just inside the branch's cap; its mouth is where, walking
+  in from the cap, it first comes within the trunk's inscribed radius of the trunk centreline
+  (the aortic wall). A branch leaving at an angle theta to the trunk from the centreline point
+  s0 has its mouth about r cot(theta) downstream of s0 (r: the trunk's radius).
+* ``branch_angles`` (rad): for each branch, the angle between the **branch axis** (the chord of
+  its centreline from ``branch_probe_from`` = 5 mm to ``branch_probe_to`` = 15 mm beyond the
+  mouth, past the corner the path cuts into the branch, pointing out of the aorta) and the
+  trunk's downstream tangent at the take-off (towards the descending aorta, the direction of
+  blood flow; the chord over +- ``curvature_window``): 90 deg for a branch at right angles to
+  the trunk, under 90 deg for one leaning downstream, over 90 deg for one leaning back towards
+  the root.
 
 :data:`DESCRIPTORS` lists them flat (``branch1_position`` ... ``branch3_angle``) with the
 label and display unit the reports use; :meth:`AnatomyDescriptors.values` gives them as a flat
@@ -115,14 +117,10 @@ class DescriptorConfig:
     trunk tangent are measured (10 mm: the scale of a catheter bend, well above the
     centreline's 3 mm smoothing). In [2, 30] mm."""
     branch_probe_from: float = 0.005
-    """A branch's axis is the chord of its centreline from this far beyond its entry into the
+    """A branch's axis is the chord of its centreline from this far beyond its mouth on the
     trunk (5 mm: past the corner the path cuts into the branch) ... In [0, 20] mm."""
     branch_probe_to: float = 0.015
     """... to this far (15 mm). In [branch_probe_from + 3 mm, 40 mm]."""
-    takeoff_search: float = 0.040
-    """The take-off is looked for within this arc length of the trunk point nearest the
-    branch's entry (40 mm: the branch's own trunk segment, never the other limb of the arch).
-    In [10, 100] mm."""
     coronary_gap: float = 0.020
     """A cap whose centre lies within this distance of a coronary ostium is a coronary stub,
     not a supra-aortic branch (20 mm). In [5, 50] mm."""
@@ -131,7 +129,7 @@ class DescriptorConfig:
         ranges = {"spacing": (0.0002, 0.005), "curvature_window": (0.002, 0.030),
                   "branch_probe_from": (0.0, 0.020),
                   "branch_probe_to": (self.branch_probe_from + 0.003, 0.040),
-                  "takeoff_search": (0.010, 0.100), "coronary_gap": (0.005, 0.050)}
+                  "coronary_gap": (0.005, 0.050)}
         for name, (lo, hi) in ranges.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) \
@@ -349,24 +347,22 @@ def arch_limits(points: np.ndarray) -> ArchLimits:
 
 
 def branch_takeoff(trunk: Trunk, branch: np.ndarray, *, probe: tuple[float, float],
-                   search: float, window: float) -> tuple[float, float]:
-    """``(position, angle)`` of one branch (module docstring): the take-off arc length on the
-    trunk (m) and the angle between the branch axis and the trunk's downstream tangent there
-    (rad).
+                   window: float) -> tuple[float, float]:
+    """``(position, angle)`` of one branch (module docstring): the arc length on the trunk of
+    the branch's mouth (m) and the angle between the branch axis and the trunk's downstream
+    tangent there (rad).
 
     Args:
         trunk: the trunk centreline (annulus centre first).
         branch: (B, 3) the branch's centreline from the descending start (up the trunk, then
             out into the branch) to its cap, m.
         probe: ``(from, to)``: the branch axis is the chord of the branch centreline between
-            these lengths beyond its entry into the trunk, m (shortened to the branch's length
-            beyond the entry, from at most a third of it).
-        search: the take-off is looked for within this arc length of the trunk point nearest
-            the entry, m.
+            these lengths beyond its mouth, m (shortened to the branch's length beyond the
+            mouth, from at most a third of it).
         window: half-length of the chord that gives the trunk tangent, m.
 
     Raises:
-        AnatomyError: the branch path never enters the trunk, or ends inside it.
+        AnatomyError: the branch centreline never enters the trunk, or ends inside it.
     """
     pts = np.asarray(branch, dtype=float)
     good = np.isfinite(trunk.radii)
@@ -377,18 +373,15 @@ def branch_takeoff(trunk: Trunk, branch: np.ndarray, *, probe: tuple[float, floa
     if inside[-1] or not inside.any():
         raise AnatomyError("expected a branch centreline that leaves the trunk, found one "
                            + ("ending inside it" if inside[-1] else "never inside it"))
-    j = int(np.flatnonzero(inside)[-1])     # walking in from the cap: first point inside
+    j = int(np.flatnonzero(inside)[-1])     # the mouth: walking in from the cap, the
+    #                                         first point inside the trunk
     beyond = pts[j:]
     s_b = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(beyond, axis=0), axis=1))])
     hi = min(probe[1], float(s_b[-1]))
     lo = min(probe[0], hi / 3.0)
     p0, p1 = _at(beyond, s_b, lo), _at(beyond, s_b, hi)
     axis = (p1 - p0) / float(np.linalg.norm(p1 - p0))
-    # the trunk point nearest the branch axis extended back, near the entry
-    near = np.abs(arc - arc[nearest[j]]) <= search
-    rel = tp[near] - p0
-    off = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
-    s0 = float(arc[near][int(np.argmin(off))])
+    s0 = float(arc[nearest[j]])
     full_arc = trunk.arc
     tangent = (_at(trunk.points, full_arc, min(s0 + window, float(full_arc[-1])))
                - _at(trunk.points, full_arc, max(s0 - window, 0.0)))
@@ -460,7 +453,7 @@ def anatomy_descriptors(anatomy: Anatomy,
                                cfg.curvature_window)
     takeoffs = sorted(branch_takeoff(trunk, b, probe=(cfg.branch_probe_from,
                                                       cfg.branch_probe_to),
-                                     search=cfg.takeoff_search, window=cfg.curvature_window)
+                                     window=cfg.curvature_window)
                       for b in branches)
     return AnatomyDescriptors(
         root_tilt=root_tilt(anatomy.root_axis), arch_width=limits.width,

@@ -142,16 +142,17 @@ def test_a_trunk_that_never_comes_back_down_has_no_arch_end() -> None:
 
 @pytest.mark.parametrize("angle_deg", [45.0, 90.0, 130.0])
 def test_branch_takeoff_position_and_angle_of_a_straight_branch(angle_deg: float) -> None:
-    # trunk along +x (downstream) with a 10 mm lumen; the branch leaves at s = 70 mm
+    # trunk along +x (downstream) with a 10 mm lumen; the branch leaves its centreline at
+    # s = 70 mm, so its mouth (where it crosses the 10 mm radius) lies r cot(angle) downstream
+    r = 10 * MM
     trunk_pts = _line(np.zeros(3), np.array([0.15, 0.0, 0.0]))
-    trunk = Trunk(points=trunk_pts, radii=np.full(len(trunk_pts), 10 * MM))
+    trunk = Trunk(points=trunk_pts, radii=np.full(len(trunk_pts), r))
     a = math.radians(angle_deg)
     take_off = np.array([0.07, 0.0, 0.0])
     out = take_off + 0.04 * np.array([math.cos(a), 0.0, math.sin(a)])
     branch = np.vstack([_line(np.array([0.15, 0.0, 0.0]), take_off), _line(take_off, out)[1:]])
-    s0, angle = branch_takeoff(trunk, branch, probe=(5 * MM, 15 * MM), search=0.04,
-                               window=10 * MM)
-    assert s0 == pytest.approx(0.07, abs=1.5 * STEP)
+    s0, angle = branch_takeoff(trunk, branch, probe=(5 * MM, 15 * MM), window=10 * MM)
+    assert s0 == pytest.approx(0.07 + r / math.tan(a), abs=1.5 * STEP)
     assert angle == pytest.approx(a, abs=1e-6)
 
 
@@ -159,8 +160,7 @@ def test_branch_takeoff_refuses_a_branch_ending_inside_the_trunk() -> None:
     trunk_pts = _line(np.zeros(3), np.array([0.15, 0.0, 0.0]))
     trunk = Trunk(points=trunk_pts, radii=np.full(len(trunk_pts), 10 * MM))
     with pytest.raises(AnatomyError, match="ending inside it"):
-        branch_takeoff(trunk, trunk_pts[::-1][:100], probe=(5 * MM, 15 * MM), search=0.04,
-                       window=10 * MM)
+        branch_takeoff(trunk, trunk_pts[::-1][:100], probe=(5 * MM, 15 * MM), window=10 * MM)
 
 
 def test_values_are_flat_in_descriptor_order_with_nan_for_a_missing_branch() -> None:
@@ -198,11 +198,20 @@ def test_builtin_aorta_matches_its_generator() -> None:
     assert d.descending.radius_p50 == pytest.approx(0.5 * params.descending_diameter,
                                                     abs=0.5 * MM)
     assert d.branch_count == 3
-    expected = [g.s_branches[k] for k in ("brachiocephalic", "carotid", "subclavian")]
-    assert np.array(d.branch_positions) == pytest.approx(expected, abs=2 * MM)
-    for tube, angle in zip(g.tubes[:3], d.branch_angles, strict=True):
+
+    def angle_to(direction: np.ndarray, at: float) -> float:
+        """Angle between a direction and the spine's downstream tangent at arc length ``at``."""
+        t = (g.spine[np.argmin(np.abs(g.arc - at - 0.01))]
+             - g.spine[np.argmin(np.abs(g.arc - at + 0.01))])
+        return math.acos(t @ direction / np.linalg.norm(t))
+
+    for tube, s_mouth, angle in zip(g.tubes[:3], d.branch_positions, d.branch_angles,
+                                    strict=True):
+        # the mouth: r cot(angle) downstream of the stub's origin on the spine
         s = g.s_branches[tube.name]
-        tangent = (g.spine[np.argmin(np.abs(g.arc - s - 0.01))]
-                   - g.spine[np.argmin(np.abs(g.arc - s + 0.01))])
-        want = math.acos(tangent @ tube.direction / np.linalg.norm(tangent))
-        assert math.degrees(angle) == pytest.approx(math.degrees(want), abs=3.0)
+        r = float(g.radius[np.argmin(np.abs(g.arc - s))])
+        assert s_mouth == pytest.approx(s + r / math.tan(angle_to(tube.direction, s)),
+                                        abs=6 * MM)
+        # the stub's direction against the spine's tangent at the mouth
+        assert math.degrees(angle) == pytest.approx(
+            math.degrees(angle_to(tube.direction, s_mouth)), abs=3.0)
