@@ -83,7 +83,10 @@ from cgail_learning.errors import DemoAnatomyWarning, DemoError
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 EPISODE_PERIOD_NS = 1000 * 10**9
 CUSTOM_DATA_KEY = 'cgail_planner.demos'
-"""Key of the bag's JSON metadata in the rosbag2 ``custom_data`` of ``metadata.yaml``."""
+"""Key of the bag's JSON metadata in the rosbag2 ``custom_data`` of ``metadata.yaml``.
+
+A format name, not a module path: it names the package that wrote the first demonstration bags
+(before ``cgail_planner`` was split), and stays so that every bag recorded since still reads."""
 POSE_TOLERANCE_M = 1e-3
 """Largest distance (m) of a recorded start, target or tip pose from the re-simulation that still
 counts as the same demonstration: 1 mm, about the accuracy of the Aurora EM tracker the rig

@@ -52,7 +52,7 @@ DEVICES = ('gamepad', 'keyboard', 'scripted')
 RECORDING_DATA_KEY = 'cgail_planner.record_demos'
 """Key of the recording's JSON (who, devices, per-episode outcomes) in the bag's rosbag2
 ``custom_data`` (``metadata.yaml``), beside :data:`~cgail_learning.demo_bags.
-CUSTOM_DATA_KEY`."""
+CUSTOM_DATA_KEY`; like it, a format name kept so that recorded bags still read."""
 
 
 @dataclass(frozen=True)

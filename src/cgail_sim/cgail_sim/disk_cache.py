@@ -110,7 +110,10 @@ def cache_key(*, sources: tuple[str, ...], inputs: str, length: int = 20) -> str
 
 
 def cache_dir() -> Path | None:
-    """``~/.cache/cgail_planner``, or None when ``CGAIL_PLANNER_NO_DISK_CACHE`` is set."""
+    """``~/.cache/cgail_planner``, or None when ``CGAIL_PLANNER_NO_DISK_CACHE`` is set.
+
+    The folder and the variable keep the name of the first release (before the package split)
+    so that existing caches, scripts and CI settings keep working."""
     if os.environ.get("CGAIL_PLANNER_NO_DISK_CACHE"):
         return None
     return Path.home() / ".cache" / "cgail_planner"
