@@ -173,9 +173,11 @@ class _Medial:
 
     def start_node(self, anatomy: Anatomy) -> int:
         """Well-centred node near ``anatomy.start_point`` (large inscribed sphere, close)."""
-        nodes = self.nodes
-        p = self.vertices[nodes]
-        d = np.linalg.norm(p - anatomy.start_point, axis=1)
+        return self.centred_node(anatomy.start_point, self.nodes)
+
+    def centred_node(self, point: np.ndarray, nodes: np.ndarray) -> int:
+        """Well-centred node of ``nodes`` near ``point`` (large inscribed sphere, close)."""
+        d = np.linalg.norm(self.vertices[nodes] - point, axis=1)
         score = d - 0.8 * self.radius[nodes]
         return int(nodes[np.argmin(score)])
 
@@ -241,7 +243,7 @@ def compute_centerlines(anatomy: Anatomy, n_waypoints: int = 100) -> dict[str, C
         _MEMORY[key] = cached
         return dict(cached)
     lines = _trace(anatomy, {branch: anatomy.ostia[branch] for branch in ("left", "right")},
-                   lambda length: n_waypoints, "ostium")
+                   lambda length: n_waypoints, "ostium", centred_goals=False)
     _MEMORY[key] = lines
     _save_disk(key, lines)
     return dict(lines)
@@ -255,9 +257,12 @@ def medial_paths(anatomy: Anatomy, goals: Mapping[str, np.ndarray],
 
     Args:
         anatomy: the lumen (rest shape) and its landmarks.
-        goals: name -> point (3,) in m; each path ends at the medial vertex nearest its point
-            (e.g. ``anatomy.annulus_center`` for the aortic trunk, a point just inside a cap
-            for a branch).
+        goals: name -> point (3,) in m, e.g. a point above ``anatomy.annulus_center`` for
+            the aortic trunk, a point just inside a cap for a branch. Each path ends at the
+            well-centred medial vertex near its point (as the start is chosen: the one that
+            minimises its distance from the point less 0.8 times its inscribed radius, so that
+            a path into a wide root ends in its middle), among those the start reaches (a real
+            lumen's medial graph can hold small islands, e.g. in a narrow branch end).
         spacing: distance between the waypoints, m (> 0).
 
     Returns:
@@ -266,29 +271,42 @@ def medial_paths(anatomy: Anatomy, goals: Mapping[str, np.ndarray],
 
     Raises:
         ValueError: ``spacing`` not positive.
-        CenterlineError: a goal cannot be reached through the lumen from the start.
+        CenterlineError: no medial vertex the start reaches lies near a goal.
     """
     if not spacing > 0.0:
         raise ValueError(f"spacing must be > 0, found {spacing!r}")
     return _trace(anatomy, {k: np.asarray(v, dtype=float) for k, v in goals.items()},
-                  lambda length: max(10, round(length / spacing) + 1), "goal")
+                  lambda length: max(10, round(length / spacing) + 1), "goal",
+                  centred_goals=True)
+
+
+_GOAL_REACH = 0.010
+"""Farthest a :func:`medial_paths` goal may lie from every medial vertex the start reaches
+(m)."""
 
 
 def _trace(anatomy: Anatomy, goals: Mapping[str, np.ndarray], count: Callable[[float], int],
-           what: str) -> dict[str, Centerline]:
-    """Shortest medial paths from the start to each goal point, smoothed and resampled to
-    ``count(length)`` points, with the inscribed radius re-measured at each."""
+           what: str, *, centred_goals: bool) -> dict[str, Centerline]:
+    """Shortest medial paths from the start to each goal point (its nearest medial vertex, or
+    with ``centred_goals`` the well-centred vertex near it among those the start reaches),
+    smoothed and resampled to ``count(length)`` points, with the inscribed radius re-measured
+    at each."""
     medial = _Medial(anatomy)
     start = medial.start_node(anatomy)
     dist, pred = dijkstra(medial.graph, directed=False, indices=start, return_predecessors=True)
     lines: dict[str, Centerline] = {}
+    reached = medial.nodes[np.isfinite(dist[medial.nodes])]
     for branch, point in goals.items():
         goal = medial.nearest_node(point)
+        if centred_goals and len(reached):
+            gap = np.linalg.norm(medial.vertices[reached] - point, axis=1)
+            if gap.min() <= _GOAL_REACH:
+                goal = medial.centred_node(point, reached)
         if not np.isfinite(dist[goal]):
-            reach = medial.nodes[np.isfinite(dist[medial.nodes])]
             raise CenterlineError(
                 f"expected the {branch} {what} to be reachable from the exit through the lumen, "
-                f"found it cut off ({len(reach)} of {len(medial.nodes)} medial nodes reachable)")
+                f"found it cut off ({len(reached)} of {len(medial.nodes)} medial nodes "
+                "reachable)")
         path = [goal]
         while path[-1] != start:
             path.append(int(pred[path[-1]]))
