@@ -19,24 +19,28 @@ length from the annulus centre (m). Points every ``DescriptorConfig.spacing``.
 Segments
 --------
 * **apex**: the most cranial trunk point (largest z).
-* **arch end**: the first trunk point past the apex that is back down at the annulus level
-  (the horizontal plane z = z of the annulus centre), linearly interpolated.
-* **arch**: the trunk from the annulus centre (s = 0) to the arch end: root, ascending aorta
-  and arch, everything the catheter climbs over above the annulus level.
-* **descending**: the trunk from the arch end to the descending start.
+* **arch level**: the horizontal plane ``DescriptorConfig.arch_depth`` (40 mm) below the apex.
+  (A fixed depth, not a landmark's level: the real cases' annulus lies up to 33 mm off along
+  the root axis without a left-ventricle label, and some of their descending aortas are cut
+  less than 50 mm below the apex, above the annulus level.)
+* **arch start** / **arch end**: where the trunk crosses the arch level last before and first
+  after the apex (linearly interpolated).
+* **ascending**: the trunk from the annulus centre (s = 0) to the arch start: root and
+  ascending aorta.
+* **arch**: from the arch start to the arch end, over the apex.
+* **descending**: from the arch end to the descending start.
 
-When the trunk never comes back down to the annulus level (a descending aorta cut above it),
-the arch end, and every descriptor that needs it, is NaN.
+When the trunk does not reach the arch level on one side, the arch start or end, and every
+descriptor that needs it, is NaN.
 
 Descriptors (the fields of :class:`AnatomyDescriptors`, SI units)
 ------------------------------------------------------------------
 * ``root_tilt`` (rad): angle between the root axis (``Anatomy.root_axis``, the valve-plane
   normal into the aorta) and the cranial axis +z: the clinical "aortic angle" of the annulus
   plane against the horizontal.
-* ``arch_width`` (m): distance between the annulus centre and the arch end, both at the
-  annulus level (so a horizontal distance). ``arch_height`` (m): height of the apex above the
-  annulus centre along +z. Both lie in the vertical plane through the annulus centre and the
-  arch end (the arch plane of a planar arch).
+* ``arch_width`` (m): distance between the arch start and the arch end (both at the arch
+  level, so a horizontal distance, in the vertical plane through them: the arch plane of a
+  planar arch). ``arch_height`` (m): height of the apex above the annulus centre along +z.
 * ``<segment>_length`` (m): arc length of the segment.
 * ``<segment>_tortuosity`` (-): tortuosity index, arc length / chord - 1 (chord: the distance
   between the segment's ends); 0 for a straight segment, pi/2 - 1 = 0.571 for a half circle.
@@ -110,6 +114,9 @@ _MAX_BRANCHES = 3
 class DescriptorConfig:
     """How the descriptors are measured (module docstring). Lengths in m."""
 
+    arch_depth: float = 0.040
+    """Depth of the arch level below the apex (40 mm: within the 48 mm that the shortest real
+    descending aorta, D2's, reaches below its apex). In [10, 100] mm."""
     spacing: float = 0.001
     """Distance between the trunk and branch centreline points (1 mm). In [0.2, 5] mm."""
     curvature_window: float = 0.010
@@ -126,7 +133,8 @@ class DescriptorConfig:
     not a supra-aortic branch (20 mm). In [5, 50] mm."""
 
     def __post_init__(self) -> None:
-        ranges = {"spacing": (0.0002, 0.005), "curvature_window": (0.002, 0.030),
+        ranges = {"arch_depth": (0.010, 0.100),
+                  "spacing": (0.0002, 0.005), "curvature_window": (0.002, 0.030),
                   "branch_probe_from": (0.0, 0.020),
                   "branch_probe_to": (self.branch_probe_from + 0.003, 0.040),
                   "coronary_gap": (0.005, 0.050)}
@@ -151,33 +159,27 @@ class Descriptor(NamedTuple):
 
 
 _DEG = 180.0 / math.pi
-#: Every flat descriptor, in report order.
+_SEGMENTS = ("ascending", "arch", "descending")
 DESCRIPTORS: tuple[Descriptor, ...] = (
     Descriptor("root_tilt", "root tilt (root axis from cranial)", "deg", _DEG),
-    Descriptor("arch_width", "arch width (at the annulus level)", "mm", 1e3),
+    Descriptor("arch_width", "arch width (40 mm below the apex)", "mm", 1e3),
     Descriptor("arch_height", "arch height (apex above the annulus)", "mm", 1e3),
-    Descriptor("arch_length", "arch centreline length", "mm", 1e3),
-    Descriptor("arch_tortuosity", "arch tortuosity index", "-", 1.0),
-    Descriptor("arch_curvature_mean", "arch mean curvature", "1/m", 1.0),
-    Descriptor("arch_curvature_max", "arch max curvature", "1/m", 1.0),
-    Descriptor("descending_length", "descending centreline length", "mm", 1e3),
-    Descriptor("descending_tortuosity", "descending tortuosity index", "-", 1.0),
-    Descriptor("descending_curvature_mean", "descending mean curvature", "1/m", 1.0),
-    Descriptor("descending_curvature_max", "descending max curvature", "1/m", 1.0),
-    Descriptor("arch_radius_p10", "arch lumen radius, 10th percentile", "mm", 1e3),
-    Descriptor("arch_radius_p50", "arch lumen radius, median", "mm", 1e3),
-    Descriptor("arch_radius_p90", "arch lumen radius, 90th percentile", "mm", 1e3),
-    Descriptor("descending_radius_p10", "descending lumen radius, 10th percentile", "mm", 1e3),
-    Descriptor("descending_radius_p50", "descending lumen radius, median", "mm", 1e3),
-    Descriptor("descending_radius_p90", "descending lumen radius, 90th percentile", "mm", 1e3),
+    *(d for seg in _SEGMENTS for d in (
+        Descriptor(f"{seg}_length", f"{seg} centreline length", "mm", 1e3),
+        Descriptor(f"{seg}_tortuosity", f"{seg} tortuosity index", "-", 1.0),
+        Descriptor(f"{seg}_curvature_mean", f"{seg} mean curvature", "1/m", 1.0),
+        Descriptor(f"{seg}_curvature_max", f"{seg} max curvature", "1/m", 1.0))),
+    *(Descriptor(f"{seg}_radius_{p}", f"{seg} lumen radius, {name}", "mm", 1e3)
+      for seg in _SEGMENTS
+      for p, name in (("p10", "10th percentile"), ("p50", "median"),
+                      ("p90", "90th percentile"))),
     Descriptor("branch_count", "supra-aortic branches", "-", 1.0),
-    Descriptor("branch1_position", "branch 1 (BCT) take-off from the annulus", "mm", 1e3),
-    Descriptor("branch2_position", "branch 2 (LCCA) take-off from the annulus", "mm", 1e3),
-    Descriptor("branch3_position", "branch 3 (LSA) take-off from the annulus", "mm", 1e3),
-    Descriptor("branch1_angle", "branch 1 (BCT) angle to the trunk tangent", "deg", _DEG),
-    Descriptor("branch2_angle", "branch 2 (LCCA) angle to the trunk tangent", "deg", _DEG),
-    Descriptor("branch3_angle", "branch 3 (LSA) angle to the trunk tangent", "deg", _DEG),
+    *(Descriptor(f"branch{k}_position", f"branch {k} ({name}) take-off from the annulus", "mm",
+                 1e3) for k, name in ((1, "BCT"), (2, "LCCA"), (3, "LSA"))),
+    *(Descriptor(f"branch{k}_angle", f"branch {k} ({name}) angle to the trunk tangent", "deg",
+                 _DEG) for k, name in ((1, "BCT"), (2, "LCCA"), (3, "LSA"))),
 )
+"""Every flat descriptor, in report order (the arch width's label names the default depth)."""
 
 
 class SegmentShape(NamedTuple):
@@ -223,11 +225,13 @@ class AnatomyDescriptors:
     root_tilt: float
     """Angle of the root axis from cranial, rad."""
     arch_width: float
-    """Annulus centre to arch end, at the annulus level, m."""
+    """Arch start to arch end, at the arch level, m."""
     arch_height: float
     """Apex above the annulus centre, m."""
+    ascending: SegmentShape
+    """Shape of the root and ascending aorta (annulus centre to arch start)."""
     arch: SegmentShape
-    """Shape of the arch (annulus centre to arch end)."""
+    """Shape of the arch (arch start to arch end)."""
     descending: SegmentShape
     """Shape of the descending aorta (arch end to descending start)."""
     branch_positions: tuple[float, ...]
@@ -244,7 +248,7 @@ class AnatomyDescriptors:
         """Every flat descriptor of :data:`DESCRIPTORS`, in SI units (NaN where missing)."""
         out: dict[str, float] = {"root_tilt": self.root_tilt, "arch_width": self.arch_width,
                                  "arch_height": self.arch_height}
-        for seg in ("arch", "descending"):
+        for seg in _SEGMENTS:
             shape: SegmentShape = getattr(self, seg)
             for f in SegmentShape._fields:
                 out[f"{seg}_{f}"] = float(getattr(shape, f))
@@ -316,34 +320,44 @@ def segment_shape(points: np.ndarray, radii: np.ndarray, s_from: float, s_to: fl
 
 
 class ArchLimits(NamedTuple):
-    """Where the arch of a trunk ends and how large it is (module docstring), m."""
+    """Where the arch of a trunk lies and how large it is (module docstring), m."""
 
     s_apex: float
     """Arc length of the apex (the most cranial point)."""
+    s_start: float
+    """Arc length of the arch start (NaN when the ascending side never reaches the level)."""
     s_end: float
-    """Arc length of the arch end (NaN when the trunk never comes back down)."""
+    """Arc length of the arch end (NaN when the descending side never reaches the level)."""
     width: float
-    """Distance from the annulus centre to the arch end (NaN without an arch end)."""
+    """Distance from the arch start to the arch end (NaN without both)."""
     height: float
     """Height of the apex above the annulus centre."""
 
 
-def arch_limits(points: np.ndarray) -> ArchLimits:
+def arch_limits(points: np.ndarray, depth: float) -> ArchLimits:
     """The arch of a trunk from the annulus centre (``points[0]``; +z cranial): its apex, the
-    first point past the apex back down at the annulus level (linearly interpolated), the
-    width between the annulus centre and that end, and the apex height."""
+    last point before and the first point after it at ``depth`` below the apex (linearly
+    interpolated), the width between them, and the apex height above ``points[0]``."""
     pts = np.asarray(points, dtype=float)
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-    h = pts[:, 2] - pts[0, 2]
-    i_apex = int(np.argmax(h))
-    below = np.flatnonzero(h[i_apex:] <= 0.0)
-    if i_apex == 0 or len(below) == 0:
-        return ArchLimits(float(arc[i_apex]), math.nan, math.nan, float(h[i_apex]))
-    i = i_apex + int(below[0])
-    t = h[i - 1] / (h[i - 1] - h[i])      # h[i - 1] > 0 >= h[i]
-    s_end = float(arc[i - 1] + t * (arc[i] - arc[i - 1]))
-    width = float(np.linalg.norm(_at(pts, arc, s_end) - pts[0]))
-    return ArchLimits(float(arc[i_apex]), s_end, width, float(h[i_apex]))
+    i_apex = int(np.argmax(pts[:, 2]))
+    h = pts[:, 2] - (pts[i_apex, 2] - depth)       # > 0 above the arch level
+
+    def crossing(i: int, j: int) -> float:
+        """Arc length where the level is crossed between points i (above) and j (at or
+        below)."""
+        t = h[i] / (h[i] - h[j])
+        return float(arc[i] + t * (arc[j] - arc[i]))
+
+    before = np.flatnonzero(h[:i_apex] <= 0.0)
+    after = np.flatnonzero(h[i_apex:] <= 0.0)
+    s_start = crossing(int(before[-1]) + 1, int(before[-1])) if len(before) else math.nan
+    s_end = crossing(i_apex + int(after[0]) - 1, i_apex + int(after[0])) if len(after) \
+        else math.nan
+    width = (float(np.linalg.norm(_at(pts, arc, s_end) - _at(pts, arc, s_start)))
+             if math.isfinite(s_start) and math.isfinite(s_end) else math.nan)
+    return ArchLimits(float(arc[i_apex]), s_start, s_end, width,
+                      float(pts[i_apex, 2] - pts[0, 2]))
 
 
 def branch_takeoff(trunk: Trunk, branch: np.ndarray, *, probe: tuple[float, float],
@@ -447,8 +461,9 @@ def anatomy_descriptors(anatomy: Anatomy,
     cfg = config or DescriptorConfig()
     trunk, branches = trunk_and_branches(anatomy, cfg)
     pts, arc = trunk.points, trunk.arc
-    limits = arch_limits(pts)
-    arch = segment_shape(pts, trunk.radii, 0.0, limits.s_end, cfg.curvature_window)
+    limits = arch_limits(pts, cfg.arch_depth)
+    ascending = segment_shape(pts, trunk.radii, 0.0, limits.s_start, cfg.curvature_window)
+    arch = segment_shape(pts, trunk.radii, limits.s_start, limits.s_end, cfg.curvature_window)
     descending = segment_shape(pts, trunk.radii, limits.s_end, float(arc[-1]),
                                cfg.curvature_window)
     takeoffs = sorted(branch_takeoff(trunk, b, probe=(cfg.branch_probe_from,
@@ -458,7 +473,7 @@ def anatomy_descriptors(anatomy: Anatomy,
     return AnatomyDescriptors(
         root_tilt=root_tilt(anatomy.root_axis), arch_width=limits.width,
         arch_height=limits.height,
-        arch=arch, descending=descending,
+        ascending=ascending, arch=arch, descending=descending,
         branch_positions=tuple(p for p, _ in takeoffs),
         branch_angles=tuple(a for _, a in takeoffs))
 

@@ -116,26 +116,32 @@ def test_a_piece_sees_only_its_own_points_and_ignores_nan_radii() -> None:
 
 @pytest.mark.parametrize("rise_mm, width_mm", [(40.0, 60.0), (70.0, 90.0)])
 def test_u_shaped_arch_limits_width_height_and_segments(rise_mm: float, width_mm: float) -> None:
-    rise, width = rise_mm * MM, width_mm * MM
-    pts = _u_arch(rise, width, drop=0.08)
-    limits = arch_limits(pts)
+    rise, width, drop, depth = rise_mm * MM, width_mm * MM, 0.08, 0.05
+    r = 0.5 * width
+    pts = _u_arch(rise, width, drop=drop)
+    ones = np.ones(len(pts))
+    limits = arch_limits(pts, depth)
+    # the arch level (50 mm below the apex) crosses both straight limbs
     assert limits.width == pytest.approx(width, abs=1e-6)
-    assert limits.height == pytest.approx(rise + 0.5 * width, abs=1e-6)
-    half = math.pi * 0.25 * width
-    assert limits.s_apex == pytest.approx(rise + half, abs=STEP)
-    assert limits.s_end == pytest.approx(2 * rise + 2 * half, rel=1e-5)   # (chords)
-    arch = segment_shape(pts, np.ones(len(pts)), 0.0, limits.s_end, 5 * MM)
-    assert arch.tortuosity == pytest.approx((2 * rise + 2 * half) / width - 1.0, rel=1e-5)
-    assert arch.curvature_max == pytest.approx(2.0 / width, rel=1e-3)
-    descending = segment_shape(pts, np.ones(len(pts)), limits.s_end,
-                               float(_arc_length(pts)[-1]), 5 * MM)
-    assert descending.length == pytest.approx(0.08, abs=1e-6)
+    assert limits.height == pytest.approx(rise + r, abs=1e-6)
+    assert limits.s_apex == pytest.approx(rise + 0.5 * math.pi * r, abs=STEP)
+    assert limits.s_start == pytest.approx(rise + r - depth, abs=1e-6)
+    arch_len = math.pi * r + 2.0 * (depth - r)
+    assert limits.s_end - limits.s_start == pytest.approx(arch_len, rel=1e-5)   # (chords)
+    ascending = segment_shape(pts, ones, 0.0, limits.s_start, 5 * MM)
+    assert ascending.tortuosity == pytest.approx(0.0, abs=1e-9)
+    arch = segment_shape(pts, ones, limits.s_start, limits.s_end, 5 * MM)
+    assert arch.tortuosity == pytest.approx(arch_len / width - 1.0, abs=1e-4)
+    assert arch.curvature_max == pytest.approx(1.0 / r, rel=1e-3)
+    descending = segment_shape(pts, ones, limits.s_end, float(_arc_length(pts)[-1]), 5 * MM)
+    assert descending.length == pytest.approx(rise + r - depth + drop, abs=1e-6)
     assert descending.tortuosity == pytest.approx(0.0, abs=1e-9)
 
 
-def test_a_trunk_that_never_comes_back_down_has_no_arch_end() -> None:
-    pts = _u_arch(0.04, 0.06, drop=0.0)[:-40]      # stops 20 mm above the annulus level
-    limits = arch_limits(pts)
+def test_a_trunk_that_stops_above_the_arch_level_has_no_arch_end() -> None:
+    pts = _u_arch(0.04, 0.06, drop=0.0)[:-40]      # stops 20 mm above the start's level
+    limits = arch_limits(pts, depth=0.06)
+    assert limits.s_start == pytest.approx(0.01, abs=1e-6)
     assert math.isnan(limits.s_end) and math.isnan(limits.width)
     assert limits.height == pytest.approx(0.07, abs=1e-6)
 
@@ -165,8 +171,8 @@ def test_branch_takeoff_refuses_a_branch_ending_inside_the_trunk() -> None:
 
 def test_values_are_flat_in_descriptor_order_with_nan_for_a_missing_branch() -> None:
     seg = SegmentShape(0.1, 0.2, 10.0, 20.0, 0.01, 0.012, 0.014)
-    d = AnatomyDescriptors(root_tilt=0.5, arch_width=0.05, arch_height=0.09, arch=seg,
-                           descending=seg, branch_positions=(0.09, 0.11),
+    d = AnatomyDescriptors(root_tilt=0.5, arch_width=0.05, arch_height=0.09, ascending=seg,
+                           arch=seg, descending=seg, branch_positions=(0.09, 0.11),
                            branch_angles=(1.5, 1.2))
     values = d.values()
     assert list(values) == [x.key for x in DESCRIPTORS]
@@ -175,7 +181,8 @@ def test_values_are_flat_in_descriptor_order_with_nan_for_a_missing_branch() -> 
     assert math.isnan(values["branch3_position"]) and math.isnan(values["branch3_angle"])
 
 
-@pytest.mark.parametrize("field, value", [("spacing", 0.0), ("curvature_window", 0.1),
+@pytest.mark.parametrize("field, value", [("arch_depth", 0.005), ("spacing", 0.0),
+                                          ("curvature_window", 0.1),
                                           ("branch_probe_to", 0.006),
                                           ("coronary_gap", True)])
 def test_config_refuses_out_of_range_fields(field: str, value: float) -> None:
@@ -191,7 +198,7 @@ def test_builtin_aorta_matches_its_generator() -> None:
     d = anatomy_descriptors(build_anatomy("default"))
     assert math.degrees(d.root_tilt) == pytest.approx(25.0, abs=1e-6)
     spine = g.spine[(g.arc >= 0.0) & (g.arc <= g.s_exit - 0.02)]
-    limits = arch_limits(spine)
+    limits = arch_limits(spine, DescriptorConfig().arch_depth)
     assert d.arch_height == pytest.approx(limits.height, abs=1 * MM)
     assert d.arch_width == pytest.approx(limits.width, abs=2 * MM)
     assert d.descending.tortuosity == pytest.approx(0.0, abs=0.002)
