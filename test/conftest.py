@@ -1,38 +1,23 @@
 """Cross-package tests: refuse to run unless DDS discovery is confined to this machine."""
 
-import os
+from types import ModuleType
 
 import pytest
 
+from cgail_node_utils.testing import require_localhost_discovery, ros  # noqa: F401
+
 
 def pytest_configure(config: pytest.Config) -> None:
-    if os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') != 'LOCALHOST':
-        raise pytest.UsageError(
-            'expected ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, found '
-            f'{os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")!r}: run the tests through '
-            'scripts/ws or scripts/test.sh (they source scripts/env.sh)')
+    require_localhost_discovery()
 
 
 @pytest.fixture
-def rclpy_context():
-    """rclpy initialised for one test, shut down afterwards (yields the rclpy module).
-
-    No rclpy signal handlers (``SignalHandlerOptions.NO``): SIGTERM ends the test process, so
-    ``timeout`` works, and SIGINT raises ``KeyboardInterrupt`` as usual. A node whose
-    constructor raised is only reachable from the exception's traceback cycle; the collection
-    before shutdown destroys it, so its DDS participant does not outlive the test.
-    """
-    import gc
-
+def rclpy_context(ros: None) -> ModuleType:  # noqa: F811  (the imported fixture)
+    """rclpy initialised for one test, shut down afterwards (yields the rclpy module): the
+    ``ros`` fixture of :mod:`cgail_node_utils.testing`."""
     import rclpy
-    from rclpy.signals import SignalHandlerOptions
 
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        yield rclpy
-    finally:
-        gc.collect()
-        rclpy.try_shutdown()
+    return rclpy
 
 
 @pytest.fixture(scope='session')

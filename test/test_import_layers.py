@@ -12,7 +12,7 @@ and every import in it that names a module of these packages:
   ``pkg``; ``import a.b.c`` is an edge to ``a.b.c``. The parent packages that Python runs first
   (``a`` and ``a.b``) are not edges: a package's ``__init__`` is a container, not a dependency.
 
-Two rules, each failing with the file and line of every import involved:
+Three rules, each failing with the file and line of every import involved:
 
 1. **No circles.** No strongly connected component of more than one module.
 2. **No upward imports.** The packages come in :data:`PACKAGE_LEVELS`, lowest first: a module
@@ -20,6 +20,12 @@ Two rules, each failing with the file and line of every import involved:
    the top-level subpackages (and top-level modules) come in :data:`LAYERS`, lowest first: a
    module may import its own layer or one below. A package's own ``__init__`` is below all of
    its layers. A module in no layer fails, so a new subpackage is placed on purpose.
+3. **Only tests import a testing module.** A package's ``testing`` module (or subpackage),
+   :data:`TESTING`, holds the test helpers and fixtures that the tests of this package and of
+   the packages above it share (``cgail_sim.testing``, as ``numpy.testing``). It is test code
+   (test/test_package_deps.py: its imports may be ``<test_depend>`` s): no product module
+   imports one; another testing module may. The testing modules are otherwise placed as any
+   module (the two rules above, and test/test_torch_free.py, hold for them).
 
 :data:`KNOWN_EXCEPTIONS` lists the imports that break a rule today and wait for a bigger move,
 each with its reason; an exception is left out of both checks, and one that no longer occurs
@@ -77,6 +83,10 @@ LAYERS: dict[str, tuple[str, ...]] = {
     # imports every tool's module (by name, when the verb runs).
     'cgail_rig': ('core', 'nodes', '*', 'cli'),
 }
+
+#: The name of a package's test-helper module or subpackage (``<package>.testing``): only tests
+#: and other testing modules import it (rule 3).
+TESTING = 'testing'
 
 #: Imports that break a rule today, waiting for a bigger move:
 #: ``(importer, imported): reason``. Each is left out of both checks.
@@ -254,6 +264,19 @@ def upward_imports(edges: Iterable[Edge], layers: Mapping[str, tuple[str, ...]],
     return found
 
 
+def is_testing(module: str) -> bool:
+    """Whether a module is (in) a package's :data:`TESTING` module."""
+    parts = module.split('.')
+    return len(parts) > 1 and parts[1] == TESTING
+
+
+def imports_of_testing_modules(edges: Iterable[Edge]) -> list[str]:
+    """One line per import of a testing module by a module that is not one (rule 3)."""
+    return [f'{e.where}: {e.source} imports {e.target}: only tests (and other testing '
+            f'modules) may import a testing module' for e in edges
+            if is_testing(e.target) and not is_testing(e.source)]
+
+
 def describe(circle: list[Edge]) -> str:
     return 'import circle:\n' + '\n'.join(f'    {e.source} -> {e.target}  ({e.where})'
                                           for e in circle)
@@ -291,6 +314,13 @@ def test_no_import_circles(edges: list[Edge]) -> None:
 def test_no_upward_imports(edges: list[Edge]) -> None:
     found = upward_imports(_checked(edges), LAYERS, PACKAGE_LEVELS)
     assert not found, 'upward imports:\n' + '\n'.join(found)
+
+
+def test_only_tests_import_the_testing_modules(edges: list[Edge]) -> None:
+    assert any(is_testing(m) for m in find_modules(ROOT / 'src')), \
+        'expected testing modules (cgail_sim.testing, ...), found none'
+    found = imports_of_testing_modules(_checked(edges))
+    assert not found, 'testing modules imported by product code:\n' + '\n'.join(found)
 
 
 def test_every_known_exception_still_occurs(edges: list[Edge]) -> None:
@@ -348,3 +378,22 @@ def test_the_checks_name_a_circle_and_an_upward_import(tmp_path: Path) -> None:
     with pytest.raises(LayerError, match=r"low.core.a: expected low.core in the layers of low "
                                          r"\['nodes'\], found none: place it in LAYERS"):
         upward_imports(edges, {'low': ('nodes',), 'high': ()}, (('low',), ('high',)))
+
+
+def test_the_check_names_a_testing_module_that_product_code_imports(tmp_path: Path) -> None:
+    _write(tmp_path / 'src', {
+        'low/low/__init__.py': '',
+        'low/low/core.py': 'def f():\n    from low import testing\n',  # lazy: still counts
+        'low/low/testing.py': 'import pytest\n',
+        'high/high/__init__.py': '',
+        'high/high/x.py': 'from low.testing import helper\n',
+        'high/high/testing/__init__.py': 'from low.testing import helper\n',  # testing: fine
+        'high/test/test_x.py': 'from low.testing import helper\n',  # tests are not scanned
+    })
+    edges = import_edges(find_modules(tmp_path / 'src'), tmp_path)
+    assert imports_of_testing_modules(edges) == [
+        'src/high/high/x.py:1: high.x imports low.testing: only tests (and other testing '
+        'modules) may import a testing module',
+        'src/low/low/core.py:2: low.core imports low.testing: only tests (and other testing '
+        'modules) may import a testing module',
+    ]

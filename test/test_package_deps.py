@@ -8,13 +8,20 @@ How imports become rosdep keys (the convention):
 
 * Scanned: ``src/<pkg>/<pkg>/**.py`` (runtime code) and ``src/<pkg>/test/**.py`` (tests). Not
   ``setup.py``: its ``setuptools`` is the ``python3-setuptools`` buildtool_depend.
+* A package's ``testing`` module (``src/<pkg>/<pkg>/testing.py``, or a ``testing/``
+  subpackage; :data:`TESTING_MODULES`) is test code, though it ships in the package: the test
+  helpers and fixtures that the tests of this package and of the packages above it import
+  (``cgail_sim.testing``), as ``numpy.testing`` is. Its imports count as the tests' (``pytest``
+  may be a ``<test_depend>``). A package whose tests import another's ``testing`` module
+  declares that package, as any import. No runtime code imports a ``testing`` module
+  (test/test_import_layers.py checks it), so a runtime-only install never runs one.
 * Every absolute ``import X`` / ``from X import ...`` counts, at any depth: an import inside a
   function or a ``try`` (an optional feature, a fallback) is still needed by a full install. The
   key is looked up by the top-level name, or the first two names for namespace packages
   (``backports.zstd``).
 * Not dependencies: the standard library (``sys.stdlib_module_names`` and :data:`NO_KEY`), the
-  package itself, and modules next to the importing test file (test helpers such as
-  ``curved_aorta``).
+  package itself, and modules next to the importing test file (test helpers of one test
+  directory, such as ``tiny_pipeline``).
 * A ROS package's key is its name: the workspace's packages, message/service/interface packages
   (``*_msgs``, ``*_srvs``, ``*_interfaces``) and :data:`ROS_PACKAGES`.
 * A Python module's key comes from the explicit table :data:`PYTHON_KEYS`, written as rosdistro's
@@ -99,6 +106,9 @@ NO_KEY = {
 #: (a launch file's node, a plugin loaded by name, a runtime resource). Empty: every declared key
 #: is imported.
 NOT_IMPORTED: dict[str, str] = {}
+#: Top-level modules (``<name>.py``) or subpackages (``<name>/``) of a package that are test
+#: code though they ship in it (see the docstring).
+TESTING_MODULES = ('testing',)
 RUNTIME_TAGS = ('depend', 'exec_depend')
 TEST_TAGS = (*RUNTIME_TAGS, 'test_depend')
 
@@ -157,17 +167,29 @@ def install_requires(setup_py: Path) -> list[str]:
     return []
 
 
+def is_testing_module(path: Path, pkg_dir: Path) -> bool:
+    """Whether a file of ``src/<pkg>/<pkg>/`` is (in) one of the :data:`TESTING_MODULES`."""
+    top = path.relative_to(pkg_dir / pkg_dir.name).parts[0]
+    return top.removesuffix('.py') in TESTING_MODULES
+
+
 def _imports(pkg_dir: Path) -> tuple[dict[str, str], dict[str, str]]:
-    """``{module: first importing file}`` of the runtime code and of the tests."""
+    """``{module: first importing file}`` of the runtime code and of the tests (the package's
+    testing modules included)."""
     name = pkg_dir.name
+    shipped = sorted((pkg_dir / name).rglob('*.py'))
+    runtime = [p for p in shipped if not is_testing_module(p, pkg_dir)]
+    tests = sorted((pkg_dir / 'test').rglob('*.py')) + [
+        p for p in shipped if is_testing_module(p, pkg_dir)]
     scans: list[dict[str, str]] = []
-    for base in (pkg_dir / name, pkg_dir / 'test'):
+    for paths in (runtime, tests):
         found: dict[str, str] = {}
-        for path in sorted(base.rglob('*.py')):
+        for path in paths:
+            in_test_dir = path.is_relative_to(pkg_dir / 'test')
             for module in sorted(imported_modules(path)):
                 local = (path.parent / f'{module}.py').is_file() or \
                     (path.parent / module / '__init__.py').is_file()
-                if module != name and not (base.name == 'test' and local):
+                if module != name and not (in_test_dir and local):
                     found.setdefault(module, str(path.relative_to(pkg_dir.parent)))
         scans.append(found)
     return scans[0], scans[1]
@@ -321,12 +343,19 @@ def test_checker_reports_each_missing_dependency_in_one_line(tmp_path: Path) -> 
     ]
 
 
+#: The dependencies of :func:`_fake_package` that make it complete.
+COMPLETE_DEPS = (
+    ('depend', 'rclpy'), ('exec_depend', 'std_msgs'), ('exec_depend', 'python3-numpy'),
+    ('exec_depend', 'python3-scipy'), ('test_depend', 'python3-pytest'),
+    ('test_depend', 'python3-yaml'), ('test_depend', 'em_tracker'))
+
+
+def _deps(pairs: tuple[tuple[str, str], ...]) -> str:
+    return '\n'.join(f'  <{tag}>{key}</{tag}>' for tag, key in pairs)
+
+
 def test_checker_passes_a_complete_package_and_names_unknown_imports(tmp_path: Path) -> None:
-    deps = '\n'.join(f'  <{tag}>{key}</{tag}>' for tag, key in (
-        ('depend', 'rclpy'), ('exec_depend', 'std_msgs'), ('exec_depend', 'python3-numpy'),
-        ('exec_depend', 'python3-scipy'), ('test_depend', 'python3-pytest'),
-        ('test_depend', 'python3-yaml'), ('test_depend', 'em_tracker')))
-    pkg = _fake_package(tmp_path, deps)
+    pkg = _fake_package(tmp_path, _deps(COMPLETE_DEPS))
     assert missing_dependencies(pkg, {'fake_pkg', 'em_tracker'}) == []
     (pkg / 'fake_pkg' / 'extra.py').write_text('import frobnicate.core\n')
     assert missing_dependencies(pkg, {'fake_pkg', 'em_tracker'}) == [
@@ -356,3 +385,20 @@ def test_unused_checker_reports_each_key_no_code_imports(tmp_path: Path) -> None
     assert unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {
         'fake_pkg: python3-serial': 'opened by URL', 'other_pkg: python3-torch': 'elsewhere'},
     ) == unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {})[1:]
+
+
+@pytest.mark.parametrize('testing', ['testing.py', 'testing/__init__.py'])
+def test_a_testing_module_is_test_code(tmp_path: Path, testing: str) -> None:
+    def package(root: Path, *extra: tuple[str, str]) -> Path:
+        pkg = _fake_package(root, _deps((*COMPLETE_DEPS, *extra)))
+        (pkg / 'fake_pkg' / testing).parent.mkdir(exist_ok=True)
+        (pkg / 'fake_pkg' / testing).write_text('import pytest\nimport torch\n')
+        return pkg
+
+    # its imports are the tests': pytest is a <test_depend> already, torch is missing as one
+    assert missing_dependencies(package(tmp_path / 'a'), {'fake_pkg', 'em_tracker'}) == [
+        'fake_pkg/package.xml: missing <test_depend>python3-torch</test_depend> (torch, '
+        f'imported by fake_pkg/fake_pkg/{testing})']
+    pkg = package(tmp_path / 'b', ('test_depend', 'python3-torch'))
+    assert missing_dependencies(pkg, {'fake_pkg', 'em_tracker'}) == []
+    assert unused_dependencies(pkg, {'fake_pkg', 'em_tracker'}, {}) == []

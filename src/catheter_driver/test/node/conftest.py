@@ -1,4 +1,5 @@
-"""In-process node test helpers: one rclpy context per test, an executor and a spin-until.
+"""In-process node test helpers: one rclpy context per test (the ``ros`` fixture of
+:mod:`cgail_node_utils.testing`), an executor and a spin-until.
 
 Rules that keep these tests true on an idle machine as well as a loaded one:
 
@@ -12,34 +13,17 @@ Rules that keep these tests true on an idle machine as well as a loaded one:
 """
 
 from collections.abc import Callable, Iterator
-import gc
 import time
 
 import pytest
-import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 from rclpy.timer import Timer
+
+from cgail_node_utils.testing import ros  # noqa: F401
 
 WAIT_S = 15.0
 """Default deadline of a wait for something that must happen, s."""
-
-
-@pytest.fixture
-def ros() -> Iterator[None]:
-    """rclpy initialised for one test without signal handlers, shut down afterwards.
-
-    A node whose constructor raised is only reachable from the exception's traceback cycle; the
-    collection before shutdown destroys it, so its DDS participant (and that participant's
-    threads) does not outlive the test.
-    """
-    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    try:
-        yield
-    finally:
-        gc.collect()
-        rclpy.try_shutdown()
 
 
 class Harness:
@@ -94,7 +78,7 @@ class Harness:
 
 
 @pytest.fixture
-def harness(ros: None) -> Iterator[Harness]:
+def harness(ros: None) -> Iterator[Harness]:  # noqa: F811  (the imported fixture)
     h = Harness()
     try:
         yield h

@@ -24,7 +24,7 @@ from cgail_sim.ftl_model import CONTRACT_KEY, PolicyContract
 FIXTURES = Path(__file__).resolve().parents[3] / 'cgail_planner' / 'test' / 'fixtures'
 
 
-PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, cgail_sim.testing)
 
 
 def _commands(tmp_path: Path) -> dict[str, tuple]:
