@@ -6,15 +6,28 @@ Fixtures, imported into a package's ``test/conftest.py``
 * :func:`bad_anatomy`: a bad ``--anatomy``/``anatomy`` argument of each kind and its error;
 * :func:`prepared`: a prepared anatomy directory holding a built-in aorta.
 
+And the curved-descending-aorta case of issue 12 (:data:`CURVED_PARAMS`,
+:func:`curved_anatomy`, :func:`curved_world`), imported by the tests that use it.
+
 Test code (test/test_package_deps.py): its imports may be ``<test_depend>`` s of this package,
 and no product module imports it (test/test_import_layers.py).
 """
 
+import functools
+import math
 from pathlib import Path
 
 import pytest
 
-from cgail_sim.anatomy import build_anatomy, save_anatomy_mesh
+from cgail_sim.anatomy import (
+    Anatomy,
+    AnatomyParams,
+    build_anatomy,
+    build_anatomy_from_params,
+    save_anatomy_mesh,
+)
+from cgail_sim.centerline import compute_centerlines
+from cgail_sim.scenarios import build_scenarios, World
 
 
 @pytest.fixture(params=['missing', 'not prepared', 'mesh fails to load'])
@@ -48,3 +61,27 @@ def prepared(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFa
                       d / 'lumen.stl')
     return d
 
+
+#: A synthetic aorta whose descending part curves near its open end (issue 12's case): the
+#: default aorta with its lowest 60 mm of descending aorta turning through 30 deg towards the
+#: patient's right-anterior. Its start 2 (53 mm above start 0) then points straight up the
+#: descending aorta while the lumen below it bends away: a straight introducer behind it would
+#: run outside the wall and cross the exit plane outside the cap, as in the patient mesh of the
+#: issue.
+CURVED_PARAMS = AnatomyParams(descending_bend=math.radians(30.0), descending_bend_length=0.060)
+
+
+@functools.cache
+def curved_anatomy() -> Anatomy:
+    """The curved-descending-aorta anatomy (name ``curved``), built once per process (and
+    cached on disk, as every anatomy)."""
+    return build_anatomy_from_params(CURVED_PARAMS, "curved")
+
+
+@functools.cache
+def curved_world() -> World:
+    """Its world: centerlines and scenario set (as ``load_world`` builds them)."""
+    anatomy = curved_anatomy()
+    centerlines = compute_centerlines(anatomy)
+    return World(anatomy=anatomy, centerlines=centerlines,
+                 scenarios=build_scenarios(anatomy, centerlines))

@@ -68,9 +68,8 @@ def test_a_start_with_its_introducer_along_the_centerline_is_usable() -> None:
     """Where a straight introducer would leave the lumen (the curved descending aorta's start
     2), the simulator lays it along the centerline; the check measures that one (AVT D13 was
     refused for a straight introducer it never uses)."""
-    from curved_aorta import curved_anatomy, curved_world
-
     from cgail_sim.scenarios import introducer_tail, tube_clearance
+    from cgail_sim.testing import curved_anatomy, curved_world
 
     anatomy, starts = curved_anatomy(), curved_world().scenarios.starts
     s2 = starts[2]

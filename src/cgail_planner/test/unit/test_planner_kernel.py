@@ -242,10 +242,8 @@ def test_retraction_follows_a_bent_introducer_out_of_the_exit() -> None:
     the exit disc (as the env's episode does), where a straight introducer would have taken
     it through the wall."""
     import dataclasses
-    import sys
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from curved_aorta import curved_world
+    from cgail_sim.testing import curved_world
 
     world = curved_world()
     model = model_world_from_sim(world)

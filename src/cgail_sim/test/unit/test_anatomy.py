@@ -4,15 +4,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
-import sys
 
 import numpy as np
 import pytest
 import trimesh
-
-sys.path.insert(0, str(Path(__file__).parent))
-from curved_aorta import curved_anatomy, CURVED_PARAMS
 
 from cgail_sim.anatomy import (
     Anatomy,
@@ -24,6 +19,7 @@ from cgail_sim.anatomy import (
     build_anatomy,
     build_anatomy_from_params,
 )
+from cgail_sim.testing import curved_anatomy, CURVED_PARAMS
 
 MM = 1e-3
 

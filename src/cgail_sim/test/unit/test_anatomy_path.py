@@ -5,15 +5,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from pathlib import Path
-import sys
 
 import gymnasium as gym
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-from curved_aorta import curved_anatomy
 
 import cgail_sim  # noqa: F401  (registers the gymnasium ids)
 from cgail_sim.anatomy import (
@@ -31,6 +26,7 @@ from cgail_sim.anatomy_spec import (
 )
 from cgail_sim.config import EnvConfig
 from cgail_sim.env import CatheterNavEnv
+from cgail_sim.testing import curved_anatomy
 from cgail_sim.wall import DeformableWall
 from cgail_sim.worlds import load_world
 
@@ -39,7 +35,7 @@ USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a popula
          r"or a mesh file \(.stl/.obj/.ply in mm, with its <stem>.yaml landmarks\), found ")
 
 
-PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, conftest.py)
+PREPARED_FROM = 'elongated'  # (the prepared fixture's aorta, cgail_sim.testing)
 
 
 def test_a_name_is_the_cached_built_in_anatomy() -> None:

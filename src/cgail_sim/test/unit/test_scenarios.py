@@ -1,13 +1,8 @@
 """Start configurations, their introducers and targets (paper section IV-A)."""
 
-from pathlib import Path
-import sys
 
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).parent))
-from curved_aorta import curved_world
 
 from cgail_sim.anatomy import build_anatomy
 from cgail_sim.centerline import compute_centerlines
@@ -19,6 +14,7 @@ from cgail_sim.scenarios import (
     ScenarioError,
     tube_clearance,
 )
+from cgail_sim.testing import curved_world
 from cgail_sim.worlds import load_world
 
 WORLD = load_world("default")

@@ -337,15 +337,11 @@ def test_a_catheter_body_outside_the_lumen_stays_bounded_and_a_bound_names_it():
     crosses stops it with the reason. With its introducer along the centerline the wall
     stays within the heartbeat's ~12 mm."""
     import dataclasses
-    from pathlib import Path
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from curved_aorta import curved_world
 
     from cgail_sim.env import DYNAMIC_PBD_CONFIG
     from cgail_sim.ftl_model import CatheterBatch, CatheterConfig
     from cgail_sim.scenarios import introducer_tail
+    from cgail_sim.testing import curved_world
 
     world = curved_world()
     anatomy, model = world.anatomy, CatheterConfig()
