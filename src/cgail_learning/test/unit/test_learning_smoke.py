@@ -3,18 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from learning_toy import expert_demos, PointReach
-
 from cgail_learning.config import config_from_dict
 from cgail_learning.envs import SyncVecEnv
 from cgail_learning.errors import DemoError, PolicyLoadError
+from cgail_learning.testing import expert_demos, PointReach
 from cgail_learning.train import run_training
 from cgail_learning.trainer import evaluate_policy, Trainer
 

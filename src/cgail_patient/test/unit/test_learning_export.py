@@ -3,19 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent))
-from learning_toy import PointReach
-
 from cgail_learning.config import NetworkConfig
 from cgail_learning.errors import PolicyLoadError
 from cgail_learning.export import default_contract, export_actor, write_contract
 from cgail_learning.networks import Actor, RunningNormalizer
+from cgail_learning.testing import PointReach
 from cgail_planner.core.onnx_policy import OnnxPolicy
 from cgail_sim.ftl_model import CONTRACT_KEY
 

@@ -1,4 +1,12 @@
-"""A tiny 2-D point-reaching gymnasium env and its scripted expert, for the learning tests."""
+"""Test helpers of the learning tests (like ``numpy.testing``): tests only.
+
+A tiny 2-D point-reaching gymnasium env (:class:`PointReach`) and its scripted expert
+(:func:`expert_action`, :func:`expert_demos`), on which the learners are checked quickly
+(``from cgail_learning.testing import PointReach``).
+
+Test code (test/test_package_deps.py): its imports may be ``<test_depend>`` s of this package,
+and no product module imports it (test/test_import_layers.py).
+"""
 
 from __future__ import annotations
 
