@@ -4,7 +4,7 @@ Run: ``scripts/ws python bench/bench_expert.py [--anatomy DIR] [--set 3] [--dyna
 
 Records expert episodes (:func:`cgail_learning.demos_cli.record_episodes`, as
 ``plan_patient`` and ``make_demos`` do) on one target set of a prepared anatomy (default: AVT
-D18 as committed in ``data/anatomies/avt/prepared``): every start x target pair in the rigid
+D18, shipped as ``avt-D18``): every start x target pair in the rigid
 aorta, and the first ``--dynamic-episodes`` pairs in the beating one. Prints wall seconds per
 episode, simulated steps per wall second (the expert's planning included), the share of the
 time the expert spends planning, and the success rate. One thread, after one warm-up episode
@@ -28,8 +28,7 @@ from cgail_learning.expert import ScriptedExpert
 from cgail_sim.config import EnvConfig
 from cgail_sim.env import CatheterNavEnv
 
-REPO = Path(__file__).resolve().parents[1]
-D18 = REPO / "data" / "anatomies" / "avt" / "prepared" / "D18"
+D18 = "avt-D18"
 
 
 def measure(anatomy: str, mode: str, scenario_seed: int, episodes: int) -> dict[str, float]:
@@ -61,7 +60,8 @@ def measure(anatomy: str, mode: str, scenario_seed: int, episodes: int) -> dict[
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--anatomy", default=str(D18), help="prepared anatomy (default AVT D18)")
+    p.add_argument("--anatomy", default=D18,
+                   help="anatomy: a name or a prepared directory (default: AVT D18)")
     p.add_argument("--set", type=int, default=3, help="target set (EnvConfig.scenario_seed)")
     p.add_argument("--dynamic-episodes", type=int, default=6,
                    help="episodes in the beating aorta (the first pairs of the set)")

@@ -8,6 +8,9 @@ setup(
     name=PACKAGE,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'test.*']),
+    # the real aortas named avt-<case> (cgail_sim.anatomy_spec), with their licence
+    package_data={PACKAGE: ['anatomies/avt/*/lumen.stl', 'anatomies/avt/*/lumen.yaml',
+                            'anatomies/avt/*.md']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),

@@ -3,10 +3,11 @@
 
 An anatomy argument (:data:`AnatomySpec`) is a built-in name
 (:data:`~cgail_sim.anatomy.ANATOMY_NAMES`), a population sample ``population-<seed>``
-(:mod:`cgail_sim.population`), a prepared anatomy directory, a mesh file with its
-landmarks, or an :class:`~cgail_sim.anatomy.Anatomy`. :func:`resolve_anatomy` turns
-it into the anatomy, :func:`check_anatomy_spec` checks it without loading it,
-:func:`anatomy_label` and :func:`anatomy_identity` name it.
+(:mod:`cgail_sim.population`), a real patient's aorta ``avt-<case>`` (:data:`REAL_NAMES`:
+prepared AVT cases shipped in this package, ``anatomies/avt/README.md``), a prepared anatomy
+directory, a mesh file with its landmarks, or an :class:`~cgail_sim.anatomy.Anatomy`.
+:func:`resolve_anatomy` turns it into the anatomy, :func:`check_anatomy_spec` checks it
+without loading it, :func:`anatomy_label` and :func:`anatomy_identity` name it.
 
 The resolver sits above both :mod:`~cgail_sim.anatomy` (the anatomy, its generator and
 the mesh loader) and :mod:`~cgail_sim.population` (samples built with that generator),
@@ -30,6 +31,8 @@ from cgail_sim.anatomy import (
 __all__ = [
     "MESH_SUFFIXES",
     "PREPARED_MESH",
+    "REAL_HELD_OUT",
+    "REAL_NAMES",
     "REJECTED_MESH",
     "AnatomySpec",
     "anatomy_identity",
@@ -37,6 +40,7 @@ __all__ = [
     "check_anatomy_spec",
     "is_builtin",
     "is_named",
+    "real_anatomy_dir",
     "resolve_anatomy",
 ]
 
@@ -50,6 +54,19 @@ REJECTED_MESH = "lumen.rejected.stl"
 #: File types :func:`load_anatomy_mesh` reads.
 MESH_SUFFIXES = (".stl", ".obj", ".ply")
 
+#: The folder of the real aortas shipped in this package (one prepared directory per case).
+_REAL_DIR = Path(__file__).resolve().parent / "anatomies" / "avt"
+_REAL_PREFIX = "avt-"
+#: The real patients' aortas every anatomy argument takes by name: ``avt-<case>`` for each
+#: prepared AVT case shipped in ``cgail_sim/anatomies/avt`` (CC BY 4.0), in case order.
+REAL_NAMES: tuple[str, ...] = tuple(
+    _REAL_PREFIX + d.name for d in sorted(
+        (d for d in _REAL_DIR.glob("D*") if (d / PREPARED_MESH).is_file()),
+        key=lambda d: int(d.name[1:]) if d.name[1:].isdigit() else 0))
+#: The real aortas no generalist trains on (its zero-shot test set), chosen by a rule before
+#: any training with real aortas: every other case of :data:`REAL_NAMES`, from the second.
+REAL_HELD_OUT: tuple[str, ...] = ("avt-D4", "avt-D10", "avt-D13", "avt-D15", "avt-D18")
+
 _PATH_CACHE: dict[tuple[str, tuple[int, int], tuple[int, int]], Anatomy] = {}
 _PATH_CACHE_MAX = 8
 
@@ -58,7 +75,8 @@ def _usage(spec: object) -> str:
     found = repr(spec) if isinstance(spec, (str, os.PathLike)) else \
         f"an object of type {type(spec).__name__}"  # (never an arbitrary repr: no array dumps)
     return (f"expected a built-in anatomy name {list(ANATOMY_NAMES)}, a population sample "
-            f"population-<seed>, a prepared anatomy directory (holding {PREPARED_MESH} and "
+            f"population-<seed>, a real aorta avt-<case> ({', '.join(REAL_NAMES)}), "
+            f"a prepared anatomy directory (holding {PREPARED_MESH} and "
             f"lumen.yaml) or a mesh file ({'/'.join(MESH_SUFFIXES)} in mm, with its <stem>.yaml "
             f"landmarks), found {found}")
 
@@ -103,7 +121,7 @@ def anatomy_label(spec: AnatomySpec) -> str:
     """
     if isinstance(spec, Anatomy):
         raw = spec.name
-    elif is_builtin(spec) or _population_seed(spec) is not None:
+    elif is_named(spec):
         raw = str(spec)
     else:
         path = Path(spec).expanduser().resolve()
@@ -123,7 +141,7 @@ def check_anatomy_spec(spec: AnatomySpec) -> None:
     Raises:
         AnatomyError: what :func:`resolve_anatomy` raises before it reads a mesh.
     """
-    if isinstance(spec, Anatomy) or is_builtin(spec) or _population_seed(spec) is not None:
+    if isinstance(spec, Anatomy) or is_named(spec):
         return
     if not isinstance(spec, (str, os.PathLike)) or (isinstance(spec, str) and not spec.strip()):
         raise AnatomyError(_usage(spec))
@@ -153,9 +171,18 @@ def is_builtin(spec: AnatomySpec) -> bool:
 
 
 def is_named(spec: AnatomySpec) -> bool:
-    """True when ``spec`` is a name the code rebuilds an anatomy from, with no file behind
-    it: a built-in name or a population sample's ``population-<seed>``."""
-    return is_builtin(spec) or _population_seed(spec) is not None
+    """True when ``spec`` is an anatomy's name rather than a path: a built-in name, a
+    population sample's ``population-<seed>`` (both rebuilt by the code, no file behind them)
+    or a shipped real aorta's ``avt-<case>`` (:data:`REAL_NAMES`)."""
+    return is_builtin(spec) or _population_seed(spec) is not None or real_anatomy_dir(spec) \
+        is not None
+
+
+def real_anatomy_dir(spec: object) -> Path | None:
+    """The prepared directory of a shipped real aorta's name (``avt-D18``), else None."""
+    if isinstance(spec, str) and spec in REAL_NAMES:
+        return _REAL_DIR / spec[len(_REAL_PREFIX):]
+    return None
 
 
 def _population_seed(spec: object) -> int | None:
@@ -169,7 +196,8 @@ def resolve_anatomy(spec: AnatomySpec) -> Anatomy:
     Args:
         spec: a built-in name (:data:`ANATOMY_NAMES`; a name wins over a directory of the same
             name: write ``./default`` for that), a population sample ``population-<seed>``
-            (:func:`cgail_sim.population.sample_anatomy`, the same rule), a prepared
+            (:func:`cgail_sim.population.sample_anatomy`, the same rule), a shipped real
+            aorta ``avt-<case>`` (:data:`REAL_NAMES`: its prepared directory), a prepared
             anatomy directory (``DIR/lumen.stl`` plus ``DIR/lumen.yaml``, as
             ``prepare_anatomy`` writes), a mesh file
             (:data:`MESH_SUFFIXES`, millimetres) with its ``<stem>.yaml`` landmarks, or an
@@ -194,7 +222,8 @@ def resolve_anatomy(spec: AnatomySpec) -> Anatomy:
     if (seed := _population_seed(spec)) is not None:
         return population.sample_anatomy(seed)
     check_anatomy_spec(spec)
-    mesh = _mesh_of(spec).resolve()
+    real = real_anatomy_dir(spec)
+    mesh = _mesh_of(spec if real is None else real).resolve()
     sidecar = mesh.with_suffix(".yaml")
     stats = [f.stat() for f in (mesh, sidecar)]
     key = (str(mesh), (stats[0].st_mtime_ns, stats[0].st_size),

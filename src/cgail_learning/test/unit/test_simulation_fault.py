@@ -2,7 +2,6 @@
 that does fault ends only its episode, as the counted outcome ``simulation fault``."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -84,9 +83,8 @@ def test_evaluate_counts_faults_and_writes_its_report(tmp_path):
 #: on the default aorta reached 25.6 mm at step 258 (body indentation 5.5 mm); trial 5 on the
 #: elongated one faulted past 40 mm at step 202 (indentation 5.8 mm), the catheter dragging
 #: the dent's flank through itself at the top of the arch.
-#: a real patient's lumen: AVT D18 prepared by prepare_anatomy (data/anatomies/avt/prepared)
-REAL_D18 = str(Path(__file__).resolve().parents[4] / "data" / "anatomies" / "avt" / "prepared"
-               / "D18")
+#: a real patient's lumen: AVT D18 as prepare_anatomy made it (cgail_sim/anatomies/avt)
+REAL_D18 = "avt-D18"
 CONTACT_TRIALS = [("default", 3), ("elongated", 5), (REAL_D18, 0), (REAL_D18, 3)]
 
 

@@ -1,4 +1,4 @@
-"""The scripted expert through a real, tight aortic arch (AVT D11, data/anatomies/avt).
+"""The scripted expert through a real, tight aortic arch (AVT D11, shipped as ``avt-D11``).
 
 D11's arch is about as tight as the catheter's smallest bend radius (31.8 mm): a tip that
 reaches its apex on the wrong line cannot turn in time, 50-60 mm after the choice that put it
@@ -9,23 +9,19 @@ the rigid aorta (every episode a collision at the arch's outer wall); pursuit fi
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from cgail_learning.expert import ScriptedExpert
 from cgail_patient.validate import run_expert_trial
-from cgail_sim.anatomy import load_anatomy_mesh
 from cgail_sim.config import EnvConfig
 from cgail_sim.env import CatheterNavEnv
 
-REAL_D11 = Path(__file__).resolve().parents[4] / "data" / "anatomies" / "avt" / "prepared" \
-    / "D11" / "lumen.stl"
+REAL_D11 = "avt-D11"
 
 
 @pytest.fixture(scope="module")
 def d11_env() -> CatheterNavEnv:
-    return CatheterNavEnv(EnvConfig(mode="static", anatomy=load_anatomy_mesh(REAL_D11),
+    return CatheterNavEnv(EnvConfig(mode="static", anatomy=REAL_D11,
                                     scenario_seed=0))
 
 

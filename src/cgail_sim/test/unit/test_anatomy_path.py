@@ -19,9 +19,14 @@ from cgail_sim.anatomy import (
     save_anatomy_mesh,
 )
 from cgail_sim.anatomy_spec import (
+    anatomy_identity,
     anatomy_label,
     check_anatomy_spec,
     is_builtin,
+    is_named,
+    real_anatomy_dir,
+    REAL_HELD_OUT,
+    REAL_NAMES,
     resolve_anatomy,
 )
 from cgail_sim.config import EnvConfig
@@ -31,7 +36,8 @@ from cgail_sim.wall import DeformableWall
 from cgail_sim.worlds import load_world
 
 USAGE = (r"expected a built-in anatomy name \['default', 'elongated'\], a population sample "
-         r"population-<seed>, a prepared anatomy directory \(holding lumen.stl and lumen.yaml\) "
+         r"population-<seed>, a real aorta avt-<case> \(avt-D2, [^)]*\), "
+         r"a prepared anatomy directory \(holding lumen.stl and lumen.yaml\) "
          r"or a mesh file \(.stl/.obj/.ply in mm, with its <stem>.yaml landmarks\), found ")
 
 
@@ -218,3 +224,32 @@ def test_a_config_keeps_the_anatomy_it_was_given(prepared) -> None:
     cfg = EnvConfig(anatomy=prepared)
     assert cfg.anatomy == prepared
     assert dataclasses.replace(cfg, mode='dynamic').anatomy == prepared
+
+
+def test_real_aortas_are_named_anatomies() -> None:
+    """``avt-<case>``: the shipped prepared AVT cases, by name, like a built-in one; their
+    identity is the mesh's content hash (a policy contract names it), and the held-out ones are
+    among them."""
+    assert tuple(f'avt-D{n}' for n in (2, 4, 8, 10, 11, 13, 14, 15, 16, 18)) == REAL_NAMES
+    assert set(REAL_HELD_OUT) < set(REAL_NAMES)
+    assert REAL_NAMES[1::2] == REAL_HELD_OUT  # the rule: every other case, from the second
+    for name in ('avt-D18', 'avt-D2'):
+        assert is_named(name) and not is_builtin(name)
+        check_anatomy_spec(name)
+        anatomy = resolve_anatomy(name)
+        assert anatomy.name == anatomy_label(name) == name
+        assert anatomy is resolve_anatomy(name)  # (loaded once)
+        label, digest = anatomy_identity(name)
+        assert label == name and len(digest) == 16
+        # the same anatomy as its prepared directory
+        assert resolve_anatomy(real_anatomy_dir(name)).content_hash == digest
+    assert real_anatomy_dir('avt-D3') is None and not is_named('avt-D3')
+    with pytest.raises(AnatomyError, match=USAGE + r"'avt-D3': no such file or directory"):
+        resolve_anatomy('avt-D3')
+
+
+def test_a_real_aorta_runs_in_the_simulator_by_name() -> None:
+    env = CatheterNavEnv(EnvConfig(mode='static', anatomy='avt-D18'))
+    obs, _ = env.reset(seed=0)
+    assert np.all(np.isfinite(obs))
+    assert env.unwrapped.engine.world.anatomy.name == 'avt-D18'
