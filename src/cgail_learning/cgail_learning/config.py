@@ -294,8 +294,11 @@ class PopulationConfig:
     """Anatomies of the periodic evaluation that picks ``best.pt``: the training seeds right
     after the pool (never trained on, never held out)."""
     include: tuple[str, ...] = ()
-    """Built-in anatomies (``default``, ``elongated``) added to the pool beside the population
-    samples, each drawn ``include_weight`` times as often as one sample. They lie outside the
+    """Named anatomies added to the pool beside the population samples, each drawn
+    ``include_weight`` times as often as one sample: the built-in ones (``default``,
+    ``elongated``) and real aortas (``avt-<case>``, :data:`cgail_sim.anatomy_spec.REAL_NAMES`;
+    never one of :data:`~cgail_sim.anatomy_spec.REAL_HELD_OUT`, the generalist's zero-shot
+    test set). They lie outside the
     population's ranges in places (``elongated``: root tilt 15 deg, below the population's
     18 deg) and are the anatomies a user tries first, so the generalist trains on them too; its
     evaluation on them uses target sets it never trained on."""
@@ -320,12 +323,13 @@ class PopulationConfig:
         _check(1 <= self.eval_anatomies <= 100, 'population.eval_anatomies', 'in [1, 100]',
                self.eval_anatomies)
         if self.include:
-            from cgail_sim.anatomy import ANATOMY_NAMES
+            from cgail_sim.anatomy_spec import REAL_HELD_OUT, TRAINING_NAMES
 
-            _check(all(n in ANATOMY_NAMES for n in self.include)
+            _check(all(n in TRAINING_NAMES for n in self.include)
                    and len(set(self.include)) == len(self.include), 'population.include',
-                   f'distinct built-in anatomy names of {sorted(ANATOMY_NAMES)}',
-                   list(self.include))
+                   f'distinct names of built-in or real training anatomies '
+                   f'{list(TRAINING_NAMES)} (the held-out real ones, {list(REAL_HELD_OUT)}, '
+                   'never train)', list(self.include))
         _check(1.0 <= self.include_weight <= 1000.0, 'population.include_weight',
                'in [1, 1000]', self.include_weight)
         _check(not self.eval_include or bool(self.include), 'population.eval_include',

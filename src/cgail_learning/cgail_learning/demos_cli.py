@@ -282,19 +282,19 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
 
     Raises:
         ValueError: a seed outside the training seeds (demonstrations never touch a held-out
-            anatomy), or an ``include`` name that is no built-in anatomy.
+            anatomy), or an ``include`` name that is no built-in or real training anatomy.
     """
-    from cgail_sim.anatomy import ANATOMY_NAMES
-    from cgail_sim.anatomy_spec import resolve_anatomy
+    from cgail_sim.anatomy_spec import REAL_HELD_OUT, resolve_anatomy, TRAINING_NAMES
     from cgail_sim.config import EnvConfig
     from cgail_sim.env import CatheterNavEnv
     from cgail_sim.population import check_training_seeds, population_name
 
     seeds = check_training_seeds(seeds)
-    bad = [n for n in include if n not in ANATOMY_NAMES]
+    bad = [n for n in include if n not in TRAINING_NAMES]
     if bad or len(set(include)) != len(include):
-        raise ValueError(f'--include: expected distinct built-in anatomy names of '
-                         f'{sorted(ANATOMY_NAMES)}, found {list(include)}')
+        raise ValueError(f'--include: expected distinct names of built-in or real training '
+                         f'anatomies {list(TRAINING_NAMES)} (the held-out real ones, '
+                         f'{list(REAL_HELD_OUT)}, never train), found {list(include)}')
     names = [population_name(s) for s in seeds] + list(include)
 
     out: list[DemoEpisode] = []

@@ -34,6 +34,7 @@ __all__ = [
     "REAL_HELD_OUT",
     "REAL_NAMES",
     "REJECTED_MESH",
+    "TRAINING_NAMES",
     "AnatomySpec",
     "anatomy_identity",
     "anatomy_label",
@@ -66,6 +67,10 @@ REAL_NAMES: tuple[str, ...] = tuple(
 #: The real aortas no generalist trains on (its zero-shot test set), chosen by a rule before
 #: any training with real aortas: every other case of :data:`REAL_NAMES`, from the second.
 REAL_HELD_OUT: tuple[str, ...] = ("avt-D4", "avt-D10", "avt-D13", "avt-D15", "avt-D18")
+#: The named anatomies a population run (and its demonstrations) may add to its pool beside the
+#: population samples: the built-in ones and the real ones not held out.
+TRAINING_NAMES: tuple[str, ...] = (*ANATOMY_NAMES,
+                                   *(n for n in REAL_NAMES if n not in REAL_HELD_OUT))
 
 _PATH_CACHE: dict[tuple[str, tuple[int, int], tuple[int, int]], Anatomy] = {}
 _PATH_CACHE_MAX = 8

@@ -518,9 +518,12 @@ def test_a_population_bag_holds_included_built_in_anatomies(tmp_path: Path, caps
                    population=True)
     replay = replay_demo_bag(tmp_path / 'p', env_options='sphere_targets')
     assert replay.report.max_drift_m == 0.0 and replay.report.episodes == 2
-    with pytest.raises(ValueError, match=r"--include: expected distinct built-in anatomy names "
-                                         r"of \['default', 'elongated'\], found \['aorta'\]"):
+    with pytest.raises(ValueError, match=r"--include: expected distinct names of built-in or "
+                                         r"real training anatomies \['default', 'elongated', "
+                                         r"'avt-D2', .*, found \['aorta'\]"):
         record_population((0,), 2, include=('aorta',))
+    with pytest.raises(ValueError, match=r"held-out real ones.*found \['avt-D18'\]"):
+        record_population((0,), 2, include=('avt-D18',))
     assert main(['--include', 'elongated', '--out', str(tmp_path / 'x')]) == 2
     assert capsys.readouterr().err == ('cgail make-demos: error: --include: expected '
                                        '--population N beside it (it adds built-in anatomies '

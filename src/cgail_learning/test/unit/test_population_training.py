@@ -66,10 +66,12 @@ def test_the_population_config_trains_and_selects_on_training_seeds_only() -> No
     ({"redraw_every": 0}, r"population.redraw_every must be >= 1, found 0"),
     ({"eval_anatomies": 0}, r"population.eval_anatomies must be in \[1, 100\], found 0"),
     ({"anatomies": 4, "include": ["default", "default"]},
-     r"population.include must be distinct built-in anatomy names of \['default', "
-     r"'elongated'\], found \['default', 'default'\]"),
+     r"population.include must be distinct names of built-in or real training anatomies "
+     r"\['default', 'elongated', 'avt-D2', .*, found \['default', 'default'\]"),
     ({"anatomies": 4, "include": ["population-3"]}, r"population.include must be distinct "
-                                                     r"built-in anatomy names"),
+                                                     r"names of built-in or real training"),
+    ({"anatomies": 4, "include": ["avt-D4"]},
+     r"\(the held-out real ones, \['avt-D4', .*\], never train\), found \['avt-D4'\]"),
     ({"anatomies": 4, "include": [3]}, r"population.include must be of type tuple, found \[3\]"),
     ({"include_weight": 0.5}, r"population.include_weight must be in \[1, 1000\], found 0.5"),
     ({"include": ["elongated"]}, r"population.include must be no anatomies without a population"),
