@@ -25,8 +25,15 @@ run's selection anatomies, ``eval_episodes`` episodes, the same seeds); ``refine
 best of the checkpoint and the rounds (latest on ties, as ``train`` keeps ``best.pt``).
 
 **Which anatomies.** ``--anatomies`` of the run's training seeds, evenly spaced, ``--episodes``
-episodes each, and each built-in anatomy the run includes ``include_weight`` times as many
-(the share the training gave it). Never a held-out seed, never a selection seed.
+episodes each, and each named anatomy the run includes (built-in, or a real training aorta
+``avt-<case>``) ``include_weight`` times as many (the share the training gave it). Never a
+held-out seed or real aorta, never a selection seed.
+
+**An exported population policy** (a ``.onnx`` without ``--anatomy``, e.g. the committed
+generalist, whose run checkpoint is not at hand) is refined the same way in the population of
+``--preset`` (default ``generalist``): its actor and normaliser are taken as ``train
+--init-from`` takes them, and the preset gives the anatomies, the included ones and the
+validation; ``refined.pt`` is a checkpoint of that preset with a population contract.
 
 **One anatomy (fine-tuning).** With ``--anatomy A`` the policy (a ``train`` checkpoint or an
 exported ``.onnx``, whose actor and normaliser are taken as ``train --init-from`` takes them) is
@@ -127,14 +134,17 @@ def _group(spec: Any) -> str:
 def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
            options: RefineOptions | None = None, progress: bool = True,
            log: Any = None, anatomy: str | None = None,
-           preset: str = 'finetune') -> dict[str, Any]:
+           preset: str | None = None) -> dict[str, Any]:
     """Refine ``checkpoint`` (module docstring); ``anatomy``: refine in that one anatomy with
-    ``preset``'s settings instead of in the run's population. Returns what ``refine.yaml``
+    ``preset``'s settings (default ``finetune``) instead of in the run's population. An
+    exported ``.onnx`` without ``anatomy`` is refined in the population of ``preset`` (default
+    ``generalist``), which then also gives the run's settings. Returns what ``refine.yaml``
     holds.
 
     Raises:
         LearningError: a checkpoint that is not a static population run's (without
-            ``anatomy``), or unusable demonstrations (one line each).
+            ``anatomy``), a preset that does not fit, or unusable demonstrations (one line
+            each).
     """
     from cgail_learning.checkpoint import load_checkpoint
     from cgail_learning.config import config_from_dict, load_config
@@ -148,7 +158,17 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     say = log or (lambda line: print(f'cgail refine: {line}', file=sys.stderr))
     t0 = time.monotonic()
     checkpoint = Path(checkpoint)
-    if anatomy is None:
+    ckpt: dict[str, Any] | None = None
+    if anatomy is None and checkpoint.suffix == '.onnx':  # an exported population policy
+        if not checkpoint.is_file():
+            raise LearningError(f'policy not found: expected an exported .onnx at {checkpoint}')
+        cfg = load_config(preset or 'generalist')
+        if not cfg.population.enabled:
+            raise LearningError(f'--preset: expected a population preset (generalist) to refine '
+                                f'{checkpoint} without --anatomy, found {cfg.name!r} on one '
+                                'anatomy')
+        meta = {}
+    elif anatomy is None:
         ckpt = load_checkpoint(checkpoint)
         cfg = config_from_dict(ckpt['config'])
         meta = dict(ckpt.get('metadata', {}))
@@ -168,7 +188,7 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
             load_checkpoint(checkpoint)  # (a missing or unreadable one: one line, early)
         elif not checkpoint.is_file():
             raise LearningError(f'policy not found: expected an exported .onnx at {checkpoint}')
-        cfg = load_config(preset)
+        cfg = load_config(preset or 'finetune')
         if cfg.population.enabled:
             raise LearningError(f'--preset: expected a one-anatomy preset with --anatomy '
                                 f'(finetune), found {cfg.name!r} on a population')
@@ -178,16 +198,25 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     if not demos:
         raise LearningError('--demos: expected the demonstration sources, found none')
     if anatomy is None:
-        demo_obs, demo_act, demo_episodes, _ = load_training_demos(cfg, demos, prog='cgail refine')
-        env, eval_env, _ = make_envs('static', 'default', cfg.num_envs, cfg.env_options,
-                                     cfg.population, report=say)
+        demo_obs, demo_act, demo_episodes, sources = load_training_demos(
+            cfg, demos, prog='cgail refine')
+        env, eval_env, env_meta = make_envs('static', 'default', cfg.num_envs,
+                                            cfg.env_options, cfg.population, report=say)
+        run_seed = options.seed if ckpt is None else int(ckpt['seed'])
+        if ckpt is None:  # (the contract and notes of a run of this preset, as train's)
+            meta = {**env_meta, 'preset': cfg.name}
+            if sources:
+                meta['demonstrations'] = sources
         trainer = Trainer(cfg, env, demo_obs=demo_obs, demo_act=demo_act,
-                          seed=int(ckpt['seed']), metadata=meta, demo_episodes=demo_episodes)
-        eval_seed = 10_000 + int(ckpt['seed'])  # (train's periodic evaluation)
+                          seed=run_seed, metadata=meta, demo_episodes=demo_episodes)
+        eval_seed = 10_000 + run_seed  # (train's periodic evaluation)
         specs = label_anatomies(cfg.population, options)
 
         def restore() -> None:  # (networks, normaliser, step, curriculum, rng)
-            trainer.resume(ckpt, checkpoint)
+            if ckpt is None:
+                trainer.load_weights(checkpoint)
+            else:
+                trainer.resume(ckpt, checkpoint)
     else:
         from cgail_sim.anatomy_spec import is_builtin
 
@@ -280,13 +309,15 @@ def build_parser() -> argparse.ArgumentParser:
     """Command-line interface of ``cgail refine``."""
     p = tool_parser('refine', __doc__)
     p.add_argument('checkpoint', type=Path,
-                   help="a population run's checkpoint of cgail train (best.pt, final.pt); with "
-                        '--anatomy also an exported .onnx')
+                   help="a population run's checkpoint of cgail train (best.pt, final.pt) or an "
+                        'exported .onnx (refined in --preset\'s population, or in --anatomy)')
     p.add_argument('--anatomy', default=None,
                    help='refine in this one anatomy (fine-tuning: a built-in name, '
                         'population-<seed> or a prepared anatomy directory)')
-    p.add_argument('--preset', default='finetune',
-                   help="with --anatomy: the preset whose settings apply (default finetune)")
+    p.add_argument('--preset', default=None,
+                   help="the preset whose settings apply: with --anatomy (default finetune), "
+                        'or to an exported .onnx without it (default generalist: its '
+                        'population, included anatomies and demonstrations)')
     p.add_argument('--demos', nargs='+', default=[], metavar='DEMO',
                    help="the run's demonstration sources (bag directories, .mcap, .npz)")
     p.add_argument('--out', type=Path, required=True, help='directory to write')

@@ -15,6 +15,7 @@ from cgail_learning.config import (
     PopulationConfig,
 )
 from cgail_learning.dagger import expert_labels
+from cgail_learning.errors import LearningError
 from cgail_learning.refine import label_anatomies, main, refine, RefineOptions
 from cgail_sim.anatomy_spec import resolve_anatomy
 from cgail_sim.config import EnvConfig
@@ -238,3 +239,35 @@ def test_refine_in_one_anatomy_refuses_what_it_cannot_use_in_one_line(tmp_path,
                  'generalist', *base]) == 2
     err = capsys.readouterr().err
     assert "expected a one-anatomy preset with --anatomy (finetune), found 'generalist'" in err
+
+
+def test_refine_an_exported_population_policy_in_its_presets_population(tmp_path,
+                                                                         monkeypatch) -> None:
+    """An exported generalist (no checkpoint) refined without ``--anatomy``: the preset gives
+    the population, the labels come from its anatomies, and the result keeps a population
+    contract; a one-anatomy preset is refused in one line."""
+    import yaml
+
+    from cgail_learning.checkpoint import load_checkpoint
+    from cgail_learning.export import export_checkpoint
+    from cgail_planner.core.onnx_policy import OnnxPolicy
+
+    ckpt = _population_checkpoint(tmp_path, monkeypatch)
+    onnx_path = export_checkpoint(ckpt, tmp_path / 'gen.onnx')
+    preset = tmp_path / 'smoke_population.yaml'
+    preset.write_text(yaml.safe_dump({**load_checkpoint(ckpt)['config'],
+                                      'name': 'smoke_population'}))
+    summary = refine(onnx_path, [str(tmp_path / 'demos.npz')], tmp_path / 'r',
+                     RefineOptions(anatomies=2, episodes=1, every=50, epochs=2),
+                     progress=False, log=lambda line: None, preset=str(preset))
+    assert summary['rounds'][0]['labels'] > 0
+    assert set(summary['rounds'][0]['policy_success']) == {'population'}
+    done = load_checkpoint(tmp_path / 'r' / 'round_1.pt')
+    assert done['config']['name'] == 'smoke_population'
+    assert done['metadata']['catheter_contract']['anatomies'] == 'population'
+    assert done['metadata']['demonstrations'] and done['metadata']['refinement']['round'] == 1
+    exported = export_checkpoint(tmp_path / 'r' / 'round_1.pt', tmp_path / 'r.onnx')
+    assert OnnxPolicy(exported).contract.anatomies == 'population'
+    with pytest.raises(LearningError, match=r'expected a population preset \(generalist\) to '):
+        refine(onnx_path, [str(tmp_path / 'demos.npz')], tmp_path / 'x', progress=False,
+               log=lambda line: None, preset=str(_one_anatomy_preset(tmp_path)))
