@@ -48,8 +48,9 @@ Descriptors (the fields of :class:`AnatomyDescriptors`, SI units)
   curvature over the segment's points, each the inverse circumradius of the trunk points
   ``DescriptorConfig.curvature_window`` of arc length before and after it
   (:func:`cgail_sim.validate.bend_radii`, 1/R for a circular arc of radius R, 0 where
-  straight), measured on the whole trunk (so that a segment's ends see their neighbours); the
-  first and last window of the trunk have no curvature.
+  straight), measured along the whole medial path (so that a segment's ends see their
+  neighbours; not across its corner with the straight piece down to the annulus centre); the
+  first and last window of the medial path have no curvature.
 * ``<segment>_radius_p10`` / ``_p50`` / ``_p90`` (m): 10th, 50th and 90th percentiles of the
   lumen's inscribed-sphere radius (distance to the nearest wall sample) at the segment's
   medial points (the straight piece down to the annulus centre, which touches the valve
@@ -286,7 +287,7 @@ def _at(points: np.ndarray, arc: np.ndarray, s: float) -> np.ndarray:
 
 
 def segment_shape(points: np.ndarray, radii: np.ndarray, s_from: float, s_to: float,
-                  window: float) -> SegmentShape:
+                  window: float, *, curved_from: int = 0) -> SegmentShape:
     """Shape of the piece ``[s_from, s_to]`` (arc length from ``points[0]``, m) of a polyline.
 
     Args:
@@ -294,6 +295,9 @@ def segment_shape(points: np.ndarray, radii: np.ndarray, s_from: float, s_to: fl
         radii: (P,) inscribed radius at each point, m (NaN: left out of the percentiles).
         s_from, s_to: the piece, m.
         window: curvature half-window, m (:func:`trunk_curvature`).
+        curved_from: the curvature is measured on ``points[curved_from:]`` only (the trunk:
+            1, not across the corner between the straight piece down to the annulus centre
+            and the medial path).
 
     Returns:
         The piece's :class:`SegmentShape` (NaN fields where the piece is empty, has no
@@ -308,7 +312,8 @@ def segment_shape(points: np.ndarray, radii: np.ndarray, s_from: float, s_to: fl
     length = s_to - s_from
     chord = float(np.linalg.norm(_at(pts, arc, s_to) - _at(pts, arc, s_from)))
     tortuosity = length / chord - 1.0 if chord > 0.0 else math.inf
-    s_k, kappa = trunk_curvature(pts, window)
+    s_k, kappa = trunk_curvature(pts[curved_from:], window)
+    s_k = s_k + arc[curved_from]
     k_in = kappa[(s_k >= s_from) & (s_k <= s_to)]
     r_in = rad[(arc >= s_from) & (arc <= s_to) & np.isfinite(rad)]
     p10, p50, p90 = (np.percentile(r_in, [10, 50, 90]) if len(r_in) else (nan, nan, nan))
@@ -462,10 +467,13 @@ def anatomy_descriptors(anatomy: Anatomy,
     trunk, branches = trunk_and_branches(anatomy, cfg)
     pts, arc = trunk.points, trunk.arc
     limits = arch_limits(pts, cfg.arch_depth)
-    ascending = segment_shape(pts, trunk.radii, 0.0, limits.s_start, cfg.curvature_window)
-    arch = segment_shape(pts, trunk.radii, limits.s_start, limits.s_end, cfg.curvature_window)
-    descending = segment_shape(pts, trunk.radii, limits.s_end, float(arc[-1]),
-                               cfg.curvature_window)
+    def shape(s_from: float, s_to: float) -> SegmentShape:
+        return segment_shape(pts, trunk.radii, s_from, s_to, cfg.curvature_window,
+                             curved_from=1)
+
+    ascending = shape(0.0, limits.s_start)
+    arch = shape(limits.s_start, limits.s_end)
+    descending = shape(limits.s_end, float(arc[-1]))
     takeoffs = sorted(branch_takeoff(trunk, b, probe=(cfg.branch_probe_from,
                                                       cfg.branch_probe_to),
                                      window=cfg.curvature_window)

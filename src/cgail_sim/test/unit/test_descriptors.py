@@ -111,6 +111,14 @@ def test_a_piece_sees_only_its_own_points_and_ignores_nan_radii() -> None:
     assert flat.radius_p10 == pytest.approx(9 * MM)
     bent = segment_shape(pts, radii, 0.075, 0.06 + 0.025 * math.pi / 2, window=10 * MM)
     assert bent.curvature_mean == pytest.approx(40.0, rel=1e-3)
+    # a corner at the first point is not measured from curved_from=1 on
+    kinked = np.vstack([[0.03, 0.0, -0.09], pts])
+    radii_k = np.concatenate([[np.nan], radii])
+    s0 = float(np.linalg.norm(kinked[1] - kinked[0]))
+    corner = segment_shape(kinked, radii_k, 0.0, s0 + 0.045, window=10 * MM)
+    assert corner.curvature_max > 10.0
+    after = segment_shape(kinked, radii_k, 0.0, s0 + 0.045, window=10 * MM, curved_from=1)
+    assert after.curvature_max == pytest.approx(0.0, abs=1e-6)
     assert math.isnan(segment_shape(pts, radii, 0.05, 0.05, 10 * MM).length)
 
 
