@@ -185,8 +185,8 @@ def verdict(value: float, band: dict[str, float]) -> str:
 def _fmt(x: float, unit: str) -> str:
     if not math.isfinite(x):
         return "-"
-    if unit in ("-",) and abs(x) < 10:
-        return f"{x:.2f}"
+    if unit == "-":
+        return f"{x:.3g}"
     return f"{x:.1f}" if abs(x) < 100 else f"{x:.0f}"
 
 
@@ -211,6 +211,12 @@ def markdown(real: list[dict[str, Any]], n_pop: int, seeds: str,
              f"Population: {n_pop} samples ({seeds}); real: {len(real)} AVT cases. A real value "
              f"is *outside* when it lies below the population's {LOW_PCT:g}st or above its "
              f"{HIGH_PCT:g}th percentile. Definitions: `cgail_sim.descriptors`.", "",
+             "Read the real cases with two caveats. Without a left-ventricle label the annulus "
+             "lies at the segmentation's lower end, uncertain along the root axis (each case "
+             "says by how much), and the ascending length, the arch height and the take-off "
+             "positions move with it. The descending length is where the lumen was cut "
+             "(`prepare_anatomy` for a real case, the sampler's descending length for the "
+             "population): extent, not anatomy.", "",
              "## Summary", ""]
     out = outside(real, band)
     for r in real:
@@ -300,9 +306,8 @@ def plot(key: str, population: list[dict[str, float]], real: list[dict[str, Any]
         ax_pop.axvline(band["median"], color="tab:blue", lw=1.2)
     ax_pop.set_ylabel("population samples")
     ax_pop.set_title(f"{d.label} ({d.unit})", fontsize=12, loc="left")
-    ax_pop.text(0.99, 0.95, f"population: {len(pop)} of {n_pop}\nband: p{LOW_PCT:g}-"
-                f"p{HIGH_PCT:g}, line: median", transform=ax_pop.transAxes, ha="right",
-                va="top", fontsize=8, color="0.25")
+    ax_pop.set_title(f"population: {len(pop)} of {n_pop} measured\nband p{LOW_PCT:g}-"
+                     f"p{HIGH_PCT:g}, line: median", fontsize=8, color="0.3", loc="right")
     shown.sort(key=lambda nv: nv[1])
     for i, (_, v) in enumerate(shown):
         side = verdict(v, band)
