@@ -186,7 +186,9 @@ def _fmt(x: float, unit: str) -> str:
     if not math.isfinite(x):
         return "-"
     if unit == "-":
-        return f"{x:.3g}"
+        if x == round(x):
+            return f"{x:.0f}"
+        return f"{x:.4f}" if abs(x) < 0.1 else f"{x:.2f}" if abs(x) < 10 else f"{x:.1f}"
     return f"{x:.1f}" if abs(x) < 100 else f"{x:.0f}"
 
 
