@@ -101,6 +101,17 @@ def test_the_generalist_preset_is_cgail_on_the_population_with_drawn_targets() -
     assert a == b
 
 
+def test_the_generalist_real_preset_is_the_generalist_with_the_real_training_aortas() -> None:
+    from cgail_sim.anatomy_spec import REAL_HELD_OUT, TRAINING_NAMES
+
+    real, gen = load_config("generalist_real"), load_config("generalist")
+    assert real.population.include == TRAINING_NAMES  # built-ins, then every real one not held out
+    assert not set(real.population.include) & set(REAL_HELD_OUT)
+    a, b = config_to_dict(real), config_to_dict(gen)
+    a.pop("name"), b.pop("name"), a["population"].pop("include"), b["population"].pop("include")
+    assert a == b
+
+
 def test_the_finetune_preset_is_the_generalist_in_one_anatomy_for_a_short_run() -> None:
     ft, gen = load_config("finetune"), load_config("generalist")
     assert not ft.population.enabled and ft.env_options == gen.env_options  # same observation
