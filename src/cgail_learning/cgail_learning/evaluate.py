@@ -34,6 +34,10 @@ run may use), pooled per method, with a per-anatomy success table at the end of 
 With ``--anatomy default`` or ``elongated`` and a generalist policy (trained on the
 population only) the targets are unseen too.
 
+**Failures drawn.** For each method and anatomy with a failed trial, ``failures_<mode>_<anatomy>
+_<method>.png`` shows the tip paths of its first failures (where each ended, and its target),
+linked at the end of the report (``--no-failure-pictures`` skips them).
+
 **Env option set.** The simulator runs in the option set the policies were trained in (their
 contracts' ``env_options``: ``ours`` or ``paper_code``, :data:`cgail_sim.config.
 OPTION_SETS`), so a ``paper_code`` policy sees its 27-float observation; policies of different
@@ -150,6 +154,11 @@ class Trial:
     fault: bool = False
     """The episode ended in a simulation fault (the env's ``info["simulation_fault"]``: the
     deformable wall blew up); neither a success nor a collision."""
+    path: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    """The true tip positions, (T + 1, 3) m, from the reset to the last step (not in
+    ``results.json``; :func:`render_failures` draws them)."""
+    target: np.ndarray | None = dataclasses.field(default=None, repr=False, compare=False)
+    """The trial's target, (3,) m."""
 
 
 class CenterlineFollower:
@@ -315,6 +324,8 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
         rng = np.random.default_rng([seed, k, 7001])
         if hasattr(method, 'reset'):
             method.reset(seed + k)
+        tips = [eng.catheter.tip_position[0].copy()]
+        target = np.array(eng.target[0], dtype=float)
         while True:
             pose = None
             if noisy:
@@ -325,6 +336,7 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
             else:
                 a = method(observation_at(env, *pose) if pose is not None else obs)
             obs, _, te, tr, info = env.step(a)
+            tips.append(eng.catheter.tip_position[0].copy())
             if te or tr:
                 break
         fault = bool(info.get('simulation_fault', False))
@@ -337,7 +349,7 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
                          info.get('simulation_fault_message', ''))
         out.append(Trial(bool(info['success']), bool(info['collision']), int(info['timesteps']),
                          1e3 * float(info['targeting_error']),
-                         getattr(method, 'plan_ms', None), fault))
+                         getattr(method, 'plan_ms', None), fault, np.asarray(tips), target))
         done[pair] = out[-1]
     return out
 
@@ -418,7 +430,8 @@ def results_json(all_results: dict[str, dict[str, list[Trial]]],
 
     return {**(meta or {}), 'modes': {
         mode: {name: {'summary': {k: clean(v) for k, v in summarize(trials).items()},
-                      'trials': [dataclasses.asdict(t) for t in trials]}
+                      'trials': [{f.name: getattr(t, f.name) for f in dataclasses.fields(t)
+                                  if f.name not in ('path', 'target')} for t in trials]}
                for name, trials in results.items()}
         for mode, results in all_results.items()}}
 
@@ -498,6 +511,56 @@ def write_report(all_results: dict[str, dict[str, list[Trial]]], out: Path,
     path = out / 'report.md'
     path.write_text('\n'.join(lines) + '\n')
     return path
+
+
+#: Failing trials drawn in one failure picture (the first ones, in trial order).
+FAILURES_SHOWN = 6
+
+
+def render_failures(env: Any, results: dict[str, list[Trial]], mode: str, out: Path,
+                    where: str = '') -> list[tuple[str, str]]:
+    """One PNG per method that failed a trial in ``env``'s anatomy: the first
+    :data:`FAILURES_SHOWN` failing trials' tip paths (each ending in a cross where the
+    episode ended: the wall for a collision) and their targets, in two views
+    (:func:`cgail_sim.render.render_anatomy`; the ostia are marked too). Returns ``(caption,
+    file name)`` per picture, the file in ``out``."""
+    from cgail_sim.render import render_anatomy
+
+    anatomy = env.unwrapped.engine.world.anatomy
+    made: list[tuple[str, str]] = []
+    for name, trials in results.items():
+        failed = [(k, t) for k, t in enumerate(trials) if not t.success and t.path is not None]
+        if not failed:
+            continue
+        shown = failed[:FAILURES_SHOWN]
+        outcome = {True: 'collision', False: 'time-out'}
+        rollouts = [(f'trial {k}: ' + ('simulation fault' if t.fault else outcome[t.collision])
+                     + f', {t.targeting_error_mm:.0f} mm from its target (star)', t.path,
+                     t.target) for k, t in shown]
+        safe = ''.join(ch if ch.isalnum() or ch in '._-' else '_' for ch in name)
+        png = f'failures_{mode}_{anatomy.name}_{safe}.png'
+        render_anatomy(anatomy, out / png, rollouts=rollouts, scenarios=False,
+                       views=('anterior', 'left-lateral'),
+                       title=f'{name}, {mode}{where}: {len(shown)} of {len(failed)} failed '
+                             f'trials of {len(trials)}')
+        made.append((f'{name}, {mode}, {anatomy.name}: {len(failed)} of {len(trials)} trials '
+                     f'failed ({len(shown)} shown)', png))
+    return made
+
+
+def _append_failures(report: Path, pictures: dict[str, list[tuple[str, str]]]) -> None:
+    """The failure pictures of each mode (:func:`render_failures`) at the end of the report."""
+    if not any(pictures.values()):
+        return
+    lines = ['## Failures', '',
+             'Where the failing trials went: the tip path of each (true positions), a cross '
+             'where its episode ended and a star on its target, in the colour of its path.',
+             '']
+    for shown in pictures.values():
+        for caption, png in shown:
+            lines += [f'- {caption}', '', f'  ![{caption}]({png})', '']
+    with report.open('a') as f:
+        f.write('\n'.join(lines) + '\n')
 
 
 def _held_out(count: int) -> list[Any]:
@@ -632,6 +695,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='evaluate on the first N held-out population anatomies (seeds 10000 on, '
                         'which no training uses; cgail_sim/population.py) instead of --anatomy: '
                         '--trials per anatomy, the results pooled, with a per-anatomy table')
+    p.add_argument('--failure-pictures', action=argparse.BooleanOptionalAction, default=True,
+                   help='draw where the failing trials went: one PNG per method and anatomy '
+                        f'with the tip paths of its first {FAILURES_SHOWN} failures, linked at '
+                        'the end of the report')
     p.add_argument('--out', type=Path, default=Path('reports/insilico'),
                    help='directory for report.md, results.json and the box plots')
     return p
@@ -660,6 +727,7 @@ def main(argv: list[str] | None = None) -> int:
         options = evaluation_options(policies, args.env_options)
         all_results: dict[str, dict[str, list[Trial]]] = {}
         outcomes: dict[str, dict[str, dict[str, list[bool]]]] = {}
+        pictures: dict[str, list[tuple[str, str]]] = {}
         for mode in args.modes:
             results: dict[str, list[Trial]] = {}
             for anatomy in held_out or [args.anatomy]:
@@ -667,11 +735,15 @@ def main(argv: list[str] | None = None) -> int:
                                                             anatomy=anatomy,
                                                             scenario_seed=args.scenario_seed))
                 where = f' {env.anatomy.name}' if held_out else ''
-                for name, trials in _run_methods(env, policies, args, noise, mode,
-                                                 where).items():
+                by_method = _run_methods(env, policies, args, noise, mode, where)
+                for name, trials in by_method.items():
                     results.setdefault(name, []).extend(trials)
                     outcomes.setdefault(mode, {}).setdefault(name, {})[
                         env.anatomy.name] = [t.success for t in trials]
+                if args.failure_pictures:
+                    args.out.mkdir(parents=True, exist_ok=True)
+                    pictures.setdefault(mode, []).extend(
+                        render_failures(env, by_method, mode, args.out, where))
             all_results[mode] = results
         if held_out:
             named = (f'{len(held_out)} held-out population anatomies '
@@ -720,6 +792,7 @@ def main(argv: list[str] | None = None) -> int:
         path = write_report(all_results, args.out, notes, meta)
         if held_out:
             _append_per_anatomy(path, outcomes)
+        _append_failures(path, pictures)
     except (LearningError, ValueError) as exc:
         print(f'cgail evaluate: error: {exc}', file=sys.stderr)
         return 2

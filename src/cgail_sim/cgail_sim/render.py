@@ -106,7 +106,8 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
                    scenarios: bool = True,
                    views: Sequence[str] = ("anterior", "left-lateral", "root"),
                    dpi: int = 110, title: str | None = None,
-                   markers: Mapping[str, np.ndarray] | None = None) -> Path:
+                   markers: Mapping[str, np.ndarray] | None = None,
+                   rollouts: Sequence[tuple[str, np.ndarray, np.ndarray | None]] = ()) -> Path:
     """Draw the anatomy and overlays to a PNG.
 
     Args:
@@ -120,6 +121,9 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
         dpi: output resolution.
         title: figure title (default: the anatomy name).
         markers: further labelled points (m) to mark, e.g. ``{"annulus centre": p}``.
+        rollouts: further labelled tip paths ``(label, (T, 3) points in m, target (3,) m or
+            None)``, each in a colour of its own: its last point (where the episode ended)
+            marked with a cross, its target with a star.
 
     Returns:
         The written path.
@@ -216,6 +220,18 @@ def render_anatomy(anatomy: Anatomy, out: str | Path, *,
         if rollout is not None and len(rollout):
             r = clip(np.asarray(rollout, dtype=float).reshape(-1, 3) * mm)
             ax.plot(r[:, 0], r[:, 1], r[:, 2], color="m", lw=1.6, label="catheter tip")
+        for r_idx, (label, path, goal) in enumerate(rollouts):
+            r = clip(np.asarray(path, dtype=float).reshape(-1, 3) * mm)
+            if not len(r):
+                continue
+            colour = plt.get_cmap("tab10")(r_idx % 10)
+            ax.plot(r[:, 0], r[:, 1], r[:, 2], color=colour, lw=1.6, label=label)
+            ax.scatter([r[-1, 0]], [r[-1, 1]], [r[-1, 2]], s=60, marker="X", color=colour,
+                       edgecolors="k", depthshade=False)
+            if goal is not None:
+                g = clip(np.asarray(goal, dtype=float).reshape(1, 3) * mm)[0]
+                ax.scatter([g[0]], [g[1]], [g[2]], s=90, marker="*", color=colour,
+                           edgecolors="k", depthshade=False)
         ax.set_xlim(c_view[0] - h_view, c_view[0] + h_view)
         ax.set_ylim(c_view[1] - h_view, c_view[1] + h_view)
         ax.set_zlim(c_view[2] - h_view, c_view[2] + h_view)

@@ -215,3 +215,31 @@ def test_the_cli_draws_targets_and_says_so(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith('cgail evaluate: error: drawn targets need an env that draws them')
     assert err.count('\n') == 1
+
+
+def test_trials_keep_their_tip_path_and_failures_are_drawn(static_env, tmp_path):
+    """Each trial keeps its true tip path and target (not in results.json); a method that
+    fails gets one picture of its first failures, linked at the end of the report; one that
+    never fails gets none."""
+    from cgail_learning import evaluate
+
+    def into_the_wall(obs: np.ndarray) -> np.ndarray:  # full bend, full insertion
+        return np.array([1.0, 0.0, 1.0])
+
+    follower = CenterlineFollower(static_env)
+    results = {'wall': run_trials(static_env, into_the_wall, 2, seed=5),
+               'centerline': run_trials(static_env, follower, 1, seed=5)}
+    for t in results['wall'] + results['centerline']:
+        assert t.path.shape == (t.timesteps + 1, 3) and np.all(np.isfinite(t.path))
+        assert t.target.shape == (3,)
+    assert not any(t.success for t in results['wall']) and results['centerline'][0].success
+    shown = evaluate.render_failures(static_env, results, 'static', tmp_path)
+    assert [png for _, png in shown] == ['failures_static_default_wall.png']
+    assert shown[0][0].startswith('wall, static, default: 2 of 2 trials failed')
+    assert (tmp_path / shown[0][1]).stat().st_size > 10_000
+    report = evaluate.write_report({'static': results}, tmp_path)
+    evaluate._append_failures(report, {'static': shown})
+    text = report.read_text()
+    assert text.index('## Failures') > text.index('## static')
+    assert '(failures_static_default_wall.png)' in text
+    assert 'path' not in (tmp_path / 'results.json').read_text()
