@@ -536,7 +536,7 @@ def render_failures(env: Any, results: dict[str, list[Trial]], mode: str, out: P
         outcome = {True: 'collision', False: 'time-out'}
         rollouts = [(f'trial {k}: ' + ('simulation fault' if t.fault else outcome[t.collision])
                      + f', {t.targeting_error_mm:.0f} mm from its target (star)', t.path,
-                     t.target) for k, t in shown]
+                     t.target) for k, t in shown if t.path is not None]
         safe = ''.join(ch if ch.isalnum() or ch in '._-' else '_' for ch in name)
         png = f'failures_{mode}_{anatomy.name}_{safe}.png'
         render_anatomy(anatomy, out / png, rollouts=rollouts, scenarios=False,
