@@ -212,16 +212,16 @@ def main(argv: list[str] | None = None) -> int:
             raise LearningError('--anatomy: expected with --add-contract (a checkpoint carries '
                                 'its contract), found it alone')
         if args.add_contract:
-            from cgail_sim.anatomy_spec import check_anatomy_spec, is_builtin
+            from cgail_sim.anatomy_spec import check_anatomy_spec, is_named
 
             if args.anatomy is not None:
                 check_anatomy_spec(args.anatomy)  # (before the model is read)
             meta = {p.key: json.loads(p.value) for p in onnx.load(str(args.checkpoint))
                     .metadata_props}
             anatomy = args.anatomy or str(meta.get('anatomy', 'default'))
-            if not is_builtin(anatomy) and args.anatomy is None:
+            if not is_named(anatomy) and args.anatomy is None:
                 raise LearningError(f'--add-contract: the metadata of {args.checkpoint} names '
-                                    f'anatomy {anatomy!r}, not a built-in one: give its '
+                                    f'anatomy {anatomy!r}, not a named one: give its '
                                     'prepared directory with --anatomy')
             training = json.loads(args.training_json)
             if not isinstance(training, dict):

@@ -621,7 +621,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail('ROS_AUTOMATIC_DISCOVERY_RANGE is unset (DDS would multicast); run through '
                     'scripts/ws')
     from cgail_sim.anatomy import AnatomyError
-    from cgail_sim.anatomy_spec import anatomy_label, is_builtin
+    from cgail_sim.anatomy_spec import anatomy_label, is_builtin, is_named
     from cgail_sim.worlds import load_world
 
     builtin = is_builtin(args.anatomy)
@@ -629,7 +629,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         load_world(args.anatomy)
     except AnatomyError as exc:
         return fail(str(exc))
-    anatomy = args.anatomy if builtin else str(Path(args.anatomy).expanduser().resolve())
+    # (a name travels as it is; a path, absolute, to the workers and nodes)
+    anatomy = args.anatomy if is_named(args.anatomy) else str(
+        Path(args.anatomy).expanduser().resolve())
     label = anatomy_label(args.anatomy)
     if args.policy is None and 'cgail' in args.conditions and not builtin:
         return fail(f'the cgail condition needs --policy <model.onnx> for anatomy {anatomy}: '

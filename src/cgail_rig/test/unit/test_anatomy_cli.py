@@ -115,7 +115,7 @@ def test_export_onnx_adds_a_path_anatomy_contract(prepared, tmp_path, capsys) ->
     assert export.main([str(out), '--add-contract']) == 2
     err = capsys.readouterr().err
     assert err == (f"cgail export-onnx: error: --add-contract: the metadata of {out} names "
-                   "anatomy 'p07', not a built-in one: give its prepared directory with "
+                   "anatomy 'p07', not a named one: give its prepared directory with "
                    "--anatomy\n")
     assert export.main([str(FIXTURES / 'straight_policy.onnx'), '--anatomy', 'default']) == 2
     assert '--anatomy: expected with --add-contract' in capsys.readouterr().err
