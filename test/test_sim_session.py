@@ -130,6 +130,20 @@ def test_a_simulation_fault_ends_its_trial_as_a_counted_outcome(tmp_path, monkey
     assert 'simulation fault at ' in capsys.readouterr().out
 
 
+def test_a_named_real_aorta_runs_a_session(tmp_path, monkeypatch) -> None:
+    """``--anatomy avt-D18`` (a shipped real aorta, by name) reaches the phantom and the
+    planner as that name: the centerline trial runs in D18 and reaches its target."""
+    monkeypatch.delenv('ROS_DOMAIN_ID', raising=False)
+    out = tmp_path / 'session'
+    assert main(['--trials', '1', '--plant', 'nominal', '--conditions', 'centerline',
+                 '--anatomy', 'avt-D18', '--jobs', '1', '--time-limit', '150',
+                 '--out', str(out)]) == 0
+    text = (out / 'metrics.md').read_text()
+    assert 'callback errors: 0, simulation faults: 0 ' in text, text
+    row = next(line for line in text.splitlines() if line.startswith('| centerline_01'))
+    assert [c.strip() for c in row.strip('|').split('|')][8] == 'yes', row
+
+
 def _assert_both_trials_reached(out: Path) -> None:
     """The session's report: no callback error, trial 1 of each condition reached its target
     within epsilon in time, with a tracking error under 10 mm."""
