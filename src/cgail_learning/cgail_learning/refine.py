@@ -102,11 +102,15 @@ class RefineOptions:
     """Seed of the episodes (anatomy j of round r: ``seed + 100000 r + 1000 j + k``)."""
     validation_episodes: int = 0
     """Episodes of each validation; 0: the preset's ``eval_episodes`` (``train``'s)."""
+    dynamic_episodes: int = 0
+    """Episodes in the beating aorta (the deformable wall) per named anatomy the run includes
+    (built-in or real; with ``--anatomy``, that one), labelled beside the static ones: the
+    expert's answer where the wall moves into the policy's way (0: static only)."""
 
     def __post_init__(self) -> None:
         for name, lo, hi in (('rounds', 1, 10), ('anatomies', 0, 10_000), ('episodes', 1, 1000),
                              ('every', 1, 1000), ('epochs', 1, 1000), ('seed', 0, 2**31),
-                             ('validation_episodes', 0, 10_000)):
+                             ('validation_episodes', 0, 10_000), ('dynamic_episodes', 0, 1000)):
             v = getattr(self, name)
             if not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f'{name} must be an int in [{lo}, {hi}], found {v!r}')
@@ -242,6 +246,11 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
     envs = [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='static',
                                                    anatomy=spec)), n, _group(spec))
             for spec, n in specs]
+    if options.dynamic_episodes:  # (the named ones: the built-ins and the real aortas)
+        envs += [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='dynamic',
+                                                        anatomy=spec)),
+                  options.dynamic_episodes, f'{_group(spec)} dynamic')
+                 for spec, _ in specs if isinstance(spec, str)]
     base = validate()
     say(f'{checkpoint}: step {trainer.step}, validation {100 * base:.1f}% on '
         f'{n_val} episodes; {sum(n for _, n, _ in envs)} episodes a round in '
@@ -329,6 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
                         ('every', 'label every n-th state'),
                         ('epochs', 'cloning passes over demonstrations + labels'),
                         ('seed', 'seed of the episodes'),
+                        ('dynamic_episodes', 'episodes in the beating aorta per named '
+                                             'anatomy included (0: static only)'),
                         ('validation_episodes', "episodes of each validation (0: the preset's "
                                                 'eval_episodes)')):
         p.add_argument(f'--{name.replace("_", "-")}', type=int, default=getattr(d, name),
@@ -345,7 +356,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         opts = RefineOptions(rounds=args.rounds, anatomies=args.anatomies,
                              episodes=args.episodes, every=args.every, epochs=args.epochs,
-                             seed=args.seed, validation_episodes=args.validation_episodes)
+                             seed=args.seed, validation_episodes=args.validation_episodes,
+                             dynamic_episodes=args.dynamic_episodes)
         refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress,
                anatomy=args.anatomy, preset=args.preset)
     except (LearningError, ValueError) as exc:

@@ -271,3 +271,25 @@ def test_refine_an_exported_population_policy_in_its_presets_population(tmp_path
     with pytest.raises(LearningError, match=r'expected a population preset \(generalist\) to '):
         refine(onnx_path, [str(tmp_path / 'demos.npz')], tmp_path / 'x', progress=False,
                log=lambda line: None, preset=str(_one_anatomy_preset(tmp_path)))
+
+
+def test_refine_labels_episodes_in_the_beating_aorta_too(tmp_path, monkeypatch) -> None:
+    """``dynamic_episodes``: that many more episodes per named anatomy, in the beating aorta,
+    counted as their own group; 0 (the default) adds none."""
+    from cgail_learning.export import export_checkpoint
+
+    onnx_path = export_checkpoint(_population_checkpoint(tmp_path, monkeypatch),
+                                  tmp_path / 'gen.onnx')
+    preset = _one_anatomy_preset(tmp_path)
+    demos = [str(tmp_path / 'demos.npz')]
+    both = refine(onnx_path, demos, tmp_path / 'dyn',
+                  RefineOptions(episodes=1, every=50, epochs=1, dynamic_episodes=1),
+                  progress=False, log=lambda line: None, anatomy='default', preset=str(preset))
+    static = refine(onnx_path, demos, tmp_path / 'static',
+                    RefineOptions(episodes=1, every=50, epochs=1),
+                    progress=False, log=lambda line: None, anatomy='default', preset=str(preset))
+    assert set(both['rounds'][0]['policy_success']) == {'default', 'default dynamic'}
+    assert set(static['rounds'][0]['policy_success']) == {'default'}
+    assert both['rounds'][0]['labels'] > static['rounds'][0]['labels']
+    with pytest.raises(ValueError, match=r'dynamic_episodes must be an int in \[0, 1000\]'):
+        RefineOptions(dynamic_episodes=-1)
