@@ -18,7 +18,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OWNER = 'cgail_node_utils'
 #: Functions that exist once, in cgail_node_utils.
-SHARED_HELPERS = frozenset({'spin', 'try_shutdown', 'lifecycle_state', 'configure_time_guard',
+SHARED_HELPERS = frozenset({'spin', 'try_shutdown', 'run_node', 'start_lifecycle',
+                            'lifecycle_state', 'configure_time_guard',
                             'configure_time_refusal'})
 
 

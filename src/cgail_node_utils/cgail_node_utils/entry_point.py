@@ -1,6 +1,6 @@
 """What a node's console entry point needs around the spin, whatever the timing of a Ctrl-C.
 
-A ``main()`` reads (ros2/demos' shape, with these two helpers)::
+A ``main()`` is one call (:func:`run_node`), which runs ros2/demos' shape::
 
     rclpy.init(args=args)
     node = None
@@ -16,14 +16,20 @@ A ``main()`` reads (ros2/demos' shape, with these two helpers)::
         if node is not None:
             node.destroy_node()
         try_shutdown()
+
+plus the node's own fatal input errors (one line, exit status 2) and, for a lifecycle node, its
+autostart (:func:`start_lifecycle`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import contextlib
+import sys
+from typing import Any
 
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation
 from rclpy.node import Node
 
@@ -66,3 +72,49 @@ def spin(node: Node) -> None:
         executor.spin()
     finally:
         executor.shutdown(timeout_sec=0)
+
+
+def run_node(make: Callable[[], Node], prog: str, args: list[str] | None = None, *,
+             fatal: tuple[type[BaseException], ...] = (),
+             start: Callable[[Any], None] | None = None) -> None:
+    """A node's console entry point: init, ``make()`` the node, ``start`` it, spin until
+    Ctrl-C or shutdown, then destroy it and shut down (the module docstring's shape).
+
+    Args:
+        make: builds the node (its constructor).
+        prog: the console script's name, for the error line.
+        args: the command line (rclpy's, default ``sys.argv``).
+        fatal: input errors that end the node with ``<prog>: error: <message>`` on stderr and
+            exit status 2 (a bad anatomy or contract, a port in use).
+        start: called with the node before the spin (:func:`start_lifecycle`).
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = make()
+        if start is not None:
+            start(node)
+        spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except RCLError:
+        if rclpy.ok():  # (not ok: Ctrl-C while starting, see RCLError)
+            raise
+    except fatal as exc:
+        print(f'{prog}: error: {exc}', file=sys.stderr)
+        raise SystemExit(2) from None
+    finally:
+        if node is not None:
+            node.destroy_node()
+        try_shutdown()
+
+
+def start_lifecycle(node: Any) -> None:
+    """A lifecycle device node's start: configure and activate it, unless its ``autostart``
+    is false (then it waits, unconfigured, for ``<name>/change_state``)."""
+    if node.autostart:
+        node.trigger_configure()
+        node.trigger_activate()
+    else:
+        node.get_logger().info('autostart is false: unconfigured, waiting for '
+                               f'{node.get_name()}/change_state')

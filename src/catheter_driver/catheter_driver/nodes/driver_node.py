@@ -31,8 +31,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
 from rclpy.service import Service
 from rclpy.subscription import Subscription
@@ -52,7 +50,7 @@ from catheter_driver.hw.can_protocol import DriverCodec, DriverCommand, DriverSt
 from catheter_driver.hw.driver_link import CanDriverLink
 from catheter_driver.hw.sim_driver import SimulatedDriver
 from catheter_driver.nodes import conversions as conv
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node, start_lifecycle
 from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, declare
 
 _R, _S = RelayConfig(), SupervisionConfig()
@@ -469,29 +467,10 @@ class DriverNode(LifecycleNode):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``driver_node``: build the node, configure and activate it (unless
     ``autostart`` is false), spin."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = DriverNode()
-        if node.autostart:
-            node.trigger_configure()
-            node.trigger_activate()
-        else:
-            node.get_logger().info('autostart is false: unconfigured, waiting for '
-                                   'sleeve_driver/change_state')
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(DriverNode, 'driver_node', args, start=start_lifecycle)
 
 
 if __name__ == '__main__':

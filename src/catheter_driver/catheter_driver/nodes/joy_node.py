@@ -11,8 +11,6 @@ from __future__ import annotations
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import Joy
 
@@ -20,7 +18,7 @@ from catheter_driver.core.joy_filter import JoyConfig, JoyFilter
 from catheter_driver.exceptions import DeviceDisconnectedError
 from catheter_driver.hw.gamepad import Gamepad, GamepadFactory, SdlGamepad
 from catheter_driver.nodes import conversions as conv
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node
 from cgail_node_utils.parameters import declare
 
 
@@ -118,22 +116,9 @@ class JoyNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``joy_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = JoyNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(JoyNode, 'joy_node', args)
 
 
 if __name__ == '__main__':

@@ -8,15 +8,13 @@ rig's launch files remap them to ``joy`` and ``catheter/...`` (docs/interfaces.m
 
 from __future__ import annotations
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, Joy
 
 from catheter_driver.core.teleop import Teleop, TeleopConfig, TeleopOutput
 from catheter_driver.exceptions import CommandError
 from catheter_driver.nodes import conversions as conv
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node
 from cgail_node_utils.parameters import declare
 
 
@@ -77,22 +75,9 @@ class TeleopNode(Node):
             self._bend_pub.publish(conv.bend_command(stamp, out.bend))
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``teleop_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = TeleopNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(TeleopNode, 'teleop_node', args)
 
 
 if __name__ == '__main__':

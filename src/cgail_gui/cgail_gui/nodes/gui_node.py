@@ -21,7 +21,6 @@ from __future__ import annotations
 from collections.abc import Callable
 import math
 from pathlib import Path
-import sys
 import threading
 import time
 from typing import Any
@@ -31,8 +30,6 @@ from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
@@ -49,7 +46,7 @@ from cgail_gui.protocol import ClientCommand
 from cgail_gui.server import GuiServer
 from cgail_gui.state import GuiState
 from cgail_gui.static import build_table, find_web_root, missing_vendor
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.markers import LUMEN_NS
 from cgail_planner.nodes import conversions as conv
 from cgail_sim.mesh_io import AnatomyError
@@ -454,23 +451,7 @@ class GuiNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run ``gui_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = GuiNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
-            raise
-    except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
-        print(f'gui_node: error: {exc}', file=sys.stderr)
-        raise SystemExit(2) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(GuiNode, 'gui_node', args, fatal=(AnatomyError,))
 
 
 if __name__ == '__main__':

@@ -21,20 +21,16 @@ Without a client nothing is queued. Messages in a frame other than ``frame_id`` 
 
 from __future__ import annotations
 
-import sys
-
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
 from cgail_gui.core import igtl
 from cgail_gui.hw import igtl_server as srv
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LUMEN_NS
 from cgail_planner.nodes import conversions as conv
@@ -189,25 +185,9 @@ class IgtlBridge(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``igtl_bridge``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = IgtlBridge()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
-            raise
-    except (AnatomyError, igtl.CtFrameError, OSError) as exc:  # bad anatomy, port in use
-        print(f'igtl_bridge: error: {exc}', file=sys.stderr)
-        raise SystemExit(2) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(IgtlBridge, 'igtl_bridge', args, fatal=(AnatomyError, igtl.CtFrameError, OSError))
 
 
 if __name__ == '__main__':

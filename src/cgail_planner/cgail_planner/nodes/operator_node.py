@@ -27,18 +27,16 @@ import math
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, Joy
 from std_msgs.msg import Bool, Header
 from std_srvs.srv import Trigger
 
+from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.guidance import PathFollower
 from cgail_planner.core.operator import aimed_bend, OperatorConfig, Percept, ScriptedOperator
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, spin, try_shutdown
 
 
 class OperatorNode(Node):
@@ -230,22 +228,9 @@ class OperatorNode(Node):
         self._was_running = running
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``operator_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = OperatorNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(OperatorNode, 'operator_node', args)
 
 
 if __name__ == '__main__':

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 import math
-import sys
 import time
 from typing import Any
 
@@ -47,12 +46,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from visualization_msgs.msg import MarkerArray
 
+from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
 from cgail_planner.core.markers import MarkerConfig, planner_markers, TipGuidance
@@ -67,7 +65,6 @@ from cgail_planner.core.planner import (
 )
 from cgail_planner.core.rrt_planner import RrtConfig
 from cgail_planner.nodes import conversions as conv
-from cgail_planner.nodes import RCLError, spin, try_shutdown
 from cgail_sim.ftl_model import CatheterConfig
 from cgail_sim.mesh_io import AnatomyError
 
@@ -406,25 +403,9 @@ class PlannerNode(Node):
         self._diag_pub.publish(self.diagnostics())
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``planner_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PlannerNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
-            raise
-    except (ContractError, AnatomyError) as exc:  # a bad anatomy or contract: say so, exit 2
-        print(f'planner_node: error: {exc}', file=sys.stderr)
-        raise SystemExit(2) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(PlannerNode, 'planner_node', args, fatal=(ContractError, AnatomyError))
 
 
 if __name__ == '__main__':

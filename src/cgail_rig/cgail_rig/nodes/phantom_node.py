@@ -56,7 +56,6 @@ from __future__ import annotations
 from dataclasses import replace
 import os
 from pathlib import Path
-import sys
 import tempfile
 import threading
 import time
@@ -64,9 +63,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PointStamped, PoseStamped
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType, ROSClock
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMsg
@@ -75,7 +72,7 @@ from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LumenMesh, MarkerConfig, phantom_markers
 from cgail_planner.core.rotations import matrix_to_quaternion
@@ -415,25 +412,9 @@ class PhantomNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Console script ``phantom_node``."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PhantomNode()
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_planner.nodes.RCLError)
-            raise
-    except AnatomyError as exc:  # an anatomy that cannot be loaded: say so, exit 2
-        print(f'phantom_node: error: {exc}', file=sys.stderr)
-        raise SystemExit(2) from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(PhantomNode, 'phantom_node', args, fatal=(AnatomyError,))
 
 
 if __name__ == '__main__':

@@ -60,7 +60,6 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
 from rclpy.qos import DurabilityPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
@@ -68,7 +67,7 @@ from rclpy.timer import Timer
 from std_msgs.msg import Float64
 from tf2_msgs.msg import TFMessage
 
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node, start_lifecycle
 from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, descriptor
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.pose import Registration, TipPose
@@ -374,32 +373,13 @@ class AuroraNode(LifecycleNode):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Build the node, configure and activate it (unless ``autostart`` is false), spin.
 
     ``scripts/ros2run em_tracker aurora_node --ros-args -p port:=...`` (or
     ``scripts/ws aurora_node --ros-args -p port:=...``)
     """
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = AuroraNode()
-        if node.autostart:
-            node.trigger_configure()
-            node.trigger_activate()
-        else:
-            node.get_logger().info('autostart is false: unconfigured, waiting for '
-                                   'aurora/change_state')
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(AuroraNode, 'aurora_node', args, start=start_lifecycle)
 
 
 if __name__ == '__main__':

@@ -21,8 +21,6 @@ import math
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.lifecycle import LifecycleNode, State, TransitionCallbackReturn
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from rclpy.service import Service
@@ -31,7 +29,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header
 from std_srvs.srv import SetBool
 
-from cgail_node_utils.entry_point import RCLError, spin, try_shutdown
+from cgail_node_utils.entry_point import run_node, start_lifecycle
 from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_guard, descriptor
 from pam_controller.core.bending_model import (
     BendingModel,
@@ -484,26 +482,7 @@ class PamNode(LifecycleNode):
 def main(args: list[str] | None = None) -> None:
     """Console script ``pam_node``: build the node, configure and activate it (unless
     ``autostart`` is false), spin."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PamNode()
-        if node.autostart:
-            node.trigger_configure()
-            node.trigger_activate()
-        else:
-            node.get_logger().info('autostart is false: unconfigured, waiting for '
-                                   'pam_controller/change_state')
-        spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except RCLError:
-        if rclpy.ok():  # (not ok: Ctrl-C while starting, see cgail_node_utils.entry_point)
-            raise
-    finally:
-        if node is not None:
-            node.destroy_node()
-        try_shutdown()
+    run_node(PamNode, 'pam_node', args, start=start_lifecycle)
 
 
 if __name__ == '__main__':
