@@ -31,8 +31,8 @@ __all__ = ['expert_labels']
 
 
 def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes: int,
-                  seed: int = 0, every: int = 4, stop: Callable[[], bool] | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+                  seed: int = 0, every: int = 4, stop: Callable[[], bool] | None = None,
+                  first: int = 0) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
     """Run ``policy`` in ``env`` and label the states it visits with the expert's action.
 
     Args:
@@ -45,6 +45,9 @@ def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes
         seed: base seed.
         every: label steps 0, every, 2 * every, ... of each episode (>= 1).
         stop: checked before each episode; True ends the collection early (a time budget).
+        first: the index of the first episode: episodes ``first .. first + episodes - 1`` run,
+            so a collection split into consecutive chunks (worker processes) labels what one
+            call over all the episodes labels.
 
     Returns:
         ``(obs (M, D) float32, expert actions (M, 3) float32, stats)``; stats: ``episodes`` run,
@@ -54,6 +57,8 @@ def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes
         raise ValueError(f'every must be an int >= 1, found {every!r}')
     if not isinstance(episodes, int) or episodes < 0:
         raise ValueError(f'episodes must be an int >= 0, found {episodes!r}')
+    if not isinstance(first, int) or first < 0:
+        raise ValueError(f'first must be an int >= 0, found {first!r}')
     expert = ScriptedExpert(env)
     sc = env.unwrapped.engine.scenarios
     n_s, n_t = len(sc.starts), len(sc.targets)
@@ -61,7 +66,7 @@ def expert_labels(env: Any, policy: Callable[[np.ndarray], np.ndarray], episodes
     obs_l: list[np.ndarray] = []
     act_l: list[np.ndarray] = []
     wins: list[bool] = []
-    for k in range(episodes):
+    for k in range(first, first + episodes):
         if stop is not None and stop():
             break
         options = {'start': k % n_s} if drawn else {'start': k % n_s,

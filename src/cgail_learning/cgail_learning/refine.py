@@ -24,6 +24,12 @@ AISTATS 2011). Each round's policy is validated like ``train`` validates its che
 run's selection anatomies, ``eval_episodes`` episodes, the same seeds); ``refined.pt`` is the
 best of the checkpoint and the rounds (latest on ties, as ``train`` keeps ``best.pt``).
 
+**Worker processes.** ``--jobs N`` (0: one per CPU core) drives and labels the episodes in N
+spawned processes, an anatomy's episodes cut into chunks of ten; each episode's seed, start and
+target depend on its anatomy and index only, and the chunks are put back in order, so the labels
+and the refined weights equal those of ``--jobs 1`` (a test compares them). The cloning and the
+validations run in this process.
+
 **Which anatomies.** ``--anatomies`` of the run's training seeds, evenly spaced, ``--episodes``
 episodes each, and each named anatomy the run includes (built-in, or a real training aorta
 ``avt-<case>``) ``include_weight`` times as many (the share the training gave it). Never a
@@ -67,6 +73,7 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import asdict, dataclass
+import os
 from pathlib import Path
 import sys
 import time
@@ -106,11 +113,16 @@ class RefineOptions:
     """Episodes in the beating aorta (the deformable wall) per named anatomy the run includes
     (built-in or real; with ``--anatomy``, that one), labelled beside the static ones: the
     expert's answer where the wall moves into the policy's way (0: static only)."""
+    jobs: int = 1
+    """Worker processes that drive and label the episodes (0: one per CPU core). The labels
+    do not depend on it: each episode's seed, start and target are fixed by its anatomy and
+    its index, and the chunks are put back in order."""
 
     def __post_init__(self) -> None:
         for name, lo, hi in (('rounds', 1, 10), ('anatomies', 0, 10_000), ('episodes', 1, 1000),
                              ('every', 1, 1000), ('epochs', 1, 1000), ('seed', 0, 2**31),
-                             ('validation_episodes', 0, 10_000), ('dynamic_episodes', 0, 1000)):
+                             ('validation_episodes', 0, 10_000), ('dynamic_episodes', 0, 1000),
+                             ('jobs', 0, 256)):
             v = getattr(self, name)
             if not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f'{name} must be an int in [{lo}, {hi}], found {v!r}')
@@ -133,6 +145,75 @@ def label_anatomies(population: Any, options: RefineOptions) -> list[tuple[Any, 
 
 def _group(spec: Any) -> str:
     return spec if isinstance(spec, str) else 'population'
+
+
+_CHUNK = 10
+"""Episodes per worker task: small enough to balance 60-episode anatomies against
+3-episode ones over the workers."""
+
+
+@dataclass(frozen=True)
+class _LabelJob:
+    """One anatomy's episodes of a round (``--jobs``: cut into chunks of :data:`_CHUNK`)."""
+
+    spec: Any
+    """What the env is built from: a name or path, or an :class:`~cgail_sim.anatomy.Anatomy`."""
+    mode: str
+    episodes: int
+    group: str
+
+
+def _portable(spec: Any) -> Any:
+    """``spec`` as a worker process can rebuild it: a population sample by its name
+    (``population-<seed>``, rebuilt from the seed; 1.7 MB less to send), else as it is."""
+    from cgail_sim.population import population_seed
+
+    name = getattr(spec, 'name', None)
+    if isinstance(spec, str) or not isinstance(name, str):
+        return spec
+    return name if population_seed(name) is not None else spec
+
+
+_worker: dict[str, Any] = {}
+"""A worker process's envs (by options, spec and mode) and the round's policy."""
+
+
+def _worker_init() -> None:
+    torch.set_num_threads(1)
+
+
+def _label_chunk(env_options: str, spec: Any, mode: str, round_: int, actor: bytes,
+                 episodes: int, first: int, seed: int, every: int
+                 ) -> tuple[np.ndarray, np.ndarray, dict[str, float]]:
+    """Worker task: episodes ``first ..`` of one anatomy driven by the round's actor (sent as
+    pickled bytes once per round and worker) and labelled by the expert."""
+    import pickle
+
+    from cgail_learning.dagger import expert_labels
+    from cgail_sim.config import EnvConfig
+    from cgail_sim.env import CatheterNavEnv
+
+    key = (env_options, spec if isinstance(spec, str) else spec.content_hash, mode)
+    env = _worker.setdefault('envs', {}).get(key)
+    if env is None:
+        env = CatheterNavEnv(EnvConfig.from_options(env_options, mode=mode, anatomy=spec))
+        _worker['envs'][key] = env
+    if _worker.get('round') != round_:
+        _worker['round'], _worker['actor'] = round_, pickle.loads(actor).eval()
+    net = _worker['actor']
+
+    @torch.no_grad()
+    def policy(obs: np.ndarray) -> np.ndarray:
+        return net.deterministic(torch.as_tensor(np.asarray(obs, np.float32))).numpy()
+
+    return expert_labels(env, policy, episodes, seed, every, first=first)
+
+
+def _jobs(options: RefineOptions) -> int:
+    if options.jobs:
+        return options.jobs
+    return len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else \
+        (os.cpu_count() or 1)
 
 
 def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
@@ -243,63 +324,104 @@ def refine(checkpoint: Path, demos: list[str] | list[Path], out: Path,
         return evaluate_policy(trainer.act_deterministic, eval_env, n_val,
                                seed=eval_seed)['eval/success_rate']
 
-    envs = [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='static',
-                                                   anatomy=spec)), n, _group(spec))
-            for spec, n in specs]
+    work = [_LabelJob(spec, 'static', n, _group(spec)) for spec, n in specs]
     if options.dynamic_episodes:  # (the named ones: the built-ins and the real aortas)
-        envs += [(CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode='dynamic',
-                                                        anatomy=spec)),
-                  options.dynamic_episodes, f'{_group(spec)} dynamic')
+        work += [_LabelJob(spec, 'dynamic', options.dynamic_episodes, f'{_group(spec)} dynamic')
                  for spec, _ in specs if isinstance(spec, str)]
+    jobs = _jobs(options)
+    pool: Any = None
+    if jobs == 1:  # (in this process, each env built once)
+        envs = [CatheterNavEnv(EnvConfig.from_options(cfg.env_options, mode=w.mode,
+                                                      anatomy=w.spec)) for w in work]
+    else:
+        import concurrent.futures
+        import multiprocessing
+
+        pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=jobs, mp_context=multiprocessing.get_context('spawn'),
+            initializer=_worker_init)
+
+    def label_round(r: int, bar: Any) -> list[tuple[np.ndarray, np.ndarray, dict[str, float]]]:
+        """Every job's (obs, labels, stats) of round ``r``, in the order of ``work``."""
+        seeds = [options.seed + 100_000 * (r - 1) + 1000 * j for j in range(len(work))]
+        if pool is None:
+            out = []
+            for j, w in enumerate(work):
+                out.append(expert_labels(envs[j], trainer.act_deterministic, w.episodes,
+                                         seeds[j], options.every))
+                bar.update(w.episodes)
+            return out
+        import concurrent.futures
+        import pickle
+
+        actor = pickle.dumps(trainer.actor)
+        futures = [[pool.submit(_label_chunk, cfg.env_options, _portable(w.spec), w.mode, r,
+                                actor, min(_CHUNK, w.episodes - k), k, seeds[j],
+                                options.every)
+                    for k in range(0, w.episodes, _CHUNK)] for j, w in enumerate(work)]
+        for f in concurrent.futures.as_completed([f for fs in futures for f in fs]):
+            bar.update(int(f.result()[2]['episodes']))
+        out = []
+        for fs in futures:
+            parts = [f.result() for f in fs]
+            n = sum(st['episodes'] for _, _, st in parts)
+            out.append((np.concatenate([o for o, _, _ in parts]),
+                        np.concatenate([a for _, a, _ in parts]),
+                        {'episodes': n, 'labels': float(sum(len(o) for o, _, _ in parts)),
+                         'policy_success': sum(st['policy_success'] * st['episodes']
+                                               for _, _, st in parts) / max(n, 1)}))
+        return out
+
     base = validate()
     say(f'{checkpoint}: step {trainer.step}, validation {100 * base:.1f}% on '
-        f'{n_val} episodes; {sum(n for _, n, _ in envs)} episodes a round in '
-        f'{len(envs)} anatomies ({time.monotonic() - t0:.0f} s)')
+        f'{n_val} episodes; {sum(w.episodes for w in work)} episodes a round in '
+        f'{len(work)} anatomies, {jobs} worker process{"es" if jobs > 1 else ""} '
+        f'({time.monotonic() - t0:.0f} s)')
     summary: dict[str, Any] = {'checkpoint': str(checkpoint), 'options': asdict(options),
                                'base_validation': base, 'rounds': []}
     best = (base, 0)
     obs_all: list[np.ndarray] = []
     act_all: list[np.ndarray] = []
     out.mkdir(parents=True, exist_ok=True)
-    for r in range(1, options.rounds + 1):
-        t_round = time.monotonic()
-        groups: dict[str, list[float]] = {}
-        with tqdm(total=sum(n for _, n, _ in envs), disable=not progress, unit='episode',
-                  desc=f'cgail refine: round {r} labels', dynamic_ncols=True) as bar:
-            for j, (e, n, group) in enumerate(envs):
-                o, a, st = expert_labels(e, trainer.act_deterministic, n,
-                                         options.seed + 100_000 * (r - 1) + 1000 * j,
-                                         options.every)
-                obs_all.append(o)
-                act_all.append(a)
-                g = groups.setdefault(group, [0.0, 0.0])
-                g[0] += st['policy_success'] * st['episodes']
-                g[1] += st['episodes']
-                bar.update(n)
-        t_label = time.monotonic() - t_round
-        restore()  # (DAgger clones the aggregate from the start)
-        stats = trainer.pretrain_bc(options.epochs, extra=(np.concatenate(obs_all),
-                                                           np.concatenate(act_all)),
-                                    refit_normalizer=False)
-        rate = validate()
-        labels = int(sum(len(o) for o in obs_all))
-        row = {'round': r, 'labels': labels,
-               'policy_success': {k: round(v[0] / v[1], 4) for k, v in groups.items()},
-               'bc_loss': round(float(stats['losses/bc_pretrain_loss']), 5),
-               'validation': rate, 'label_s': round(t_label, 1),
-               'wall_s': round(time.monotonic() - t_round, 1)}
-        summary['rounds'].append(row)
-        trainer.metadata['refinement'] = {
-            'method': 'dagger', 'round': r, 'labels': labels, 'every': options.every,
-            'epochs': options.epochs, 'anatomies': len(envs), 'base_step': trainer.step,
-            'base_validation': base, 'validation': rate}
-        trainer.save(out / f'round_{r}.pt')
-        if rate >= best[0]:
-            best = (rate, r)
-        say(f'round {r}: the policy reached ' + ', '.join(
-            f'{k} {100 * v[0] / v[1]:.0f}%' for k, v in groups.items()) +
-            f' of its episodes; {labels} labels; cloned {options.epochs} epochs (loss '
-            f'{row["bc_loss"]:.4f}); validation {100 * rate:.1f}% ({row["wall_s"]:.0f} s)')
+    try:
+        for r in range(1, options.rounds + 1):
+            t_round = time.monotonic()
+            groups: dict[str, list[float]] = {}
+            with tqdm(total=sum(w.episodes for w in work), disable=not progress, unit='episode',
+                      desc=f'cgail refine: round {r} labels', dynamic_ncols=True) as bar:
+                for w, (o, a, st) in zip(work, label_round(r, bar), strict=True):
+                    obs_all.append(o)
+                    act_all.append(a)
+                    g = groups.setdefault(w.group, [0.0, 0.0])
+                    g[0] += st['policy_success'] * st['episodes']
+                    g[1] += st['episodes']
+            t_label = time.monotonic() - t_round
+            restore()  # (DAgger clones the aggregate from the start)
+            stats = trainer.pretrain_bc(options.epochs, extra=(np.concatenate(obs_all),
+                                                               np.concatenate(act_all)),
+                                        refit_normalizer=False)
+            rate = validate()
+            labels = int(sum(len(o) for o in obs_all))
+            row = {'round': r, 'labels': labels,
+                   'policy_success': {k: round(v[0] / v[1], 4) for k, v in groups.items()},
+                   'bc_loss': round(float(stats['losses/bc_pretrain_loss']), 5),
+                   'validation': rate, 'label_s': round(t_label, 1),
+                   'wall_s': round(time.monotonic() - t_round, 1)}
+            summary['rounds'].append(row)
+            trainer.metadata['refinement'] = {
+                'method': 'dagger', 'round': r, 'labels': labels, 'every': options.every,
+                'epochs': options.epochs, 'anatomies': len(work), 'base_step': trainer.step,
+                'base_validation': base, 'validation': rate}
+            trainer.save(out / f'round_{r}.pt')
+            if rate >= best[0]:
+                best = (rate, r)
+            say(f'round {r}: the policy reached ' + ', '.join(
+                f'{k} {100 * v[0] / v[1]:.0f}%' for k, v in groups.items()) +
+                f' of its episodes; {labels} labels; cloned {options.epochs} epochs (loss '
+                f'{row["bc_loss"]:.4f}); validation {100 * rate:.1f}% ({row["wall_s"]:.0f} s)')
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     if best[1] == 0:  # no round validated better: the policy as it came, as a checkpoint
         restore()
         trainer.metadata.pop('refinement', None)
@@ -341,7 +463,9 @@ def build_parser() -> argparse.ArgumentParser:
                         ('dynamic_episodes', 'episodes in the beating aorta per named '
                                              'anatomy included (0: static only)'),
                         ('validation_episodes', "episodes of each validation (0: the preset's "
-                                                'eval_episodes)')):
+                                                'eval_episodes)'),
+                        ('jobs', 'worker processes that drive and label the episodes (0: one '
+                                 'per CPU core; the labels do not depend on it)')):
         p.add_argument(f'--{name.replace("_", "-")}', type=int, default=getattr(d, name),
                        help=f'{help_} (default {getattr(d, name)})')
     p.add_argument('--threads', type=int, default=1, help='torch CPU threads')
@@ -357,7 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         opts = RefineOptions(rounds=args.rounds, anatomies=args.anatomies,
                              episodes=args.episodes, every=args.every, epochs=args.epochs,
                              seed=args.seed, validation_episodes=args.validation_episodes,
-                             dynamic_episodes=args.dynamic_episodes)
+                             dynamic_episodes=args.dynamic_episodes, jobs=args.jobs)
         refine(args.checkpoint, args.demos, args.out, opts, progress=not args.no_progress,
                anatomy=args.anatomy, preset=args.preset)
     except (LearningError, ValueError) as exc:

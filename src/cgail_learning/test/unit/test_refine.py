@@ -145,6 +145,46 @@ def test_refine_labels_the_policys_states_clones_them_and_keeps_the_contract(
                                load_checkpoint(out / 'round_1.pt')['actor'])
 
 
+def test_labels_cut_into_chunks_equal_the_labels_of_one_call() -> None:
+    """``first``: consecutive chunks of a collection label what one call labels (what lets
+    ``refine --jobs`` spread an anatomy's episodes over worker processes)."""
+    env = CatheterNavEnv(EnvConfig.from_options('sphere_targets', anatomy='default'))
+    policy = lambda o: np.array([0.3, -0.2, 1.0], np.float32)  # noqa: E731
+    whole = expert_labels(env, policy, 5, seed=7, every=9)
+    parts = [expert_labels(env, policy, 2, seed=7, every=9, first=0),
+             expert_labels(CatheterNavEnv(EnvConfig.from_options('sphere_targets',
+                                                                 anatomy='default')),
+                           policy, 3, seed=7, every=9, first=2)]
+    np.testing.assert_array_equal(whole[0], np.concatenate([p[0] for p in parts]))
+    np.testing.assert_array_equal(whole[1], np.concatenate([p[1] for p in parts]))
+    assert whole[2]['episodes'] == 5 == sum(p[2]['episodes'] for p in parts)
+    with pytest.raises(ValueError, match=r'first must be an int >= 0, found -1'):
+        expert_labels(env, policy, 1, first=-1)
+
+
+def test_refine_in_worker_processes_labels_and_refines_as_in_one(tmp_path, monkeypatch) -> None:
+    """``jobs``: the episodes are driven in worker processes, one chunk of episodes each
+    (here one episode per chunk), and the round's labels and weights are those of one process."""
+    from cgail_learning.checkpoint import load_checkpoint
+    import cgail_learning.refine as refine_mod
+
+    ckpt = _population_checkpoint(tmp_path, monkeypatch)
+    monkeypatch.setattr(refine_mod, '_CHUNK', 1)
+    runs = {}
+    for jobs in (1, 2):
+        runs[jobs] = refine(ckpt, [str(tmp_path / 'demos.npz')], tmp_path / f'j{jobs}',
+                            RefineOptions(anatomies=1, episodes=3, every=50, epochs=1,
+                                          jobs=jobs),
+                            progress=False, log=lambda line: None)
+    one, two = runs[1]['rounds'][0], runs[2]['rounds'][0]
+    assert one['labels'] == two['labels'] > 0
+    assert one['policy_success'] == two['policy_success']
+    torch_actor = [load_checkpoint(tmp_path / f'j{j}' / 'round_1.pt')['actor'] for j in (1, 2)]
+    import torch
+
+    torch.testing.assert_close(torch_actor[0], torch_actor[1])
+
+
 def test_refine_refuses_what_it_cannot_use_in_one_line(tmp_path, monkeypatch, capsys) -> None:
     assert main([str(tmp_path / 'nope.pt'), '--demos', 'x', '--out', str(tmp_path / 'o')]) == 2
     err = capsys.readouterr().err
