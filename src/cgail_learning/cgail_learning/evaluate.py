@@ -32,7 +32,9 @@ mode). The scripted expert is the demonstrator with the simulator's state (no tr
 population anatomies (:data:`cgail_sim.population.HELD_OUT_SEEDS`, which no training
 run may use), pooled per method, with a per-anatomy success table at the end of the report.
 With ``--anatomy default`` or ``elongated`` and a generalist policy (trained on the
-population only) the targets are unseen too.
+population only) the targets are unseen too. Several ``--anatomy`` (e.g. the held-out real
+aortas ``avt-D4 avt-D10 avt-D13 avt-D15 avt-D18``, :data:`cgail_sim.anatomy_spec.REAL_HELD_OUT`)
+are pooled the same way.
 
 **Failures drawn.** For each method and anatomy with a failed trial, ``failures_<mode>_<anatomy>
 _<method>.png`` shows the tip paths of its first failures (where each ended, and its target),
@@ -646,7 +648,7 @@ def _append_per_anatomy(report: Path, outcomes: dict[str, dict[str, dict[str, li
             f'{sum(bool(np.all(methods[n][a])) for a in anatomies)} of {len(anatomies)}'
             for n in names) + ' |')
         png = f'per_anatomy_{mode}.png'
-        per_anatomy_plot(methods, f'success per held-out anatomy ({mode})', report.parent / png)
+        per_anatomy_plot(methods, f'success per anatomy ({mode})', report.parent / png)
         lines += ['', f'![success per anatomy, {mode}]({png})', '']
     lines += ['(The interval over anatomies resamples whole anatomies, whose trials share '
               'their geometry; with few anatomies it understates the uncertainty: read the '
@@ -669,11 +671,14 @@ def build_parser() -> argparse.ArgumentParser:
                         'budget and a 30 s limit, then followed by the centerline pure pursuit)')
     p.add_argument('--modes', nargs='+', default=['static'], choices=('static', 'dynamic'),
                    help='rigid aorta (static) and/or deformable beating wall (dynamic)')
-    p.add_argument('--anatomy', default='default',
-                   help='built-in anatomy name (default, elongated), prepared anatomy directory '
-                        'or mesh file with its <stem>.yaml landmarks')
+    p.add_argument('--anatomy', nargs='+', default=['default'], metavar='ANATOMY',
+                   help='built-in anatomy name (default, elongated), shipped real aorta '
+                        '(avt-D4, ...), population-<seed>, prepared anatomy directory or mesh '
+                        'file with its <stem>.yaml landmarks; several: --trials in each, the '
+                        'results pooled, with a per-anatomy table (as --population)')
     p.add_argument('--trials', type=int, default=100,
-                   help='trials per method and mode (per anatomy with --population); trial k: '
+                   help='trials per method and mode (per anatomy with --population or several '
+                        '--anatomy); trial k: '
                         'start k %% 3, target (k // 3) %% 5')
     p.add_argument('--seed', type=int, default=1000,
                    help='seed of trial 0; trial k uses seed + k, the same for every method')
@@ -713,8 +718,11 @@ def main(argv: list[str] | None = None) -> int:
     from cgail_sim.ftl_model import describe_anatomy
 
     try:
-        check_anatomy_spec(args.anatomy)  # (before the policies are loaded)
+        for spec in args.anatomy:
+            check_anatomy_spec(spec)  # (before the policies are loaded)
         held_out = _held_out(args.population)
+        # several anatomies: pooled as the held-out population is
+        pooled: list[Any] = held_out or (list(args.anatomy) if len(args.anatomy) > 1 else [])
         noise = TrackingNoise(args.position_noise_mm, args.orientation_noise_deg)
         policies: dict[str, Any] = {}
         paths: dict[str, str] = {}
@@ -730,11 +738,11 @@ def main(argv: list[str] | None = None) -> int:
         pictures: dict[str, list[tuple[str, str]]] = {}
         for mode in args.modes:
             results: dict[str, list[Trial]] = {}
-            for anatomy in held_out or [args.anatomy]:
+            for anatomy in pooled or args.anatomy:
                 env = CatheterNavEnv(EnvConfig.from_options(options, mode=mode,
                                                             anatomy=anatomy,
                                                             scenario_seed=args.scenario_seed))
-                where = f' {env.anatomy.name}' if held_out else ''
+                where = f' {env.anatomy.name}' if pooled else ''
                 by_method = _run_methods(env, policies, args, noise, mode, where)
                 for name, trials in by_method.items():
                     results.setdefault(name, []).extend(trials)
@@ -749,11 +757,15 @@ def main(argv: list[str] | None = None) -> int:
             named = (f'{len(held_out)} held-out population anatomies '
                      f'({held_out[0].name} to {held_out[-1].name}, never trained on)')
             label = f'population-held-out-{len(held_out)}'
+        elif pooled:
+            names = [anatomy_identity(spec)[0] for spec in pooled]
+            named = f'{len(pooled)} anatomies ({", ".join(names)})'
+            label = f'anatomies-{len(pooled)}'
         else:
-            label, content_hash = anatomy_identity(args.anatomy)
+            label, content_hash = anatomy_identity(args.anatomy[0])
             named = f'`{label}`' if not content_hash else describe_anatomy(label, content_hash)
             named = f'Anatomy {named}'
-        per = ' per anatomy' if held_out else ''
+        per = ' per anatomy' if pooled else ''
         if args.drawn_targets:
             target = "a target drawn anew from seed + k in the anatomy's 30 mm sphere. "
         else:
@@ -782,6 +794,9 @@ def main(argv: list[str] | None = None) -> int:
                 'policies': paths}
         if held_out:
             meta['population_seeds'] = [a.name for a in held_out]
+        elif pooled:
+            meta['anatomies'] = names
+        if pooled:
             meta['per_anatomy_success'] = {
                 mode: {n: {a: float(np.mean(ok)) for a, ok in by.items()}
                        for n, by in methods.items()}
@@ -790,7 +805,7 @@ def main(argv: list[str] | None = None) -> int:
                 mode: {n: list(anatomy_interval(by)) for n, by in methods.items()}
                 for mode, methods in outcomes.items()}
         path = write_report(all_results, args.out, notes, meta)
-        if held_out:
+        if pooled:
             _append_per_anatomy(path, outcomes)
         _append_failures(path, pictures)
     except (LearningError, ValueError) as exc:

@@ -160,6 +160,33 @@ def test_scenario_seed_selects_the_target_set_and_results_json_records_it(
     assert 'of target set (scenario seed) 1.' in (tmp_path / 'report.md').read_text()
 
 
+def test_several_anatomies_are_pooled_with_a_per_anatomy_table(tmp_path, capsys):
+    """``--anatomy`` with several (here a shipped real aorta and a built-in one): the trials of
+    each, pooled, with the per-anatomy table, as ``--population``; a bad one among them is
+    refused in one line before anything runs."""
+    import json
+
+    from cgail_learning import evaluate
+
+    assert evaluate.main(['--baselines', 'centerline', '--anatomy', 'avt-D18', 'elongated',
+                          '--trials', '2', '--scenario-seed', '1', '--no-failure-pictures',
+                          '--out', str(tmp_path)]) == 0
+    data = json.loads((tmp_path / 'results.json').read_text())
+    assert data['anatomies'] == ['avt-D18', 'elongated'] and 'population_seeds' not in data
+    assert len(data['modes']['static']['centerline']['trials']) == 4
+    assert set(data['per_anatomy_success']['static']['centerline']) == {'avt-D18', 'elongated'}
+    report = (tmp_path / 'report.md').read_text()
+    assert '2 anatomies (avt-D18, elongated), 2 trials per method per anatomy' in report
+    assert '| avt-D18 |' in report and '| **all** [95% CI over anatomies] |' in report
+    assert (tmp_path / 'per_anatomy_static.png').is_file()
+    capsys.readouterr()
+    assert evaluate.main(['--baselines', 'centerline', '--anatomy', 'avt-D18', 'nowhere',
+                          '--out', str(tmp_path / 'bad')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith('cgail evaluate: error: ') and err.count('\n') == 1 and 'nowhere' in err
+    assert not (tmp_path / 'bad').exists()
+
+
 def test_a_negative_scenario_seed_is_a_one_line_error(tmp_path, capsys):
     from cgail_learning import evaluate
 
