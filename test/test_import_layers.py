@@ -65,7 +65,8 @@ PACKAGE_LEVELS: tuple[tuple[str, ...], ...] = (
 #: top-level module or subpackage not named in the package's layers.
 LAYERS: dict[str, tuple[str, ...]] = {
     'cgail_node_utils': (),
-    # STYLE.md: the exception tree, pure logic, device adapters, then the rclpy wrappers.
+    # CONTRIBUTING.md, "Code style": the exception tree, pure logic, device adapters, then the
+    # rclpy wrappers.
     'catheter_driver': ('exceptions', 'core', 'hw', 'nodes'),
     'pam_controller': ('errors', 'core', 'hw', 'nodes'),
     # cli: the calibration commands (files around core); sim: the simulated rig that drives

@@ -47,8 +47,9 @@ topics), tokens of letters, digits and underscores that do not start with a digi
 ``/``. Each ``from`` appears once per node.
 
 ``--in-process`` builds each node from its class: ``<pkg>.nodes.<exec>:<Exec>``, the
-executable's module and its name in CamelCase (STYLE.md: ``planner_node.py`` holds
-``PlannerNode``), so launch files carry nothing ``ros2 launch`` would refuse.
+executable's module and its name in CamelCase (CONTRIBUTING.md, "Code style":
+``planner_node.py`` holds ``PlannerNode``), so launch files carry nothing ``ros2 launch``
+would refuse.
 
 This module is pure python (no rclpy) so specs can be validated without ROS.
 """
