@@ -36,6 +36,16 @@ else
     log "requirements up to date"
 fi
 
+# 3b. The docs site's tools (mkdocs, Material theme), the same way, from requirements-docs.txt.
+dstamp=.venv/.requirements-docs.sha256
+dwant=$(sha256sum requirements-docs.txt | cut -d' ' -f1)
+if [ ! -f "$dstamp" ] || [ "$(cat "$dstamp")" != "$dwant" ]; then
+    log "installing requirements-docs.txt into .venv (the docs site's tools)"
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -r requirements-docs.txt \
+        2> >(grep -v 'is ignored: it is neither a file nor a directory' >&2)
+    echo "$dwant" > "$dstamp"
+fi
+
 # 4. Front-end assets for the GUI (three.js from the npm registry), if npm is present.
 if [ -f src/cgail_gui/web/package.json ] && [ ! -d src/cgail_gui/web/node_modules ]; then
     if ! command -v npm >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 \

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up if needed, then run the whole test suite: lint (ruff), types (mypy on every module of
-# the packages and on the bench scripts), every package's tests through colcon, and the
-# cross-package tests in test/.
+# the packages and on the bench scripts), every package's tests through colcon, the
+# cross-package tests in test/, and the strict build of the docs site (mkdocs.yml).
 # Exits non-zero on any failure.  Extra arguments go to the final pytest run of test/.
 #   bash scripts/test.sh            # default (fast) suite
 #   CGAIL_SLOW=1 bash scripts/test.sh   # also the tests marked slow
@@ -71,5 +71,12 @@ colcon test-result --verbose --test-result-base build
 
 echo "[test] cross-package tests (test/)"
 python -m pytest test -q -rfE "${marker[@]}" "$@"
+
+echo "[test] docs site (mkdocs build --strict)"
+# A broken link, anchor or nav entry fails the build; the site goes to a temporary directory.
+site_dir=$(mktemp -d)
+# (not --quiet: it silences the warnings that --strict counts)
+NO_MKDOCS_2_WARNING=1 mkdocs build --strict -d "$site_dir" 2>&1 | { grep -v '^INFO ' || true; }
+rm -rf "$site_dir"
 
 echo "[test] all passed in $(( $(date +%s) - start )) s"

@@ -22,8 +22,9 @@ PROSE = {'or'}  # "run the tests through scripts/ws or scripts/test.sh"
 
 
 def _documents() -> list[Path]:
-    """README, docs, bag READMEs, scripts, benchmarks, and every package's modules/configs."""
-    files = [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md')),
+    """README, CONTRIBUTING, the docs site, bag READMEs, scripts, benchmarks, and every
+    package's modules/configs."""
+    files = [ROOT / 'README.md', ROOT / 'CONTRIBUTING.md', *sorted((ROOT / 'docs').rglob('*.md')),
              *sorted((ROOT / 'bags').rglob('README.md')),
              *sorted(p for p in (ROOT / 'scripts').iterdir() if p.is_file()),
              *sorted((ROOT / 'bench').glob('*.py'))]
