@@ -1,8 +1,8 @@
 """The guidance page in headless Chromium: it receives and draws a path and a moving tip.
 
 Skipped only when no Chromium binary is installed (Debian: ``apt-get install -y chromium``).
-The screenshot goes to ``$CGAIL_GUI_SCREENSHOT`` when set (the README's ``docs/img/gui.png`` is
-made with ``CGAIL_GUI_SCREENSHOT=docs/img/gui.png``), else to the test's tmp dir.
+The screenshot goes to ``$CGAIL_GUI_SCREENSHOT`` when set (``docs/img/gui.png`` is made with
+``CGAIL_GUI_SCREENSHOT=docs/img/gui.png``), else to the test's tmp dir.
 """
 
 from __future__ import annotations

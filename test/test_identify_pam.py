@@ -53,7 +53,8 @@ def test_quick_bench_identification_halves_the_nominal_error(tmp_path, monkeypat
 def test_full_excitation_halves_the_nominal_error(tmp_path, plant_seed) -> None:
     """The full excitation (204 s of rig time, about 45 s wall) on two plants: the identified
     model's RMS bend error over every sample is at most half the nominal's (the issue's bar).
-    Measured (README): seed 0 0.44, seed 1 0.48 of the nominal's; on the sweeps 0.16 and 0.08.
+    Measured (docs/reports/invitro.md, PAM identification): seed 0 0.44, seed 1 0.48 of the
+    nominal's; on the sweeps 0.16 and 0.08.
     What remains is mostly the plant's lag on the held-out multisine, which the controller's
     model has no term for; on the short excitation (one multisine period in 37 s) it weighs
     more and seed 1 ends at 0.51, so the bar is asserted on the full one."""

@@ -335,8 +335,8 @@ def test_an_evaluation_is_redone_for_a_new_policy_or_another_trial_count(tmp_pat
 @pytest.mark.parametrize('name', ['pure_gail_ours_ppo', 'pure_gail_ours_ppo_normalised',
                                   'pure_gail_sb3_defaults', 'gail'])
 def test_the_gail_variants_of_the_readme_load_as_described(name):
-    """bench/gail_variants/*.yaml (README, "GAIL at 2M steps") stay valid presets and pure
-    GAIL at imitation's discriminator pace, as the README table says."""
+    """bench/gail_variants/*.yaml (docs/reports/gail_baseline.md) stay valid presets and pure
+    GAIL at imitation's discriminator pace, as that report's table says."""
     from cgail_learning.config import load_config
 
     cfg = load_config(name if name == 'gail' else WS / 'bench' / 'gail_variants' / f'{name}.yaml')

@@ -537,7 +537,7 @@ def test_rig_launch_refuses_bad_launch_arguments(capsys, words, text):
 
 
 def test_launch_arguments_may_follow_the_options(capsys):
-    """As the README writes it: ``rig_launch FILE --in-process NAME:=VALUE``."""
+    """As docs/tutorials/rig.md writes it: ``cgail launch FILE --in-process NAME:=VALUE``."""
     assert main([str(SIM_RIG), '--in-process', '--max-duration', '1', 'anatomyy:=x']) == 2
     assert capsys.readouterr().err == ("cgail launch: error: launch 'sim_rig' has no argument(s) "
                                        "['anatomyy']; expected some of ['anatomy', "

@@ -1,7 +1,7 @@
 """The recording page of ``record_demos`` in headless Chromium: no path, the keyboard drives.
 
 Skipped only when no Chromium binary is installed (Debian: ``apt-get install -y chromium``).
-The screenshot goes to ``$CGAIL_RECORD_SCREENSHOT`` when set (the README's
+The screenshot goes to ``$CGAIL_RECORD_SCREENSHOT`` when set (the demonstrations tutorial's
 ``docs/img/record_demos.png`` is made with ``CGAIL_RECORD_SCREENSHOT=docs/img/record_demos.png``),
 else to the test's tmp dir.
 """
