@@ -108,10 +108,11 @@ JOIN_CANDIDATES = 6
 #: Probability that an iteration adds a goal state to the goal tree rather than extending.
 GOAL_SAMPLE_RATE = 0.05
 #: Default search budget of one plan, iterations (:attr:`RrtConfig.max_iterations`). Measured
-#: with the budget alone (60 s limit; 15 start x target pairs x seeds 0-2, README): 1000
-#: iterations plan 39/45 (default) and 37/45 (elongated), what the former 1 s wall-clock limit
-#: gave, and a search that uses all of them takes ~0.6-0.9 s of one core (the median plan 50-130
-#: ms); 2000 would add 2 elongated plans for twice the time of a failed search.
+#: with the budget alone (60 s limit; 15 start x target pairs x seeds 0-2,
+#: docs/reports/rrt.md): 1000 iterations plan 39/45 (default) and 37/45 (elongated), what the
+#: former 1 s wall-clock limit gave, and a search that uses all of them takes ~0.6-0.9 s of one
+#: core (the median plan 50-130 ms); 2000 would add 2 elongated plans for twice the time of a
+#: failed search.
 MAX_ITERATIONS_DEFAULT = 1000
 #: Install command named when the OMPL bindings are missing.
 INSTALL_HINT = "scripts/ws pip install ompl==2.0.1"
