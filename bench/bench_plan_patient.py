@@ -16,8 +16,9 @@ Each goes through ``cgail prepare-anatomy`` and then ``cgail plan-patient --budg
 whole pipeline: expert demonstrations, a behavioural-cloning warm start, a DAgger round when the
 warm start validates under the static goal plus 5 points, and C-GAIL fine-tuning from the
 committed policy, export, evaluation on unseen target sets with the centerline follower). Prints
-one line per stage and the table the README shows; writes ``OUT/bench.md``. The machine, its
-cores and its load are printed with the figures, since training speed is what the budget buys.
+one line per stage and the table docs/reports/patients.md shows; writes ``OUT/bench.md``. The
+machine, its cores and its load are printed with the figures, since training speed is what the
+budget buys.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 
     python3 bench/bench_session.py [--runs 2] [--trials 10] [--busy 0] [-- extra session args]
 
-Runs the README's main-job command ``bash scripts/demo.sh --out <tmp>/run<k>`` (setup check,
+Runs the main-job command (README, docs/tutorials/simulated-session.md)
+``bash scripts/demo.sh --out <tmp>/run<k>`` (setup check,
 then the simulated in-vitro session: 10 C-GAIL and 10 centerline trials on the built-in
 defaults) ``--runs`` times, and prints for each run the wall time of the whole command and of
 the session, the simulated trial time and the speed-up over real time; then whether the runs

@@ -21,7 +21,7 @@ What runs, per seed:
 
 * **env**: ``CatheterNavEnv(EnvConfig(mode='static'))``, the default anatomy, 8 copies in an SB3
   ``DummyVecEnv`` (each under SB3's ``Monitor``); start and target drawn per episode.
-* **demonstrations**: ``bags/demos/default`` (README, training section) through our own
+* **demonstrations**: ``bags/demos/default`` (docs/tutorials/demonstrations.md) through our own
   :func:`cgail_learning.demos.load_demos`, so the (obs, act) pairs are the ones ``train``
   uses; episode ends from the bag's episode headers. They become ``imitation`` ``Transitions``;
   an episode's last ``next_obs`` repeats its last ``obs`` (the bag does not hold the terminal

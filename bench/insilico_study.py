@@ -23,7 +23,8 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    continued run first decayed towards N1 and then decay from there towards N2, so a budget
    reached by continuation is not the same run as a fresh run of that budget.
 2. **Dynamic re-training** (``--modes`` with ``dynamic``), as the committed dynamic policy was
-   made (README, ``cgail_planner/models/insilico/report.md``): ``train --preset P --mode dynamic
+   made (docs/reports/insilico.md, ``cgail_planner/models/insilico/report.md``):
+   ``train --preset P --mode dynamic
    --init-from steps_<N>/best.pt --max-steps D --seed S`` (``--dynamic-steps`` D, default
    102,400), in the beating aorta with the moving target, from each budget's static best; every
    method is re-trained the same way.

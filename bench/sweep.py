@@ -35,8 +35,9 @@ says so and rewrites the report (seconds, not Ray's start-up).
 **A cluster** (``--address HOST:PORT``): start a head and workers from the workspace environment
 of every node, e.g. ``scripts/ws ray start --head --port 6379 --num-cpus 16`` on the head and
 ``scripts/ws ray start --address HEAD_IP:6379`` on each worker, all of them and the sweep with
-``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``; the README has
-the commands), and with ``RAY_worker_niceness=0`` where the nodes run other work too (a task's
+``RAY_AUTH_MODE=token`` and the same token (``ray get-auth-token --generate``;
+docs/tutorials/train.md has the commands), and with ``RAY_worker_niceness=0`` where the nodes
+run other work too (a task's
 log says when it runs at a niceness above the sweep's). The sweep assumes a **shared
 filesystem**: every node sees the workspace (the same interpreter path) and ``--out`` at the
 same path as the driver, since the tasks write their runs there and the driver reads them back.

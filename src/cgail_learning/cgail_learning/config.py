@@ -239,8 +239,9 @@ class BCConfig:
     normaliser fitted to the demonstrations first); 0, the default of every shipped preset,
     starts from a random policy. Not part of the paper's method or of ML-Agents; it exists to
     separate exploration from the reward in the GAIL baseline (a GAIL policy started from the
-    demonstrated behaviour: ``bench/gail_variants/gail_bc_init.yaml``, README "GAIL at 2M
-    steps"). A run continued with ``train --resume`` does not pass again."""
+    demonstrated behaviour: ``bench/gail_variants/gail_bc_init.yaml``,
+    docs/reports/gail_baseline.md "GAIL at 2M steps"). A run continued with ``train --resume``
+    does not pass again."""
 
     def __post_init__(self) -> None:
         _check(0 <= self.strength <= 10, 'bc.strength', 'in [0, 10]', self.strength)
