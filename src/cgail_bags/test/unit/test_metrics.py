@@ -237,6 +237,26 @@ def test_wilson_interval_matches_its_formula_and_stays_in_0_1() -> None:
     assert all(math.isnan(x) for x in wilson_interval(0, 0))
     with pytest.raises(MetricsError, match="expected 0 <= successes <= n, found 11 of 10"):
         wilson_interval(11, 10)
+    # scipy's interval is the closed form (Wilson 1927), for every count up to n = 60
+    z = 1.959963984540054
+    for n in range(1, 61):
+        for k in range(n + 1):
+            p = k / n
+            centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+            half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+            assert wilson_interval(k, n) == pytest.approx(
+                (max(0.0, centre - half), min(1.0, centre + half)), abs=1e-12)
+    lo, hi = wilson_interval(5, 10, level=0.5)
+    assert 0.2366 < lo < hi < 0.7634
+
+
+def percentile_bootstrap(x: np.ndarray, statistic, seed: int = 0, resamples: int = 2000,
+                         level: float = 0.95) -> tuple[float, float]:
+    """The percentile bootstrap written out: ``resamples`` rows of indices drawn with
+    replacement by ``default_rng(seed)``, the statistic of each row, its quantiles."""
+    idx = np.random.default_rng(seed).integers(0, x.shape[-1], size=(resamples, x.shape[-1]))
+    lo, hi = np.quantile(statistic(idx), [(1 - level) / 2, (1 + level) / 2])
+    return float(lo), float(hi)
 
 
 def test_bootstrap_interval_is_seeded_and_brackets_the_statistic() -> None:
@@ -249,7 +269,15 @@ def test_bootstrap_interval_is_seeded_and_brackets_the_statistic() -> None:
     assert lo < x.mean() < hi and (hi - lo) == pytest.approx(2 * 1.96 * 10 / np.sqrt(200),
                                                              rel=0.25)
     assert bootstrap_interval([4.0, 4.0]) == (4.0, 4.0)
+    assert bootstrap_interval([7.0]) == (7.0, 7.0)
     assert all(math.isnan(v) for v in bootstrap_interval([]))
+    # the same draws and quantiles as the percentile bootstrap written out, for any seed
+    for seed in (0, 5):
+        assert bootstrap_interval(x, seed=seed) == pytest.approx(
+            percentile_bootstrap(x, lambda i: np.median(x[i], axis=1), seed), abs=1e-12)
+        assert bootstrap_interval(x, 'mean', seed=seed) == pytest.approx(
+            percentile_bootstrap(x, lambda i: x[i].mean(axis=1), seed), abs=1e-12)
+    assert bootstrap_interval(x, seed=1) != a
     with pytest.raises(MetricsError, match="expected statistic 'median' or 'mean', found 'max'"):
         bootstrap_interval(x, 'max')
 
@@ -265,3 +293,11 @@ def test_the_rate_over_clusters_resamples_whole_clusters() -> None:
     wlo, whi = wilson_interval(240, 300)
     assert hi - lo > 2 * (whi - wlo)  # much wider than if the 300 trials were independent
     assert all(math.isnan(v) for v in cluster_bootstrap_rate([[], []]))
+    assert cluster_bootstrap_rate([[True, False, False]]) == (1 / 3, 1 / 3)
+    # whole clusters drawn as the percentile bootstrap written out draws them
+    rng = np.random.default_rng(2)
+    groups = [list(rng.random(int(rng.integers(0, 20))) < 0.6) for _ in range(12)]
+    hits = np.array([sum(g) for g in groups])
+    sizes = np.array([len(g) for g in groups])
+    assert cluster_bootstrap_rate(groups, seed=4) == pytest.approx(percentile_bootstrap(
+        hits, lambda i: hits[i].sum(axis=1) / np.maximum(sizes[i].sum(axis=1), 1), 4), abs=1e-12)
