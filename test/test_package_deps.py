@@ -93,6 +93,7 @@ PYTHON_KEYS = {
     'onnxruntime': Key('python3-onnxruntime-pip', 'onnxruntime'),
     'pyigtl': Key('python3-pyigtl-pip', 'pyigtl'),
     'rosbags': Key('python3-rosbags-pip', 'rosbags'),
+    'tensorboardX': Key('python3-tensorboardX-pip', 'tensorboardX'),
     'trimesh': Key('python3-trimesh-pip', 'trimesh'),
 }
 #: ROS packages that the naming rule (*_msgs, *_srvs, *_interfaces) does not catch.

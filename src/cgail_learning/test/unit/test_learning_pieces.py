@@ -320,4 +320,12 @@ def test_scalar_logger_writes_readable_event_file(tmp_path: Path):
     assert len(events) == 1
     assert read_event_scalars(events[0]) == [('losses/value_loss', 0.5, 10),
                                              ('eval/success_rate', 0.25, 10)]
+    data = events[0].read_bytes()
+    flipped = tmp_path / 'flipped'
+    flipped.write_bytes(data[:-6] + bytes([data[-6] ^ 0xFF]) + data[-5:])
+    with pytest.raises(ValueError, match='CRC mismatch'):
+        read_event_scalars(flipped)
+    flipped.write_bytes(data[:-3])
+    with pytest.raises(ValueError, match='corrupt record'):
+        read_event_scalars(flipped)
     assert (tmp_path / 'scalars.csv').read_text().splitlines()[1] == '10,losses/value_loss,0.5'
