@@ -88,6 +88,7 @@ PYTHON_KEYS = {
     'fast_simplification': Key('python3-fast-simplification-pip', 'fast-simplification'),
     'gymnasium': Key('python3-gymnasium-pip', 'gymnasium'),
     'nrrd': Key('python3-pynrrd-pip', 'pynrrd'),
+    'mcap': Key('python3-mcap-pip', 'mcap'),
     'ndicapy': Key('python3-ndicapi-pip', 'ndicapi'),
     'ompl': Key('python3-ompl-pip', 'ompl'),  # the PyPI bindings (rosdep's ompl is the C++ lib)
     'onnxruntime': Key('python3-onnxruntime-pip', 'onnxruntime'),

@@ -4,29 +4,41 @@
 
 ``cgail bag record`` closes its bag cleanly on SIGINT/SIGTERM. After a hard kill (SIGKILL, power
 loss) the file has the chunks flushed so far (every ``--flush-period``) but no summary, index or
-``metadata.yaml``, so readers refuse it. This tool scans the file's records from the start,
-keeps every complete chunk's schemas, channels (with their ``offered_qos_profiles``) and
-messages, stops at the first incomplete record, and writes them to a new, complete bag.
+``metadata.yaml``, so readers refuse it. This tool reads the file's records from the start with
+the ``mcap`` package's stream reader, keeps the schemas, channels (with their
+``offered_qos_profiles``) and messages of every complete chunk (up to its first damaged
+record; nothing of a chunk that fails its CRC), stops at the first incomplete record or damaged
+framing, and writes them to a new, complete bag.
 """
 
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 import struct
 import sys
 
+from mcap.exceptions import EndOfFile, McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, McapRecord, Message, Schema
+from mcap.stream_reader import get_chunk_data_stream, StreamReader
 from rosbags.interfaces import Qos
 from rosbags.rosbag2.metadata import parse_qos
+import zstandard
 
 from cgail_bags.bagio import BagWriter
 from cgail_bags.errors import BagError
 from cgail_sim.cli_help import tool_parser
 
 MAGIC = b'\x89MCAP0\r\n'
-OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x03, 0x04, 0x05, 0x06
+#: What a damaged record raises in the stream reader: a field cut short (struct.error), a bad
+#: string or CRC (ValueError: UnicodeDecodeError, CRCValidationError), a chunk that does not
+#: decompress (zstandard.ZstdError; lz4's RuntimeError), a length past any sane size
+#: (MemoryError, OverflowError).
+_DAMAGED = (McapError, struct.error, ValueError, zstandard.ZstdError, RuntimeError, MemoryError,
+            OverflowError)
 
 
 @dataclass(frozen=True)
@@ -38,41 +50,7 @@ class Recovered:
     topics: tuple[str, ...]
     """Topics with at least a channel record."""
     complete: bool
-    """The source ended with a valid record boundary (nothing cut mid-record)."""
-
-
-def _records(data: memoryview) -> Iterator[tuple[int, memoryview]]:
-    """(opcode, content) of each complete record; stops at the first incomplete one."""
-    pos = 0
-    while pos + 9 <= len(data):
-        op = data[pos]
-        (length,) = struct.unpack_from('<Q', data, pos + 1)
-        end = pos + 9 + length
-        if end > len(data):
-            return
-        yield op, data[pos + 9:end]
-        pos = end
-
-
-def _string(buf: memoryview, pos: int) -> tuple[str, int]:
-    (n,) = struct.unpack_from('<I', buf, pos)
-    return bytes(buf[pos + 4:pos + 4 + n]).decode(), pos + 4 + n
-
-
-def _chunk_records(chunk: memoryview) -> memoryview:
-    pos = 8 + 8 + 8 + 4  # start, end, uncompressed size, crc
-    compression, pos = _string(chunk, pos)
-    (size,) = struct.unpack_from('<Q', chunk, pos)
-    records = chunk[pos + 8:pos + 8 + size]
-    if compression == '':
-        return records
-    if compression == 'zstd':
-        try:  # as rosbags does: the stdlib module on Python >= 3.14, else backports.zstd
-            from compression import zstd  # type: ignore[import-not-found]
-        except ImportError:
-            from backports import zstd  # type: ignore[import-not-found,no-redef]
-        return memoryview(zstd.decompress(bytes(records)))
-    raise BagError(f'unsupported MCAP chunk compression {compression!r} (expected none or zstd)')
+    """Nothing was lost: the source ended at a record boundary and no record was damaged."""
 
 
 def _find_mcap(path: Path) -> Path:
@@ -84,48 +62,83 @@ def _find_mcap(path: Path) -> Path:
     return files[0]
 
 
+def _chunk_records(chunk: Chunk) -> tuple[list[McapRecord], bool]:
+    """The schema, channel and message records of ``chunk`` up to its first damaged one, and
+    whether there was none.
+
+    ``mcap.stream_reader.breakup_chunk`` does the same with the same record readers, but gives
+    nothing of a chunk with one damaged record: a chunk that fails its CRC (when it has one) or
+    does not decompress gives nothing here either; an uncompressed chunk without a CRC (what
+    rosbags writes) keeps the records before the damage, as a crashed recorder's last chunk
+    needs.
+    """
+    try:
+        stream, end = get_chunk_data_stream(chunk, validate_crc=True)
+    except _DAMAGED:
+        return [], False
+    out: list[McapRecord] = []
+    try:
+        while stream.count < end:
+            opcode, length = stream.read1(), stream.read8()
+            start = stream.count
+            if length > end - start:
+                return out, False
+            record: McapRecord | None = None
+            if opcode == Opcode.MESSAGE:
+                record = Message.read(stream, length)
+            elif opcode == Opcode.CHANNEL:
+                record = Channel.read(stream)
+            elif opcode == Opcode.SCHEMA:
+                record = Schema.read(stream)
+            if stream.count - start > length:  # (a field ran past the record: damaged)
+                return out, False
+            stream.read(length - (stream.count - start))
+            if record is not None:
+                out.append(record)
+    except _DAMAGED:
+        return out, False
+    return out, True
+
+
 def recover_bag(source: Path | str, output: Path | str) -> Recovered:
-    """Copy every complete chunk's messages of ``source`` into a new bag ``output``.
+    """Copy the messages of ``source``'s complete chunks into a new bag ``output``.
 
     Raises:
         BagError: Not an MCAP file, nothing recoverable, or the output exists.
     """
     mcap = _find_mcap(Path(source))
-    data = memoryview(mcap.read_bytes())
-    if bytes(data[:8]) != MAGIC:
-        raise BagError(f'{mcap}: not an MCAP file (expected the MCAP magic at the start)')
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str, list[Qos]]] = {}
     messages: list[tuple[int, int, bytes]] = []
-    consumed = 8
-    try:
-        for op, content in _records(data[8:]):
-            consumed += 9 + len(content)
-            if op != OP_CHUNK:
-                continue
-            for inner_op, rec in _records(_chunk_records(content)):
-                if inner_op == OP_SCHEMA:
-                    (sid,) = struct.unpack_from('<H', rec, 0)
-                    schemas[sid] = _string(rec, 2)[0]
-                elif inner_op == OP_CHANNEL:
-                    cid, sid = struct.unpack_from('<HH', rec, 0)
-                    topic, pos = _string(rec, 4)
-                    _, pos = _string(rec, pos)  # message encoding (cdr)
-                    (meta_len,) = struct.unpack_from('<I', rec, pos)
-                    meta, mpos, qos = rec[pos + 4:pos + 4 + meta_len], 0, []
-                    while mpos < len(meta):
-                        key, mpos = _string(meta, mpos)
-                        value, mpos = _string(meta, mpos)
-                        if key == 'offered_qos_profiles':
-                            qos = parse_qos(value)
-                    channels[cid] = (topic, schemas[sid], qos)
-                elif inner_op == OP_MESSAGE:
-                    (cid,) = struct.unpack_from('<H', rec, 0)
-                    (log_time,) = struct.unpack_from('<Q', rec, 6)
-                    messages.append((cid, log_time, bytes(rec[22:])))
-    except (struct.error, KeyError, UnicodeDecodeError) as exc:
-        raise BagError(f'{mcap}: cannot recover, corrupt record ({type(exc).__name__}: '
-                       f'{exc})') from None
+    size = mcap.stat().st_size
+    with mcap.open('rb') as f:
+        if f.read(8) != MAGIC:
+            raise BagError(f'{mcap}: not an MCAP file (expected the MCAP magic at the start)')
+        f.seek(0)
+        boundary, complete = 8, True  # the end of the last whole record read
+        try:
+            # chunks whole (emit_chunks), split here; no record is longer than the file
+            for record in StreamReader(f, emit_chunks=True, record_size_limit=size).records:
+                if not isinstance(record, Chunk):
+                    # (the summary's copies of the schemas and channels, indexes, metadata)
+                    boundary = f.tell()
+                    continue
+                records, whole = _chunk_records(record)
+                complete = complete and whole
+                for rec in records:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec.name
+                    elif isinstance(rec, Channel) and rec.schema_id in schemas:
+                        profiles = rec.metadata.get('offered_qos_profiles')
+                        channels[rec.id] = (rec.topic, schemas[rec.schema_id],
+                                            parse_qos(profiles) if profiles else [])
+                    elif isinstance(rec, Message):
+                        messages.append((rec.channel_id, rec.log_time, rec.data))
+                boundary = f.tell()
+        except EndOfFile:  # cut: at a record boundary (killed between writes) or inside one
+            complete = complete and boundary == size
+        except _DAMAGED:  # (the framing itself: nothing after it can be trusted)
+            complete = False
     if not channels:
         raise BagError(f'{mcap}: nothing to recover (no complete chunk with a channel)')
     with BagWriter(output, custom_data={'recovered_from': str(mcap)}) as writer:
@@ -135,8 +148,6 @@ def recover_bag(source: Path | str, output: Path | str) -> Recovered:
             if cid in channels:
                 writer.write(channels[cid][0], log_time, payload)
         count = writer.count
-    complete = consumed == len(data) or (consumed == len(data) - 8 and
-                                         bytes(data[-8:]) == MAGIC)
     return Recovered(count, tuple(sorted(t for t, _, _ in channels.values())), complete)
 
 
@@ -156,7 +167,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BagError as exc:
         print(f'cgail bag recover: error: {exc}', file=sys.stderr)
         return 2
-    tail = '' if result.complete else ' (the source ends mid-record: that part is lost)'
+    tail = ('' if result.complete else
+            ' (part of the source is cut or damaged: the records there are lost)')
     print(f'cgail bag recover: wrote {result.messages} messages on {len(result.topics)} topics to '
           f'{args.output}{tail}')
     return 0

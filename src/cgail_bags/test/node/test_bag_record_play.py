@@ -427,6 +427,42 @@ def test_recover_refuses_a_file_without_a_complete_chunk(tmp_path: Path) -> None
     assert result.messages == 403
 
 
+def test_recover_keeps_a_damaged_chunk_up_to_its_first_bad_record(tmp_path: Path,
+                                                                 capsys) -> None:
+    """The fixture holds one uncompressed chunk without a CRC (as rosbags writes them): a
+    message record whose length runs past the chunk ends the recovery of that chunk there,
+    keeping every message before it, and the tool says part of the source is lost."""
+    from cgail_bags.recover import main, recover_bag
+
+    data = bytearray((FIXTURE / 'cgail_trial.mcap').read_bytes())
+    with open_bag(FIXTURE) as reader:
+        original = [bytes(raw) for _, _, raw in iter_raw(reader)]
+    # walk the records: the file's first chunk (opcode 6), then its records up to message 100
+    pos = 8
+    while data[pos] != 0x06:
+        pos += 9 + int.from_bytes(data[pos + 1:pos + 9], 'little')
+    header = pos + 9 + 8 + 8 + 8 + 4
+    assert data[header:header + 4] == bytes(4)  # no compression
+    pos, seen = header + 4 + 8, 0
+    while True:
+        if data[pos] == 0x05:
+            if seen == 100:
+                break
+            seen += 1
+        pos += 9 + int.from_bytes(data[pos + 1:pos + 9], 'little')
+    data[pos + 1:pos + 9] = (10**9).to_bytes(8, 'little')
+    bad = tmp_path / 'bad.mcap'
+    bad.write_bytes(bytes(data))
+    result = recover_bag(bad, tmp_path / 'kept')
+    assert (result.messages, result.complete) == (100, False)
+    with open_bag(tmp_path / 'kept') as reader:
+        assert sorted(bytes(raw) for _, _, raw in iter_raw(reader)) == sorted(original[:100])
+    assert main([str(bad), '-o', str(tmp_path / 'kept2')]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 1 and 'wrote 100 messages on 3 topics' in out[0]
+    assert 'cut or damaged' in out[0]
+
+
 def test_the_recorder_queue_holds_a_burst() -> None:
     """The recorder subscribes keep-last deep enough for a burst it has not taken yet (depth
     100 lost 50 of a 150-message burst on a loaded machine), and never shallower than offered."""
