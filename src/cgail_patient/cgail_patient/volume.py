@@ -10,8 +10,9 @@
   (the ``phantom`` frame's axes) by shape-based interpolation (thick slices do not staircase).
   :func:`read_label_map` does both.
 * :func:`read_surface` reads a closed surface mesh (STL / OBJ / PLY with trimesh, VTP with a
-  small reader of VTK's XML PolyData) given in RAS or LPS and in mm (or metres / cm with
-  ``units``), and :func:`voxelize_surface` turns it into the same kind of volume.
+  small reader of VTK's XML PolyData, :func:`read_vtp`) given in RAS or LPS and in mm (or
+  metres / cm with ``units``), and :func:`voxelize_surface` turns it into the same kind of
+  volume.
 
 Every failure is a :class:`~cgail_patient.PatientError` whose message names the file and
 reads "expected ..., found ...".
@@ -665,7 +666,14 @@ def _vtp_array(node: ET.Element, appended: bytes | None, header_type: str,
 
 def read_vtp(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(vertices, triangles) of a VTK XML PolyData file (ascii, binary or appended data,
-    optionally zlib-compressed); polygons with more than 3 corners are fanned.
+    optionally zlib-compressed, as 3D Slicer writes it); polygons with more than 3 corners are
+    fanned.
+
+    Ours, not a library's: meshio (5.3.5, the newest on PyPI) reads and writes VTK's legacy
+    ``.vtk`` and XML ``.vtu`` (UnstructuredGrid) but not ``.vtp``: its XML reader refuses a
+    PolyData file ("Expected type UnstructuredGrid, found PolyData", checked), and trimesh has
+    no VTP reader either. The library that reads every VTP is VTK itself (``vtk``, or pyvista
+    over it): the whole visualisation toolkit as a dependency for these 60 lines.
 
     Raises:
         ValueError: not a PolyData file or an encoding this reader does not know.
@@ -712,7 +720,8 @@ def read_vtp(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def write_vtp(path: str | Path, vertices: np.ndarray, faces: np.ndarray,
               encoding: str = "binary") -> Path:
-    """Write a triangle mesh as VTK XML PolyData (``ascii`` or base64 ``binary``)."""
+    """Write a triangle mesh as VTK XML PolyData (``ascii`` or base64 ``binary``), which 3D
+    Slicer loads as a model (ours: see :func:`read_vtp` for why no library)."""
     p = Path(path)
     v = np.asarray(vertices, dtype="<f4").ravel()
     f = np.asarray(faces, dtype="<i8")
