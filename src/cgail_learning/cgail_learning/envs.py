@@ -42,7 +42,22 @@ def is_success(info: dict[str, Any]) -> bool:
 
 
 class SyncVecEnv:
-    """Runs N gymnasium envs one after the other in this process, with same-step auto-reset."""
+    """Runs N gymnasium envs one after the other in this process, with same-step auto-reset.
+
+    Ours, not ``gymnasium.vector.SyncVectorEnv``: gymnasium 1.4.0's, with
+    ``autoreset_mode=AutoresetMode.SAME_STEP``, steps and resets the envs the same way (checked
+    on 4 :class:`~cgail_learning.testing.PointReach` envs, 400 steps of seeded random actions
+    and 42 ended episodes: equal observations, float32 rewards, terminations, truncations and
+    ``final_obs``), but its infos are not the :class:`VecEnv` protocol's. It returns one dict
+    of arrays (with ``_key`` masks) instead of a list of per-env dicts, and for an env that
+    ended it puts the ended step's info under ``final_info`` and the *reset's* info at the top
+    level: its ``is_success`` there was False in the 3 episodes where this class (and the
+    trainer, which reads ``infos[i]``) says True. An adapter back to this protocol would be
+    longer than this class. ``AsyncVectorEnv`` (subprocesses) does not help either: the
+    catheter simulator batches its envs in one process itself
+    (:class:`~cgail_sim.vec_env.CatheterNavVecEnv`, the trainer's env); this class serves the
+    tests' and benches' small gym envs.
+    """
 
     def __init__(self, env_fns: Sequence[Callable[[], gym.Env]]) -> None:
         if not env_fns:

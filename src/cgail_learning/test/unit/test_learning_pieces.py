@@ -329,3 +329,35 @@ def test_scalar_logger_writes_readable_event_file(tmp_path: Path):
     with pytest.raises(ValueError, match='corrupt record'):
         read_event_scalars(flipped)
     assert (tmp_path / 'scalars.csv').read_text().splitlines()[1] == '10,losses/value_loss,0.5'
+
+
+def test_sync_vec_env_steps_as_gymnasiums_same_step_vector_env() -> None:
+    """Why SyncVecEnv is ours (its docstring): gymnasium's SyncVectorEnv in same-step
+    auto-reset mode gives the same observations, rewards, ends and final observations, but the
+    ended env's top-level info is the reset's; ours is the ended step's, as the trainer reads
+    it."""
+    import gymnasium as gym
+    from gymnasium.vector import AutoresetMode
+
+    from cgail_learning.envs import SyncVecEnv
+    from cgail_learning.testing import PointReach
+
+    ours = SyncVecEnv([PointReach] * 4)
+    lib = gym.vector.SyncVectorEnv([PointReach] * 4, autoreset_mode=AutoresetMode.SAME_STEP)
+    assert np.array_equal(ours.reset(seed=3), lib.reset(seed=3)[0])
+    rng = np.random.default_rng(0)
+    ended = successes = 0
+    for _ in range(400):
+        act = rng.uniform(-1.0, 1.0, size=(4, *ours.single_action_space.shape))
+        obs, rew, term, trunc, infos = ours.step(act.astype(np.float32))
+        obs2, rew2, term2, trunc2, info2 = lib.step(act.astype(np.float32))
+        assert np.array_equal(obs, obs2) and np.array_equal(rew, rew2.astype(np.float32))
+        assert np.array_equal(term, term2) and np.array_equal(trunc, trunc2)
+        for i in np.flatnonzero(term | trunc):
+            ended += 1
+            assert np.array_equal(infos[i]['final_obs'], info2['final_obs'][i])
+            assert infos[i]['is_success'] == info2['final_info']['is_success'][i]
+            if infos[i]['is_success']:
+                successes += 1
+                assert not info2['is_success'][i]  # gymnasium's top level: the reset's info
+    assert ended >= 20 and successes >= 1
