@@ -3,7 +3,7 @@
 Example::
 
     cgail evaluate --policy C-GAIL=models/cgail_default.onnx --policy GAIL=runs/gail.onnx \\
-        --baselines centerline expert --modes static dynamic --trials 100 --out reports/insilico
+        --baselines centerline expert --modes static dynamic --trials 100 --out runs/evaluate
 
 Each method runs ``--trials`` episodes; trial k uses start ``k % 3``, target ``(k // 3) % 5`` and
 seed ``seed + k``, so every method sees the same start x target sequence. Metrics (paper
@@ -60,6 +60,7 @@ import time
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from cgail_learning.errors import LearningError
 from cgail_planner.core.onnx_policy import OnnxPolicy
@@ -280,7 +281,8 @@ class RrtFollower(CenterlineFollower):
 
 def run_trials(env: Any, method: Any, trials: int, seed: int,
                reuse_pairs: bool = False, noise: TrackingNoise | None = None,
-               tracked: bool = True, drawn: bool = False) -> list[Trial]:
+               tracked: bool = True, drawn: bool = False,
+               on_trial: Callable[[int], object] | None = None) -> list[Trial]:
     """``trials`` episodes of a policy (obs -> action) or a state-based baseline (``act()``).
 
     Args:
@@ -300,6 +302,8 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
         drawn: trial k's target is drawn anew from its seed in the anatomy's 30 mm sphere (an
             env with ``EnvConfig.targets == "sphere"``) instead of one of the fixed set: every
             method meets the same target in trial k.
+        on_trial: called with 1 as each trial ends (a progress bar's ``update``); it sees
+            nothing of the trial, so it cannot change a result.
     """
     if drawn and env.unwrapped.config.targets != 'sphere':
         raise ValueError(f'drawn targets need an env that draws them (env options '
@@ -320,6 +324,8 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
         pair = (k % n_s, (k // n_s) % n_t)
         if reuse_pairs and pair in done:
             out.append(done[pair])
+            if on_trial is not None:
+                on_trial(1)
             continue
         options = {'start': pair[0]} if drawn else {'start': pair[0], 'target': pair[1]}
         obs, _ = env.reset(seed=seed + k, options=options)
@@ -353,6 +359,8 @@ def run_trials(env: Any, method: Any, trials: int, seed: int,
                          1e3 * float(info['targeting_error']),
                          getattr(method, 'plan_ms', None), fault, np.asarray(tips), target))
         done[pair] = out[-1]
+        if on_trial is not None:
+            on_trial(1)
     return out
 
 
@@ -594,8 +602,11 @@ def _run_methods(env: Any, policies: dict[str, Any], args: argparse.Namespace,
         tracked = name != 'expert'  # the demonstrator uses the simulator's state
         # noise-free static: a deterministic method's outcome is a function of the pair
         reuse = mode == 'static' and tracked and not noise.enabled and not args.drawn_targets
-        results[name] = run_trials(env, method, args.trials, args.seed, reuse, noise, tracked,
-                                   args.drawn_targets)
+        # a bar with the time left (stderr), shown once a method has run for a second
+        with tqdm(total=args.trials, desc=f'{mode}{where} {name}', unit='trial', leave=False,
+                  delay=1.0, disable=getattr(args, 'no_progress', False)) as bar:
+            results[name] = run_trials(env, method, args.trials, args.seed, reuse, noise,
+                                       tracked, args.drawn_targets, on_trial=bar.update)
         s = summarize(results[name])
         print(f"{mode}{where} {name}: success {100 * s['success_rate']:.0f}% "
               f"({time.monotonic() - t0:.0f} s)", flush=True)
@@ -704,8 +715,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='draw where the failing trials went: one PNG per method and anatomy '
                         f'with the tip paths of its first {FAILURES_SHOWN} failures, linked at '
                         'the end of the report')
-    p.add_argument('--out', type=Path, default=Path('reports/insilico'),
+    p.add_argument('--out', type=Path, default=Path('runs/evaluate'),
                    help='directory for report.md, results.json and the box plots')
+    p.add_argument('--no-progress', action='store_true',
+                   help='hide the progress bar (each method\'s trials, with the time left)')
     return p
 
 

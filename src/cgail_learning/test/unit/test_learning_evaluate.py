@@ -86,10 +86,23 @@ def test_noisy_trials_of_one_pair_differ_and_reproduce(static_env):
     assert (a[0].timesteps, a[0].targeting_error_mm) != (a[15].timesteps,
                                                          a[15].targeting_error_mm)
     assert summarize(a)['distinct'] == 16
-    b = run_trials(static_env, follower, 16, seed=100, noise=TrackingNoise())
-    assert a == b  # same seed, same trials
-    clean = run_trials(static_env, follower, 16, seed=100, reuse_pairs=True)
+    ticks: list[int] = []  # (the progress bar's update: one tick as each trial ends)
+    b = run_trials(static_env, follower, 16, seed=100, noise=TrackingNoise(),
+                   on_trial=ticks.append)
+    assert a == b and ticks == [1] * 16  # same seed, same trials, with or without progress
+    ticks.clear()
+    clean = run_trials(static_env, follower, 16, seed=100, reuse_pairs=True,
+                       on_trial=ticks.append)
     assert clean[15] == clean[0] and summarize(clean)['distinct'] == 15
+    assert ticks == [1] * 16  # a reused pair's trial counts too
+
+
+def test_the_cli_writes_under_runs_and_can_hide_its_progress():
+    from cgail_learning.evaluate import build_parser
+
+    args = build_parser().parse_args([])
+    assert str(args.out) == 'runs/evaluate' and not args.no_progress
+    assert build_parser().parse_args(['--no-progress']).no_progress
 
 
 def test_noisy_policy_sees_the_perceived_pose(static_env):
