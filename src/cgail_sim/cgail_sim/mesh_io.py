@@ -1,7 +1,10 @@
 """Triangle-mesh building blocks for the anatomy: implicit-surface extraction, isotropic
 remeshing, planar clipping with capped ends, and reading user meshes.
 
-Everything here is numpy / scipy / trimesh only (no scikit-image, no manifold3d):
+Everything here is numpy / scipy / trimesh only. scikit-image is pinned in the workspace's
+requirements.txt (``cgail_patient`` uses its ``marching_cubes``), but not in the lean rig's
+(requirements-rig.txt, which ``cgail_sim`` is part of; test/test_lean_rig.py lists scikit-image
+among the distributions a rig never needs).
 
 * :func:`marching_tetrahedra` extracts the zero level set of a sampled field on a regular grid
   (each cube split into six tetrahedra around its main diagonal, Kuhn decomposition). Marching
@@ -15,6 +18,25 @@ Everything here is numpy / scipy / trimesh only (no scikit-image, no manifold3d)
   of concentric rings (reasonably shaped triangles rather than a long-spoked fan).
 * :func:`read_mesh_mm` loads a user STL/OBJ/PLY given in millimetres, checks it and converts it
   to metres.
+
+Why ours and not a library's (issue 34). The anatomies (the built-ins, the training population,
+their cached meshes and content hashes) are built by these three steps, so a library that
+triangulates differently changes every anatomy, and with it every trained policy's environment
+and every stored result; each candidate does:
+
+* ``skimage.measure.marching_cubes`` (Lewiner) on the same field (a bumpy torus on a 60^3
+  grid) gave a different, coarser mesh: 7,968 vertices against 23,822 here, both watertight,
+  in 5 ms against 68 ms. The remeshing that follows resamples the surface anyway, so the
+  speed-up is not worth new meshes and scikit-image in the lean rig.
+* trimesh 5.2.0 has no isotropic remeshing: ``trimesh.remesh`` only splits edges
+  (``subdivide``, ``subdivide_to_size``, ``subdivide_loop``), never collapses, flips or
+  relaxes them. The remeshers on PyPI (gpytoolbox's ``remesh_botsch``, pymeshlab, pyacvd) are
+  not installed, and they take a triangle mesh alone, where :class:`Remesher` projects onto
+  the implicit field the mesh came from, with a target edge length that varies over it.
+* ``trimesh.intersections.slice_mesh_plane(..., cap=True)`` needs shapely and a polygon
+  triangulator (mapbox-earcut or triangle), none installed here (it raises
+  ``ModuleNotFoundError: shapely``), and caps with a triangulation of the cut polygon, not
+  with the concentric rings of :func:`clip_and_cap`.
 """
 
 from __future__ import annotations
