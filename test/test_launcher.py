@@ -421,7 +421,8 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
         module, _, cls = node.plugin.partition(':')
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
     owners = {'phantom': 'cgail_rig', 'planner': 'cgail_planner', 'operator': 'cgail_planner',
-              'igtl_bridge': 'cgail_gui'}  # each node's parameter file is its package's
+              'igtl_bridge': 'cgail_gui', 'foxglove_bridge': 'cgail_gui'}  # each node's
+    # parameter file is its package's
     assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
         name: (str(PACKAGE.parent / owner / 'config' / f'{name}.yaml'),)
         for name, owner in owners.items()}
@@ -442,7 +443,7 @@ def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(
                              'can_channel': 'can1'})
     nodes = {n.name: n for n in spec.nodes}
     assert set(nodes) == {'aurora', 'pam_controller', 'sleeve_driver', 'joy', 'teleop',
-                          'planner', 'gui', 'igtl_bridge'}
+                          'planner', 'gui', 'igtl_bridge', 'foxglove_bridge'}
     for node in spec.nodes:
         module, _, cls = node.plugin.partition(':')
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
@@ -463,6 +464,8 @@ def test_the_real_rig_launch_file_drives_real_devices_with_the_calibration_file(
         assert (params(name)['can_interface'], params(name)['can_channel'],
                 params(name)[sim]) == ('socketcan', 'can1', False), name
     assert params('igtl_bridge')['host'] == '127.0.0.1'
+    assert (params('foxglove_bridge')['host'], params('foxglove_bridge')['allow_remote']) == (
+        '127.0.0.1', False)
 
 
 def test_sim_rig_hands_the_anatomy_argument_to_phantom_planner_gui_and_bridge(tmp_path):

@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: Distributions of the workspace a rig never needs.
 TRAINING_ONLY = ('torch', 'tqdm', 'ray', 'nibabel', 'pynrrd', 'scikit-image', 'websockets',
-                 'pyigtl', 'pytest', 'ruff', 'mypy')
+                 'pyigtl', 'foxglove-sdk', 'pytest', 'ruff', 'mypy')
 
 
 def pins(path: Path) -> dict[str, str | None]:

@@ -86,6 +86,7 @@ PYTHON_KEYS = {
     # PyPI only (rosdep installs them with pip)
     'cantools': Key('python3-cantools-pip', 'cantools'),
     'fast_simplification': Key('python3-fast-simplification-pip', 'fast-simplification'),
+    'foxglove': Key('python3-foxglove-sdk-pip', 'foxglove-sdk'),
     'gymnasium': Key('python3-gymnasium-pip', 'gymnasium'),
     'nrrd': Key('python3-pynrrd-pip', 'pynrrd'),
     'mcap': Key('python3-mcap-pip', 'mcap'),

@@ -29,7 +29,8 @@ setup(
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
     description=('Guidance displays of the rig: the browser GUI (gui_node; three.js scene, live '
-                 'state, bag replay) and the OpenIGTLink bridge to 3D Slicer (igtl_bridge).'),
+                 'state, bag replay), the OpenIGTLink bridge to 3D Slicer (igtl_bridge) and the '
+                 'live Foxglove view (foxglove_bridge).'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
@@ -37,6 +38,7 @@ setup(
         'console_scripts': [
             'gui_node = cgail_gui.nodes.gui_node:main',
             'igtl_bridge = cgail_gui.nodes.igtl_bridge:main',
+            'foxglove_bridge = cgail_gui.nodes.foxglove_bridge:main',
         ],
     },
 )

@@ -3,7 +3,8 @@
 * :func:`require_localhost_discovery`: each package's ``test/conftest.py`` calls it from its
   ``pytest_configure``, so no test runs unless DDS discovery is confined to this machine;
 * :func:`ros`: the fixture of the in-process node tests (``test/node/conftest.py`` imports it:
-  ``from cgail_node_utils.testing import ros  # noqa: F401``).
+  ``from cgail_node_utils.testing import ros  # noqa: F401``);
+* :func:`spin_until`: spin an executor until something happens, with a real deadline.
 
 Rules that keep node tests true on an idle machine as well as a loaded one: inputs come from
 timers at realistic rates (never published on every spin pass), waits for something to happen
@@ -15,9 +16,11 @@ and no product module imports it (test/test_import_layers.py). rclpy is imported
 :func:`ros`, so the packages without ROS (``cgail_sim``) call the guard without it.
 """
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 import gc
 import os
+import time
+from typing import Any
 
 import pytest
 
@@ -55,3 +58,14 @@ def ros() -> Iterator[None]:
     finally:
         gc.collect()
         rclpy.try_shutdown()
+
+
+def spin_until(executor: Any, predicate: Callable[[], bool], timeout: float = 30.0) -> bool:
+    """Spin ``executor`` (20 ms waits) until ``predicate()`` holds or ``timeout`` wall seconds
+    have passed (a generous deadline: a loaded machine is slow); returns whether it holds."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        executor.spin_once(timeout_sec=0.02)
+    return predicate()

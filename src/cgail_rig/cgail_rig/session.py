@@ -149,6 +149,10 @@ class SessionSettings:
     """Also run ``igtl_bridge`` (3D Slicer over OpenIGTLink) in the rig."""
     igtl_port: int = 18944
     """Port of ``igtl_bridge``'s server (loopback)."""
+    foxglove: bool = False
+    """Also run ``foxglove_bridge`` (the live Foxglove view) in the rig."""
+    foxglove_port: int = 8765
+    """Port of ``foxglove_bridge``'s WebSocket server (loopback)."""
     plant: str = 'true'
     """The phantom's catheter plant: 'true' (drawn from its sourced ranges with
     ``plant_seed``) or 'ideal' (the PAM controller's nominal model,
@@ -262,8 +266,8 @@ class TrialRig:
                                                  if k in launch.arguments})
             overrides = self._overrides(Path(self._tmp) / 'aurora')
             for spec_node in launch.nodes:
-                if not {'gui': settings.gui, 'igtl_bridge': settings.igtl}.get(spec_node.name,
-                                                                                True):
+                if not {'gui': settings.gui, 'igtl_bridge': settings.igtl,
+                        'foxglove_bridge': settings.foxglove}.get(spec_node.name, True):
                     continue  # started only when asked for
                 self.nodes[spec_node.name] = build_node(
                     spec_node, overrides.get(spec_node.name, {}), lean=True,
@@ -299,6 +303,7 @@ class TrialRig:
             'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill},
             'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
             'igtl_bridge': {'anatomy': s.anatomy, 'port': s.igtl_port},
+            'foxglove_bridge': {'port': s.foxglove_port},
         }
 
     def _start_recorder(self) -> None:
@@ -547,6 +552,11 @@ def build_parser() -> argparse.ArgumentParser:
                         '(one trial at a time)')
     p.add_argument('--igtl-port', type=int, default=18944,
                    help="port of igtl_bridge (Slicer's default 18944)")
+    p.add_argument('--foxglove', action='store_true',
+                   help='also start foxglove_bridge: the Foxglove app follows the trial live '
+                        'over ws://127.0.0.1:<port> (one trial at a time)')
+    p.add_argument('--foxglove-port', type=int, default=8765,
+                   help="port of foxglove_bridge (Foxglove's default 8765)")
     p.add_argument('--plant', choices=PLANTS, default='identified',
                    help="default 'identified', as a rig team runs it; 'nominal': the "
                         "phantom's true plant (its own actuator model, drawn from sourced "
@@ -654,7 +664,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     jobs = args.jobs or os.cpu_count() or 1
     jobs = max(1, min(jobs, len(specs)))
     notes = []
-    for flag, on in (('--gui', args.gui), ('--igtl', args.igtl)):
+    for flag, on in (('--gui', args.gui), ('--igtl', args.igtl), ('--foxglove', args.foxglove)):
         if on and jobs > 1:
             jobs = 1
             notes.append(f'{flag}: one trial at a time')
@@ -675,7 +685,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
         time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, igtl=args.igtl,
-        igtl_port=args.igtl_port, plant='ideal' if args.plant == 'ideal' else 'true',
+        igtl_port=args.igtl_port, foxglove=args.foxglove, foxglove_port=args.foxglove_port,
+        plant='ideal' if args.plant == 'ideal' else 'true',
         plant_seed=args.seed, pam_parameters=pam_parameters)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -703,6 +714,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.igtl:
         log(f'cgail session: OpenIGTLink server on 127.0.0.1:{args.igtl_port} while a trial '
             f'runs (3D Slicer: OpenIGTLinkIF, a client connector to that port)')
+    if args.foxglove:
+        log(f'cgail session: Foxglove WebSocket on ws://127.0.0.1:{args.foxglove_port} while a '
+            'trial runs (Foxglove: Open connection, Foxglove WebSocket; layout '
+            'src/cgail_rig/config/foxglove/cgail_layout.json)')
     done = [0]
 
     def on_result(result: TrialResult) -> None:

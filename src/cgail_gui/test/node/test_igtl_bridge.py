@@ -27,6 +27,7 @@ import yaml
 from cgail_gui.core import igtl
 from cgail_gui.hw import igtl_server as srv
 from cgail_gui.nodes.igtl_bridge import IgtlBridge
+from cgail_node_utils.testing import spin_until
 from cgail_planner.core.markers import LumenMesh
 from cgail_planner.nodes import conversions as conv
 from cgail_sim.anatomy_spec import resolve_anatomy
@@ -42,15 +43,6 @@ CT_T = np.array([12.5, -140.0, 1020.25])  # the prepared anatomy's record: t_inp
 def polydata_decoder(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(pyigtl.messages.message_type_to_class_constructor, 'POLYDATA',
                         srv.PolyDataReader)
-
-
-def spin_until(executor, predicate: Callable[[], bool], timeout: float = TIMEOUT) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.02)
-    return predicate()
 
 
 class Rig:

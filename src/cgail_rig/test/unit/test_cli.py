@@ -184,8 +184,10 @@ def test_every_old_console_script_runs_its_verb() -> None:
     assert scripts_of('cgail_planner') == {
         'planner_node': 'cgail_planner.nodes.planner_node:main',
         'operator_node': 'cgail_planner.nodes.operator_node:main'}
-    assert scripts_of('cgail_gui') == {'gui_node': 'cgail_gui.nodes.gui_node:main',
-                                       'igtl_bridge': 'cgail_gui.nodes.igtl_bridge:main'}
+    assert scripts_of('cgail_gui') == {
+        'gui_node': 'cgail_gui.nodes.gui_node:main',
+        'igtl_bridge': 'cgail_gui.nodes.igtl_bridge:main',
+        'foxglove_bridge': 'cgail_gui.nodes.foxglove_bridge:main'}
     for package in ('cgail_sim', 'cgail_bags', 'cgail_learning', 'cgail_patient'):
         assert scripts_of(package) == {}, package
     scripts = scripts_of('cgail_rig')
