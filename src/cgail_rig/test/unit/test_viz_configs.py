@@ -63,15 +63,38 @@ def test_rviz_marker_displays_list_the_namespaces_the_nodes_use() -> None:
         mk.TARGET_NS, mk.PATH_NS, mk.WAYPOINT_NS, mk.BEND_NS}
 
 
-def test_foxglove_layout_is_one_3d_panel_on_those_topics() -> None:
+def _panels(tree: object) -> list[str]:
+    """The panel ids of a Foxglove layout tree (a panel id, or a split of two trees)."""
+    if isinstance(tree, str):
+        return [tree]
+    assert isinstance(tree, dict) and tree['direction'] in ('row', 'column'), tree
+    return _panels(tree['first']) + _panels(tree['second'])
+
+
+def test_foxglove_layout_is_the_3d_panel_the_pressures_and_the_diagnostics() -> None:
+    """The 3D panel on the markers and the tip, a plot of the four PAM pressures and the
+    diagnostics summary, each on a topic some node publishes with the type the panel reads,
+    and each served live by foxglove_bridge (recorded bags hold the 3D panel's topics)."""
+    from cgail_gui.core.foxglove_view import STREAMS
+
     layout = json.loads(FOXGLOVE.read_text())
-    panel_id = layout['layout']
-    assert panel_id.startswith('3D!')
-    panel = layout['configById'][panel_id]
+    panels = _panels(layout['layout'])
+    assert sorted(panels) == sorted(layout['configById'])
+    assert [p.split('!')[0] for p in panels] == ['3D', 'Plot', 'DiagnosticSummary']
+    panel = layout['configById'][panels[0]]
     assert panel['followTf'] == 'phantom'
     assert set(panel['topics']) == SHOWN
     assert set(panel['topics']) <= set(published())
     assert all(t['visible'] for t in panel['topics'].values())
+    plot = layout['configById'][panels[1]]
+    assert [p['value'] for p in plot['paths']] == [f'/pam/pressures.data[{i}]' for i in range(4)]
+    assert [p['label'] for p in plot['paths']] == ['alpha_pos', 'alpha_neg', 'gamma_pos',
+                                                   'gamma_neg']  # docs/interfaces.md's order
+    assert published()['/pam/pressures'][0] == 'std_msgs/msg/Float64MultiArray'
+    diagnostics = layout['configById'][panels[2]]['topicToRender']
+    assert published()[diagnostics][0] == 'diagnostic_msgs/msg/DiagnosticArray'
+    served = {'/' + (s.rig or s.own.lstrip('/')) for s in STREAMS}
+    assert SHOWN | {'/pam/pressures', diagnostics} <= served
 
 
 @pytest.mark.parametrize('path', [RVIZ, FOXGLOVE])
