@@ -13,8 +13,8 @@ import numpy as np
 
 from cgail_rig.session import main
 
-TOPICS = ('/em_tracker/tip_pose', '/tf', '/tf_static', '/phantom/markers', '/planner/markers',
-          '/pam/pressures', '/planner/path', '/diagnostics')
+TOPICS = ('/em_tracker/tip_pose', '/tf', '/tf_static', '/phantom/lumen', '/phantom/markers',
+          '/planner/markers', '/pam/pressures', '/planner/path', '/diagnostics')
 
 
 def test_foxglove_follows_a_simulated_trial_live(tmp_path, monkeypatch) -> None:
@@ -58,8 +58,8 @@ def test_foxglove_follows_a_simulated_trial_live(tmp_path, monkeypatch) -> None:
     assert ('phantom', 'catheter_tip') in frames, frames
     assert {(tf.header.frame_id, tf.child_frame_id) for _, m in got['/tf_static']
             for tf in m.transforms} == {('aurora', 'phantom')}
-    assert {'lumen', 'catheter_body'} <= {mk.ns for _, m in got['/phantom/markers']
-                                          for mk in m.markers}
+    assert {mk.ns for _, m in got['/phantom/lumen'] for mk in m.markers} == {'', 'lumen'}
+    assert 'catheter_body' in {mk.ns for _, m in got['/phantom/markers'] for mk in m.markers}
     assert 'path' in {mk.ns for _, m in got['/planner/markers'] for mk in m.markers}
     _, pressures = got['/pam/pressures'][-1]
     assert len(pressures.data) == 4 and pressures.layout.dim[0].label == \

@@ -44,7 +44,7 @@ IGNORED_SERVICE_SUFFIXES = (
 #: the session or the person at the rig; on the real rig no phantom publishes the wall.
 EXTERNAL_INPUTS = {
     'sim_rig': {'/planner/goal'},
-    'rig': {'/planner/goal', '/phantom/markers'},
+    'rig': {'/planner/goal', '/phantom/markers', '/phantom/lumen'},
 }
 
 

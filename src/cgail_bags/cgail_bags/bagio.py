@@ -21,7 +21,15 @@ import struct
 from typing import Any
 
 from rosbags.interfaces import Connection, Qos
-from rosbags.rosbag2 import Reader, ReaderError, StoragePlugin, Writer, WriterError
+from rosbags.rosbag2 import (
+    CompressionFormat,
+    CompressionMode,
+    Reader,
+    ReaderError,
+    StoragePlugin,
+    Writer,
+    WriterError,
+)
 from rosbags.typesys import get_typestore, Stores
 from rosbags.typesys.store import Typestore
 import yaml
@@ -82,12 +90,17 @@ class BagWriter:
     Args:
         path: Bag directory to create; must not exist.
         custom_data: ``metadata.yaml`` custom_data entries (strings).
+        compress: zstd-compress each MCAP chunk (rosbag2's ``storage`` compression mode, which
+            rosbag2, rosbags, the ``mcap`` package and Foxglove read transparently).
     """
 
-    def __init__(self, path: Path | str, custom_data: dict[str, str] | None = None) -> None:
+    def __init__(self, path: Path | str, custom_data: dict[str, str] | None = None, *,
+                 compress: bool = False) -> None:
         self.path = Path(path)
         try:
             self._writer = JazzyWriter(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
+            if compress:
+                self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
             for key, value in (custom_data or {}).items():
                 self._writer.set_custom_data(key, str(value))
             self._writer.open()

@@ -55,6 +55,8 @@ class RecorderConfig:
     """Seconds between chunk flushes of the writer thread; > 0."""
     discovery_period: float = 0.5
     """Seconds between graph scans for new topics; > 0."""
+    compress: bool = False
+    """zstd-compress the bag's MCAP chunks (:class:`~cgail_bags.bagio.BagWriter`)."""
 
     def __post_init__(self) -> None:
         if not self.all_topics and not self.topics:
@@ -77,7 +79,7 @@ class BagRecorder:
         self._node = node
         self.config = config
         custom = {'condition': config.condition} if config.condition else {}
-        self._writer = BagWriter(config.output, custom_data=custom)
+        self._writer = BagWriter(config.output, custom_data=custom, compress=config.compress)
         self._queue: queue.SimpleQueue[tuple[str, Any, Any] | None] = queue.SimpleQueue()
         self._subs: dict[str, Any] = {}
         self._recorded: list[str] = []

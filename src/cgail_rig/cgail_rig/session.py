@@ -59,6 +59,10 @@ one at a time on it). A session refuses to start on a domain where device nodes 
 never command a real rig.
 
 **Console.** One line per trial, then the table; the nodes' logs go to ``<out>/logs/``.
+
+**Bags.** Each trial's bag is zstd-compressed MCAP; the lumen is on its own latched topic
+(``phantom/lumen``: a static wall recorded once, a dynamic one when it moved, at most at
+``RECORDED_LUMEN_RATE_HZ``), the catheter body on ``phantom/markers``.
 """
 
 from __future__ import annotations
@@ -82,22 +86,24 @@ from cgail_rig.launch_spec import default_launch_file
 from cgail_sim.cli_help import tool_parser
 
 #: Recorded in every trial's bag: what the metrics read, and what RViz2 / Foxglove show (TF, the
-#: tip with its covariance, the markers: the wall as it deforms, the catheter body, the plan).
+#: tip with its covariance, the markers: the lumen, the catheter body, the plan).
 TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
           'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
-          '/tf_static', 'phantom/markers', 'planner/markers')
+          '/tf_static', 'phantom/lumen', 'phantom/markers', 'planner/markers')
 CONDITIONS = ('cgail', 'centerline')
 #: ``--plant``: the true plant with the controller's nominal model, the true plant with the
 #: model identified on it, or the controller's own model as the plant.
 PLANTS = ('nominal', 'identified', 'ideal')
 #: Recorded latched topics with a sample before the trial starts (published while the rig is
 #: built, before the recorder subscribes): the recorder must hold them before the first tick.
-LATCHED_AT_START = ('/tf_static', '/phantom/markers')
-#: The lumen on ``phantom/markers`` in a trial's bag: decimated to this many triangles and
-#: refreshed at ``RECORDED_MARKER_RATE_HZ`` (above twice the 70-bpm heartbeat, so the replayed
-#: wall does not alias): about 10 MB of a 75 s dynamic trial's bag. At the rig's live defaults
-#: (6000 triangles, 5 Hz) the same trial's bag held 134 MB of markers.
+LATCHED_AT_START = ('/tf_static', '/phantom/lumen', '/phantom/markers')
+#: The lumen on ``phantom/lumen`` in a trial's bag: decimated to this many triangles. A static
+#: wall is recorded once (the latched sample at the start); a dynamic one again whenever it
+#: moved, at most at ``RECORDED_LUMEN_RATE_HZ`` (above twice the 70-bpm heartbeat, 1.17 Hz, so
+#: the replayed wall does not alias). The catheter body (``phantom/markers``) is recorded at
+#: ``RECORDED_MARKER_RATE_HZ``.
 RECORDED_LUMEN_TRIANGLES = 600
+RECORDED_LUMEN_RATE_HZ = 2.5
 RECORDED_MARKER_RATE_HZ = 3.0
 #: Simulated seconds between the rig's start and the goal (the tracker connects, poses flow).
 SETTLE_S = 1.0
@@ -294,7 +300,8 @@ class TrialRig:
                         'plant': s.plant, 'plant_seed': s.plant_seed,
                         'start_id': spec.start_id, 'target_id': spec.target_id,
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
-                        'marker_rate_hz': RECORDED_MARKER_RATE_HZ},
+                        'marker_rate_hz': RECORDED_MARKER_RATE_HZ,
+                        'lumen_rate_hz': RECORDED_LUMEN_RATE_HZ},
             'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
             'pam_controller': {'control_rate_hz': control, **dict(s.pam_parameters)},
             'sleeve_driver': {'control_rate_hz': control},
@@ -315,7 +322,8 @@ class TrialRig:
         self._goal_pub = self.session.create_publisher(PoseStamped, 'planner/goal',
                                                        conv.COMMAND_QOS)
         self.recorder = BagRecorder(self.session, RecorderConfig(
-            output=Path(self.spec.bag), topics=TOPICS, condition=self.spec.condition))
+            output=Path(self.spec.bag), topics=TOPICS, condition=self.spec.condition,
+            compress=True))
         # discovery of the rig's own publishers takes wall time, not simulated time
         deadline = time.monotonic() + 30.0
         while len(self.recorder.topics) < len(TOPICS):

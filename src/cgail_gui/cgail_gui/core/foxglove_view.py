@@ -61,6 +61,8 @@ STREAMS: tuple[Stream, ...] = (
     Stream('/tf_static', '', 'tf2_msgs/msg/TFMessage', 'latched', keep=16),
     Stream('~/phantom_markers', 'phantom/markers', 'visualization_msgs/msg/MarkerArray',
            'latched', keep=1),
+    Stream('~/phantom_lumen', 'phantom/lumen', 'visualization_msgs/msg/MarkerArray',
+           'latched', keep=1),
     Stream('~/planner_markers', 'planner/markers', 'visualization_msgs/msg/MarkerArray',
            'latched', keep=1),
     Stream('~/path', 'planner/path', 'nav_msgs/msg/Path', 'latched', keep=1),

@@ -32,11 +32,18 @@ It hosts the simulated devices in this process and the catheter-in-aorta physics
   is clamped at the base of its steerable segment (the start pose) in free air instead, and
   the tip is the arc of the plant's current bend (``cgail identify-pam`` identifies the actuators
   so, as a rig team does on the bench);
-* ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
-  (TRIANGLE_LIST on the wall's current vertices: deformed in dynamic mode; decimated above
-  ``marker_max_triangles``) and the catheter body (LINE_STRIP), a full snapshot every
-  ``1 / marker_rate_hz`` s (:mod:`cgail_planner.core.markers`). Built only while someone
-  subscribes (the first one always goes out, for late joiners of the latched topic).
+* ``phantom/lumen`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the lumen
+  (TRIANGLE_LIST ``lumen`` on the wall's current vertices, decimated above
+  ``marker_max_triangles``). A static wall is published once, at start: the latched sample
+  reaches every late joiner (a viewer, a recorder). A dynamic wall is published again only
+  when it moved, at most every ``1 / lumen_rate_hz`` s (above twice the 70-bpm heartbeat by
+  default, so a viewer's wall does not alias).
+* ``phantom/markers`` (visualization_msgs/MarkerArray, latched, frame ``phantom``): the
+  catheter body (LINE_STRIP ``catheter_body``), a full snapshot every ``1 / marker_rate_hz`` s
+  (:mod:`cgail_planner.core.markers`).
+
+  Both are built only while someone subscribes (the first one always goes out, for late
+  joiners of the latched topic).
 
 Time, two ways:
 
@@ -68,13 +75,13 @@ from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, Header, String
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
-from cgail_planner.core.markers import LumenMesh, MarkerConfig, phantom_markers
+from cgail_planner.core.markers import body_marker, LumenMesh, MarkerConfig
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
 from cgail_rig.core.phantom import FIXTURES, PhantomConfig, PhantomPhysics
@@ -143,10 +150,13 @@ class PhantomNode(Node):
         self._pose_every = max(1, round(1.0 / (pose_rate * self.physics_dt)))
         m = MarkerConfig()
         self.marker_config = MarkerConfig(max_triangles=conv.declare(
-            self, 'marker_max_triangles', m.max_triangles, 'phantom/markers: the lumen is '
+            self, 'marker_max_triangles', m.max_triangles, 'phantom/lumen: the lumen is '
             'decimated above this many triangles', lo=100, hi=100_000))
         marker_rate = conv.declare(self, 'marker_rate_hz', 5.0, 'rate of phantom/markers '
-                                   '(lumen, catheter body), Hz', lo=0.1, hi=30.0)
+                                   '(the catheter body), Hz', lo=0.1, hi=30.0)
+        lumen_rate = conv.declare(self, 'lumen_rate_hz', 5.0, 'dynamic mode: highest rate of '
+                                  'phantom/lumen, republished only when the wall moved (a '
+                                  'static wall goes out once), Hz', lo=0.1, hi=30.0)
         seed = conv.declare(self, 'seed', 0, 'seed of the EM noise', lo=0, hi=2**31 - 1)
         self.plant_kind = conv.declare(self, 'plant', 'true', "the catheter plant: 'true' "
                                        "(drawn from its sourced ranges with plant_seed), "
@@ -183,7 +193,7 @@ class PhantomNode(Node):
                                 segment_length=self.config.catheter.segment_length)
         self.physics = PhantomPhysics(self.config, wall, self.plant)
         self.lumen = LumenMesh(self.world.anatomy, self.marker_config.max_triangles)
-        self._static_lumen: Marker | None = None  # (static mode: built once)
+        self._lumen_sent: np.ndarray | None = None  # (the wall vertices last published)
         self._markers_sent = False
         #: Why the physics stopped (a deformable wall beyond its bound), '' while it runs.
         self.physics_error = ''
@@ -222,6 +232,7 @@ class PhantomNode(Node):
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                conv.DIAGNOSTICS_QOS)
         self._markers_pub = self.create_publisher(MarkerArray, '~/markers', conv.LATCHED_QOS)
+        self._lumen_pub = self.create_publisher(MarkerArray, '~/lumen', conv.LATCHED_QOS)
         self._clock_pub = self.create_publisher(ClockMsg, '/clock', 10) \
             if self.publish_clock else None
         if self.driver is None:  # (a hosted driver's gripper is read directly)
@@ -234,15 +245,21 @@ class PhantomNode(Node):
         self._port_pub.publish(String(data=self.aurora_port))
         self._ticks = 0
         self.publish_target()
+        self.publish_lumen()
         self.publish_markers()
+        dynamic = self.mode == 'dynamic'  # (a static wall's lumen went out above, once)
         if self.lockstep:
             self.create_timer(diag_period, self._on_diagnostics)
             self.create_timer(1.0 / marker_rate, self.publish_markers)
+            if dynamic:
+                self.create_timer(1.0 / lumen_rate, self.publish_lumen)
         else:
             steady = Clock(clock_type=ClockType.STEADY_TIME)
             self.create_timer(self.physics_dt / self.time_scale, self._on_tick, clock=steady)
             self.create_timer(diag_period, self._on_diagnostics, clock=steady)
             self.create_timer(1.0 / marker_rate, self.publish_markers, clock=steady)
+            if dynamic:
+                self.create_timer(1.0 / lumen_rate, self.publish_lumen, clock=steady)
         timing = 'lockstep' if self.lockstep else (
             f'x{self.time_scale:g} time{" on /clock" if self.publish_clock else ""}')
         self.get_logger().info(
@@ -346,21 +363,27 @@ class PhantomNode(Node):
         self._target_pub.publish(conv.point_msg(self.now_msg(), self.frame_id,
                                                 self.target_position()))
 
+    def publish_lumen(self) -> None:
+        """Publish the lumen on ``phantom/lumen`` (latched) if the wall moved since the last
+        one (module docstring)."""
+        if self._lumen_sent is not None and self._lumen_pub.get_subscription_count() == 0:
+            return
+        with self._lock:
+            vertices = np.array(self.wall.vertices, dtype=np.float64)
+        if self._lumen_sent is not None and np.array_equal(vertices, self._lumen_sent):
+            return
+        self._lumen_sent = vertices
+        self._lumen_pub.publish(conv.marker_array_msg(self.now_msg(), self.frame_id,
+                                                      [self.lumen.marker(vertices)]))
+
     def publish_markers(self) -> None:
-        """Publish the lumen and the catheter body on ``phantom/markers`` (module docstring)."""
+        """Publish the catheter body on ``phantom/markers`` (module docstring)."""
         if self._markers_sent and self._markers_pub.get_subscription_count() == 0:
             return
-        static = self.mode == 'static'
         with self._lock:
-            geometries = phantom_markers(self.lumen, self.wall.vertices, self.physics.catheter,
-                                         self.marker_config)
-        prebuilt = []
-        if static:  # the rigid wall never moves: its (largest) marker is converted once
-            if self._static_lumen is None:
-                self._static_lumen = conv.marker_msg(Header(), geometries[0])
-            geometries, prebuilt = geometries[1:], [self._static_lumen]
+            body = body_marker(self.physics.catheter, 0, self.marker_config.body_spacing)
         self._markers_pub.publish(conv.marker_array_msg(self.now_msg(), self.frame_id,
-                                                        geometries, prebuilt))
+                                                        [] if body is None else [body]))
         self._markers_sent = True
 
     def _em_pose(self, t_frame: float) -> tuple[np.ndarray, np.ndarray]:

@@ -329,7 +329,7 @@ def test_port_in_use_is_an_error_not_a_crash(ros: None) -> None:
 
 
 def test_dynamic_mode_draws_the_phantoms_deforming_wall(ros: None) -> None:
-    """The page's wall is the phantom's lumen marker (phantom/markers), not a heartbeat of the
+    """The page's wall is the phantom's lumen marker (phantom/lumen), not a heartbeat of the
     GUI's own: its mesh replaces the anatomy's rest mesh and its vertices stream as deform
     frames that move with the phantom's wall."""
     import base64
@@ -339,7 +339,7 @@ def test_dynamic_mode_draws_the_phantoms_deforming_wall(ros: None) -> None:
     from cgail_rig.nodes.phantom_node import PhantomNode
 
     phantom = PhantomNode(parameter_overrides=[
-        Parameter('mode', value='dynamic'), Parameter('marker_rate_hz', value=10.0),
+        Parameter('mode', value='dynamic'), Parameter('lumen_rate_hz', value=10.0),
         Parameter('simulate_aurora', value=False), Parameter('simulate_regulators', value=False),
         Parameter('simulate_driver', value=False)])
     lumen_vertices = len(np.unique(phantom.lumen.faces))      # 2420 (the mesh has 2455)
@@ -347,7 +347,7 @@ def test_dynamic_mode_draws_the_phantoms_deforming_wall(ros: None) -> None:
     def frame(s: dict[str, Any], item: str) -> np.ndarray:
         return np.frombuffer(base64.b64decode(s[item]['vertices']), '<f4').reshape(-1, 3)
 
-    r = Running(phantom, cli_args=['--ros-args', '-r', '~/wall_markers:=phantom/markers'],
+    r = Running(phantom, cli_args=['--ros-args', '-r', '~/wall_markers:=phantom/lumen'],
                 anatomy='default', dynamic=True, mesh_rate_hz=20.0)
     try:
         with r.ws() as ws:

@@ -1,5 +1,6 @@
-"""phantom/markers and planner/markers in-process: full snapshots (DELETEALL, then the expected
-namespaces and types, frame phantom), latched, and the lumen's vertices move in dynamic mode."""
+"""phantom/lumen, phantom/markers and planner/markers in-process: full snapshots (DELETEALL, then
+the expected namespaces and types, frame phantom), latched; a static lumen goes out once, a
+dynamic one moves."""
 
 from collections.abc import Callable
 from pathlib import Path
@@ -54,29 +55,35 @@ def with_probe(node):
     return probe, executor, got
 
 
-def test_phantom_publishes_the_lumen_and_the_body(ros) -> None:
+def test_phantom_publishes_the_lumen_once_and_the_body(ros) -> None:
     node = PhantomNode(parameter_overrides=[Parameter(k, value=v) for k, v in
                                             dict(NO_DEVICES, marker_rate_hz=5.0).items()])
     probe, ex, got = with_probe(node)
+    lumens: list[MarkerArray] = []
     try:
         latched(node, '/phantom/markers')
-        # a late joiner gets the snapshot sent at construction (transient local)
+        latched(node, '/phantom/lumen')
+        # late joiners get the snapshots sent at construction (transient local)
         probe.create_subscription(MarkerArray, 'phantom/markers', got.append, conv.LATCHED_QOS)
-        assert spin_until(ex, lambda: got)
-        assert kinds(got[0]) == [('lumen', 0, Marker.TRIANGLE_LIST),
-                                 ('catheter_body', 0, Marker.LINE_STRIP)]
-        lumen, body = got[0].markers[1:]
+        probe.create_subscription(MarkerArray, 'phantom/lumen', lumens.append,
+                                  conv.LATCHED_QOS)
+        assert spin_until(ex, lambda: got and lumens)
+        assert kinds(lumens[0]) == [('lumen', 0, Marker.TRIANGLE_LIST)]
+        assert kinds(got[0]) == [('catheter_body', 0, Marker.LINE_STRIP)]
+        lumen, body = lumens[0].markers[1], got[0].markers[1]
         assert len(lumen.points) == 3 * len(node.lumen.faces)  # (4783 faces on AVX-512 numpy)
         assert conv.marker_points(lumen) == pytest.approx(
             node.world.anatomy.vertices[node.lumen.faces.reshape(-1)])
         assert body.scale.x == pytest.approx(0.007)
         assert conv.marker_points(body)[-1] == pytest.approx(node.physics.tip_position)
-        # then one every 1 / marker_rate_hz while subscribed, the body following the tip
+        # then the body every 1 / marker_rate_hz while subscribed, following the tip; the
+        # static wall's lumen never again
         node.physics.move(0.01, (0.0, 0.0))
         n = len(got)
         assert spin_until(ex, lambda: len(got) > n + 1)
-        body = got[-1].markers[2]
+        body = got[-1].markers[1]
         assert conv.marker_points(body)[-1] == pytest.approx(node.physics.tip_position)
+        assert len(lumens) == 1
     finally:
         ex.shutdown()
         node.destroy_node()
@@ -86,10 +93,10 @@ def test_phantom_publishes_the_lumen_and_the_body(ros) -> None:
 def test_phantom_lumen_moves_in_dynamic_mode(ros) -> None:
     node = PhantomNode(parameter_overrides=[Parameter(k, value=v) for k, v in
                                             dict(NO_DEVICES, mode='dynamic',
-                                                 marker_rate_hz=10.0).items()])
+                                                 lumen_rate_hz=10.0).items()])
     probe, ex, got = with_probe(node)
     try:
-        probe.create_subscription(MarkerArray, 'phantom/markers', got.append, conv.LATCHED_QOS)
+        probe.create_subscription(MarkerArray, 'phantom/lumen', got.append, conv.LATCHED_QOS)
         first: list[np.ndarray] = []
 
         def moved() -> bool:
@@ -101,8 +108,7 @@ def test_phantom_lumen_moves_in_dynamic_mode(ros) -> None:
             return float(np.linalg.norm(points - first[0], axis=1).max()) > 1e-3
 
         assert spin_until(ex, moved, timeout=30.0)
-        assert kinds(got[-1]) == [('lumen', 0, Marker.TRIANGLE_LIST),
-                                  ('catheter_body', 0, Marker.LINE_STRIP)]
+        assert kinds(got[-1]) == [('lumen', 0, Marker.TRIANGLE_LIST)]
         now = conv.marker_points(got[-1].markers[1])
         assert now.shape == first[0].shape                  # one topology, vertices move
         assert now == pytest.approx(node.wall.vertices[node.lumen.faces.reshape(-1)],

@@ -13,7 +13,7 @@ PKG = Path(__file__).resolve().parents[2]
 REPO = PKG.parents[1]
 RVIZ = PKG / 'config' / 'rviz' / 'cgail.rviz'
 FOXGLOVE = PKG / 'config' / 'foxglove' / 'cgail_layout.json'
-SHOWN = {'/phantom/markers', '/planner/markers', '/em_tracker/tip_pose'}
+SHOWN = {'/phantom/lumen', '/phantom/markers', '/planner/markers', '/em_tracker/tip_pose'}
 RVIZ_TYPES = {'rviz_default_plugins/MarkerArray': 'visualization_msgs/msg/MarkerArray',
               'rviz_default_plugins/Pose': 'geometry_msgs/msg/PoseStamped'}
 
@@ -58,7 +58,8 @@ def test_rviz_marker_displays_list_the_namespaces_the_nodes_use() -> None:
     displays = {d['Topic']['Value']: d for d in
                 yaml.safe_load(RVIZ.read_text())['Visualization Manager']['Displays']
                 if d['Class'] == 'rviz_default_plugins/MarkerArray'}
-    assert set(displays['/phantom/markers']['Namespaces']) == {mk.LUMEN_NS, mk.BODY_NS}
+    assert set(displays['/phantom/lumen']['Namespaces']) == {mk.LUMEN_NS}
+    assert set(displays['/phantom/markers']['Namespaces']) == {mk.BODY_NS}
     assert set(displays['/planner/markers']['Namespaces']) == {
         mk.TARGET_NS, mk.PATH_NS, mk.WAYPOINT_NS, mk.BEND_NS}
 
