@@ -48,12 +48,13 @@ from nav_msgs.msg import Path
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from visualization_msgs.msg import MarkerArray
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
-from cgail_planner.core.markers import MarkerConfig, planner_markers, TipGuidance
+from cgail_planner.core.markers import MarkerConfig, PATH_NS, planner_markers, TipGuidance
 from cgail_planner.core.planner import (
     model_world_from_sim,
     Planner,
@@ -224,6 +225,7 @@ class PlannerNode(Node):
         self.last_guidance: TipGuidance | None = None
         self._markers_changed = True
         self._markers_sent = False
+        self._path_marker: tuple[PathFollower, Marker] | None = None  # (converted once)
 
         self._path_pub = self.create_publisher(Path, '~/path', conv.LATCHED_QOS)
         self._wp_pub = self.create_publisher(PointStamped, '~/next_waypoint', conv.SENSOR_QOS)
@@ -371,8 +373,20 @@ class PlannerNode(Node):
             goal_radius=self.config.goal_tolerance,
             path=self.follower.points if self.follower is not None else None,
             guidance=self.last_guidance if self.follower is not None else None)
-        self._markers_pub.publish(conv.marker_array_msg(self.get_clock().now().to_msg(),
-                                                        self.frame_id, markers))
+        # the path's LINE_STRIP (hundreds of points) is converted once per planned path, not
+        # at every snapshot: the same message as converting it again
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.frame_id)
+        out = [Marker(header=header, action=Marker.DELETEALL)]
+        for geometry in markers:
+            if geometry.ns == PATH_NS and self.follower is not None:
+                if self._path_marker is None or self._path_marker[0] is not self.follower:
+                    self._path_marker = (self.follower, conv.marker_msg(header, geometry))
+                marker = self._path_marker[1]
+                marker.header = header
+            else:
+                marker = conv.marker_msg(header, geometry)
+            out.append(marker)
+        self._markers_pub.publish(MarkerArray(markers=out))
 
     def _reject(self, counter: str, text: str) -> None:
         self.counts[counter] += 1

@@ -104,8 +104,24 @@ TX_POS_SCALE_MM = 0.01
 TX_ERROR_SCALE_MM = 1e-4
 
 
+def _crc16_table() -> tuple[int, ...]:
+    table = []
+    for byte in range(256):
+        crc = byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC16_TABLE = _crc16_table()
+
+
 def crc16(data: bytes, crc: int = 0) -> int:
     """CRC-16/ARC (poly 0x8005 reflected as 0xA001, init 0) as the Combined API uses it.
+
+    Table-driven, a byte per step (the simulated Aurora checksums every reply it sends: the
+    bit-by-bit loop cost ~40 us per reply).
 
     Args:
         data: the bytes to checksum.
@@ -114,10 +130,9 @@ def crc16(data: bytes, crc: int = 0) -> int:
     Returns:
         The 16-bit CRC.
     """
+    table = _CRC16_TABLE
     for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+        crc = (crc >> 8) ^ table[(crc ^ byte) & 0xFF]
     return crc
 
 
