@@ -71,8 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help='success radius around the target in mm (default 10)')
     parser.add_argument('--path-spacing', type=float, default=0.5,
                         help='arc-length step of the resampled desired path in mm (default 0.5)')
-    parser.add_argument('--curvature-spacing', type=float, default=1.0,
-                        help='arc-length step of the trajectory for curvature in mm (default 1)')
+    parser.add_argument('--curvature-spacing', type=float, default=3.0,
+                        help='arc-length step of the smoothed trajectory for curvature in mm '
+                             '(default 3)')
+    parser.add_argument('--curvature-smoothing', type=float, default=2.0,
+                        help='window in s of the Savitzky-Golay cubic that smooths the tip '
+                             'positions in time before the curvature (default 2; 0: none, '
+                             "the curvature of the tracker's noise)")
     parser.add_argument('--no-plot', action='store_true', help='skip the box plots')
     return parser
 
@@ -84,7 +89,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = MetricsConfig(time_limit=args.time_limit, success_radius=args.epsilon * 1e-3,
                                path_fit=PathFitConfig(spacing=args.path_spacing * 1e-3),
-                               curvature_spacing=args.curvature_spacing * 1e-3)
+                               curvature_spacing=args.curvature_spacing * 1e-3,
+                               curvature_smoothing=args.curvature_smoothing)
     except ValueError as exc:
         parser.error(str(exc))
     try:
@@ -93,7 +99,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'cgail bag metrics: error: {exc}', file=sys.stderr)
         return 2
     tests = kruskal_by_condition(trials)
-    text = markdown_report(trials, tests)
+    text = markdown_report(trials, tests, config)
     args.output.mkdir(parents=True, exist_ok=True)
     (args.output / 'metrics.md').write_text('# Offline metrics\n\n' + text)
     write_csv(trials, args.output / 'metrics.csv')

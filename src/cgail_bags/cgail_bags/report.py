@@ -18,6 +18,7 @@ from cgail_planner.core.metrics import (
     group_by_condition,
     kruskal_by_condition,
     KruskalResult,
+    MetricsConfig,
     MetricsError,
     TrialMetrics,
     wilson_interval,
@@ -90,9 +91,15 @@ def paper_comparison(trials: Sequence[TrialMetrics]) -> list[str]:
     return lines
 
 
-def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult]) -> str:
-    """The per-trial table, the per-condition summary and the Kruskal-Wallis p-values."""
+def markdown_report(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
+                    config: MetricsConfig | None = None) -> str:
+    """The per-trial table, the per-condition summary and the Kruskal-Wallis p-values
+    (``config``: the metrics' settings, named in the note on the curvature)."""
+    cfg = config or MetricsConfig()
     lines = ['## Trials', '',
+             f'Curvature: of the tip\'s path smoothed in time (Savitzky-Golay cubic over '
+             f'{cfg.curvature_smoothing:g} s) and resampled every {cfg.curvature_spacing * 1e3:g} '
+             'mm, mean ± std of the Menger curvature (cgail_planner.core.metrics).', '',
              '| trial | condition | samples | T_r mean (mm) | T_r std (mm) | T_r max (mm) '
              '| T_a (mm) | T (s) | success | curvature (mm^-1) |',
              '|---|---|---:|---:|---:|---:|---:|---:|---|---:|']
