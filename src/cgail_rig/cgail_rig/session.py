@@ -58,7 +58,8 @@ one at a time on it). A session refuses to start on a domain where device nodes 
 ``pam_controller``, ``sleeve_driver``) answer that it did not start: a simulated session must
 never command a real rig.
 
-**Console.** One line per trial, then the table; the nodes' logs go to ``<out>/logs/``.
+**Console.** One line per trial (with the elapsed time and an estimate of the time left, at
+the pace of the trials done so far), then the table; the nodes' logs go to ``<out>/logs/``.
 
 **Bags.** Each trial's bag is zstd-compressed MCAP; the lumen is on its own latched topic
 (``phantom/lumen``: a static wall recorded once, a dynamic one when it moved, at most at
@@ -594,15 +595,30 @@ def identified_pam_parameters(directory: Path, plant_seed: int,
     if not set(IDENTIFIED_KEYS) <= set(cached):  # none yet, or of an older model: identify
         log(f'cgail session: identifying the PAM model on plant seed {plant_seed} '
             f'(cgail identify-pam --sim, {where})')
+        t0 = time.monotonic()
         result = identify_sim(where, plant_seed=plant_seed)
         e = result.errors
         log(f'cgail session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
-            f'{e["identified"]["all"]:.4f} rad')
+            f'{e["identified"]["all"]:.4f} rad ({time.monotonic() - t0:.0f} s)')
     values = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters']
     return tuple((key, float(values[key])) for key in IDENTIFIED_KEYS)
 
 
-def _trial_line(done: int, total: int, r: TrialResult) -> str:
+def _clock(seconds: float) -> str:
+    """``m:ss`` of a duration in seconds."""
+    m, s = divmod(round(max(0.0, seconds)), 60)
+    return f'{m}:{s:02d}'
+
+
+def progress(done: int, total: int, elapsed_s: float, trials_s: float) -> str:
+    """``elapsed m:ss, about m:ss left``: the command's elapsed wall time, and the trials left
+    at the pace of those done so far (``trials_s``: wall seconds since the first trial
+    started)."""
+    left = trials_s / done * (total - done) if done else 0.0
+    return f'elapsed {_clock(elapsed_s)}, about {_clock(left)} left'
+
+
+def _trial_line(done: int, total: int, r: TrialResult, pace: str = '') -> str:
     s = r.spec
     extra = ''
     if r.callback_errors:
@@ -611,7 +627,7 @@ def _trial_line(done: int, total: int, r: TrialResult) -> str:
         extra += f'  {r.unscheduled} message(s) from outside the rig'
     return (f'[{done:{len(str(total))}d}/{total}] {s.label:<14} start {s.start_id} target '
             f'{s.target_id}  {r.outcome:<38} T {r.sim_s:6.1f} s  ({r.wall_s:5.1f} s wall, '
-            f'domain {r.domain_id}){extra}')
+            f'domain {r.domain_id}){"  " + pace if pace else ""}{extra}')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -619,6 +635,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from cgail_rig.domain import DomainError, requested_domain, reserve_domain
 
     args = build_parser().parse_args(argv)
+    t_command = time.monotonic()
 
     def fail(text: str) -> int:
         print(f'cgail session: error: {text}', file=sys.stderr)
@@ -730,7 +747,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def on_result(result: TrialResult) -> None:
         done[0] += 1
-        log(_trial_line(done[0], len(specs), result))
+        now = time.monotonic()
+        log(_trial_line(done[0], len(specs), result,
+                        progress(done[0], len(specs), now - t_command, now - t_start)))
 
     try:
         results = run_trials(settings, specs, jobs=jobs,
@@ -750,6 +769,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     outcomes = [(r.spec.condition, r.spec.index + 1, r.outcome) for r in results]
     code = report(args.out, bags_dir, outcomes, log, wall_s=wall_s, callback_errors=errors,
                   jobs=jobs)
+    log(f'cgail session: {len(results)} trials in {_clock(wall_s)} on {jobs} worker(s); '
+        f'{_clock(time.monotonic() - t_command)} in all')
     return code if all(not r.failed for r in results) else max(code, 1)
 
 
