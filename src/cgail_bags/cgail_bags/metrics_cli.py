@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     """Command-line options of ``cgail bag metrics``."""
     parser = tool_parser('bag metrics', __doc__, details=True)
     parser.add_argument('bags', nargs='+', type=Path, help='trial bags or directories of bags')
-    parser.add_argument('-o', '--output', type=Path, default=Path('metrics_out'),
+    parser.add_argument('-o', '--output', type=Path, default=Path('runs', 'metrics'),
                         help='directory for metrics.md and metrics_boxplot.png')
     parser.add_argument('--condition', default=None, help='condition label of all given bags')
     parser.add_argument('--time-limit', type=float, default=180.0,

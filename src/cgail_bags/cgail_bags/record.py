@@ -189,7 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('topics', nargs='*', help='topics to record (e.g. em_tracker/tip_pose)')
     parser.add_argument('-a', '--all', action='store_true', help='record all topics')
     parser.add_argument('-o', '--output', type=Path, default=None,
-                        help='bag directory to create (default: rosbag2_<date>_<time>)')
+                        help='bag directory to create (default: runs/bags/rosbag2_<date>-<time>)')
     parser.add_argument('--max-duration', type=float, default=0.0,
                         help='stop after this many seconds (0: until SIGINT/SIGTERM)')
     parser.add_argument('--condition', default='',
@@ -213,7 +213,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, ros_args = parser.parse_known_args(argv)
     if args.max_duration < 0.0:
         parser.error(f'--max-duration must be >= 0 s, found {args.max_duration}')
-    output = args.output or Path(time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S'))
+    output = args.output or Path('runs', 'bags', time.strftime('rosbag2_%Y_%m_%d-%H_%M_%S'))
     try:
         config = RecorderConfig(output=output, topics=tuple(args.topics), all_topics=args.all,
                                 condition=args.condition, flush_period=args.flush_period,

@@ -332,6 +332,12 @@ def render_population_grid(seeds: Sequence[int], out: str | Path, *, cols: int =
     return _save(fig, out, dpi)
 
 
+def _default_out(name: str) -> str:
+    """``runs/render/<name>``, its directory made: every tool writes under ``runs/``."""
+    Path("runs", "render").mkdir(parents=True, exist_ok=True)
+    return str(Path("runs", "render", name))
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Command-line options of ``cgail render``."""
     ap = tool_parser("render", __doc__, details=True)
@@ -339,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help=f"built-in anatomy {list(ANATOMY_NAMES)}, a prepared anatomy directory "
                          "or a mesh file (mm) with a <stem>.yaml landmark sidecar")
     ap.add_argument("--out", default=None,
-                    help="PNG path (default anatomy_<label>.png: the name, the directory name "
-                         "or the mesh stem)")
+                    help="PNG path (default runs/render/anatomy_<label>.png: the name, the "
+                         "directory name or the mesh stem; with --population "
+                         "runs/render/population_grid.png)")
     ap.add_argument("--rollout", default=None, help=".npy file of (T, 3) tip points in m")
     ap.add_argument("--phases", type=int, default=0,
                     help="overlay the root at N heartbeat phases (needs sim.wall)")
@@ -364,7 +371,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 raise ValueError(f"population and seed must be >= 0, found {args.population} "
                                  f"and {args.seed}")
             seeds = list(range(args.seed, args.seed + args.population))
-            path = render_population_grid(seeds, args.out or "population_grid.png",
+            path = render_population_grid(seeds, args.out or _default_out("population_grid.png"),
                                           dpi=args.dpi)
             print(path)
             return 0
@@ -385,7 +392,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 2
         if args.phases < 0:
             raise ValueError(f"phases must be >= 0, found {args.phases}")
-        out = args.out or f"anatomy_{anatomy.name}.png"
+        out = args.out or _default_out(f"anatomy_{anatomy.name}.png")
         path = render_anatomy(anatomy, out, centerlines=centerlines, rollout=rollout,
                               phases=phases, scenarios=not args.no_scenarios, dpi=args.dpi)
     except (AnatomyError, ValueError, OSError) as err:

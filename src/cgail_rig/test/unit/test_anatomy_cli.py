@@ -130,7 +130,7 @@ def test_evaluate_and_sim_render_take_a_prepared_directory(prepared, tmp_path, c
     assert f"Anatomy 'p07' (content hash {h}), 1 trials per method" in report
     monkeypatch.chdir(tmp_path)
     assert render.main(['--anatomy', str(prepared), '--dpi', '30', '--no-centerlines']) == 0
-    assert (tmp_path / 'anatomy_p07.png').is_file()
+    assert (tmp_path / 'runs' / 'render' / 'anatomy_p07.png').is_file()
     capsys.readouterr()
 
 
