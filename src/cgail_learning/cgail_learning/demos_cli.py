@@ -40,11 +40,12 @@ Exit status 2 when no episode could be converted or the replay fails.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 import json
 from pathlib import Path
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
@@ -57,8 +58,18 @@ from cgail_sim.cli_help import tool_parser
 Pairs = list[tuple[np.ndarray, np.ndarray]]
 
 
+def _progress(args: argparse.Namespace, total: int) -> Any:
+    """A progress bar of the expert's episodes on stderr, with the time left (hidden by
+    ``--no-progress``)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=args.no_progress, unit='episode',
+                desc='cgail make-demos', dynamic_ncols=True)
+
+
 def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None, *,
-                    indices: Sequence[int] | None = None
+                    indices: Sequence[int] | None = None,
+                    done: Callable[[int], object] | None = None
                     ) -> tuple[list[DemoEpisode], dict[str, float]]:
     """Run the expert for ``n`` episodes; returns the episodes and summary statistics.
 
@@ -71,6 +82,7 @@ def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None, *,
             it as they were simulated (what a replay of the bag on this machine gives), so a
             caller that trains at once needs no replay.
         indices: the episode numbers k to run (default ``range(n)``; ``n`` is then unused).
+        done: called with 1 after each episode (a progress bar's ``update``).
     """
     expert = ScriptedExpert(env)
     eng = env.unwrapped.engine
@@ -105,6 +117,8 @@ def record_episodes(env, n: int, seed: int = 0, pairs: Pairs | None = None, *,
             pairs.append((np.asarray(seen, np.float32), np.asarray(acts, np.float32)))
         steps.append(len(rows['al']))
         t_a.append(info['targeting_error'])
+        if done is not None:
+            done(1)
     succ = [e.success for e in episodes]
     return episodes, {'episodes': len(ks), 'success_rate': float(np.mean(succ)),
                       'mean_steps': float(np.mean(steps)),
@@ -135,6 +149,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "episodes too, after the population's (the pool of a preset's "
                         'population.include)')
     p.add_argument('--out', type=Path, required=True, help='bag directory to create')
+    p.add_argument('--no-progress', action='store_true',
+                   help="hide the progress bar of the expert's episodes")
     g = p.add_argument_group('from session bags',
                              'teleoperated trial bags instead of the scripted expert')
     g.add_argument('--from-bags', nargs='+', type=Path, default=None, metavar='BAG',
@@ -182,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
                                                     scenario_seed=args.scenario_seed))
         label = anatomy_label(args.anatomy)
         t0 = time.monotonic()
-        episodes, stats = record_episodes(env, args.episodes, args.seed)
+        with _progress(args, args.episodes) as bar:
+            episodes, stats = record_episodes(env, args.episodes, args.seed, done=bar.update)
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy=label, mode='static',
                        dt=env.config.dt, anatomy_hash=env.anatomy.content_hash,
@@ -275,6 +292,7 @@ def _from_bags_main(args: argparse.Namespace) -> int:
 
 def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
                       env_options: str = 'ours', include: tuple[str, ...] = (),
+                      done: Callable[[int], object] | None = None
                       ) -> tuple[list[DemoEpisode], dict[str, float]]:
     """Expert episodes spread over the population anatomies ``seeds`` and then the built-in
     anatomies ``include`` (module docstring); each
@@ -307,7 +325,7 @@ def record_population(seeds: tuple[int, ...], episodes: int, seed: int = 0,
             continue
         anatomy = resolve_anatomy(name)  # (a population name: sample_anatomy)
         env = CatheterNavEnv(EnvConfig.from_options(env_options, mode='static', anatomy=anatomy))
-        eps, stats = record_episodes(env, count, seed, indices=ks)
+        eps, stats = record_episodes(env, count, seed, indices=ks, done=done)
         for ep in eps:
             ep.anatomy, ep.anatomy_hash = name, anatomy.content_hash
         out.extend(eps)
@@ -328,8 +346,10 @@ def _population_main(args: argparse.Namespace) -> int:
     try:
         seeds = split_seeds('train', args.population)
         t0 = time.monotonic()
-        episodes, stats = record_population(seeds, args.episodes, args.seed, args.env_options,
-                                            tuple(args.include))
+        with _progress(args, args.episodes) as bar:
+            episodes, stats = record_population(seeds, args.episodes, args.seed,
+                                                args.env_options, tuple(args.include),
+                                                done=bar.update)
         stats['wall_s'] = time.monotonic() - t0
         write_demo_bag(args.out, episodes, anatomy='population', mode='static',
                        dt=EnvConfig.from_options(args.env_options).dt,
