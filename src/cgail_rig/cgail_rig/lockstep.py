@@ -22,6 +22,17 @@ seed and configuration, whatever the host's speed or load:
   checks it and refuses to run otherwise. A message that arrives from outside the graph (a
   publisher of another process) is picked up by a sweep at the end of the tick and counted
   (``Stats.unscheduled``).
+* **In-process transport** (``transport='inprocess'``, what the simulated session runs). A
+  publish on a volatile topic whose only subscribers are the graph's is not handed to DDS: the
+  message is serialized once (the CDR DDS would carry) and every subscription gets its own copy
+  deserialized from it when it is taken, so values are rounded exactly as DDS rounds them (the
+  float32 fields, such as a Joy's axes) and no subscriber shares an object with the publisher;
+  a publish nobody subscribes to is not serialized at all. Delivery order, the subscriptions'
+  history depth (KEEP_LAST drops the oldest) and QoS compatibility are those of DDS. These go
+  through DDS as before: a latched (transient-local) topic, a topic with a subscriber outside
+  the graph or a raw one (a recorder: rclpy's serializer leaves the CDR padding bytes
+  undefined, DDS zeroes them, and a bag must be bit-identical), an inactive lifecycle
+  publisher, a subscription that wants the message info. Results equal ``transport='dds'``.
 * **No threads racing the clock.** Devices are stepped by the world hooks; a node that talks to
   a device does so synchronously inside its timer callback (the Aurora node's ``poll_mode:
   clock``). Guard conditions (how a thread wakes an executor) are refused, and so are waitables
@@ -45,6 +56,15 @@ import traceback
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.subscription import Subscription
+
+_MESSAGE_ONLY = Subscription.CallbackType.MessageOnly
+
+
+#: ``transport``: every message through DDS, or in-process where the graph is closed (module
+#: docstring).
+TRANSPORTS = ('dds', 'inprocess')
 
 
 class LockstepError(RuntimeError):
@@ -77,19 +97,32 @@ class LockstepExecutor:
         start_s: simulated time before the first tick, s; >= 0.
         on_error: called with the traceback text of a callback that raised (the run goes on);
             default: the traceback is kept in :attr:`errors` only.
+        transport: ``'dds'`` (every message through the middleware) or ``'inprocess'``
+            (module docstring); the results are the same, in-process is faster.
+        sweep_every: sweep the subscriptions and services for what came from outside the
+            graph every this many ticks (1: at the end of every tick); a graph that nothing
+            outside talks to (the session) needs it rarely.
 
     Raises:
-        ValueError: a non-positive period or a negative start time.
+        ValueError: a non-positive period, a negative start time, an unknown transport or a
+            sweep interval below 1.
     """
 
     def __init__(self, *, period_s: float, start_s: float = 0.0,
-                 on_error: Callable[[str], None] | None = None) -> None:
+                 on_error: Callable[[str], None] | None = None, transport: str = 'dds',
+                 sweep_every: int = 1) -> None:
         from rclpy.time_source import TimeSource
 
         if not period_s > 0.0:
             raise ValueError(f'period_s must be > 0, found {period_s!r}')
         if not start_s >= 0.0:
             raise ValueError(f'start_s must be >= 0, found {start_s!r}')
+        if transport not in TRANSPORTS:
+            raise ValueError(f'transport must be one of {TRANSPORTS}, found {transport!r}')
+        if not (isinstance(sweep_every, int) and sweep_every >= 1):
+            raise ValueError(f'sweep_every must be an integer >= 1, found {sweep_every!r}')
+        self.transport = transport
+        self.sweep_every = sweep_every
         self.period_ns = round(period_s * 1e9)
         self._now_ns = round(start_s * 1e9)
         self.time_source = TimeSource()
@@ -103,8 +136,13 @@ class LockstepExecutor:
         self._timers: list[Any] = []
         self._subscriptions: list[Any] = []
         self._services: list[Any] = []
-        self._pending: deque[Any] = deque()
+        # (subscription, None, None): take from DDS; (subscription, inbox, type): take the
+        # oldest CDR bytes of its in-process inbox, deserialized to ``type``
+        self._pending: deque[tuple[Any, deque[bytes] | None, Any]] = deque()
         self._wrapped: set[int] = set()
+        # in-process transport: per publisher (id), its route; per subscription (id), its inbox
+        self._routes: dict[int, _Route] = {}
+        self._inboxes: dict[int, deque[bytes]] = {}
         self._set_clocks()
 
     # ------------------------------------------------------------------ time
@@ -202,6 +240,8 @@ class LockstepExecutor:
                                     f'subscriptions within {timeout_s} s, found (topic, matched, '
                                     f'expected) {missing[:5]}')
             time.sleep(0.005)
+        if self.transport == 'inprocess':
+            self._plan_routes(pubs)
         time.sleep(0.02)  # transient-local history reaches late joiners on matching
         self._sweep()
         self._check_synchronous_delivery(want)
@@ -254,17 +294,71 @@ class LockstepExecutor:
             node.destroy_subscription(sub)
         self._delivery_checked = True
 
+    def _plan_routes(self, pubs: Iterable[Any]) -> None:
+        """The in-process route of every publisher that may take one (module docstring):
+        the compatible subscriptions of the graph, each with an inbox of its history depth."""
+        from rclpy.qos import (
+            DurabilityPolicy,
+            HistoryPolicy,
+            qos_check_compatible,
+            QoSCompatibility,
+        )
+        for sub in self._subscriptions:
+            if id(sub) not in self._inboxes:
+                qos = sub.qos_profile
+                depth = qos.depth if qos.history != HistoryPolicy.KEEP_ALL else None
+                self._inboxes[id(sub)] = deque(maxlen=depth if depth else None)
+        self._routes.clear()
+        for pub in pubs:
+            if pub.qos_profile.durability != DurabilityPolicy.VOLATILE:
+                continue  # latched: DDS keeps the history for late joiners
+            if pub.qos_profile.lifespan.nanoseconds > 0:
+                continue  # samples that expire: the middleware's business
+            # compatible (OK, or WARNING: a policy left to the system default) and matched:
+            # seal waited for every one, and nothing else may be matched
+            targets = [s for s in self._subs_by_topic.get(pub.topic_name, [])
+                       if qos_check_compatible(pub.qos_profile, s.qos_profile)[0]
+                       != QoSCompatibility.ERROR]
+            if pub.get_subscription_count() != len(targets):
+                continue  # a subscriber outside the graph (or not matched yet): DDS
+            if any(s._callback_type is not _MESSAGE_ONLY for s in targets):
+                continue  # the message info comes from DDS
+            if any(s.raw for s in targets):
+                continue  # rclpy's serializer leaves the CDR padding bytes undefined: a raw
+                # subscriber (a recorder) gets DDS's bytes, whose padding is zero
+            self._routes[id(pub)] = _Route(
+                matched=len(targets),
+                targets=[(s, self._inboxes[id(s)], s.msg_type) for s in targets])
+
     def _instrument(self, pub: Any) -> None:
         if id(pub) in self._wrapped:
             return
         publish = pub.publish
         subs = self._subs_by_topic.setdefault(pub.topic_name, [])
-        pending, stats = self._pending, self.stats
+        pending, stats, routes = self._pending, self.stats, self._routes
+        serialize = _rclpy.rclpy_serialize
+        msg_type = pub.msg_type
+        key = id(pub)
 
         def instrumented(msg: Any) -> None:
-            publish(msg)
+            route = routes.get(key)
+            if (route is None or not getattr(pub, '_enabled', True)
+                    or pub.get_subscription_count() != route.matched):
+                publish(msg)  # through DDS (and lifecycle's inactive check, type check)
+                stats.published += 1
+                pending.extend((s, None, None) for s in subs)
+                return
+            if isinstance(msg, msg_type):
+                # nobody listens: nothing to serialize (DDS would convert it and drop it)
+                data = serialize(msg, msg_type) if route.targets else b''
+            elif isinstance(msg, bytes):
+                data = msg
+            else:
+                raise TypeError(f'Expected {msg_type}, got {type(msg)}')
             stats.published += 1
-            pending.extend(subs)
+            for sub, inbox, sub_type in route.targets:
+                inbox.append(data)
+                pending.append((sub, inbox, sub_type))
 
         pub.publish = instrumented
         self._wrapped.add(id(pub))
@@ -291,7 +385,8 @@ class LockstepExecutor:
             self.stats.timers += 1
             self._call(timer.callback)
             self._deliver()
-        self._sweep()
+        if self.stats.ticks % self.sweep_every == 0:
+            self._sweep()
 
     def run_until(self, predicate: Callable[[], bool], max_s: float) -> bool:
         """Tick until ``predicate()`` holds (checked before each tick) or ``max_s`` simulated
@@ -308,13 +403,25 @@ class LockstepExecutor:
         self.run_until(lambda: False, duration_s)
 
     def _deliver(self) -> None:
+        deserialize = _rclpy.rclpy_deserialize
         pending = self._pending
         stats = self.stats
         while pending:
-            sub = pending.popleft()
-            taken = self._take(sub)
-            if taken is None:
-                continue
+            sub, inbox, msg_type = pending.popleft()
+            if inbox is None:
+                taken = self._take(sub)
+                if taken is None:
+                    continue
+            else:
+                if not inbox:
+                    continue  # dropped: more were published than the history holds
+                payload = inbox.popleft()
+                try:
+                    with sub.handle:
+                        pass
+                except InvalidHandle:  # destroyed since the last seal
+                    continue
+                taken = (deserialize(payload, msg_type), None)
             stats.messages += 1
             self._call_sub(sub, taken)
 
@@ -353,9 +460,7 @@ class LockstepExecutor:
             return None
 
     def _call_sub(self, sub: Any, taken: Any) -> None:
-        from rclpy.subscription import Subscription
-
-        if sub._callback_type is Subscription.CallbackType.MessageOnly:
+        if sub._callback_type is _MESSAGE_ONLY:
             self._call(sub.callback, taken[0])
         else:
             self._call(sub.callback, *taken)
@@ -373,3 +478,13 @@ class LockstepExecutor:
             result.close()
             raise LockstepError(f'{fn!r}: coroutine callbacks are not supported in lockstep')
         return result
+
+
+@dataclass
+class _Route:
+    """Where an in-process publish goes: ``matched`` is the publisher's match count when no
+    subscriber outside the graph listens; ``targets`` are (subscription, inbox, message type)."""
+
+    matched: int
+    targets: list[tuple[Any, deque[bytes], Any]]
+

@@ -110,6 +110,11 @@ RECORDED_MARKER_RATE_HZ = 3.0
 SETTLE_S = 1.0
 #: Simulated seconds recorded after the operator stopped.
 TAIL_S = 0.2
+#: Simulated seconds between two sweeps of the rig for what reached it from outside (a
+#: message, a service request such as ``ros2 param set``): nothing outside talks to a session's
+#: rig, so it need not be polled on every tick (:class:`~cgail_rig.lockstep.LockstepExecutor`,
+#: ``sweep_every``).
+SWEEP_S = 0.25
 #: ros-args of every rig context: node logs go to the log file only.
 ROS_ARGS = ['--ros-args', '--disable-stdout-logs', '--disable-rosout-logs']
 
@@ -263,7 +268,9 @@ class TrialRig:
         self.nodes: dict[str, Any] = {}
         self.recorder: Any = None
         self._tmp = tempfile.mkdtemp(prefix='cgail_trial_')
-        self.executor = LockstepExecutor(period_s=1.0 / settings.physics_rate)
+        self.executor = LockstepExecutor(
+            period_s=1.0 / settings.physics_rate, transport='inprocess',
+            sweep_every=max(1, round(SWEEP_S * settings.physics_rate)))
         try:
             path = Path(settings.launch_file or default_launch_file())
             launch = load_launch_file(path)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import gc
 import threading
 
+import numpy as np
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
@@ -239,3 +240,129 @@ def test_the_phantom_steps_with_the_lockstep_clock(context, tmp_path) -> None:
         assert all(t.clock is phantom.get_clock() for t in phantom.timers)
     finally:
         phantom.destroy_node()
+
+
+def _run_graph(transport: str, prefix: str) -> tuple[list[tuple[str, int]], LockstepExecutor]:
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        log: list[tuple[str, int]] = []
+        ex = LockstepExecutor(period_s=0.02, transport=transport)
+        _graph(ctx, log, ex, prefix)
+        ex.seal()
+        ex.spin_for(1.0)
+        return log, ex
+    finally:
+        _destroy_created()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_the_in_process_transport_gives_the_same_run_as_dds() -> None:
+    dds, ex_dds = _run_graph('dds', 'd_')
+    inproc, ex_in = _run_graph('inprocess', 'i_')
+    assert len(dds) > 200 and dds == inproc
+    assert ex_in._routes  # the graph's volatile topics went in-process
+    assert (ex_in.stats.published, ex_in.stats.messages) == (ex_dds.stats.published,
+                                                              ex_dds.stats.messages)
+
+
+def test_in_process_delivery_rounds_float32_as_dds_and_copies(context) -> None:
+    from sensor_msgs.msg import Joy
+    from std_msgs.msg import ColorRGBA
+
+    got: dict[str, list] = {'dds': [], 'inprocess': []}
+    sent = []
+    for transport in ('dds', 'inprocess'):
+        ex = LockstepExecutor(period_s=0.02, transport=transport)
+        node = _node(context, f'f32_{transport}')
+        ex.add_node(node)
+        pub = node.create_publisher(Joy, f'f32_{transport}', 10)
+        cpub = node.create_publisher(ColorRGBA, f'c32_{transport}', 10)
+        node.create_subscription(Joy, f'f32_{transport}', got[transport].append, 10)
+        node.create_subscription(ColorRGBA, f'c32_{transport}', got[transport].append, 10)
+        msg = Joy(axes=[0.1, 1.0 / 3.0, -0.7], buttons=[1, 0])
+        color = ColorRGBA(r=0.1, g=1.0 / 3.0, b=0.7, a=1.0)
+        sent.append(msg)
+
+        def fire(pub=pub, cpub=cpub, msg=msg, color=color):
+            pub.publish(msg)
+            cpub.publish(color)
+
+        node.create_timer(0.02, fire)
+        ex.seal()
+        assert (id(pub) in ex._routes) == (transport == 'inprocess')
+        ex.tick()
+    assert len(got['dds']) == 2
+    assert got['dds'] == got['inprocess']  # equal messages: the same float32 rounding
+    assert got['inprocess'][1].g == float(np.float32(1.0 / 3.0)) != 1.0 / 3.0
+    assert got['inprocess'][0] is not sent[1]  # a copy, as DDS delivers
+
+
+def test_in_process_delivery_keeps_the_history_depth(context) -> None:
+    ex = LockstepExecutor(period_s=0.02, transport='inprocess')
+    node = _node(context, 'depth')
+    ex.add_node(node)
+    pub = node.create_publisher(Int64, 'depth_topic', 10)
+    got: list[int] = []
+    node.create_subscription(Int64, 'depth_topic', lambda m: got.append(m.data),
+                             QoSProfile(depth=2))
+
+    def burst():
+        for k in range(5):
+            pub.publish(Int64(data=k))
+
+    node.create_timer(0.02, burst)
+    ex.seal()
+    ex.tick()
+    assert got == [3, 4]  # KEEP_LAST 2: the oldest were dropped, as DDS drops them
+    with pytest.raises(TypeError, match='Expected'):
+        pub.publish('not a message')
+
+
+def test_a_subscriber_outside_the_graph_gets_the_messages_through_dds(context) -> None:
+    ex = LockstepExecutor(period_s=0.02, transport='inprocess')
+    inside = _node(context, 'inside_pub')
+    ex.add_node(inside)
+    pub = inside.create_publisher(Int64, 'watched_topic', 10)
+    got: list[int] = []
+    inside.create_subscription(Int64, 'watched_topic', lambda m: got.append(m.data), 10)
+    ex.seal()
+    assert id(pub) in ex._routes
+    outsider = _node(context, 'watcher')  # e.g. ros2 topic echo
+    seen: list[int] = []
+    outsider.create_subscription(Int64, 'watched_topic', lambda m: seen.append(m.data), 10)
+    while pub.get_subscription_count() < 2:
+        threading.Event().wait(0.01)
+    pub.publish(Int64(data=5))
+    ex.tick()
+    spinner = SingleThreadedExecutor(context=context)
+    spinner.add_node(outsider)
+    spinner.spin_once(timeout_sec=5.0)
+    assert got == [5] and seen == [5]
+
+
+def test_the_sweep_every_n_ticks_picks_up_outside_messages(context) -> None:
+    ex = LockstepExecutor(period_s=0.02, transport='inprocess', sweep_every=3)
+    inside = _node(context, 'swept')
+    ex.add_node(inside)
+    got: list[int] = []
+    inside.create_subscription(Int64, 'swept_topic', lambda m: got.append(m.data), 10)
+    ex.seal()
+    outsider = _node(context, 'sweep_outsider')
+    pub = outsider.create_publisher(Int64, 'swept_topic', 10)
+    while pub.get_subscription_count() < 1:
+        threading.Event().wait(0.01)
+    pub.publish(Int64(data=9))
+    ex.tick()
+    ex.tick()
+    assert got == []
+    ex.tick()  # the third tick sweeps
+    assert got == [9] and ex.stats.unscheduled == 1
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'transport': 'zenoh'}, 'transport must be one of'),
+    ({'sweep_every': 0}, 'sweep_every must be an integer >= 1')])
+def test_bad_transport_arguments(kwargs, match) -> None:
+    with pytest.raises(ValueError, match=match):
+        LockstepExecutor(period_s=0.02, **kwargs)
