@@ -6,8 +6,11 @@ rule, the reward of :mod:`~cgail_sim.reward`, the heartbeat of
 :mod:`~cgail_sim.heartbeat`):
 
 * ``ours``: the defaults (what this project judges best; ``docs/fidelity.md``);
-* ``paper_code``: the authors' Unity code where ours differs: the 27-float observation with 16
-  probes in two rings, forward-only insertion, their reward values and their 0.74 s heartbeat;
+* ``paper_code``: the authors' Unity code and scene where ours differs: the 27-float
+  observation with 16 probes in two rings, forward-only insertion, their reward values per
+  decision and reach radii, their exit box (``exit_rule='box'``), a step limit that does not
+  bind (:data:`PAPER_CODE_MAX_STEPS`: their ``MaxStep`` is 0, no limit) and their 0.74 s
+  heartbeat pushing the root up from below;
 * ``sphere_targets``: ``ours`` with a target drawn anew per episode in the 30 mm sphere
   (``targets``; the ``generalist`` preset trains in it, and its ``d_max`` is the sphere's bound,
   so ``evaluate`` rebuilds it from the policy's contract).
@@ -36,6 +39,15 @@ _OBS = ObservationConfig()
 
 #: Simulation modes: ``static`` = rigid wall; ``dynamic`` = PBD wall + heartbeat + moving target.
 MODES = ("static", "dynamic")
+#: Exit rules (:attr:`EnvConfig.exit_rule`).
+EXIT_RULES = ("discs", "box")
+#: The ``paper_code`` step limit, env steps (2,000 s at 0.1 s): the authors' agent has
+#: ``MaxStep: 0``, no limit (``shared/design/AUTHORS_SCENE.md``). Long enough never to bind
+#: on an episode that keeps inserting: 5x their longest recorded episode (18,668 physics steps
+#: = 3,734 decisions, ``Assets/OutPath/old1/distance.txt``), about 3x the largest mean episode
+#: length of any of their runs (6,777). Only a policy that stops inserting meets it (in their
+#: scene it would run for ever).
+PAPER_CODE_MAX_STEPS = 20_000
 
 
 @dataclass(frozen=True)
@@ -93,6 +105,12 @@ class EnvConfig:
     ``d_max`` to the sphere's bound (:attr:`~cgail_sim.scenarios.ScenarioSet.
     sphere_d_max`)."""
 
+    exit_rule: str = "discs"
+    """When the tip has left: ``discs`` (ours: a step through the disc of an open cut,
+    :mod:`cgail_sim.exits`, or the anatomy's bounding box + 10 mm) or ``box`` (the authors'
+    scene: only leaving the exit box of :func:`~cgail_sim.scenarios.paper_code_exit_box`,
+    60-125 mm beyond the centreline; a tip out of an open end travels on until then)."""
+
     def __post_init__(self) -> None:
         """Validate every field.
 
@@ -123,6 +141,8 @@ class EnvConfig:
                              f"{type(self.heartbeat).__name__}")
         if self.targets not in TARGET_MODES:
             raise ValueError(f"targets must be one of {TARGET_MODES}, found {self.targets!r}")
+        if self.exit_rule not in EXIT_RULES:
+            raise ValueError(f"exit_rule must be one of {EXIT_RULES}, found {self.exit_rule!r}")
         if self.observation_kind not in OBS_KINDS:
             raise ValueError(f"observation_kind must be one of {OBS_KINDS}, found "
                              f"{self.observation_kind!r}")
@@ -181,13 +201,14 @@ class EnvConfig:
 #: The named env option sets (module docstring): the values of :class:`EnvConfig` each fixes.
 OPTION_SETS: Mapping[str, Mapping[str, Any]] = {
     "ours": {"observation_kind": "ours", "forward_only": False, "reward": RewardConfig(),
-             "heartbeat": HeartbeatConfig(), "targets": "fixed"},
+             "heartbeat": HeartbeatConfig(), "targets": "fixed", "exit_rule": "discs"},
     "paper_code": {"observation_kind": "paper_code", "forward_only": True,
                    "reward": PAPER_CODE_REWARD, "heartbeat": PAPER_CODE_HEARTBEAT,
-                   "targets": "fixed"},
+                   "targets": "fixed", "exit_rule": "box",
+                   "max_steps": PAPER_CODE_MAX_STEPS},
     "sphere_targets": {"observation_kind": "ours", "forward_only": False,
                        "reward": RewardConfig(), "heartbeat": HeartbeatConfig(),
-                       "targets": "sphere"},
+                       "targets": "sphere", "exit_rule": "discs"},
 }
 
 

@@ -46,6 +46,7 @@ from cgail_sim.reward import (
 )
 from cgail_sim.scenarios import (
     episode_bounds,
+    paper_code_exit_box,
     target_sampler,
     TargetConfig,
     World,
@@ -60,8 +61,8 @@ _LOG = logging.getLogger(__name__)
 #: Bound of the unbounded-looking entries (positions, u, v) of the observation space.
 OBS_BOUND = 5.0
 #: ``paper_code`` observation: bound of the position (mm) and of the distance / 50 mm. The
-#: episode ends 10 mm outside the anatomy's bounding box, so a tip stays well within 1 m of its
-#: centre and 2 m of the target.
+#: episode ends at the exit box, at most 125 mm beyond the centreline, so a tip stays well
+#: within 1 m of the anatomy's centre and 2 m of the target.
 PAPER_CODE_POSITION_BOUND_MM = 1000.0
 PAPER_CODE_DISTANCE_BOUND = 40.0
 
@@ -199,6 +200,9 @@ class NavEngine:
         #: the open cuts the tip can leave through (:mod:`cgail_sim.exits`)
         self.exit_discs = anatomy.exit_discs
         self.bbox_low, self.bbox_high = episode_bounds(anatomy)
+        if config.exit_rule == "box":  # the authors' exit box only (EnvConfig.exit_rule)
+            self.exit_discs = np.zeros((0, 7))
+            self.bbox_low, self.bbox_high = paper_code_exit_box(sc.waypoints)
         #: the episode target's wall vertex, rest offset and branch, per environment
         self._target_vertex = np.zeros(n_envs, dtype=np.int64)
         self._target_offset = np.zeros((n_envs, 3))
@@ -506,8 +510,10 @@ class CatheterNavEnv(gym.Env[NDArray[np.float32], NDArray[np.float32]]):
     authors' Unity code instead: a 27-float observation (tip position in mm, quaternion
     ``(x, y, z, w)``, unit direction to the target, distance / 50 mm, 16 probes in two rings
     reading the nearest-wall distance in mm below 0.8 mm, else 1), forward-only insertion
-    (``|a[2]|``), their reward values (``+0.005`` per waypoint within 4.5 mm, ``r_bending``
-    when ``|a0|`` or ``|a1|`` > 0.5) and their 0.74 s heartbeat (``docs/fidelity.md``).
+    (``|a[2]|``), their reward values per 0.1 s decision (``r_step = -5e-5``, ``+0.005`` per
+    waypoint within 3.5 mm, ``r_bending = +5e-5`` when ``|a0|`` or ``|a1|`` > 0.5, the target
+    within 6.5 mm), their exit box instead of the open-end discs, a 20,000-step limit (theirs:
+    none) and their 0.74 s heartbeat pushing the root up from below (``docs/fidelity.md``).
 
     **Step order**: catheter kinematics -> (dynamic) wall step to ``t + dt`` with the body as
     capsules, target follows its wall particle -> tip contact -> rays -> reward. Centerline

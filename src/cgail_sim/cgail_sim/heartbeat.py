@@ -32,12 +32,17 @@ Default fractions 1/3 (systole) and 1/3 (rapid return) of the cycle (a textbook 
 **The authors' profile** (``profile='paper_code'``, the ``paper_code`` option set;
 ``docs/fidelity.md``, "Numbers the option set needs" 5): a 0.74 s cycle of piecewise-constant
 axial speeds over 8 windows (:data:`PAPER_CODE_WINDOWS_S`, :data:`PAPER_CODE_SPEEDS_MM_S`),
-which is a piecewise-linear *position* through :func:`paper_code_breakpoints` (0 at the cycle
-start, +5.24 mm at 0.30 s, -1.40 mm just before 0.74 s, then back to 0). The position is sampled
-at each time asked for (phases of 0.04 s are shorter than a 0.1 s env step, so integrating the
-speeds per step would skip them). It is axial only, along ``-root_axis`` (their ``+y``; the
-peak is the systolic descent, an assumption); ``heart_rate``, the amplitudes and the fractions
-are not used.
+which is a piecewise-linear *position* of their pusher through :func:`paper_code_breakpoints`
+(0 at the cycle start, +5.24 mm at 0.30 s, -1.40 mm just before 0.74 s, then back to 0). The
+position is sampled at each time asked for (phases of 0.04 s are shorter than a 0.1 s env
+step, so integrating the speeds per step would skip them). Their pusher, the ``Cylinder`` of
+their scene, sits below the aortic root and moves along its local ``+y``, which points up the
+ascending aorta (within 15 deg of their centreline there; ``shared/design/AUTHORS_SCENE.md``,
+``docs/fidelity.md``); it pushes the soft root but cannot pull it. So the annulus moves along
+``+root_axis`` (into the ascending aorta) by ``max(d(t), 0)``: it rides the pusher up to
++5.24 mm and back, and rests while the pusher is below its rest position (0.60-0.74 s); the
+pusher's jump back to 0 at the cycle end does not move the wall. Axial only; ``heart_rate``, the
+amplitudes and the fractions are not used.
 """
 
 from __future__ import annotations
@@ -78,8 +83,9 @@ PAPER_CODE_PEAK = max(_PC_POS)
 
 
 def paper_code_position(t: float) -> float:
-    """Axial position (m, along the authors' ``+y``) of the authors' profile at time ``t`` s:
-    linear between :func:`paper_code_breakpoints`, periodic, 0 at every cycle start."""
+    """Axial position (m, along the authors' ``+y``) of the authors' pusher at time ``t`` s:
+    linear between :func:`paper_code_breakpoints`, periodic, 0 at every cycle start (the wall
+    follows ``max(position, 0)``: :meth:`Heartbeat.shape`)."""
     tau = t % PAPER_CODE_PERIOD
     k = bisect.bisect_right(_PC_TIMES, tau) - 1
     k = min(max(k, 0), len(_PC_TIMES) - 2)
@@ -190,8 +196,8 @@ class Heartbeat:
         ang = self.config.inplane_angle
         self.root_axis = axis
         self.inplane_direction = math.cos(ang) * e0 + math.sin(ang) * e1
-        if self.config.profile == "paper_code":  # axial only, their +y = -root_axis
-            self._peak = -PAPER_CODE_PEAK * axis
+        if self.config.profile == "paper_code":  # axial only, their pusher's +y = +root_axis
+            self._peak = PAPER_CODE_PEAK * axis
         else:
             self._peak = (-self.config.axial_amplitude * axis
                           + self.config.inplane_amplitude * self.inplane_direction)
@@ -202,13 +208,15 @@ class Heartbeat:
         return self._peak.copy()
 
     def shape(self, t: float) -> float:
-        """Normalised waveform value s(t): in [0, 1] for ``raised_cosine``; for ``paper_code``
-        the axial position over its peak, in [-0.37, 1] (0 when the heartbeat is disabled)."""
+        """Normalised waveform value s(t) in [0, 1]; for ``paper_code`` the pusher's axial
+        position over its peak where it is above rest, else 0 (a one-sided push: module
+        docstring); 0 when the heartbeat is disabled."""
         c = self.config
         if not c.enabled:
             return 0.0
         if c.profile == "paper_code":
-            return paper_code_position(t + c.phase_offset * PAPER_CODE_PERIOD) / PAPER_CODE_PEAK
+            pos = paper_code_position(t + c.phase_offset * PAPER_CODE_PERIOD)
+            return max(pos, 0.0) / PAPER_CODE_PEAK
         # :func:`waveform` for one scalar, in plain floats (numpy costs ~10 us per call here)
         phi = (t / c.period + c.phase_offset) % 1.0
         fs = c.systole_fraction

@@ -32,12 +32,22 @@ Details (documented choices where the paper is silent):
   limit is positive (an inserting step; retraction and zero insertion never bend).
 
 **The authors' code** (:data:`PAPER_CODE_REWARD`, the ``paper_code`` option set of
-:mod:`cgail_sim.config`; ``docs/fidelity.md``): the same table except
-``r_centerline = +0.005`` per waypoint reached within 4.5 mm (their 1 mm waypoint sphere plus our
-3.5 mm tip radius), and ``r_bending`` on the *action*: ``bend_rule='action'`` pays it when
-``|a0|`` or ``|a1|`` (clipped to [-1, 1]) exceeds ``bend_threshold`` 0.5, whatever the
-insertion. Our collision, exit and target triggers stay; where the code's collision
-*replaces* that step's other terms (``SetReward``), ours adds them (at most +0.005).
+:mod:`cgail_sim.config`; ``docs/fidelity.md``), per 0.1 s env step, which is one decision of
+theirs (``DecisionRequester.DecisionPeriod`` 5 at their 0.02 s physics step,
+``shared/design/AUTHORS_SCENE.md``):
+
+* ``r_step = -5e-5`` and ``r_bending = +5e-5``: ``Planner.cs`` pays -1e-5 in ``FixedUpdate``
+  and +1e-5 in ``OnActionReceived``, both once per physics step
+  (``TakeActionsBetweenDecisions`` repeats the action on the 4 steps between decisions), so
+  5 times per decision. ``r_bending`` is paid on the *action* (``bend_rule='action'``) when
+  ``|a0|`` or ``|a1|`` (clipped to [-1, 1]) exceeds ``bend_threshold`` 0.5, whatever the
+  insertion;
+* ``r_centerline = +0.005`` per waypoint reached within 3.5 mm (their 1 mm waypoint sphere,
+  ``Centerline.prefab``, plus their 2.5 mm tip collider, radius 0.5 x scale 5);
+* ``r_target`` when ``||p_t - p_g|| < 6.5 mm`` (their 4 mm target collider, radius 0.5 x scale
+  8, plus the 2.5 mm tip collider);
+* the rest of the table as above. Our collision trigger stays; where the code's collision
+  *replaces* that step's other terms (``SetReward``), ours adds them (at most +0.005 + 5e-5).
 
 All functions are pure and batched over a leading environment axis.
 """
@@ -105,10 +115,17 @@ class RewardConfig:
 #: The r_bending rules of :attr:`RewardConfig.bend_rule`.
 BEND_RULES = ("applied", "action")
 
-#: The authors' reward values and triggers (module docstring; ``docs/fidelity.md``, "Numbers
-#: the option set needs" 4): the ``paper_code`` option set's reward.
-PAPER_CODE_REWARD = RewardConfig(r_centerline=0.005, waypoint_radius=0.0045,
-                                 bend_rule="action", bend_threshold=0.5)
+#: Physics steps per decision in the authors' scene (``DecisionRequester.DecisionPeriod``):
+#: their per-physics-step rewards are paid this many times per 0.1 s decision, our env step.
+PAPER_CODE_PHYSICS_STEPS_PER_DECISION = 5
+
+#: The authors' reward values and triggers per decision (module docstring;
+#: ``docs/fidelity.md``, "Numbers the option set needs" 4): the ``paper_code`` option set's
+#: reward.
+PAPER_CODE_REWARD = RewardConfig(
+    r_step=-5e-5, r_bending=5e-5,  # their 1e-5 per physics step, 5 physics steps a decision
+    r_centerline=0.005, epsilon=0.0065, waypoint_radius=0.0035,
+    bend_rule="action", bend_threshold=0.5)
 
 
 class StepEvents(NamedTuple):

@@ -370,6 +370,31 @@ def episode_bounds(anatomy: Anatomy) -> tuple[FloatArray, FloatArray]:
     return verts.min(axis=0) - BOUNDS_MARGIN, verts.max(axis=0) + BOUNDS_MARGIN
 
 
+#: How far the faces of the authors' exit box stand beyond their centreline, m, per axis of our
+#: frame (x left, y posterior, z cranial), ``(low, high)``. Their six ``Plane``-tagged objects
+#: bound x -133..115, y -573..-287, z -184..55 (scene units = mm,
+#: ``shared/design/AUTHORS_SCENE.md``, "Exit"); their ``Assets/centerline.txt`` (read by
+#: ``Planner.Start`` as x, z, y) spans x -37.27..21.88, y -511.79..-399.53,
+#: z -117.25..-68.37. Their x, y and z are our x, z and y: the descending aorta lies at their
+#: larger x and z (left and posterior of the ascending aorta) and the arch at their largest y
+#: (cranial), and swapping two axes turns Unity's left-handed frame into our right-handed one.
+PAPER_CODE_EXIT_MARGINS = (
+    (0.09573, 0.06675, 0.06121),   # right, anterior, caudal of the centreline
+    (0.09312, 0.12337, 0.11253),   # left, posterior, cranial
+)
+
+
+def paper_code_exit_box(waypoints: dict[str, FloatArray]) -> tuple[FloatArray, FloatArray]:
+    """``(low, high)`` corners of the ``paper_code`` exit box in our frame: the bounding box
+    of the centreline ``waypoints`` (every branch) grown by :data:`PAPER_CODE_EXIT_MARGINS`,
+    so each face stands as far beyond our centreline as the authors' face beyond theirs
+    (``docs/fidelity.md``, "Exit"). Their mesh is not in their repository, so their box cannot
+    be carried over by a transform of the mesh; the centreline is what both scenes share."""
+    pts = np.concatenate([np.asarray(w, dtype=np.float64) for w in waypoints.values()])
+    low, high = np.asarray(PAPER_CODE_EXIT_MARGINS)
+    return pts.min(axis=0) - low, pts.max(axis=0) + high
+
+
 class TargetSampler:
     """The one sampler of targets of an anatomy (module docstring): uniform in the
     ``target_radius`` sphere centred at the midpoint of the two coronary ostia, kept when inside

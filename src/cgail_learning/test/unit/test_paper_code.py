@@ -1,8 +1,10 @@
 """The ``paper_code`` env option set: each variant in its owner, tested on its own numbers.
 
-The expected values come from ``docs/fidelity.md`` ("Numbers the option set needs") or from
-geometry worked out by hand (a straight tube of known radius), never from the code under test;
-every comparison has a tolerance.
+The expected values come from ``docs/fidelity.md`` ("Numbers the option set needs"), from the
+authors' scene (``shared/design/AUTHORS_SCENE.md``, named by its table and row) and files of
+``chiaralambranzi/ral_pathplan@fe0d2618`` (named by path), or from geometry worked out by hand
+(a straight tube of known radius), never from the code under test; every comparison has a
+tolerance.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from cgail_learning.config import config_from_dict
 from cgail_learning.errors import ConfigError, LearningError
 from cgail_learning.evaluate import evaluation_options, observation_at
-from cgail_sim.config import EnvConfig, OPTION_SETS
+from cgail_sim.config import EnvConfig, OPTION_SETS, PAPER_CODE_MAX_STEPS
 from cgail_sim.env import CatheterNavEnv
 from cgail_sim.ftl_model import (
     CatheterConfig,
@@ -43,8 +45,15 @@ from cgail_sim.reward import (
     bending_event,
     compute_reward,
     PAPER_CODE_REWARD,
+    reached_target,
     RewardConfig,
     StepEvents,
+    update_waypoints,
+)
+from cgail_sim.scenarios import (
+    episode_bounds,
+    paper_code_exit_box,
+    PAPER_CODE_EXIT_MARGINS,
 )
 from cgail_sim.wall import StaticWall
 
@@ -210,19 +219,42 @@ def test_forward_only_insertion_advances_on_a_negative_a2(paper_env) -> None:
 
 # ------------------------------------------------------------------ reward
 def test_paper_code_reward_values() -> None:
+    """Per 0.1 s decision: AUTHORS_SCENE.md, "Agent": ``DecisionRequester.DecisionPeriod`` 5
+    and ``TakeActionsBetweenDecisions`` 1 at the 0.02 s physics step, so ``Planner.cs``'s
+    -1e-5 (``FixedUpdate``) and +1e-5 (``OnActionReceived``) per physics step are paid 5 times
+    a decision: -5e-5 and +5e-5. r_centerline +0.005 and the 0.5 bend threshold:
+    ``Assets/Planner.cs`` (fidelity.md, "Numbers" 4)."""
     r = PAPER_CODE_REWARD
-    assert (r.r_obst, r.r_exit, r.r_target, r.r_step) == (-1.0, -1.0, 1.0, -1e-5)
-    assert (r.r_centerline, r.r_bending, r.bend_threshold) == (0.005, 1e-5, 0.5)
-    assert r.waypoint_radius == pytest.approx(0.0045)
+    assert (r.r_obst, r.r_exit, r.r_target) == (-1.0, -1.0, 1.0)
+    assert r.r_step == pytest.approx(5 * -1e-5, rel=1e-12)
+    assert r.r_bending == pytest.approx(5 * 1e-5, rel=1e-12)
+    assert (r.r_centerline, r.bend_threshold, r.bend_rule) == (0.005, 0.5, 'action')
     events = StepEvents(collision=np.array([False, True, False]),
                         exited=np.array([False, False, True]),
                         success=np.array([True, False, False]),
                         new_waypoints=np.array([2, 0, 0]),
                         bending=np.array([True, False, False]))
     terms, done = compute_reward(events, r)
-    np.testing.assert_allclose(terms.total, [1.0 - 1e-5 + 0.01 + 1e-5, -1.0 - 1e-5,
-                                             -1.0 - 1e-5], atol=1e-12)
+    np.testing.assert_allclose(terms.total, [1.0 - 5e-5 + 0.01 + 5e-5, -1.0 - 5e-5,
+                                             -1.0 - 5e-5], atol=1e-12)
     assert done.all()
+
+
+def test_paper_code_reach_radii() -> None:
+    """AUTHORS_SCENE.md, "Colliders and radii": the ``Target`` sphere collider (radius 0.5 x
+    scale 8 = 4 mm) touches the tip's (0.5 x scale 5 = 2.5 mm) at 6.5 mm between centres; a
+    centreline waypoint (``Assets/Centerline.prefab``: radius 0.5 x scale 2 = 1 mm) at
+    1 + 2.5 = 3.5 mm."""
+    r = PAPER_CODE_REWARD
+    assert r.epsilon == pytest.approx(0.5 * 8e-3 + 0.5 * 5e-3, abs=1e-12)
+    assert r.waypoint_radius == pytest.approx(0.5 * 2e-3 + 0.5 * 5e-3, abs=1e-12)
+    target = np.zeros((2, 3))
+    tips = np.array([[0.0064, 0.0, 0.0], [0.0, 0.0066, 0.0]])
+    np.testing.assert_array_equal(reached_target(tips, target, r), [True, False])
+    waypoints = np.array([[[0.0034, 0.0, 0.0], [0.0, 0.0, 0.0036]]])
+    reached = np.zeros((1, 2), dtype=bool)
+    assert update_waypoints(np.zeros((1, 3)), waypoints, reached, r).tolist() == [1]
+    np.testing.assert_array_equal(reached, [[True, False]])
 
 
 def test_bending_on_the_action_fires_without_insertion() -> None:
@@ -241,9 +273,9 @@ def test_bending_on_the_action_fires_without_insertion() -> None:
 def test_the_env_pays_the_paper_code_reward(paper_env) -> None:
     paper_env.reset(seed=0, options={'start': 0, 'target': 0})
     info = paper_env.step(np.array([0.6, 0.0, -1.0], np.float32))[4]
-    assert info['reward_bending'] == pytest.approx(1e-5)
+    assert info['reward_bending'] == pytest.approx(5e-5)
     waypoints = 0
-    for _ in range(60):  # insert along the start heading: waypoints within 4.5 mm pay 0.005
+    for _ in range(60):  # insert along the start heading: waypoints within 3.5 mm pay 0.005
         _, _, te, _, info = paper_env.step(np.array([0.0, 0.0, 1.0], np.float32))
         assert info['reward_centerline'] == pytest.approx(0.005 * info['new_waypoints'])
         assert info['reward_bending'] == 0.0
@@ -272,13 +304,24 @@ def test_heartbeat_breakpoints_are_the_fidelity_table() -> None:
     assert 1e3 * paper_code_position(0.74 + 1e-9) == pytest.approx(0.0, abs=1e-4)
 
 
-def test_paper_code_heartbeat_is_axial_along_minus_root_axis() -> None:
+def test_paper_code_heartbeat_pushes_the_root_up_from_below() -> None:
+    """AUTHORS_SCENE.md, "Heartbeat pusher": the ``Cylinder`` below the aortic root moves
+    along its local +y, world (-0.29, 0.95, 0.10), up into the ascending aorta, and pushes the
+    soft root: a one-sided push. So the annulus moves along +root_axis by the pusher's
+    position where it is above rest (fidelity.md "Numbers" 5: +5.2382 mm at 0.30 s) and stays
+    at rest while the pusher is below it (-1.9077 mm at 0.70 s)."""
     axis = np.array([0.0, 0.6, 0.8])
     hb = Heartbeat(axis, HeartbeatConfig(profile='paper_code'))
     assert hb.config.period == pytest.approx(0.74)
-    np.testing.assert_allclose(hb.displacement(0.30), -5.2382e-3 * axis, atol=1e-7)
-    np.testing.assert_allclose(hb.displacement(0.70), 1.9077e-3 * axis, atol=1e-7)
-    np.testing.assert_allclose(hb.displacement(0.74 * 2), 0.0, atol=1e-12)
+    np.testing.assert_allclose(hb.displacement(0.30), 5.2382e-3 * axis, atol=1e-7)
+    np.testing.assert_allclose(hb.displacement(0.05), 0.5 * 1.2767e-3 * axis, atol=1e-7)
+    np.testing.assert_allclose(hb.displacement(0.42 + 0.74), 2.9281e-3 * axis, atol=1e-7)
+    # below rest from 0.56 + 0.6528 / 18.28874613 s = 0.5957 s to the cycle end: no pull
+    for t in (0.60, 0.70, 0.74 - 1e-9, 0.74 * 2):
+        np.testing.assert_allclose(hb.displacement(t), 0.0, atol=1e-12)
+    assert hb.displacement(0.59) @ axis > 0.0
+    assert min(hb.shape(0.01 * k) for k in range(148)) >= 0.0
+    np.testing.assert_allclose(hb.peak_displacement, 5.2382e-3 * axis, atol=1e-7)
     with pytest.raises(ValueError, match="profile must be one of"):
         HeartbeatConfig(profile='sine')
 
@@ -288,7 +331,54 @@ def test_the_dynamic_paper_code_env_beats_with_the_profile() -> None:
     wall = env.engine.walls[0]
     assert wall.heartbeat.config.profile == 'paper_code'
     np.testing.assert_allclose(wall.heartbeat.displacement(0.30),
-                               -5.2382e-3 * wall.heartbeat.root_axis, atol=1e-7)
+                               5.2382e-3 * wall.heartbeat.root_axis, atol=1e-7)
+
+
+# ------------------------------------------------------------------ episode end
+def test_paper_code_has_a_step_limit_that_does_not_bind() -> None:
+    """AUTHORS_SCENE.md, "Agent": ``MaxStep`` 0, no episode step limit. The longest episode
+    the authors recorded ended at ``StepCount`` 18,668 physics steps
+    (``Assets/OutPath/old1/distance.txt``), 3,734 decisions; the limit is 5x that."""
+    cfg = EnvConfig.from_options('paper_code')
+    assert cfg.max_steps == PAPER_CODE_MAX_STEPS >= 5 * math.ceil(18_668 / 5)
+    assert EnvConfig().max_steps == 2000 and EnvConfig.from_options('ours').max_steps == 2000
+    with pytest.raises(ValueError, match=r"env options 'paper_code' fix \['max_steps'\]"):
+        EnvConfig.from_options('paper_code', max_steps=200)
+
+
+def test_paper_code_exit_box_margins() -> None:
+    """AUTHORS_SCENE.md, "Exit": the six ``Plane`` objects bound x -133..115, y -573..-287,
+    z -184..55 (mm); ``Assets/centerline.txt`` (columns x, z, y: ``Planner.Start``) spans
+    x -37.27..21.88, y -511.79..-399.53, z -117.25..-68.37. Their x, y, z are our x, z, y."""
+    box = {'x': (-133.0, 115.0), 'y': (-573.0, -287.0), 'z': (-184.0, 55.0)}
+    line = {'x': (-37.27, 21.88), 'y': (-511.79, -399.53), 'z': (-117.25, -68.37)}
+    ours_axis = {'x': 0, 'y': 2, 'z': 1}  # their axis -> ours
+    low, high = np.asarray(PAPER_CODE_EXIT_MARGINS)
+    for theirs, k in ours_axis.items():
+        assert 1e3 * low[k] == pytest.approx(line[theirs][0] - box[theirs][0], abs=1e-6)
+        assert 1e3 * high[k] == pytest.approx(box[theirs][1] - line[theirs][1], abs=1e-6)
+    wp = {'a': np.array([[0.0, 0.0, 0.0], [0.01, -0.02, 0.03]]),
+          'b': np.array([[0.0, 0.05, 0.0]])}
+    lo, hi = paper_code_exit_box(wp)
+    np.testing.assert_allclose(lo, [-0.09573, -0.02 - 0.06675, -0.06121], atol=1e-12)
+    np.testing.assert_allclose(hi, [0.01 + 0.09312, 0.05 + 0.12337, 0.03 + 0.11253],
+                               atol=1e-12)
+
+
+def test_the_paper_code_env_exits_at_the_box_only(paper_env) -> None:
+    """paper_code: no open-end disc, the box around the centreline; ours keeps both."""
+    eng = paper_env.engine
+    assert eng.exit_discs.shape == (0, 7)
+    lo, hi = paper_code_exit_box(eng.scenarios.waypoints)
+    np.testing.assert_array_equal(eng.bbox_low, lo)
+    np.testing.assert_array_equal(eng.bbox_high, hi)
+    ours = CatheterNavEnv(EnvConfig()).engine
+    assert ours.exit_discs.shape[0] > 0
+    lo, hi = episode_bounds(ours.world.anatomy)
+    np.testing.assert_array_equal(ours.bbox_low, lo)
+    np.testing.assert_array_equal(ours.bbox_high, hi)
+    with pytest.raises(ValueError, match="exit_rule must be one of"):
+        EnvConfig(exit_rule='planes')
 
 
 # ------------------------------------------------------------------ the option set
@@ -298,6 +388,7 @@ def test_option_sets_name_their_values() -> None:
     assert (cfg.options, cfg.mode, cfg.observation_kind, cfg.forward_only) == (
         'paper_code', 'dynamic', 'paper_code', True)
     assert cfg.reward == PAPER_CODE_REWARD and cfg.heartbeat.profile == 'paper_code'
+    assert cfg.exit_rule == 'box' and EnvConfig().exit_rule == 'discs'
     assert cfg.catheter.forward_only and cfg.observation.kind == 'paper_code'
     assert dataclasses.replace(cfg, forward_only=False).options == 'custom'
     assert EnvConfig().with_options('paper_code') == EnvConfig.from_options('paper_code')
