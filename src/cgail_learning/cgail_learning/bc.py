@@ -1,4 +1,14 @@
-"""Behavioural cloning step on the demonstrations (ML-Agents ``behavioral_cloning``)."""
+"""Behavioural cloning step on the demonstrations (ML-Agents ``behavioral_cloning``).
+
+Two schedules (:attr:`~cgail_learning.config.BCConfig.schedule`): ``ours``, where the learning
+rate is the policy's current one times the decaying strength and each pass takes at most
+``ppo.buffer_size`` demo samples, and ``ml-agents``, the schedule of ML-Agents' ``BCModule``
+that the authors trained with: ``strength`` x the initial policy learning rate, decayed once,
+linearly to 1e-10 over ``bc.steps``, each pass over the whole demo buffer. ML-Agents computes
+an update's decayed rate before its passes and applies it after them (the passes run at the
+previous update's rate); here an update runs at its own step's rate, one update (10,240 of
+8,000,000 steps) earlier on the same line.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +17,7 @@ import torch
 
 from cgail_learning.config import BCConfig
 from cgail_learning.networks import Actor
+from cgail_learning.ppo import linear_schedule
 
 
 def bc_loss(actor: Actor, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
@@ -40,8 +51,13 @@ def bc_passes(actor: Actor, obs: torch.Tensor, act: torch.Tensor, opt: torch.opt
     return means
 
 
+#: ML-Agents' floor of the decayed BC learning rate (``DecayedValue(..., 1e-10, steps)``).
+MLAGENTS_BC_LR_FLOOR = 1e-10
+
+
 class BehavioralCloning:
-    """Supervised pass over the demos after each PPO update, lr = strength * policy lr."""
+    """Supervised pass over the demos after each PPO update (module docstring for the
+    learning rate of each :attr:`~cgail_learning.config.BCConfig.schedule`)."""
 
     def __init__(self, actor: Actor, demo_obs: np.ndarray, demo_act: np.ndarray,
                  cfg: BCConfig, learning_rate: float) -> None:
@@ -57,12 +73,24 @@ class BehavioralCloning:
             return self.cfg.strength
         return self.cfg.strength * max(0.0, 1.0 - step / self.cfg.steps)
 
+    def learning_rate(self, step: int, policy_lr: float) -> float:
+        """The BC learning rate at ``step``: ``ours``, ``policy_lr`` (the policy's current
+        rate) times :meth:`strength`; ``ml-agents``, ``strength`` x the initial policy rate,
+        linear to 1e-10 over ``steps`` (constant when 0), as ML-Agents' ``BCModule``."""
+        if self.cfg.schedule == 'ours':
+            return policy_lr * self.strength(step)
+        return linear_schedule(self.cfg.strength * self.base_lr, MLAGENTS_BC_LR_FLOOR, step,
+                               self.cfg.steps, 'linear' if self.cfg.steps else 'constant')
+
     def update(self, step: int, policy_lr: float, max_samples: int,
                rng: np.random.Generator) -> dict[str, float]:
-        """``num_epoch`` passes over (at most ``max_samples``) shuffled demo samples."""
-        lr = policy_lr * self.strength(step)
+        """``num_epoch`` passes over (at most ``max_samples``; ``ml-agents``: all) shuffled demo
+        samples."""
+        lr = self.learning_rate(step, policy_lr)
         if lr <= 0:
             return {}
+        if self.cfg.schedule == 'ml-agents':
+            max_samples = self.obs.shape[0]
         for g in self.opt.param_groups:
             g['lr'] = lr
         losses = bc_passes(self.actor, self.obs, self.act, self.opt, self.cfg.num_epoch,

@@ -221,6 +221,10 @@ class CuriosityConfig(RewardSignalConfig):
                self.forward_weight)
 
 
+#: The BC learning-rate and sample schedules (:attr:`BCConfig.schedule`).
+BC_SCHEDULES = ('ours', 'ml-agents')
+
+
 @dataclass(frozen=True)
 class BCConfig:
     """Behavioural cloning (ML-Agents ``behavioral_cloning``)."""
@@ -230,9 +234,18 @@ class BCConfig:
     batch_size: int = 512
     """Demonstration minibatch size."""
     num_epoch: int = 3
-    """Minibatch passes per PPO update, each over at most buffer_size demo samples."""
+    """Minibatch passes per PPO update, each over at most buffer_size demo samples
+    (``schedule: ml-agents``: over every demo sample)."""
     steps: int = 0
     """BC strength decays linearly to 0 over these steps; 0 keeps it constant."""
+    schedule: str = field(default='ours', metadata={'omit_default': True})
+    """``ours``: the BC learning rate is the policy's (itself decaying over max_steps) times the
+    strength (decaying over ``steps``), each of ``num_epoch`` passes over at most
+    ``ppo.buffer_size`` shuffled demo samples. ``ml-agents``: as ML-Agents' ``BCModule``
+    (0.29, which the authors ran): ``strength`` x the *initial* policy lr, decayed once,
+    linearly to 1e-10 over ``steps`` (constant when 0), each pass over the whole demo buffer
+    (their ``samples_per_update`` 0). Written to config dicts only when not ``ours``, so the
+    configs (and checkpoints) of the presets that keep it are unchanged."""
     pretrain_epochs: int = 0
     """Supervised BC passes over the demonstrations before any environment step
     (:meth:`~cgail_learning.trainer.Trainer.pretrain_bc`, lr 1e-3, minibatch 512, the
@@ -249,6 +262,8 @@ class BCConfig:
                self.batch_size)
         _check(1 <= self.num_epoch <= 100, 'bc.num_epoch', 'in [1, 100]', self.num_epoch)
         _check(self.steps >= 0, 'bc.steps', '>= 0', self.steps)
+        _check(self.schedule in BC_SCHEDULES, 'bc.schedule', f'one of {list(BC_SCHEDULES)}',
+               self.schedule)
         _check(0 <= self.pretrain_epochs <= 1000, 'bc.pretrain_epochs', 'in [0, 1000]',
                self.pretrain_epochs)
 
@@ -494,9 +509,12 @@ def load_config(preset_or_path: str | Path) -> TrainConfig:
 
 
 def config_to_dict(cfg: Any) -> Any:
-    """Plain nested dict of a config (for checkpoints and logs)."""
+    """Plain nested dict of a config (for checkpoints and logs). A field marked
+    ``omit_default`` is left out while it has its default (a field added after checkpoints
+    were written: their configs and this one's still compare equal on ``--resume``)."""
     if is_dataclass(cfg):
-        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in fields(cfg)}
+        return {f.name: config_to_dict(getattr(cfg, f.name)) for f in fields(cfg)
+                if not (f.metadata.get('omit_default') and getattr(cfg, f.name) == f.default)}
     if isinstance(cfg, tuple):
         return list(cfg)
     return cfg

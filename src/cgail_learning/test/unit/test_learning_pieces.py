@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -252,6 +253,51 @@ def test_bc_strength_scales_learning_rate():
                            BCConfig(strength=0.14, batch_size=4, steps=100), 3e-4)
     stats = bc.update(50, 3e-4, 4, np.random.default_rng(0))
     assert stats['policy/bc_learning_rate'] == pytest.approx(3e-4 * 0.07)
+
+
+def test_bc_ml_agents_schedule_decays_once_over_the_whole_buffer():
+    """``schedule: ml-agents``, as ML-Agents' ``BCModule`` (``trainers/torch/components/bc/
+    module.py``: ``current_lr = policy_learning_rate * strength``, ``DecayedValue(LINEAR,
+    current_lr, 1e-10, steps)``, ``samples_per_update`` 0 = every demo batch): the authors'
+    softAorta12 BC (strength 0.5, steps 8M, policy lr 5e-4). The policy's own decayed rate
+    plays no part; ``ours`` multiplies it in and caps a pass at ``max_samples``."""
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(2560, 2)).astype(np.float32)
+    act = np.zeros((2560, 1), np.float32)
+    cfg = BCConfig(strength=0.5, batch_size=256, num_epoch=1, steps=8_000_000,
+                   schedule='ml-agents')
+    bc = BehavioralCloning(Actor(2, 1, NetworkConfig(hidden_units=8), None), obs, act, cfg,
+                           5e-4)
+    assert bc.learning_rate(0, 1e-9) == pytest.approx(2.5e-4, rel=1e-9)
+    assert bc.learning_rate(4_000_000, 1e-9) == pytest.approx(1.25e-4, rel=1e-6)
+    assert bc.learning_rate(8_000_000, 1e-9) == pytest.approx(1e-10, rel=1e-6)
+    assert bc.learning_rate(9_000_000, 5e-4) == pytest.approx(1e-10, rel=1e-6)
+    stats = bc.update(2_000_000, 1e-9, 1024, np.random.default_rng(0))
+    assert stats['policy/bc_learning_rate'] == pytest.approx(1.875e-4, rel=1e-6)
+    steps = {int(st['step']) for st in bc.opt.state.values()}
+    assert steps == {2560 // 256}  # the whole buffer, not the 1024 of max_samples
+
+    ours = BehavioralCloning(Actor(2, 1, NetworkConfig(hidden_units=8), None), obs, act,
+                             dataclasses.replace(cfg, schedule='ours'), 5e-4)
+    stats = ours.update(2_000_000, 3.75e-4, 1024, np.random.default_rng(0))
+    assert stats['policy/bc_learning_rate'] == pytest.approx(3.75e-4 * 0.5 * 0.75, rel=1e-9)
+    assert {int(st['step']) for st in ours.opt.state.values()} == {1024 // 256}
+
+
+def test_bc_schedule_is_written_only_when_not_ours():
+    """A config dict written before ``bc.schedule`` existed still equals today's (``--resume``
+    compares them), and the authors' presets select ``ml-agents``."""
+    from cgail_learning.config import config_to_dict
+
+    for name in ('cgail', 'smoke', 'gail', 'generalist'):
+        cfg = load_config(name)
+        assert cfg.bc.schedule == 'ours' and 'schedule' not in config_to_dict(cfg)['bc']
+    for name in ('paper_code_cgail', 'paper_code_lambda0'):
+        d = config_to_dict(load_config(name))
+        assert d['bc']['schedule'] == 'ml-agents'
+        assert config_from_dict(d).bc.schedule == 'ml-agents'
+    with pytest.raises(ConfigError, match=r"bc.schedule must be one of \['ours', 'ml-agents'\]"):
+        config_from_dict({'bc': {'schedule': 'mlagents'}})
 
 
 def test_normalizer_matches_numpy():

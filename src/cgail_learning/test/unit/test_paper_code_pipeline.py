@@ -139,6 +139,7 @@ def test_the_authors_presets(name, layers, units, steps, signals, bc) -> None:
     assert (cfg.ppo.learning_rate, cfg.ppo.epsilon) == (5e-4, 0.25)
     assert {k: s.strength for k, s in cfg.signals().items()} == signals
     assert cfg.bc.strength == bc and (bc == 0.0 or cfg.bc.steps == 8_000_000)
+    assert bc == 0.0 or cfg.bc.schedule == 'ml-agents'  # decayed once, whole demo buffer
     env, _, meta = train.make_envs('static', 'default', 2, cfg.env_options)
     demo = (np.zeros((4, 27), np.float32), np.zeros((4, 3), np.float32)) \
         if cfg.needs_demos else (None, None)
