@@ -18,6 +18,8 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cgail_node_utils.rotations import matrix_to_quat, quat_to_matrix
+
 MM_TO_M = 1e-3
 
 
@@ -33,15 +35,22 @@ def mm_to_m(values_mm: Sequence[float] | np.ndarray) -> np.ndarray:
 
 
 def quat_xyzw_to_matrix(q: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)`` (scipy ``Rotation``)."""
-    return np.asarray(Rotation.from_quat(np.asarray(q, dtype=float)).as_matrix())
+    """Rotation matrix of a unit quaternion in ROS order ``(x, y, z, w)`` (scipy ``Rotation``;
+    one finite quaternion: :mod:`cgail_node_utils.rotations`, the same bits, faster)."""
+    arr = np.asarray(q, dtype=float)
+    if arr.shape == (4,) and np.isfinite(arr).all():
+        return np.array(quat_to_matrix(*arr.tolist()))
+    return np.asarray(Rotation.from_quat(arr).as_matrix())
 
 
 def matrix_to_quat_xyzw(rot: np.ndarray) -> np.ndarray:
     """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix (scipy
-    ``Rotation``; ``rot`` must be a rotation, it is not re-orthogonalised)."""
-    return np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float), assume_valid=True)
-                      .as_quat(canonical=True))
+    ``Rotation``; ``rot`` must be a rotation, it is not re-orthogonalised; one finite matrix:
+    :mod:`cgail_node_utils.rotations`, the same bits, faster)."""
+    arr = np.asarray(rot, dtype=float)
+    if arr.shape == (3, 3) and np.isfinite(arr).all():
+        return np.array(matrix_to_quat(arr.tolist()))
+    return np.asarray(Rotation.from_matrix(arr, assume_valid=True).as_quat(canonical=True))
 
 
 def _rigid(matrix: object, name: str) -> np.ndarray:
