@@ -67,13 +67,23 @@ FAULT_NAMES: tuple[str, ...] = (
 """The fault flag signals of ``PAM_STATUS``."""
 
 
+def _crc8_step(crc: int) -> int:
+    """Eight shifts of the CRC-8/SAE-J1850 register (poly 0x1D), MSB first."""
+    for _ in range(8):
+        crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc
+
+
+#: ``_crc8_step`` of every register value: the CRC one byte at a time (every frame of the
+#: control loops goes through it).
+_CRC8_TABLE = bytes(_crc8_step(value) for value in range(256))
+
+
 def crc8_sae_j1850(data: bytes) -> int:
     """CRC-8/SAE-J1850: poly 0x1D, init 0xFF, no reflection, xorout 0xFF (check 0x4B)."""
     crc = 0xFF
     for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+        crc = _CRC8_TABLE[crc ^ byte]
     return crc ^ 0xFF
 
 

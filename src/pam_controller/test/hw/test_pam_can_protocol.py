@@ -14,6 +14,23 @@ def test_crc8_sae_j1850_check_value():
     assert proto.crc8_sae_j1850(b'') == 0x00
 
 
+def _crc8_bitwise(data: bytes) -> int:
+    crc = 0xFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc ^ 0xFF
+
+
+def test_crc8_table_equals_the_bitwise_definition():
+    rng = np.random.default_rng(5)
+    cases = [bytes([b]) for b in range(256)] + [
+        rng.integers(0, 256, size=int(n)).astype(np.uint8).tobytes()
+        for n in rng.integers(0, 12, size=2000)]
+    assert all(proto.crc8_sae_j1850(c) == _crc8_bitwise(c) for c in cases)
+
+
 def test_dbc_defines_the_documented_message_set():
     db = proto.load_database()
     table = {m.frame_id: (m.name, m.length, m.cycle_time, m.senders) for m in db.messages}
