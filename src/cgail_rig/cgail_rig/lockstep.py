@@ -27,12 +27,13 @@ seed and configuration, whatever the host's speed or load:
   message is serialized once (the CDR DDS would carry) and every subscription gets its own copy
   deserialized from it when it is taken, so values are rounded exactly as DDS rounds them (the
   float32 fields, such as a Joy's axes) and no subscriber shares an object with the publisher;
-  a publish nobody subscribes to is not serialized at all. Delivery order, the subscriptions'
-  history depth (KEEP_LAST drops the oldest) and QoS compatibility are those of DDS. These go
-  through DDS as before: a latched (transient-local) topic, a topic with a subscriber outside
-  the graph or a raw one (a recorder: rclpy's serializer leaves the CDR padding bytes
-  undefined, DDS zeroes them, and a bag must be bit-identical), an inactive lifecycle
-  publisher, a subscription that wants the message info. Results equal ``transport='dds'``.
+  a raw subscription (a recorder) gets the bytes DDS would give it (:mod:`cgail_rig.cdr`:
+  rclpy's serializer leaves the padding undefined, a bag must be bit-identical); a publish
+  nobody subscribes to is not serialized at all. Delivery order, the subscriptions' history
+  depth (KEEP_LAST drops the oldest) and QoS compatibility are those of DDS. These go through
+  DDS as before: a latched (transient-local) topic, a topic with a subscriber outside the
+  graph, an inactive lifecycle publisher, a subscription that wants the message info. Results
+  equal ``transport='dds'``.
 * **No threads racing the clock.** Devices are stepped by the world hooks; a node that talks to
   a device does so synchronously inside its timer callback (the Aurora node's ``poll_mode:
   clock``). Guard conditions (how a thread wakes an executor) are refused, and so are waitables
@@ -58,6 +59,8 @@ from typing import Any
 from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
+
+from cgail_rig import cdr
 
 _MESSAGE_ONLY = Subscription.CallbackType.MessageOnly
 
@@ -137,7 +140,7 @@ class LockstepExecutor:
         self._subscriptions: list[Any] = []
         self._services: list[Any] = []
         # (subscription, None, None): take from DDS; (subscription, inbox, type): take the
-        # oldest CDR bytes of its in-process inbox, deserialized to ``type``
+        # oldest CDR bytes of its in-process inbox, deserialized to ``type`` (None: raw)
         self._pending: deque[tuple[Any, deque[bytes] | None, Any]] = deque()
         self._wrapped: set[int] = set()
         # in-process transport: per publisher (id), its route; per subscription (id), its inbox
@@ -323,12 +326,16 @@ class LockstepExecutor:
                 continue  # a subscriber outside the graph (or not matched yet): DDS
             if any(s._callback_type is not _MESSAGE_ONLY for s in targets):
                 continue  # the message info comes from DDS
-            if any(s.raw for s in targets):
-                continue  # rclpy's serializer leaves the CDR padding bytes undefined: a raw
-                # subscriber (a recorder) gets DDS's bytes, whose padding is zero
+            raw = any(s.raw for s in targets)
+            if raw:
+                try:  # a raw subscriber (a recorder) gets DDS's bytes: cdr.zero_padding
+                    cdr.plan(pub.msg_type)
+                except cdr.CdrError:
+                    continue
             self._routes[id(pub)] = _Route(
-                matched=len(targets),
-                targets=[(s, self._inboxes[id(s)], s.msg_type) for s in targets])
+                matched=len(targets), raw=raw,
+                targets=[(s, self._inboxes[id(s)], None if s.raw else s.msg_type)
+                         for s in targets])
 
     def _instrument(self, pub: Any) -> None:
         if id(pub) in self._wrapped:
@@ -348,16 +355,24 @@ class LockstepExecutor:
                 stats.published += 1
                 pending.extend((s, None, None) for s in subs)
                 return
+            raw = data = b''
             if isinstance(msg, msg_type):
                 # nobody listens: nothing to serialize (DDS would convert it and drop it)
-                data = serialize(msg, msg_type) if route.targets else b''
+                data = raw = serialize(msg, msg_type) if route.targets else b''
+                if route.raw:
+                    try:
+                        raw = cdr.zero_padding(data, msg_type)
+                    except cdr.CdrError:  # bytes the walk does not know: DDS from now on
+                        routes.pop(key, None)
+                        instrumented(msg)
+                        return
             elif isinstance(msg, bytes):
-                data = msg
+                data = raw = msg
             else:
                 raise TypeError(f'Expected {msg_type}, got {type(msg)}')
             stats.published += 1
             for sub, inbox, sub_type in route.targets:
-                inbox.append(data)
+                inbox.append(data if sub_type is not None else raw)
                 pending.append((sub, inbox, sub_type))
 
         pub.publish = instrumented
@@ -421,7 +436,7 @@ class LockstepExecutor:
                         pass
                 except InvalidHandle:  # destroyed since the last seal
                     continue
-                taken = (deserialize(payload, msg_type), None)
+                taken = (payload if msg_type is None else deserialize(payload, msg_type), None)
             stats.messages += 1
             self._call_sub(sub, taken)
 
@@ -483,8 +498,10 @@ class LockstepExecutor:
 @dataclass
 class _Route:
     """Where an in-process publish goes: ``matched`` is the publisher's match count when no
-    subscriber outside the graph listens; ``targets`` are (subscription, inbox, message type)."""
+    subscriber outside the graph listens; ``raw``: a target takes the bytes; ``targets`` are
+    (subscription, inbox, message type to deserialize to or None for the bytes)."""
 
     matched: int
+    raw: bool
     targets: list[tuple[Any, deque[bytes], Any]]
 

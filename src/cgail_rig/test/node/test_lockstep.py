@@ -366,3 +366,72 @@ def test_the_sweep_every_n_ticks_picks_up_outside_messages(context) -> None:
 def test_bad_transport_arguments(kwargs, match) -> None:
     with pytest.raises(ValueError, match=match):
         LockstepExecutor(period_s=0.02, **kwargs)
+
+
+def _cdr_samples():
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
+    from nav_msgs.msg import Path
+    from sensor_msgs.msg import JointState, Joy
+    from std_msgs.msg import Empty, Header, String
+    from tf2_msgs.msg import TFMessage
+    from visualization_msgs.msg import Marker, MarkerArray
+
+    return [PoseStamped(header=Header(frame_id='phantom')), PoseWithCovarianceStamped(),
+            JointState(name=['bend_alpha', 'bend_gamma'], position=[1.0, 2.0]), JointState(),
+            JointState(name=['a'], position=[1.0], effort=[3.0]),
+            Joy(axes=[0.1, 0.2], buttons=[1, 0, 1]), Empty(), String(data='hello'),
+            TFMessage(transforms=[TransformStamped(child_frame_id='catheter_tip')] * 2),
+            MarkerArray(markers=[Marker(ns='x'), Marker(ns='yy', text='t', frame_locked=True)]),
+            Path(header=Header(frame_id='p'), poses=[PoseStamped()] * 3),
+            DiagnosticArray(status=[DiagnosticStatus(name='n',
+                                                     values=[KeyValue(key='k', value='v')])])]
+
+
+def test_zero_padding_gives_the_bytes_of_a_raw_take_from_dds(context) -> None:
+    from rclpy.serialization import serialize_message
+
+    from cgail_rig.cdr import zero_padding
+
+    node = _node(context, 'cdr_check')
+    for k, msg in enumerate(_cdr_samples()):
+        msg_type = type(msg)
+        sub = node.create_subscription(msg_type, f'cdr_{k}', lambda m: None, 10, raw=True)
+        pub = node.create_publisher(msg_type, f'cdr_{k}', 10)
+        while pub.get_subscription_count() < 1:
+            threading.Event().wait(0.01)
+        pub.publish(msg)
+        taken = sub.handle.take_message(msg_type, True)[0]
+        assert zero_padding(serialize_message(msg), msg_type) == taken, msg_type.__name__
+
+
+def test_a_raw_subscriber_gets_the_same_bytes_in_process_as_through_dds(context) -> None:
+    from sensor_msgs.msg import JointState
+
+    got: dict[str, list] = {'dds': [], 'inprocess': []}
+    for transport in ('dds', 'inprocess'):
+        ex = LockstepExecutor(period_s=0.02, transport=transport)
+        node = _node(context, f'raw_{transport}')
+        ex.add_node(node)
+        pub = node.create_publisher(JointState, f'raw_{transport}', 10)
+        node.create_subscription(JointState, f'raw_{transport}', got[transport].append, 10,
+                                 raw=True)
+        node.create_timer(0.02, lambda pub=pub: pub.publish(
+            JointState(name=['bend_alpha'], position=[0.25])))
+        ex.seal()
+        assert (id(pub) in ex._routes) == (transport == 'inprocess')
+        ex.tick()
+    assert len(got['dds']) == 1 and got['dds'] == got['inprocess']
+
+
+def test_zero_padding_refuses_what_it_cannot_walk() -> None:
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import String
+
+    from cgail_rig.cdr import CdrError, zero_padding
+
+    data = serialize_message(String(data='hello'))
+    with pytest.raises(CdrError, match='encapsulation header'):
+        zero_padding(b'\x07\x01' + data[2:], String)
+    with pytest.raises(CdrError, match='expected'):
+        zero_padding(data[:9], String)  # cut inside the string
