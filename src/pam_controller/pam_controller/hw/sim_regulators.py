@@ -207,8 +207,8 @@ class SimRegulatorBank:
             self._track_error_since = np.where(
                 err, np.where(np.isnan(self._track_error_since), self.time_s,
                               self._track_error_since), np.nan)
-            late = err & (self.time_s - np.nan_to_num(self._track_error_since, nan=np.inf)
-                          >= cfg.stuck_detect_s)
+            # (a channel on target holds NaN, and NaN >= x is False: not late)
+            late = err & (self.time_s - self._track_error_since >= cfg.stuck_detect_s)
             if np.any(late):
                 self._faults.add('FAULT_STUCK')
                 self._channel_fault_mask |= int(sum(1 << i for i in np.flatnonzero(late)))
