@@ -134,13 +134,16 @@ class SimGroundTruth:
                 raise ValueError(f'{name} must be in [0, 10], found {value!r}')
         if not (isinstance(self.seed, int) and self.seed >= 0):
             raise ValueError(f'seed must be a non-negative integer, found {self.seed!r}')
+        # (asked at every frame; the fields are frozen)
+        object.__setattr__(self, '_passthrough', (
+            self.position_noise_mm == 0.0 and self.orientation_noise_deg == 0.0
+            and bool(np.array_equal(self.phantom_in_tracker, np.eye(4)))
+            and bool(np.array_equal(self.tip_in_sensor, np.eye(4)))))
 
     @property
     def passthrough(self) -> bool:
         """Identity placement and mounting and no noise: readings are the pose source's."""
-        return (self.position_noise_mm == 0.0 and self.orientation_noise_deg == 0.0
-                and bool(np.array_equal(self.phantom_in_tracker, np.eye(4)))
-                and bool(np.array_equal(self.tip_in_sensor, np.eye(4))))
+        return bool(self.__dict__['_passthrough'])
 
     def registration_m(self) -> NDArray[np.float64]:
         """The true ``T_phantom_aurora`` in metres (the ``registration`` parameter's form)."""
