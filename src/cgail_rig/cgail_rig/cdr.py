@@ -43,32 +43,30 @@ def _message_class(namespaced: Any) -> type:
 
 
 def _field_ops(slot: Any) -> list[tuple[Any, ...]]:
-    from rosidl_parser import definition as d
-
-    if isinstance(slot, d.BasicType):
+    # the classes of rosidl_parser.definition, by name (the messages' SLOT_TYPES)
+    kind = type(slot).__name__
+    if kind == 'BasicType':
         if slot.typename not in _SIZES:
             raise CdrError(f'expected a CDR primitive, found {slot.typename}')
         size = _SIZES[slot.typename]
         return [(SKIP, size, size)]
-    if isinstance(slot, d.AbstractString):
-        if isinstance(slot, d.AbstractWString):
-            raise CdrError('expected no wide strings, found one')
+    if kind in ('UnboundedString', 'BoundedString'):
         return [(STRING,)]
-    if isinstance(slot, d.NamespacedType):
+    if kind == 'NamespacedType':
         return list(plan(_message_class(slot)))
-    if isinstance(slot, d.Array):
+    if kind == 'Array':
         inner = _field_ops(slot.value_type)
         if len(inner) == 1 and inner[0][0] == SKIP:
             return [(SKIP, inner[0][1], inner[0][2] * slot.size)]
         return [(REPEAT, tuple(inner), slot.size)]
-    if isinstance(slot, d.AbstractSequence):
+    if kind in ('UnboundedSequence', 'BoundedSequence'):
         inner = _field_ops(slot.value_type)
         if len(inner) == 1 and inner[0][0] == SKIP:
             return [(SEQ_PRIM, inner[0][1])]
         if inner == [(STRING,)]:
             return [(SEQ_STRING,)]
         return [(SEQ_PLAN, tuple(inner))]
-    raise CdrError(f'expected a ROS 2 field type, found {type(slot).__name__}')
+    raise CdrError(f'expected a ROS 2 field type (no wide strings), found {kind}')
 
 
 def plan(msg_type: type) -> tuple[tuple[Any, ...], ...]:
