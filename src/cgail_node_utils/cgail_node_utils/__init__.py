@@ -10,5 +10,7 @@ Modules, each imported on its own:
 * :mod:`cgail_node_utils.lifecycle`: a lifecycle node's state read through rclpy's public API
   (``lifecycle_state``);
 * :mod:`cgail_node_utils.rotations`: one rotation's quaternion <-> matrix in plain floats,
-  bit-identical to scipy's ``Rotation`` and ten times faster (no rclpy, no numpy).
+  bit-identical to scipy's ``Rotation`` and ten times faster (no rclpy, no numpy);
+* :mod:`cgail_node_utils.can_codec`: the device nodes' CAN frames packed and unpacked by shifts,
+  bit-identical to cantools (``FastCodec``; no cantools import).
 """

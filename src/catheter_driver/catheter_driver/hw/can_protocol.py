@@ -32,6 +32,7 @@ from cantools.database.can import Database
 
 from catheter_driver.core.relay import GripperState
 from catheter_driver.exceptions import ProtocolError
+from cgail_node_utils.can_codec import FastCodec
 
 ESTOP_ID = 0x080
 COMMAND_ID = 0x200
@@ -122,6 +123,10 @@ class DriverCodec:
         self._estop = db.get_message_by_frame_id(ESTOP_ID)
         self._command = db.get_message_by_frame_id(COMMAND_ID)
         self._status = db.get_message_by_frame_id(STATUS_ID)
+        # cantools' bytes and values by shifts (cgail_node_utils.can_codec): a frame or two per
+        # control tick each way; cantools still decides (and raises) where the values do not fit
+        self._codecs = {m.frame_id: FastCodec(m) for m in (self._estop, self._command,
+                                                            self._status)}
         self.position_range = position_range
 
     # -- host -> driver ----------------------------------------------------------------------
@@ -136,7 +141,7 @@ class DriverCodec:
             raise ProtocolError(
                 f'expected a finite sleeve velocity, found {command.sleeve_velocity!r}')
         try:
-            data = self._command.encode({
+            data = self._encode(self._command, {
                 'SleeveVelocity': round(command.sleeve_velocity * MM_PER_M, 3),
                 'MovingGripperClose': int(command.moving_close),
                 'FixedGripperClose': int(command.fixed_close),
@@ -166,7 +171,7 @@ class DriverCodec:
     def encode_status(self, status: DriverStatus) -> can.Message:
         """DRV_STATUS frame (driver side)."""
         try:
-            data = self._status.encode({
+            data = self._encode(self._status, {
                 'SleevePosition': round(status.sleeve_position * MM_PER_M, 3),
                 'SleeveVelocity': round(status.sleeve_velocity * MM_PER_M, 3),
                 'MovingGripperState': int(status.moving),
@@ -202,8 +207,7 @@ class DriverCodec:
             interlock=bool(sig['Interlock']), command_timeout=bool(sig['CommandTimeout']),
             counter=int(sig['Counter']))
 
-    @staticmethod
-    def _decode(message: cantools.database.Message, msg: can.Message) -> dict[str, float]:
+    def _decode(self, message: cantools.database.Message, msg: can.Message) -> dict[str, float]:
         if msg.arbitration_id != message.frame_id or msg.is_extended_id:
             raise ProtocolError(
                 f'expected frame id {message.frame_id:#05x} ({message.name}), found '
@@ -211,8 +215,18 @@ class DriverCodec:
         if len(msg.data) != message.length:
             raise ProtocolError(
                 f'expected {message.length} data bytes in {message.name}, found {len(msg.data)}')
+        codec = self._codecs.get(message.frame_id)
+        if codec is not None and codec.supported:
+            return codec.unpack(bytes(msg.data))
         try:
             decoded = message.decode(bytes(msg.data), decode_choices=False, scaling=True)
         except cantools.database.DecodeError as exc:
             raise ProtocolError(f'cannot decode {message.name}: {exc}') from exc
         return {k: float(v) for k, v in decoded.items()}  # type: ignore[arg-type,union-attr]
+
+    def _encode(self, message: cantools.database.Message, values: dict[str, float | int]
+                ) -> bytes:
+        """``message.encode(values)``: packed by its fast codec where the values fit."""
+        codec = self._codecs.get(message.frame_id)
+        data = codec.pack(values) if codec is not None else None
+        return data if data is not None else message.encode(values)

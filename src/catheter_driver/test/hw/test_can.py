@@ -181,3 +181,31 @@ def test_sim_driver_console_script_runs(capsys):
     assert main(['--duration', '1.0', '--channel', f'cli_{uuid.uuid4().hex}']) == 0
     out = capsys.readouterr().out
     assert 'phase=' in out and 'catheter=' in out
+
+
+def test_fast_codec_equals_cantools():
+    """Every driver frame takes cgail_node_utils.can_codec, with cantools' bytes and values
+    (signed signals and their bounds included); out-of-range values still reach cantools."""
+    import cantools
+    import numpy as np
+
+    db = cantools.database.load_file(str(default_dbc_path()))
+    rng = np.random.default_rng(9)
+    for msg_def in db.messages:
+        codec = CODEC._codecs[msg_def.frame_id]
+        assert codec.supported
+        lows = np.array([s.minimum for s in msg_def.signals])
+        highs = np.array([s.maximum for s in msg_def.signals])
+        tol = np.array([abs(s.conversion.scale) * 1e-6 for s in msg_def.signals])
+        for k in range(3000):
+            values = ([lows, highs, lows - 0.9 * tol, highs + 0.9 * tol][k] if k < 4
+                      else rng.uniform(lows, highs))
+            signals = {s.name: (round(float(v), 3) if s.conversion.scale != 1
+                                else round(float(v)))
+                       for s, v in zip(msg_def.signals, values, strict=True)}
+            assert codec.pack(signals) == msg_def.encode(signals), (msg_def.name, signals)
+            data = bytes(rng.integers(0, 256, size=msg_def.length).astype(np.uint8))
+            decoded = msg_def.decode(data, decode_choices=False)
+            assert codec.unpack(data) == {n: float(v) for n, v in decoded.items()}
+        beyond = {s.name: float(s.maximum) + 1.0 for s in msg_def.signals}
+        assert codec.pack(beyond) is None

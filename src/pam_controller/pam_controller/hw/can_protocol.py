@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import enum
 import functools
 from pathlib import Path
-from typing import Any
 
 import can
 import cantools
@@ -33,6 +32,7 @@ from cantools.database.can import Database
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cgail_node_utils.can_codec import FastCodec
 from pam_controller.core.supervisor import BankMode
 from pam_controller.errors import ProtocolError
 
@@ -159,74 +159,20 @@ def _four(values: ArrayLike, name: str) -> FloatArray:
     return arr
 
 
-@dataclass(frozen=True)
-class _Layout:
-    """A message of ``pam.dbc`` whose signals are all little-endian unsigned integers without
-    value tables (``PAM_SETPOINTS``, ``PAM_MEASURED``: the control loop's frames, several per
-    tick): packed and unpacked here with cantools' own conversions and range check, in a
-    fraction of its general codec's time; ``test_pam_can_protocol.py`` holds both equal.
-    Anything else goes to cantools."""
-
-    frame_id: int
-    length: int
-    names: frozenset[str]
-    signals: tuple[tuple[str, int, int, Any, float, float], ...]
-    """(name, start bit, mask, conversion, lowest value, highest value): the bounds as
-    cantools' strict check computes them (minimum - |scale| 1e-6, maximum + |scale| 1e-6)."""
-
-
 @functools.cache
-def _layouts() -> dict[str, _Layout]:
-    layouts = {}
-    for msg_def in load_database().messages:
-        signals = []
-        for sig in msg_def.signals:
-            conv = sig.conversion
-            if (sig.byte_order != 'little_endian' or sig.is_signed or conv.is_float
-                    or conv.choices or sig.minimum is None or sig.maximum is None):
-                break
-            tol = abs(conv.scale) * 1e-6
-            signals.append((sig.name, sig.start, (1 << sig.length) - 1, conv,
-                            sig.minimum - tol, sig.maximum + tol))
-        else:
-            layouts[msg_def.name] = _Layout(msg_def.frame_id, msg_def.length,
-                                            frozenset(s[0] for s in signals), tuple(signals))
-    return layouts
-
-
-def _pack(layout: _Layout, signals: dict[str, float | int]) -> bytes | None:
-    """The payload cantools would encode, or None where cantools must decide (an error)."""
-    if signals.keys() != layout.names:
-        return None
-    word = 0
-    for name, start, mask, conv, lo, hi in layout.signals:
-        value = signals[name]
-        if not isinstance(value, (int, float)) or not lo <= value <= hi:
-            return None
-        raw = conv.numeric_scaled_to_raw(value)
-        if not 0 <= raw <= mask:
-            return None
-        word |= raw << start
-    return word.to_bytes(layout.length, 'little')
-
-
-def _unpack(layout: _Layout, data: bytes) -> dict[str, float]:
-    """The signals of ``data`` as cantools decodes them (without value tables)."""
-    word = int.from_bytes(data, 'little')
-    return {name: float(conv.raw_to_scaled((word >> start) & mask, False))
-            for name, start, mask, conv, _, _ in layout.signals}
+def _codecs() -> dict[str, FastCodec]:
+    """The fast codec of every message of ``pam.dbc`` (:mod:`cgail_node_utils.can_codec`:
+    cantools' bytes and values by shifts; the control loop sends several frames per tick)."""
+    return {m.name: FastCodec(m) for m in load_database().messages}
 
 
 def _encode(name: str, signals: dict[str, float | int]) -> can.Message:
-    layout = _layouts().get(name)
-    payload = _pack(layout, {**signals, 'CRC': 0}) if layout is not None else None
-    if layout is not None and payload is not None:
-        frame_id = layout.frame_id
-    else:
-        db = load_database()
-        frame_id = db.get_message_by_name(name).frame_id
+    codec = _codecs()[name]
+    frame_id = codec.frame_id
+    payload = codec.pack({**signals, 'CRC': 0})
+    if payload is None:  # cantools decides (and raises)
         try:
-            payload = db.encode_message(name, {**signals, 'CRC': 0})
+            payload = load_database().encode_message(name, {**signals, 'CRC': 0})
         except cantools.database.EncodeError as err:
             raise ProtocolError(f'cannot encode {name}: {err}') from err
     data = bytearray(payload)
@@ -294,9 +240,9 @@ def decode(msg: can.Message) -> Decoded | None:
     if data[-1] != crc:
         raise ProtocolError(
             f'expected CRC 0x{crc:02X} for {msg_def.name}, found 0x{data[-1]:02X}')
-    layout = _layouts().get(msg_def.name)
-    if layout is not None:
-        sig = _unpack(layout, data)
+    codec = _codecs()[msg_def.name]
+    if codec.supported:
+        sig = codec.unpack(data)
     else:
         try:
             raw = db.decode_message(aid, data, decode_choices=False)

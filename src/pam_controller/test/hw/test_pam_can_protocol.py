@@ -148,19 +148,20 @@ def test_out_of_range_enums_rejected_even_with_valid_crc():
 
 
 def test_fast_codec_equals_cantools():
-    """The control loop's frames take the fast path, and it gives cantools' bytes and values
-    (the two with value tables, STATUS and HEARTBEAT, go through cantools)."""
+    """Every message takes the fast path (cgail_node_utils.can_codec), and it gives cantools'
+    bytes and values, value tables included."""
     db = proto.load_database()
-    layouts = proto._layouts()
-    assert set(layouts) == {'PAM_SETPOINTS', 'PAM_MEASURED'}
+    codecs = proto._codecs()
+    assert set(codecs) == {m.name for m in db.messages}
+    assert all(c.supported for c in codecs.values())
     rng = np.random.default_rng(3)
-    for name, layout in layouts.items():
-        msg_def = db.get_message_by_name(name)
+    for msg_def in db.messages:
+        codec = codecs[msg_def.name]
         lows = np.array([s.minimum for s in msg_def.signals])
         highs = np.array([s.maximum for s in msg_def.signals])
+        tol = np.array([abs(s.conversion.scale) * 1e-6 for s in msg_def.signals])
         for k in range(3000):
             if k < 4:  # the bounds, and just inside cantools' tolerance
-                tol = np.array([abs(s.conversion.scale) * 1e-6 for s in msg_def.signals])
                 values = [lows, highs, lows - 0.9 * tol, highs + 0.9 * tol][k]
             else:
                 values = rng.uniform(lows, highs)
@@ -168,11 +169,11 @@ def test_fast_codec_equals_cantools():
                                 (round(float(v)) if k % 2 else float(round(float(v)))))
                        for s, v in zip(msg_def.signals, values, strict=True)}
             want = db.encode_message(msg_def.name, signals)
-            assert proto._pack(layout, signals) == want, (msg_def.name, signals)
+            assert codec.pack(signals) == want, (msg_def.name, signals)
             data = bytes(rng.integers(0, 256, size=msg_def.length).astype(np.uint8))
             decoded = db.decode_message(msg_def.frame_id, data, decode_choices=False)
-            assert proto._unpack(layout, data) == {n: float(v) for n, v in decoded.items()}
+            assert codec.unpack(data) == {n: float(v) for n, v in decoded.items()}
         beyond = {s.name: float(s.maximum) for s in msg_def.signals}
         beyond[msg_def.signals[0].name] = float(msg_def.signals[0].maximum) + 1.0
-        assert proto._pack(layout, beyond) is None  # out of range: cantools raises
-        assert proto._pack(layout, {}) is None  # signals missing: cantools raises
+        assert codec.pack(beyond) is None  # out of range: cantools raises
+        assert codec.pack({}) is None  # signals missing: cantools raises
