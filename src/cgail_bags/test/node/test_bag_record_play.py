@@ -22,19 +22,11 @@ from cgail_bags.errors import BagError
 from cgail_bags.play import BagPlayer, build_parser, PlayerConfig
 from cgail_bags.qos import COMMAND, LATCHED, SENSOR
 from cgail_bags.record import BagRecorder, RecorderConfig
+from cgail_node_utils.testing import spin_until
 
 FIXTURE = Path(__file__).resolve().parents[4] / 'bags' / 'fixtures' / 'cgail_trial'
 T0 = 1_700_000_000 * 10**9
 T = TYPESTORE.types
-
-
-def spin_until(executor, predicate: Callable[[], bool], timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.05)
-    return predicate()
 
 
 def header(ns: int, frame: str = 'phantom'):

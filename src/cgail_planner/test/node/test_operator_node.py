@@ -1,8 +1,6 @@
 """operator_node in-process: idle without a path, deadman held while running, released at the
 target with operator/done."""
 
-from collections.abc import Callable
-import time
 
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
@@ -14,17 +12,9 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState, Joy
 from std_msgs.msg import Bool
 
+from cgail_node_utils.testing import spin_until
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.operator_node import OperatorNode
-
-
-def spin_until(executor, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.02)
-    return predicate()
 
 
 def test_operator_drives_with_the_deadman_and_stops_at_the_target(ros) -> None:

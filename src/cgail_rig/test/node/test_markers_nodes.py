@@ -2,9 +2,7 @@
 the expected namespaces and types, frame phantom), latched; a static lumen goes out once, a
 dynamic one moves."""
 
-from collections.abc import Callable
 from pathlib import Path
-import time
 
 from geometry_msgs.msg import PoseStamped
 import numpy as np
@@ -15,21 +13,13 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from visualization_msgs.msg import Marker, MarkerArray
 
+from cgail_node_utils.testing import spin_until
 from cgail_planner.nodes import conversions as conv
 from cgail_planner.nodes.planner_node import PlannerNode
 from cgail_rig.nodes.phantom_node import PhantomNode
 
 FIXTURES = Path(__file__).resolve().parents[3] / 'cgail_planner' / 'test' / 'fixtures'
 NO_DEVICES = dict(simulate_aurora=False, simulate_regulators=False, simulate_driver=False)
-
-
-def spin_until(executor, predicate: Callable[[], bool], timeout: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.02)
-    return predicate()
 
 
 def kinds(msg: MarkerArray) -> list[tuple[str, int, int]]:

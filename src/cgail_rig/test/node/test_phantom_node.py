@@ -2,7 +2,6 @@
 (bend*dl/L), no controller estimate read, devices hosted, /clock in simulated time, bad states
 ignored."""
 
-from collections.abc import Callable
 import math
 import time
 
@@ -16,17 +15,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, Header, String
 
+from cgail_node_utils.testing import spin_until
 from cgail_planner.nodes import conversions as conv
 from cgail_rig.nodes.phantom_node import PhantomNode
-
-
-def spin_until(executor, predicate: Callable[[], bool], timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        executor.spin_once(timeout_sec=0.02)
-    return predicate()
 
 
 def joint(names, positions) -> JointState:
