@@ -113,31 +113,32 @@ def _align(out: bytearray, pos: int, alignment: int) -> int:
     return pos + gap
 
 
+def _length(out: bytearray, pos: int, u32: Any) -> tuple[int, int]:
+    """The uint32 length (of a string or sequence) at the next 4-byte boundary, and the position
+    after it."""
+    pos = _align(out, pos, 4)
+    return u32(out, pos)[0], pos + 4
+
+
 def _walk(out: bytearray, pos: int, ops: tuple[tuple[Any, ...], ...], u32: Any) -> int:
     for op in ops:
         kind = op[0]
         if kind == SKIP:
             pos = _align(out, pos, op[1]) + op[2]
         elif kind == STRING:
-            pos = _align(out, pos, 4)
-            pos += 4 + u32(out, pos)[0]
+            size, pos = _length(out, pos, u32)
+            pos += size
         elif kind == SEQ_PRIM:
-            pos = _align(out, pos, 4)
-            count = u32(out, pos)[0]
-            pos += 4
+            count, pos = _length(out, pos, u32)
             if count:
                 pos = _align(out, pos, op[1]) + count * op[1]
         elif kind == SEQ_STRING:
-            pos = _align(out, pos, 4)
-            count = u32(out, pos)[0]
-            pos += 4
+            count, pos = _length(out, pos, u32)
             for _ in range(count):
-                pos = _align(out, pos, 4)
-                pos += 4 + u32(out, pos)[0]
+                size, pos = _length(out, pos, u32)
+                pos += size
         elif kind == SEQ_PLAN:
-            pos = _align(out, pos, 4)
-            count = u32(out, pos)[0]
-            pos += 4
+            count, pos = _length(out, pos, u32)
             for _ in range(count):
                 pos = _walk(out, pos, op[1], u32)
         else:  # REPEAT

@@ -30,7 +30,6 @@ from geometry_msgs.msg import PointStamped, PoseStamped, PoseWithCovarianceStamp
 from nav_msgs.msg import Path
 from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
@@ -44,6 +43,7 @@ from cgail_gui.core.foxglove_view import (
     STREAMS,
 )
 from cgail_gui.hw.foxglove_server import FoxgloveServer, FoxgloveServerError
+from cgail_gui.nodes.server_node import ServerNode
 from cgail_node_utils.entry_point import run_node
 from cgail_node_utils.parameters import declare
 from cgail_planner.nodes import conversions as conv
@@ -71,7 +71,7 @@ QOS = {'sensor': conv.SENSOR_QOS, 'command': conv.COMMAND_QOS, 'latched': conv.L
 RESEND_PERIOD_S = 0.1
 
 
-class FoxgloveBridge(Node):
+class FoxgloveBridge(ServerNode):
     """Thin wrapper: raw subscriptions in, :class:`FoxgloveServer` channels out."""
 
     def __init__(self, **kwargs: Any) -> None:
@@ -124,13 +124,6 @@ class FoxgloveBridge(Node):
         for topic in sorted(topics & set(self.kept)):
             for data in self.kept[topic]:
                 self.server.log(topic, data, now)
-
-    def destroy_node(self) -> None:
-        """Stop the Foxglove server (its threads and connections), then the node."""
-        server = getattr(self, 'server', None)
-        if server is not None:
-            server.close()
-        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> None:

@@ -25,11 +25,11 @@ from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path
 import numpy as np
 from rclpy.clock import Clock, ClockType
-from rclpy.node import Node
 from visualization_msgs.msg import MarkerArray
 
 from cgail_gui.core import igtl
 from cgail_gui.hw import igtl_server as srv
+from cgail_gui.nodes.server_node import ServerNode
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import LUMEN_NS
@@ -37,7 +37,7 @@ from cgail_planner.nodes import conversions as conv
 from cgail_sim.mesh_io import AnatomyError
 
 
-class IgtlBridge(Node):
+class IgtlBridge(ServerNode):
     """Thin wrapper: messages in, :mod:`cgail_gui.core.igtl` arrays, pyigtl messages out."""
 
     def __init__(self, **kwargs) -> None:
@@ -176,13 +176,6 @@ class IgtlBridge(Node):
             stamp, matrix = self.tip
             self.server.send(srv.transform_message(igtl.TIP_DEVICE, matrix, stamp))
         self._dirty.clear()
-
-    def destroy_node(self) -> None:
-        """Stop the OpenIGTLink server (its thread and sockets), then the node."""
-        server = getattr(self, 'server', None)
-        if server is not None:
-            server.close()
-        super().destroy_node()
 
 
 def main(args: list[str] | None = None) -> None:
