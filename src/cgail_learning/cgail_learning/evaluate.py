@@ -239,7 +239,7 @@ class RrtFollower(CenterlineFollower):
             RrtConfig(time_limit_s=RRT_TIME_LIMIT_S)
         self._settings = PlannerConfig(planner_type='rrt', catheter=eng.config.catheter,
                                        rrt=self.rrt_config)
-        self._model = model_world_from_sim(eng.world)
+        self._model = model_world_from_sim(eng.world, exit_rule=eng.config.exit_rule)
         self.path: np.ndarray | None = None
         self.plan_ms: float | None = None
         self.error = ''

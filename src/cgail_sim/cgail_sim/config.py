@@ -31,7 +31,7 @@ from cgail_sim.anatomy_spec import AnatomySpec, check_anatomy_spec
 from cgail_sim.ftl_model import CatheterConfig, OBS_KINDS, ObservationConfig
 from cgail_sim.heartbeat import HeartbeatConfig, PAPER_CODE_HEARTBEAT
 from cgail_sim.reward import PAPER_CODE_REWARD, RewardConfig
-from cgail_sim.scenarios import TARGET_MODES
+from cgail_sim.scenarios import EXIT_RULES, TARGET_MODES
 
 #: The catheter model's defaults (:mod:`cgail_sim.ftl_model`) the fields below start from.
 _MODEL = CatheterConfig()
@@ -39,8 +39,6 @@ _OBS = ObservationConfig()
 
 #: Simulation modes: ``static`` = rigid wall; ``dynamic`` = PBD wall + heartbeat + moving target.
 MODES = ("static", "dynamic")
-#: Exit rules (:attr:`EnvConfig.exit_rule`).
-EXIT_RULES = ("discs", "box")
 #: The ``paper_code`` step limit, env steps (2,000 s at 0.1 s): the authors' agent has
 #: ``MaxStep: 0``, no limit (``shared/design/AUTHORS_SCENE.md``). Long enough never to bind
 #: on an episode that keeps inserting: 5x their longest recorded episode (18,668 physics steps

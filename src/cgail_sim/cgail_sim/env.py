@@ -45,11 +45,10 @@ from cgail_sim.reward import (
     update_waypoints,
 )
 from cgail_sim.scenarios import (
-    episode_bounds,
-    paper_code_exit_box,
     target_sampler,
     TargetConfig,
     World,
+    world_exits,
 )
 from cgail_sim.wall import DeformableWall, StaticWall, WallError
 from cgail_sim.worlds import load_world
@@ -198,11 +197,8 @@ class NavEngine:
         self.catheter = CatheterBatch(n_envs, cat, capacity=config.max_steps + 8)
         self.radius = cat.radius
         #: the open cuts the tip can leave through (:mod:`cgail_sim.exits`)
-        self.exit_discs = anatomy.exit_discs
-        self.bbox_low, self.bbox_high = episode_bounds(anatomy)
-        if config.exit_rule == "box":  # the authors' exit box only (EnvConfig.exit_rule)
-            self.exit_discs = np.zeros((0, 7))
-            self.bbox_low, self.bbox_high = paper_code_exit_box(sc.waypoints)
+        self.exit_discs, self.bbox_low, self.bbox_high = world_exits(
+            anatomy, sc.waypoints, config.exit_rule)
         #: the episode target's wall vertex, rest offset and branch, per environment
         self._target_vertex = np.zeros(n_envs, dtype=np.int64)
         self._target_offset = np.zeros((n_envs, 3))

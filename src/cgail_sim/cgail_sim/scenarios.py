@@ -395,6 +395,31 @@ def paper_code_exit_box(waypoints: dict[str, FloatArray]) -> tuple[FloatArray, F
     return pts.min(axis=0) - low, pts.max(axis=0) + high
 
 
+#: How a tip leaves the anatomy (:attr:`cgail_sim.config.EnvConfig.exit_rule`): ``discs``,
+#: through the disc of an open cut or out of :func:`episode_bounds`; ``box``, only out of the
+#: authors' exit box (:func:`paper_code_exit_box`, the ``paper_code`` option set).
+EXIT_RULES = ("discs", "box")
+
+
+def world_exits(anatomy: Anatomy, waypoints: dict[str, FloatArray],
+                exit_rule: str = "discs") -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(exit_discs, low, high)`` of an anatomy under ``exit_rule`` (:data:`EXIT_RULES`): the
+    open cuts a tip leaves through (``(D, 7)``, :mod:`cgail_sim.exits`; none under ``box``)
+    and the corners of the region it may visit. The one owner of the exit rule, for the
+    environment and for the planner's rollouts alike.
+
+    Raises:
+        ValueError: an unknown exit rule.
+    """
+    if exit_rule == "discs":
+        low, high = episode_bounds(anatomy)
+        return np.asarray(anatomy.exit_discs, dtype=np.float64), low, high
+    if exit_rule == "box":
+        low, high = paper_code_exit_box(waypoints)
+        return np.zeros((0, 7)), low, high
+    raise ValueError(f"exit_rule must be one of {EXIT_RULES}, found {exit_rule!r}")
+
+
 class TargetSampler:
     """The one sampler of targets of an anatomy (module docstring): uniform in the
     ``target_radius`` sphere centred at the midpoint of the two coronary ostia, kept when inside

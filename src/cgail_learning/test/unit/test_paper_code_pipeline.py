@@ -8,6 +8,7 @@ and built into a trainer (no training: their buffers are 10,240 steps).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 import sys
@@ -118,6 +119,39 @@ def test_the_planner_runs_the_policy_with_its_observation(policy_path) -> None:
     (ka, sa, pa), (kb, sb, pb) = ends
     assert (ka, sa) == (kb, sb) and sa > 0
     np.testing.assert_allclose(pa, pb, rtol=0, atol=1e-9)
+
+
+def test_the_planner_rolls_out_with_the_training_envs_exit_rule(policy_path) -> None:
+    """A paper_code policy's rollouts end where its training episodes did: only out of the
+    authors' exit box, through no open-end disc (AUTHORS_SCENE.md, "Exit"); a policy of our
+    option set keeps the discs and the grown bounding box. The RRT baseline that evaluate runs
+    in an env plans with that env's rule."""
+    from cgail_planner.core.planner import exit_rule_of, Planner, PlannerConfig
+    from cgail_sim.config import EnvConfig
+    from cgail_sim.env import CatheterNavEnv
+    from cgail_sim.scenarios import episode_bounds, paper_code_exit_box
+    from cgail_sim.wall import StaticWall
+    from cgail_sim.worlds import load_world
+
+    policy = OnnxPolicy(policy_path)
+    assert exit_rule_of(policy.contract) == 'box'
+    world = load_world(policy.contract.anatomy)
+    planner = Planner.from_contract(policy.contract, world, StaticWall(world.anatomy), policy,
+                                    PlannerConfig(max_rollout_steps=150))
+    low, high = paper_code_exit_box(world.scenarios.waypoints)
+    assert planner.world.exit_discs.shape == (0, 7)
+    np.testing.assert_array_equal(planner.world.bbox_low, low)
+    np.testing.assert_array_equal(planner.world.bbox_high, high)
+    ours = dataclasses.replace(policy.contract, env_options='ours')
+    assert exit_rule_of(ours) == 'discs'
+    model = Planner.from_contract(ours, world, StaticWall(world.anatomy), policy).world
+    np.testing.assert_array_equal(model.exit_discs, world.anatomy.exit_discs)
+    np.testing.assert_array_equal(model.bbox_low, episode_bounds(world.anatomy)[0])
+    for options, discs in (('paper_code', 0), ('ours', world.anatomy.exit_discs.shape[0])):
+        env = CatheterNavEnv(EnvConfig.from_options(options))
+        rrt = evaluate.RrtFollower(env)
+        assert rrt._model.exit_discs.shape[0] == discs
+        np.testing.assert_array_equal(rrt._model.bbox_high, env.engine.bbox_high)
 
 
 @pytest.mark.parametrize(('name', 'layers', 'units', 'steps', 'signals', 'bc'), [

@@ -15,10 +15,11 @@ After every step the rollout ends as an
 episode does, by the same priority: a **collision** (the tip sphere penetrates the wall:
 ``wall.tip_contact(...).penetration > 0``; the frozen model wall exerts no force), an **exit**
 (the step crossed the disc of an open end, :mod:`cgail_sim.exits`, or the tip left the
-anatomy's bounding box grown by 10 mm), or **success** (the tip within ``goal_tolerance`` of the
-goal, which is then appended as the last point); else it fails after ``max_rollout_steps``. So a
-policy rolled out from an episode's start pose gives the episode's tip path and ending
-(``test_model_parity.py``).
+anatomy's bounding box grown by 10 mm; for a ``paper_code`` policy only leaving the authors'
+exit box, its training env's rule: :func:`cgail_sim.scenarios.world_exits`), or **success**
+(the tip within ``goal_tolerance`` of the goal, which is then appended as the last point);
+else it fails after ``max_rollout_steps``. So a policy rolled out from an episode's start
+pose gives the episode's tip path and ending (``test_model_parity.py``).
 In dynamic mode the wall is the deformable wall's current (deformed) shape, frozen for the
 rollout.
 
@@ -237,19 +238,23 @@ def _sim_introducer(world: Any) -> Callable[[FloatArray, FloatArray], FloatArray
     return introducer
 
 
-def model_world_from_sim(world: Any, observation: ObservationSpec | None = None) -> ModelWorld:
+def model_world_from_sim(world: Any, observation: ObservationSpec | None = None,
+                         exit_rule: str = "discs") -> ModelWorld:
     """Build a :class:`ModelWorld` from a :class:`cgail_sim.scenarios.World`.
 
     Args:
         world: the simulator's world (anatomy, centerlines, scenarios).
         observation: a policy's observation spec (its contract's): its ``origin`` and ``d_max``
             replace the world's own.
+        exit_rule: how a rollout leaves the anatomy (:data:`cgail_sim.scenarios.EXIT_RULES`,
+            :func:`cgail_sim.scenarios.world_exits`), the rule the policy was trained with:
+            ``box`` for a ``paper_code`` policy (:func:`exit_rule_of`).
 
     Raises:
         ContractError: the spec's origin is more than :data:`ORIGIN_TOLERANCE` from this
             anatomy's bounding-box centre (the policy was trained on another anatomy).
     """
-    from cgail_sim.scenarios import episode_bounds
+    from cgail_sim.scenarios import world_exits
 
     anatomy = world.anatomy
     sc = world.scenarios
@@ -263,7 +268,7 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
                 f"{origin.round(4).tolist()} m, found the policy's "
                 f"{observation.origin.round(4).tolist()} m ({moved * 1e3:.1f} mm apart)")
         origin, d_max = observation.origin.copy(), observation.d_max
-    low, high = episode_bounds(anatomy)
+    discs, low, high = world_exits(anatomy, sc.waypoints, exit_rule)
     return ModelWorld(
         origin=origin, d_max=d_max, bbox_low=low, bbox_high=high,
         centerlines={b: np.asarray(c.points, dtype=np.float64)
@@ -272,7 +277,16 @@ def model_world_from_sim(world: Any, observation: ObservationSpec | None = None)
         contains=anatomy.contains,
         exit_point=np.asarray(anatomy.exit_point, dtype=np.float64),
         exit_normal=np.asarray(anatomy.exit_normal, dtype=np.float64),
-        exit_discs=anatomy.exit_discs, introducer=_sim_introducer(world))
+        exit_discs=discs, introducer=_sim_introducer(world))
+
+
+def exit_rule_of(contract: PolicyContract) -> str:
+    """The exit rule a policy was trained with: its env option set's
+    (:data:`cgail_sim.config.OPTION_SETS`; ``box`` for ``paper_code``), ``discs`` for a
+    ``custom`` configuration, which the contract does not describe further."""
+    from cgail_sim.config import OPTION_SETS
+
+    return str(OPTION_SETS.get(contract.env_options, {}).get("exit_rule", "discs"))
 
 
 def _lumen(world: ModelWorld, wall: RayWall) -> Lumen:
@@ -468,7 +482,7 @@ class Planner:
             ContractError: the world is not the contract's anatomy (observation origin).
         """
         config = (settings or PlannerConfig()).with_contract(contract)
-        model = model_world_from_sim(world, contract.observation)
+        model = model_world_from_sim(world, contract.observation, exit_rule_of(contract))
         return cls(config, model, wall, policy, contract.observation.ray_directions,
                    obs_dim=contract.observation.dim,
                    probe_offsets=contract.observation.probe_offsets)
