@@ -216,6 +216,25 @@ class OperatorConfig:
                            blend(self.novice_stick_damping, self.stick_damping))
 
 
+def arrival(distance: float, min_distance: float, stop_distance: float, epsilon: float,
+            overshoot: float) -> str | None:
+    """Why a run towards the target ends now (the protocol, paper section IV-B), or None.
+
+    Args:
+        distance: the tip's distance to the target now, m.
+        min_distance: the closest it has been (``distance`` included), m.
+        stop_distance: at the target within this, m.
+        epsilon: the success radius, m.
+        overshoot: within ``epsilon``, the closest approach has passed when the distance grew
+            by this much, m.
+    """
+    if distance <= stop_distance:
+        return f"at the target ({distance * 1e3:.1f} mm)"
+    if min_distance <= epsilon and distance > min_distance + overshoot:
+        return f"closest approach passed ({min_distance * 1e3:.1f} mm)"
+    return None
+
+
 def aimed_bend(follower: PathFollower, position: NDArray[np.float64],
                rotation: NDArray[np.float64], waypoint: NDArray[np.float64],
                shown_bend: tuple[float, float], look_ahead: float,
@@ -340,10 +359,10 @@ class ScriptedOperator:
         else:
             d = seen.distance
             self.min_distance = min(self.min_distance, d)
-            if d <= cfg.stop_distance:
-                return self._stop(f"at the target ({d * 1e3:.1f} mm)")
-            if self.min_distance <= cfg.epsilon and d > self.min_distance + cfg.overshoot:
-                return self._stop(f"closest approach passed ({self.min_distance * 1e3:.1f} mm)")
+            arrived = arrival(d, self.min_distance, cfg.stop_distance, cfg.epsilon,
+                              cfg.overshoot)
+            if arrived is not None:
+                return self._stop(arrived)
             speed = cfg.max_insertion_fraction * max(math.cos(seen.heading_error), 0.3)
             if d < cfg.slow_down_distance:
                 frac = d / cfg.slow_down_distance
