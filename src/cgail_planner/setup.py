@@ -23,8 +23,8 @@ setup(
     maintainer='C-GAIL catheter maintainers',
     maintainer_email='maintainers@cgail-catheter.dev',
     description=('C-GAIL planner: the ONNX policy, the planner core (paths, guidance, markers, '
-                 'metrics) and its ROS 2 nodes (planner_node, operator_node); onnxruntime and '
-                 'numba, no torch. What a rig PC installs.'),
+                 'metrics) and its ROS 2 nodes (planner_node, operator_node, autonomy_node); '
+                 'onnxruntime and numba, no torch. What a rig PC installs.'),
     license='Apache-2.0',
     tests_require=['pytest'],
     extras_require={'test': ['pytest']},
@@ -33,6 +33,7 @@ setup(
             # Nodes: ROS executables (ros2 run cgail_planner <node>; scripts/ros2run here).
             'planner_node = cgail_planner.nodes.planner_node:main',
             'operator_node = cgail_planner.nodes.operator_node:main',
+            'autonomy_node = cgail_planner.nodes.autonomy_node:main',
         ],
     },
 )

@@ -24,7 +24,7 @@ from rclpy.qos import (
     QoSProfile,
     ReliabilityPolicy,
 )
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import JointState, Joy
 from std_msgs.msg import ColorRGBA, Float64MultiArray, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -233,3 +233,31 @@ def diagnostics(stamp: Time, name: str, hardware_id: str, level: bytes, message:
     status = DiagnosticStatus(level=level, name=name, message=message, hardware_id=hardware_id,
                               values=[KeyValue(key=k, value=str(v)) for k, v in values])
     return DiagnosticArray(header=Header(stamp=stamp), status=[status])
+
+
+def insertion_msg(stamp: Time, velocity: float) -> JointState:
+    """An insertion velocity command (``insertion``, velocity only; m/s), as teleop sends it."""
+    return JointState(header=Header(stamp=stamp), name=['insertion'],
+                      velocity=[float(velocity)])
+
+
+def joy_sticks(msg: Joy, enable_button: int, axes: Sequence[int]
+               ) -> tuple[bool, tuple[float, float, float]]:
+    """The deadman and the ``(insertion, bend_alpha, bend_gamma)`` deflections of a Joy, with
+    teleop's layout (``axes``: the three axis indices).
+
+    Raises:
+        InvalidInputError: too few buttons or axes, or an axis not finite in [-1, 1].
+    """
+    if len(msg.buttons) <= enable_button:
+        raise InvalidInputError(f'Joy: expected at least {enable_button + 1} buttons, found '
+                                f'{len(msg.buttons)}')
+    if len(msg.axes) <= max(axes):
+        raise InvalidInputError(f'Joy: expected at least {max(axes) + 1} axes, found '
+                                f'{len(msg.axes)}')
+    values = [float(msg.axes[i]) for i in axes]
+    for i, v in zip(axes, values, strict=True):
+        if not (np.isfinite(v) and -1.0 <= v <= 1.0):
+            raise InvalidInputError(f'Joy axis {i}: expected a finite value in [-1, 1], '
+                                    f'found {v!r}')
+    return bool(msg.buttons[enable_button]), (values[0], values[1], values[2])

@@ -1,5 +1,6 @@
 """The YAML parameter files of the planner's nodes hold exactly the declared defaults
-(``config/planner.yaml``, ``config/operator.yaml``; the phantom's file is cgail_rig's test)."""
+(``config/planner.yaml``, ``config/operator.yaml``,
+``config/autonomy.yaml``; the phantom's file is cgail_rig's test)."""
 
 import importlib
 from pathlib import Path
@@ -13,6 +14,7 @@ CONFIG = Path(__file__).resolve().parents[2] / 'config'
 @pytest.mark.parametrize(('cls_path', 'yaml_name'), [
     ('cgail_planner.nodes.planner_node:PlannerNode', 'planner.yaml'),
     ('cgail_planner.nodes.operator_node:OperatorNode', 'operator.yaml'),
+    ('cgail_planner.nodes.autonomy_node:AutonomyNode', 'autonomy.yaml'),
 ])
 def test_yaml_defaults_equal_the_declared_defaults(ros, cls_path, yaml_name) -> None:
     module, name = cls_path.split(':')
