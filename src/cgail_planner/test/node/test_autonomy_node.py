@@ -124,7 +124,7 @@ def test_bad_parameters_raise_at_construction(ros) -> None:
     with pytest.raises(ValueError, match=r"^controller: expected one of \('path', 'policy'\), "
                                          r"found 'learned'"):
         AutonomyNode(parameter_overrides=[Parameter('controller', value='learned')])
-    with pytest.raises(ValueError, match='^axis_insertion, axis_bend_alpha, axis_bend_gamma'):
+    with pytest.raises(ValueError, match=r'^axis_insertion, axis_bend_alpha, axis_bend_gamma'):
         AutonomyNode(parameter_overrides=[Parameter('axis_bend_alpha', value=1)])
     from cgail_planner.core.errors import PolicyLoadError
 
