@@ -376,3 +376,20 @@ def test_bad_limits_fail_in_one_line_naming_the_field(name: str, value: object,
     with pytest.raises(ValueError, match=f'^{name}: expected {expected}, found ') as info:
         replace(SafetyConfig(), **{name: value})
     assert '\n' not in str(info.value)
+
+
+def test_left_lumen_reads_the_registered_anatomys_wall() -> None:
+    from cgail_sim.wall import StaticWall
+    from cgail_sim.worlds import load_world
+
+    world = load_world('default')
+    start = world.scenarios.starts[0]
+    inside = np.asarray(start.position, dtype=np.float64)
+    outside = inside + 0.04 * np.asarray(start.rotation)[:, 0]  # 40 mm sideways
+    assert world.anatomy.contains(np.vstack([inside, outside])).tolist() == [True, False]
+    sup = Supervisor(SafetyConfig(), StaticWall(world.anatomy))
+    sup.on_pose(0.0, inside)
+    assert 'left_lumen' not in [r for r, _ in sup.holding(0.0)]
+    sup.on_pose(1.0, outside)
+    held = dict(sup.holding(1.0))
+    assert 'beyond the wall (limit 2.0 mm)' in held['left_lumen']
