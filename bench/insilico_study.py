@@ -70,7 +70,7 @@ import argparse
 from collections.abc import Callable, Iterable, Iterator, Sequence
 import contextlib
 import csv
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import datetime
 from fractions import Fraction
 from functools import partial
@@ -110,6 +110,12 @@ PAPER_SECOND_ANATOMY = 79
 AUTHORS_STEPS: dict[str, int] = {'cgail': 8_000_000, 'gail': 5_000_000, 'ppo': 8_000_000,
                                  'mu0': 8_000_000, 'lambda0': 8_000_000, 'nu0': 8_000_000}
 AUTHORS_STEPS_INFERRED = frozenset({'mu0', 'lambda0', 'nu0'})
+#: Where an authors' run stopped short of its configured budget: their GAIL ``chi_soft_gail_3``
+#: was configured for 5M steps and stopped at 1,275,443 (``training_status.json`` of their
+#: repository; ``docs/fidelity.md``). ``--authors-budgets`` trains both, each from scratch.
+AUTHORS_STOPPED: dict[str, int] = {'gail': 1_275_443}
+#: ``--steps`` when neither it nor ``--authors-budgets`` is given.
+DEFAULT_STEPS = (500_000, 2_000_000)
 LABELS = {'cgail': 'C-GAIL', 'gail': 'GAIL', 'mu0': 'mu = 0 (no BC)',
           'lambda0': 'lambda = 0 (no GAIL)', 'nu0': 'nu = 0 (no curiosity)', 'ppo': 'PPO only'}
 #: Two success rates closer than this are a tie in the ordering (with 100 trials per seed the
@@ -149,6 +155,37 @@ def check_budgets(steps: Sequence[int]) -> tuple[int, ...]:
         raise StudyError(f'--steps: expected strictly increasing budgets (a larger budget '
                          f'continues the smaller one), found {list(steps)}')
     return tuple(steps)
+
+
+def authors_budgets(kind: str) -> tuple[int, ...]:
+    """The authors' budgets of a method kind, increasing: where their run stopped when it
+    stopped short (:data:`AUTHORS_STOPPED`), and its configured budget (:data:`AUTHORS_STEPS`);
+    empty for a method they did not run."""
+    if kind not in AUTHORS_STEPS:
+        return ()
+    return tuple(sorted({AUTHORS_STEPS[kind], *([AUTHORS_STOPPED[kind]]
+                                                 if kind in AUTHORS_STOPPED else [])}))
+
+
+def method_budgets(option_sets: dict[str, str], max_steps: dict[str, int],
+                   scale: float = 1.0) -> dict[str, tuple[int, ...]]:
+    """``--authors-budgets``: each preset's budgets. A ``paper_code`` preset of a method the
+    authors ran gets their budgets (:func:`authors_budgets`); any other preset (ours) its own
+    ``max_steps``. ``scale`` multiplies every budget (a smoke run of the same shape), rounded,
+    at least 1.
+
+    Raises:
+        StudyError: ``scale`` is not in (0, 1].
+    """
+    if not 0 < scale <= 1:
+        raise StudyError(f'--budget-scale: expected a factor in (0, 1], found {scale}')
+    out = {}
+    for preset, options in option_sets.items():
+        kind = method_kind(preset)
+        full = authors_budgets(kind) if options == 'paper_code' and kind in AUTHORS_STEPS \
+            else (max_steps[preset],)
+        out[preset] = tuple(sorted({max(1, round(n * scale)) for n in full}))
+    return out
 
 
 #: The anatomy a study runs in unless told otherwise; its runs lie directly under ``--out``.
@@ -200,25 +237,39 @@ class Layout:
     """Where everything of a study lives under ``root``: the default anatomy's runs directly
     there (as before anatomies were an axis, so older studies resume), every other anatomy's
     in a layout of its own under ``root/anatomies/<name>/`` (:meth:`of_anatomy`); the logs and
-    the report of all of them under ``root``."""
+    the report of all of them under ``root``.
+
+    With ``fresh`` (``--fresh-budgets``) every budget is a run of its own:
+    ``<preset>/seed<S>/budget_<N>/static/`` beside that budget's snapshot, policies, dynamic
+    run and evaluations; without, one static run ``<preset>/seed<S>/static/`` is continued
+    budget after budget and each budget's results lie in ``<preset>/seed<S>/steps_<N>/``."""
 
     root: Path
+    fresh: bool = False
 
     def of_anatomy(self, name: str) -> Layout:
         """The layout of anatomy ``name``'s runs, evaluations and baselines."""
-        return self if name == DEFAULT_ANATOMY else Layout(self.root / 'anatomies' / name)
+        return self if name == DEFAULT_ANATOMY else Layout(self.root / 'anatomies' / name,
+                                                           self.fresh)
 
     def run_root(self, preset: str, seed: int) -> Path:
-        """Folder of one training run (static run plus its budgets)."""
+        """Folder of one preset and seed (its static run or runs plus their budgets)."""
         return self.root / preset / f'seed{seed}'
 
-    def static_run(self, preset: str, seed: int) -> Path:
-        """The static training run, continued budget after budget."""
-        return self.run_root(preset, seed) / 'static'
+    def static_run(self, preset: str, seed: int, steps: int | None = None) -> Path:
+        """The static training run of budget ``steps``: the budget's own run when ``fresh``
+        (``steps`` required), else the one run continued budget after budget."""
+        if not self.fresh:
+            return self.run_root(preset, seed) / 'static'
+        if steps is None:
+            raise ValueError('a fresh-budget layout has one static run per budget')
+        return self.budget(preset, seed, steps) / 'static'
 
     def budget(self, preset: str, seed: int, steps: int) -> Path:
-        """Everything of one budget: snapshot, policies, dynamic run, evaluations."""
-        return self.run_root(preset, seed) / f'steps_{steps}'
+        """Everything of one budget: snapshot, policies, dynamic run, evaluations (and, when
+        ``fresh``, its static run)."""
+        return self.run_root(preset, seed) / (f'budget_{steps}' if self.fresh
+                                              else f'steps_{steps}')
 
     def snapshot(self, preset: str, seed: int, steps: int) -> Path:
         """The marker of a budget's snapshot (written last)."""
@@ -407,6 +458,82 @@ def percent(rate: Fraction) -> str:
     return f'{int(rate * 100 + Fraction(1, 2))}%'
 
 
+#: The two-sided normal quantile of a 95% interval (Wilson's z).
+Z95 = 1.959963984540054
+
+
+def t_interval(values: Sequence[float], confidence: float = 0.95
+               ) -> tuple[float, float] | None:
+    """Student's t interval of the mean of ``values`` (mean +- t(n-1) s / sqrt(n)), clipped to
+    [0, 1]; None for fewer than two values (no spread to estimate)."""
+    from scipy.stats import t
+
+    n = len(values)
+    if n < 2:
+        return None
+    mean = sum(values) / n
+    sd = (sum((v - mean) ** 2 for v in values) / (n - 1)) ** 0.5
+    half = float(t.ppf(0.5 + confidence / 2, n - 1)) * sd / n ** 0.5
+    return max(0.0, mean - half), min(1.0, mean + half)
+
+
+def wilson_interval(o: Outcome, z: float = Z95) -> tuple[float, float]:
+    """Wilson's score interval of a success rate (95% by default): within [0, 1], and not
+    empty at 0 or all successes."""
+    n, p = o.trials, o.successes / o.trials
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * (p * (1 - p) / n + z * z / (4 * n * n)) ** 0.5
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def span(interval: tuple[float, float] | None) -> str:
+    """``61-100%`` (whole percent) or ``-``."""
+    if interval is None:
+        return '-'
+    lo, hi = interval
+    return f'{100 * lo:.0f}-{100 * hi:.0f}%'
+
+
+@dataclass(frozen=True)
+class SeedStats:
+    """One method's success over its seeds at one budget, mode and target set."""
+
+    outcomes: tuple[Outcome, ...]
+    """Per seed, in seed order."""
+
+    @property
+    def mean(self) -> Fraction:
+        """The mean of the seeds' success rates (the pooled rate when every seed had the
+        same number of trials)."""
+        return sum((o.rate for o in self.outcomes), Fraction(0)) / len(self.outcomes)
+
+    @property
+    def range(self) -> tuple[float, float]:
+        """(lowest, highest) seed's success rate."""
+        rates = [o.rate for o in self.outcomes]
+        return float(min(rates)), float(max(rates))
+
+    @property
+    def t95(self) -> tuple[float, float] | None:
+        """The 95% t interval over the seeds (:func:`t_interval`); None with one seed."""
+        return t_interval([float(o.rate) for o in self.outcomes])
+
+    @property
+    def wilson95(self) -> tuple[float, float]:
+        """The 95% Wilson interval of the seeds' trials pooled (:func:`wilson_interval`)."""
+        pooled = mean_outcome(self.outcomes)
+        assert pooled is not None
+        return wilson_interval(pooled)
+
+
+def seed_stats(outcomes: Iterable[Outcome | None]) -> SeedStats | None:
+    """The :class:`SeedStats` of the seeds' outcomes (None unless every seed has one)."""
+    got = list(outcomes)
+    if not got or any(o is None for o in got):
+        return None
+    return SeedStats(tuple(o for o in got if o is not None))
+
+
 def ordering(values: dict[str, Fraction], tie: Fraction = Fraction(0)) -> list[list[str]]:
     """Methods from best to worst, grouped: a method joins the current group when its value is
     within ``tie`` of the group's best; order within a group by value, then by name order."""
@@ -469,10 +596,20 @@ class StudyPlan:
     anatomies: tuple[Anatomy, ...] = ()
     """Every run trains and is evaluated in each of them (empty: the default anatomy with its
     committed demonstrations)."""
+    fresh: bool = False
+    """``--fresh-budgets``: every budget its own run from scratch, its schedules over that
+    budget (else a larger budget continues the smaller one's run)."""
+    method_budgets: dict[str, tuple[int, ...]] = field(default_factory=dict)
+    """preset -> its own budgets (``--authors-budgets``); a preset not in it has ``budgets``,
+    which then holds every preset's budgets."""
 
     def __post_init__(self) -> None:
         if not self.anatomies:
             object.__setattr__(self, 'anatomies', (Anatomy.named(DEFAULT_ANATOMY),))
+
+    def budgets_of(self, preset: str) -> tuple[int, ...]:
+        """The budgets ``preset`` trains to, increasing."""
+        return self.method_budgets.get(preset, self.budgets)
 
     @property
     def target_sets(self) -> tuple[int, int]:
@@ -494,27 +631,33 @@ class StudyResults:
     """(preset, seed, budget, mode, target set) -> outcome."""
     snapshots: dict[tuple[str, int, int], dict[str, Any]] = field(default_factory=dict)
     """(preset, seed, budget) -> snapshot.json (``step``, ``wall_s``, ``policy``...)."""
-    reached: dict[tuple[str, int], int] = field(default_factory=dict)
-    """(preset, seed) -> the static run's last logged step."""
+    reached: dict[tuple[str, int, int], int] = field(default_factory=dict)
+    """(preset, seed, budget) -> the last logged step of the budget's static run (with
+    continued budgets, the one run's, the same for every budget)."""
     baselines: dict[tuple[str, str, int], dict[str, Outcome]] = field(default_factory=dict)
     """(options, mode, target set) -> baseline -> outcome."""
-    curves: dict[tuple[str, int], list[tuple[int, float]]] = field(default_factory=dict)
-    """(preset, seed) -> static eval/success_rate curve."""
+    curves: dict[tuple[str, int, int], list[tuple[int, float]]] = field(default_factory=dict)
+    """(preset, seed, budget) -> the budget's static run's eval/success_rate curve."""
     dynamic_curves: dict[tuple[str, int, int], list[tuple[int, float]]] = field(
         default_factory=dict)
     """(preset, seed, budget) -> dynamic re-training eval/success_rate curve."""
 
 
+def plan_layout(layout: Layout, plan: StudyPlan) -> Layout:
+    """``layout`` with the plan's kind of budgets (fresh runs or one continued run)."""
+    return layout if layout.fresh == plan.fresh else replace(layout, fresh=plan.fresh)
+
+
 def collect(layout: Layout, plan: StudyPlan, anatomy: str = DEFAULT_ANATOMY) -> StudyResults:
     """Read every result of ``plan`` in ``anatomy`` that exists under ``layout``."""
     res = StudyResults(plan, anatomy)
-    layout = layout.of_anatomy(anatomy)
+    layout = plan_layout(layout, plan).of_anatomy(anatomy)
     for m in plan.methods:
         for s in plan.seeds:
-            sc = read_scalars(layout.static_run(m, s) / 'scalars.csv')
-            res.reached[(m, s)] = last_step(sc)
-            res.curves[(m, s)] = sc.get('eval/success_rate', [])
-            for n in plan.budgets:
+            for n in plan.budgets_of(m):
+                sc = read_scalars(layout.static_run(m, s, n) / 'scalars.csv')
+                res.reached[(m, s, n)] = last_step(sc)
+                res.curves[(m, s, n)] = sc.get('eval/success_rate', [])
                 snap = layout.snapshot(m, s, n)
                 if snap.is_file():
                     res.snapshots[(m, s, n)] = json.loads(snap.read_text())
@@ -535,6 +678,18 @@ def collect(layout: Layout, plan: StudyPlan, anatomy: str = DEFAULT_ANATOMY) -> 
     return res
 
 
+def authors_cell(preset: str) -> str:
+    """The authors' budget of the preset's method: ``8,000,000``, ``8,000,000*`` (their C-GAIL
+    run's, for an ablation), ``5,000,000; stopped at 1,275,443`` or ``-``."""
+    kind = method_kind(preset)
+    theirs = AUTHORS_STEPS.get(kind)
+    if theirs is None:
+        return '-'
+    stop = AUTHORS_STOPPED.get(kind)
+    return (f"{theirs:,}{'*' if kind in AUTHORS_STEPS_INFERRED else ''}"
+            + (f'; stopped at {stop:,}' if stop else ''))
+
+
 def steps_cell(res: StudyResults, preset: str, budget: int) -> str:
     """The steps used for ``budget`` (per seed when they differ; a dagger where not reached)
     and the authors' budget."""
@@ -544,24 +699,29 @@ def steps_cell(res: StudyResults, preset: str, budget: int) -> str:
         if snap is not None:
             parts.append(f"{int(snap['step']):,}")
         else:
-            parts.append(f'{res.reached.get((preset, s), 0):,} of {budget:,} †')
+            parts.append(f'{res.reached.get((preset, s, budget), 0):,} of {budget:,} †')
     used = parts[0] if len(set(parts)) == 1 else ', '.join(
         f'seed {s}: {p}' for s, p in zip(res.plan.seeds, parts, strict=True))
-    kind = method_kind(preset)
-    theirs = AUTHORS_STEPS.get(kind)
-    if theirs is None:
-        return f'{used} (authors: -)'
-    return f"{used} (authors: {theirs:,}{'*' if kind in AUTHORS_STEPS_INFERRED else ''})"
+    return f'{used} (authors: {authors_cell(preset)})'
+
+
+def seed_outcomes(res: StudyResults, preset: str, budget: int, mode: str, targets: int
+                  ) -> list[Outcome | None]:
+    """The outcome of every seed (None where it is not evaluated yet)."""
+    return [res.outcomes.get((preset, s, budget, mode, targets)) for s in res.plan.seeds]
 
 
 def success_cell(res: StudyResults, preset: str, budget: int, mode: str, targets: int) -> str:
-    """``100%, 93% (mean **97%**)``: per seed, then pooled; ``-`` where missing."""
-    per = [res.outcomes.get((preset, s, budget, mode, targets)) for s in res.plan.seeds]
+    """``100%, 93%, 97% (mean **97%**, 95% CI 88-100%)``: per seed, then the mean over the
+    seeds and its t interval (:attr:`SeedStats.t95`); ``-`` where missing."""
+    per = seed_outcomes(res, preset, budget, mode, targets)
     seeds = ', '.join(percent(o.rate) if o else '-' for o in per)
-    pooled = mean_outcome(per)
+    st = seed_stats(per)
     if len(per) == 1:
-        return f'**{seeds}**' if pooled else seeds
-    return f'{seeds} (mean **{percent(pooled.rate)}**)' if pooled else f'{seeds} (mean -)'
+        return f'**{seeds}**' if st else seeds
+    if st is None:
+        return f'{seeds} (mean -)'
+    return f'{seeds} (mean **{percent(st.mean)}**, 95% CI {span(st.t95)})'
 
 
 def paper_cell(preset: str, mode: str) -> str:
@@ -570,10 +730,16 @@ def paper_cell(preset: str, mode: str) -> str:
     return '-' if value is None else f'{value}%'
 
 
+def methods_at(plan: StudyPlan, options: str, budget: int | None = None) -> list[str]:
+    """The presets of option set ``options`` (that train to ``budget``, if given)."""
+    return [m for m in plan.methods if plan.option_sets[m] == options
+            and (budget is None or budget in plan.budgets_of(m))]
+
+
 def budget_table(results: Sequence[StudyResults], options: str, budget: int) -> list[str]:
     """The side-by-side table of one option set and budget (markdown lines): a row per method
-    and anatomy (the anatomy column only when there are several; the paper's figures only in
-    the default anatomy, the paper's)."""
+    that trains to ``budget`` and anatomy (the anatomy column only when there are several; the
+    paper's figures only in the default anatomy, the paper's)."""
     plan = results[0].plan
     seeds = ('seeds ' if len(plan.seeds) > 1 else 'seed ') + ', '.join(map(str, plan.seeds))
     by_anatomy = len(results) > 1
@@ -583,9 +749,7 @@ def budget_table(results: Sequence[StudyResults], options: str, budget: int) -> 
                  f'{mode}: unseen targets ({seeds})']
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
     for res in results:
-        for m in plan.methods:
-            if plan.option_sets[m] != options:
-                continue
+        for m in methods_at(plan, options, budget):
             row = [f'`{res.anatomy}`'] * by_anatomy + [f'{method_label(m)} (`{m}`)',
                                                        steps_cell(res, m, budget)]
             for mode in plan.modes:
@@ -610,33 +774,87 @@ def baseline_line(res: StudyResults, options: str) -> str | None:
             'every budget): ' + '; '.join(parts) + '.')
 
 
-def pooled_rates(res: StudyResults, options: str, budget: int, mode: str, targets: int
-                 ) -> dict[str, Fraction]:
-    """preset -> pooled success rate over the seeds (methods with every seed evaluated)."""
+def targets_name(k: int) -> str:
+    """``training`` or ``unseen (scenario seed K)``."""
+    return 'training' if k == TRAINING_TARGETS else f'unseen (scenario seed {k})'
+
+
+SUMMARY_HEAD = ['anatomy', 'options', 'preset', 'budget', 'mode', 'targets', 'seeds',
+                'per seed', 'mean', 'min-max', 't95', 'wilson95', 'paper']
+
+
+def summary_rows(results: Sequence[StudyResults]) -> list[list[str]]:
+    """Per anatomy, option set, method, budget, mode and target set with every seed
+    evaluated: the success per seed, the mean over the seeds, the range, the 95% t interval
+    over the seeds and the 95% Wilson interval of the pooled trials, and the paper's figure
+    (``summary.csv``, and the report's summary tables). Heading: :data:`SUMMARY_HEAD`."""
+    rows = []
+    for res in results:
+        plan = res.plan
+        for options in plan.options():
+            for m in methods_at(plan, options):
+                for n in plan.budgets_of(m):
+                    for mode in plan.modes:
+                        for k in plan.target_sets:
+                            st = seed_stats(seed_outcomes(res, m, n, mode, k))
+                            if st is None:
+                                continue
+                            paper = (paper_cell(m, mode) if k == TRAINING_TARGETS
+                                     and res.anatomy == DEFAULT_ANATOMY else '-')
+                            rows.append([
+                                res.anatomy, options, m, str(n), mode, targets_name(k),
+                                ' '.join(map(str, plan.seeds)),
+                                ', '.join(percent(o.rate) for o in st.outcomes),
+                                percent(st.mean), span(st.range), span(st.t95),
+                                span(st.wilson95), paper])
+    return rows
+
+
+def summary_table(results: Sequence[StudyResults], options: str) -> list[str]:
+    """The report's summary of one option set (markdown lines; empty when nothing of it has
+    every seed evaluated)."""
+    by_anatomy = len(results) > 1
+    rows = [r for r in summary_rows(results) if r[1] == options]
+    if not rows:
+        return []
+    head = ['anatomy'] * by_anatomy + ['method', 'budget (authors\')', 'mode', 'targets',
+                                       'per seed', 'mean', 'min-max', '95% t interval',
+                                       '95% Wilson (pooled trials)', 'paper']
+    lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    for a, _, m, n, mode, k, _, per, mean, rng, t95, w95, paper in rows:
+        lines.append('| ' + ' | '.join(
+            [f'`{a}`'] * by_anatomy + [f'{method_label(m)} (`{m}`)',
+                                       f'{int(n):,} ({authors_cell(m)})', mode,
+                                       k.split(' (')[0], per, f'**{mean}**', rng, t95, w95,
+                                       paper]) + ' |')
+    return lines
+
+
+def seed_means(res: StudyResults, budgets: dict[str, int], mode: str, targets: int
+               ) -> dict[str, Fraction]:
+    """preset -> its mean success over the seeds at its budget in ``budgets`` (presets with
+    every seed evaluated)."""
     out = {}
-    for m in res.plan.methods:
-        if res.plan.option_sets[m] != options:
-            continue
-        pooled = mean_outcome(res.outcomes.get((m, s, budget, mode, targets))
-                              for s in res.plan.seeds)
-        if pooled is not None:
-            out[m] = pooled.rate
+    for m, n in budgets.items():
+        st = seed_stats(seed_outcomes(res, m, n, mode, targets))
+        if st is not None:
+            out[m] = st.mean
     return out
 
 
-def ordering_lines(res: StudyResults, options: str, budget: int) -> list[str]:
-    """Ours and the paper's ordering of the methods per mode and target set, and how many
-    method pairs keep the paper's order (the paper's only in its anatomy, the default)."""
+def ordering_lines(res: StudyResults, budgets: dict[str, int]) -> list[str]:
+    """Ours (each preset of ``budgets`` at its budget there) and the paper's ordering of the
+    methods per mode and target set, and how many method pairs keep the paper's order (the
+    paper's only in its anatomy, the default)."""
     lines = []
     for mode in res.plan.modes:
         paper = {m: Fraction(PAPER_SUCCESS[(method_kind(m), mode)], 100)
-                 for m in res.plan.methods if res.plan.option_sets[m] == options
-                 and (method_kind(m), mode) in PAPER_SUCCESS
+                 for m in budgets if (method_kind(m), mode) in PAPER_SUCCESS
                  and res.anatomy == DEFAULT_ANATOMY}
         if len(paper) >= 2:
             lines.append(f'- {mode}, paper: {format_ordering(paper, label=method_label)}')
         for k in res.plan.target_sets:
-            ours = pooled_rates(res, options, budget, mode, k)
+            ours = seed_means(res, budgets, mode, k)
             where = 'training targets' if k == TRAINING_TARGETS else 'unseen targets'
             if len(ours) < 2:
                 lines.append(f'- {mode}, {where}: fewer than two methods evaluated yet')
@@ -650,6 +868,23 @@ def ordering_lines(res: StudyResults, options: str, budget: int) -> list[str]:
                         f'{method_label(a)} > {method_label(b)}' for a, b in differ) + ')'
             lines.append(line)
     return lines
+
+
+def own_budget_orderings(plan: StudyPlan, options: str) -> list[tuple[str, dict[str, int]]]:
+    """With per-method budgets (methods of ``options`` that do not share their budgets): the
+    comparisons of each method at its largest and at its smallest budget, each titled
+    (empty when the methods share their budgets: the per-budget orderings cover them)."""
+    methods = methods_at(plan, options)
+    if len({plan.budgets_of(m) for m in methods}) < 2:
+        return []
+    largest = {m: plan.budgets_of(m)[-1] for m in methods}
+    smallest = {m: plan.budgets_of(m)[0] for m in methods}
+    def title(b: dict[str, int]) -> str:
+        return ', '.join(f'{method_label(m)} {n:,}' for m, n in b.items())
+    out = [(f'each method at its largest budget ({title(largest)})', largest)]
+    if smallest != largest:
+        out.append((f'each method at its smallest budget ({title(smallest)})', smallest))
+    return out
 
 
 def results_rows(results: Sequence[StudyResults]) -> list[list[Any]]:
@@ -725,14 +960,11 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
         'targets that the demonstrations and every run trained on (each run\'s `best.pt` was '
         'also selected on them by its periodic evaluation); "unseen targets": scenario seed '
         f'{plan.unseen}, a target set no run trained on. Each cell: success per seed, then the '
-        'mean (pooled over the seeds).', '',
+        'mean over the seeds and its 95% interval.', '',
+        STATISTICS, '',
         *([f'Anatomies: {", ".join(f"`{r.anatomy}`" for r in results)}; each run trains and '
            'is evaluated in its own anatomy.', ''] if len(results) > 1 else []),
-        'Static: `train --mode static` to each budget of `--steps`; a larger budget continues '
-        'the same run (`train --resume RUN --max-steps N`) after the smaller budget\'s '
-        '`best.pt` was kept, so the linear schedules of a continued run first decayed towards '
-        'the smaller budget. The policy of a budget is the run\'s `best.pt` up to that budget.',
-        '']
+        *budgets_paragraph(plan), '']
     if 'dynamic' in plan.modes:
         lines += [f'Dynamic: as the committed dynamic policy was made, each budget\'s static '
                   f'`best.pt` re-trained {plan.dynamic_steps:,} steps in the beating aorta '
@@ -755,29 +987,44 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
             base = baseline_line(res, options)
             if base:
                 lines += [f'`{res.anatomy}`: {base}' if by_anatomy else base, '']
-        for n in plan.budgets:
-            lines += [f'### {n:,} steps', '', *budget_table(results, options, n), '',
-                      'Ordering (ties: within 5 points):', '']
+        summary = summary_table(results, options)
+        if summary:
+            lines += ['Every method at each of its budgets, over the seeds (training targets '
+                      'and unseen targets; the paper\'s figure beside the training targets):',
+                      '', *summary, '']
+        for title, budgets in own_budget_orderings(plan, options):
+            lines += [f'Ordering, {title} (ties: within 5 points):', '']
             for res in results:
                 lines += [f'- `{res.anatomy}` {ln[2:]}' if by_anatomy else ln
-                          for ln in ordering_lines(res, options, n)]
+                          for ln in ordering_lines(res, budgets)]
             lines.append('')
+        for n in plan.budgets:
+            if not methods_at(plan, options, n):
+                continue
+            lines += [f'### {n:,} steps', '', *budget_table(results, options, n), '']
+            at = {m: n for m in methods_at(plan, options, n)}
+            if len(at) > 1:  # else the orderings across budgets compare it
+                lines += ['Ordering (ties: within 5 points):', '']
+                for res in results:
+                    lines += [f'- `{res.anatomy}` {ln[2:]}' if by_anatomy else ln
+                              for ln in ordering_lines(res, at)]
+                lines.append('')
         for res in results:
             # the default anatomy's pictures keep their names; another's carry its name
             stem = f'curves_{options}' if res.anatomy == DEFAULT_ANATOMY else \
                 f'curves_{res.anatomy}_{options}'
             where = f' in `{res.anatomy}`' if by_anatomy else ''
-            curves = {f'{m} seed {s}': res.curves.get((m, s), []) for m in plan.methods
-                      if plan.option_sets[m] == options for s in plan.seeds}
+            curves = static_curves(res, options)
             png = f'{stem}_static.png'
             if plot_curves(curves, plan.budgets, out / png, f'option set {options}{where}: '
                            'static training, periodic evaluation (training targets)'):
                 lines += [f'Learning curves{where} (periodic evaluation of each run on the '
-                          'training targets, noise-free; dotted: the budgets):', '',
-                          f'![static]({png})', '']
-            dyn = {f'{m} seed {s} from {n:,}': res.dynamic_curves.get((m, s, n), [])
-                   for m in plan.methods if plan.option_sets[m] == options
-                   for s in plan.seeds for n in plan.budgets}
+                          'training targets, noise-free; one line per seed'
+                          + (', a colour per method and budget' if plan.fresh else '')
+                          + '; dotted: the budgets):', '', f'![static]({png})', '']
+            dyn = {f'{m} from {n:,} seed {s}': res.dynamic_curves.get((m, s, n), [])
+                   for m in methods_at(plan, options) for n in plan.budgets_of(m)
+                   for s in plan.seeds}
             png = f'{stem}_dynamic.png'
             if 'dynamic' in plan.modes and plot_curves(
                     dyn, [], out / png, f'option set {options}{where}: dynamic re-training, '
@@ -788,16 +1035,66 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
              for res in results for (m, s, n), snap in sorted(res.snapshots.items())
              if snap.get('wall_s')]
     if walls:
-        lines += ['Training wall time (cumulative, from `train`): ' + '; '.join(walls) + '.', '']
+        lines += [f"Training wall time ({'each run' if plan.fresh else 'cumulative'}, from "
+                  '`train`): ' + '; '.join(walls) + '.', '']
     return '\n'.join(lines) + '\n'
 
 
+#: The report's paragraph on the intervals.
+STATISTICS = (
+    'Mean: the mean of the seeds\' success rates (with as many trials per seed, the pooled '
+    'rate). 95% CI in the tables: Student\'s t interval over the seeds (mean +- t(0.975, n-1) '
+    's / sqrt(n), clipped to 0-100%), because the seed is what varies most: a run finds the '
+    'path or does not, so the trials of one policy are not independent draws of the method\'s '
+    'success, and an interval of the pooled trials would understate the spread. With 3 seeds '
+    't(0.975, 2) = 4.30, so the interval is wide, and it has no width when the seeds agree. '
+    'The summary also gives the range over the seeds and the 95% Wilson score interval of the '
+    'pooled trials, which holds only the trial noise of these policies.')
+
+
+def budgets_paragraph(plan: StudyPlan) -> list[str]:
+    """What the budgets are and how each was trained (report lines)."""
+    if plan.fresh:
+        lines = ['Static: `train --mode static --max-steps N` from scratch for every budget N: '
+                 'each budget is a run of its own, its linear schedules (learning rate, '
+                 'epsilon, beta) decaying over that budget. The policy of a budget is its '
+                 'run\'s `best.pt`.']
+    else:
+        lines = ['Static: `train --mode static` to each budget of `--steps`; a larger budget '
+                 'continues the same run (`train --resume RUN --max-steps N`) after the smaller '
+                 'budget\'s `best.pt` was kept, so the linear schedules of a continued run '
+                 'first decayed towards the smaller budget. The policy of a budget is the run\'s '
+                 '`best.pt` up to that budget.']
+    if plan.method_budgets:
+        lines += ['', 'Budgets per method (`--authors-budgets`: a `paper_code` preset at the '
+                  'authors\' budgets of its method, with GAIL also where their run stopped; '
+                  'ours at their preset\'s `max_steps`): ' + '; '.join(
+                      f'`{m}` ' + ', '.join(f'{n:,}' for n in plan.budgets_of(m))
+                      for m in plan.methods) + '.']
+    return lines
+
+
+def static_curves(res: StudyResults, options: str) -> dict[str, list[tuple[int, float]]]:
+    """The static learning curves of an option set, one per run: ``<preset> seed <S>`` (the
+    one continued run), or with fresh budgets ``<preset> <N> steps seed <S>``."""
+    plan = res.plan
+    if plan.fresh:
+        return {f'{m} {n:,} steps seed {s}': res.curves.get((m, s, n), [])
+                for m in methods_at(plan, options) for n in plan.budgets_of(m)
+                for s in plan.seeds}
+    return {f'{m} seed {s}': res.curves.get((m, s, plan.budgets_of(m)[-1]), [])
+            for m in methods_at(plan, options) for s in plan.seeds}
+
+
 def write_report(layout: Layout, plan: StudyPlan, command: str) -> Path:
-    """Collect the results and write ``report.md``, the curves and ``results.csv``."""
+    """Collect the results and write ``report.md``, the curves, ``results.csv`` and
+    ``summary.csv``."""
     results = [collect(layout, plan, a.name) for a in plan.anatomies]
     layout.root.mkdir(parents=True, exist_ok=True)
     with (layout.root / 'results.csv').open('w', newline='') as f:
         csv.writer(f).writerows(results_rows(results))
+    with (layout.root / 'summary.csv').open('w', newline='') as f:
+        csv.writer(f).writerows([SUMMARY_HEAD, *summary_rows(results)])
     path = layout.root / 'report.md'
     path.write_text(build_report(results, command, layout.root))
     return path
@@ -919,7 +1216,7 @@ def export_command(ckpt: Path, policy: Path) -> list[str]:
 def static_post(layout: Layout, preset: str, seed: int, budget: int, log: Path) -> None:
     """After the static training reached ``budget``: record its step, snapshot the budget
     (its wall time from the training's ``log``)."""
-    run = layout.static_run(preset, seed)
+    run = layout.static_run(preset, seed, budget)
     record_state(run)
     snapshot(run, layout.budget(preset, seed, budget), budget, log)
 
@@ -929,33 +1226,36 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
 
     Task keys are ``<preset>/seed<S>/<budget>/<step>`` in the default anatomy and
     ``<anatomy>/<preset>/...`` in another; their logs all lie in ``root``'s ``logs/``.
-    Order among ready tasks (with ``--jobs`` 1, the whole smaller budget before the larger):
-    exports and evaluations, then baselines and dynamic re-trainings, then static trainings,
-    budget by budget.
+    Order among ready tasks: exports and evaluations, then baselines and dynamic re-trainings,
+    then static trainings; with continued budgets budget by budget (with ``--jobs`` 1, the
+    whole smaller budget before the larger), with fresh budgets (no budget waits for another)
+    seed by seed (with ``--jobs`` 1, every method and budget of the first seed before the
+    second seed's, so the report compares the methods early).
     """
     tasks: list[Task] = []
     evaluate = 'cgail_learning.evaluate'
     for anatomy in plan.anatomies:
-        layout = root.of_anatomy(anatomy.name)
+        layout = plan_layout(root, plan).of_anatomy(anatomy.name)
         at = '' if anatomy.name == DEFAULT_ANATOMY else f'{anatomy.name}/'
         common = ['--demos', *[str(d) for d in anatomy.demos], '--threads', '1',
                   '--no-progress', *anatomy.train_args]
         in_anatomy = ['--trials', str(plan.trials), *anatomy.eval_args]
         for m in plan.methods:
-            for s in plan.seeds:
-                run = layout.static_run(m, s)
+            for si, s in enumerate(plan.seeds):
                 prev: str | None = None
-                for bi, n in enumerate(plan.budgets):
+                for bi, n in enumerate(plan.budgets_of(m)):
+                    run = layout.static_run(m, s, n)
                     key = f'{at}{m}/seed{s}/{n}'
                     static_key = f'{key}/train-static'
+                    rank = 10 * (si if plan.fresh else bi)
                     tasks.append(Task(
-                        static_key, 'train', [prev] if prev else [],
+                        static_key, 'train', [prev] if prev and not plan.fresh else [],
                         done=layout.snapshot(m, s, n).is_file,
                         command=partial(train_command, run, n,
                                         ['--preset', m, '--seed', str(s)],
                                         ['--mode', 'static', *common]),
                         post=partial(static_post, layout, m, s, n, root.log(static_key)),
-                        run=run, target=n, order=10 * bi + 2))
+                        run=run, target=n, order=rank + 2))
                     prev = static_key
                     best = layout.budget(m, s, n) / 'best.pt'
                     for mode in plan.modes:
@@ -972,7 +1272,7 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
                                                 ['--preset', m, '--seed', str(s), '--init-from',
                                                  str(best)], ['--mode', 'dynamic', *common]),
                                 post=partial(record_state, dyn), run=dyn, target=d,
-                                order=10 * bi + 1))
+                                order=rank + 1))
                         tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
                                           done=partial(up_to_date, policy, ckpt,
                                                        ckpt.with_name('final.pt')),
@@ -1184,8 +1484,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--methods', nargs='+', default=list(DEFAULT_METHODS), metavar='PRESET',
                    help='training presets (config/presets/); default: the five "ours" presets')
     p.add_argument('--seeds', nargs='+', type=int, default=[0, 1])
-    p.add_argument('--steps', nargs='+', type=int, default=[500_000, 2_000_000], metavar='N',
-                   help='step budgets, increasing; a larger one continues the smaller run')
+    p.add_argument('--steps', nargs='+', type=int, default=None, metavar='N',
+                   help='step budgets, increasing (default 500000 2000000); a larger one '
+                        'continues the smaller run unless --fresh-budgets')
+    p.add_argument('--fresh-budgets', action='store_true',
+                   help='train every budget as its own run from scratch, its schedules '
+                        'decaying over that budget (OUT/<preset>/seed<S>/budget_<N>/)')
+    p.add_argument('--authors-budgets', action='store_true',
+                   help="each preset's own budgets instead of --steps: a paper_code preset "
+                        "the authors' (8M; GAIL 5M and 1,275,443, where their run stopped), "
+                        "ours their preset's max_steps")
+    p.add_argument('--budget-scale', type=float, default=1.0, metavar='F',
+                   help='with --authors-budgets: multiply every budget by F in (0, 1], for a '
+                        'smoke run of the same shape')
     p.add_argument('--modes', nargs='+', choices=MODES, default=list(MODES))
     p.add_argument('--jobs', type=int, default=1,
                    help='processes at a time (trainings use 1 torch thread each)')
@@ -1215,7 +1526,14 @@ def check_args(args: argparse.Namespace) -> StudyPlan:
     from cgail_learning.config import load_config
     from cgail_learning.errors import ConfigError
 
-    budgets = check_budgets(args.steps)
+    authors = getattr(args, 'authors_budgets', False)
+    scale = getattr(args, 'budget_scale', 1.0)
+    if authors and args.steps is not None:
+        raise StudyError(f'--steps: expected no budgets with --authors-budgets (each preset '
+                         f'has its own), found {args.steps}')
+    if scale != 1.0 and not authors:
+        raise StudyError(f'--budget-scale: expected only with --authors-budgets, found {scale}')
+    budgets = check_budgets(DEFAULT_STEPS if args.steps is None else args.steps)
     for name, values in (('--methods', args.methods), ('--seeds', args.seeds),
                          ('--modes', args.modes)):
         if len(set(values)) != len(values):
@@ -1229,12 +1547,16 @@ def check_args(args: argparse.Namespace) -> StudyPlan:
     if args.unseen_scenario_seed < 1:
         raise StudyError(f'--unseen-scenario-seed: expected a target set other than the '
                          f'training one (0), found {args.unseen_scenario_seed}')
-    option_sets = {}
+    option_sets, max_steps = {}, {}
     for m in args.methods:
         try:
-            option_sets[m] = load_config(m).env_options
+            cfg = load_config(m)
         except ConfigError as exc:
             raise StudyError(f'--methods: {exc}') from None
+        option_sets[m], max_steps[m] = cfg.env_options, cfg.max_steps
+    per_method = method_budgets(option_sets, max_steps, scale) if authors else {}
+    if per_method:
+        budgets = tuple(sorted({n for b in per_method.values() for n in b}))
     if not args.report_only:
         missing = [str(d) for d in args.demos if not d.exists()]
         if missing:
@@ -1243,7 +1565,8 @@ def check_args(args: argparse.Namespace) -> StudyPlan:
     anatomy = Anatomy.named(DEFAULT_ANATOMY, [d.resolve() for d in args.demos])
     return StudyPlan(tuple(args.methods), tuple(args.seeds), budgets, tuple(args.modes),
                      option_sets, args.trials, args.unseen_scenario_seed, args.dynamic_steps,
-                     tuple(args.baselines), (anatomy,))
+                     tuple(args.baselines), (anatomy,),
+                     fresh=getattr(args, 'fresh_budgets', False), method_budgets=per_method)
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -1252,8 +1575,14 @@ def command_line(args: argparse.Namespace) -> str:
         p = p.resolve()
         return str(p.relative_to(WS)) if p.is_relative_to(WS) else str(p)
 
+    if args.authors_budgets:
+        budgets = ['--authors-budgets'] + (['--budget-scale', str(args.budget_scale)]
+                                           if args.budget_scale != 1.0 else [])
+    else:
+        budgets = ['--steps', *map(str, args.steps or DEFAULT_STEPS)]
     parts = ['scripts/ws', 'python', 'bench/insilico_study.py', '--methods', *args.methods,
-             '--seeds', *map(str, args.seeds), '--steps', *map(str, args.steps), '--modes',
+             '--seeds', *map(str, args.seeds), *budgets,
+             *(['--fresh-budgets'] if args.fresh_budgets else []), '--modes',
              *args.modes, '--trials', str(args.trials), '--dynamic-steps',
              str(args.dynamic_steps), '--unseen-scenario-seed', str(args.unseen_scenario_seed),
              '--baselines', *args.baselines, '--demos', *map(rel, args.demos),
@@ -1294,7 +1623,7 @@ def main(argv: list[str] | None = None) -> int:
     except StudyError as exc:
         print(f'insilico_study: error: {exc}', file=sys.stderr)
         return 2
-    layout = Layout(args.out.resolve())
+    layout = Layout(args.out.resolve(), plan.fresh)
     command = command_line(args)
     if args.report_only:
         say(f'report: {write_report(layout, plan, command)}')

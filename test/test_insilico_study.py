@@ -232,14 +232,22 @@ def test_collect_and_the_report(fake_study):
     res = study.collect(layout, plan)
     assert res.outcomes[('cgail', 1, 8192, 'static', 1)] == study.Outcome(2, 4)
     assert ('gail', 1, 8192, 'static', 0) not in res.outcomes
-    assert res.reached[('gail', 1)] == 6144
+    assert res.reached[('gail', 1, 8192)] == 6144
     path = study.write_report(layout, plan, 'scripts/ws python bench/insilico_study.py')
     report = path.read_text()
-    assert ('| C-GAIL (`cgail`) | 5,120 (authors: 8,000,000) | 80% | 100%, 75% (mean **88%**) '
-            '| 75%, 50% (mean **63%**) | 17% | 100%, 75% (mean **88%**) | 75%, 50% (mean **63%**) '
-            '|') in report
-    assert ('| GAIL (`gail`) | seed 0: 9,216, seed 1: 6,144 of 8,192 † (authors: 5,000,000) | '
-            '42% | 25%, - (mean -) |') in report
+    ci = '95% CI 0-100%'  # two seeds: t(0.975, 1) = 12.7
+    assert (f'| C-GAIL (`cgail`) | 5,120 (authors: 8,000,000) | 80% | 100%, 75% (mean **88%**, '
+            f'{ci}) | 75%, 50% (mean **63%**, {ci}) | 17% | 100%, 75% (mean **88%**, {ci}) | '
+            f'75%, 50% (mean **63%**, {ci}) |') in report
+    assert ('| GAIL (`gail`) | seed 0: 9,216, seed 1: 6,144 of 8,192 † (authors: 5,000,000; '
+            'stopped at 1,275,443) | 42% | 25%, - (mean -) |') in report
+    # the summary: every method and budget with all seeds evaluated, range and both intervals
+    assert ('| GAIL (`gail`) | 4,096 (5,000,000; stopped at 1,275,443) | static | unseen | '
+            '0%, 0% | **0%** | 0-0% | 0-0% | 0-32% | - |') in report
+    summary = (layout.root / 'summary.csv').read_text().splitlines()
+    assert summary[0] == ','.join(study.SUMMARY_HEAD) and len(summary) == 1 + 12
+    assert ('default,ours,cgail,8192,static,training,0 1,"100%, 75%",88%,75-100%,0-100%,53-98%,'
+            '80%') in summary
     assert '- static, paper: C-GAIL 80% > GAIL 42%' in report
     assert ('- static, training targets: C-GAIL 88% > GAIL 13%; 1 of 1 pairs ordered as in the '
             'paper') in report
@@ -424,3 +432,144 @@ def test_the_report_of_two_anatomies_is_one_table(tmp_path):
     assert (layout.root / 'curves_elongated_ours_static.png').is_file()
     rows = (layout.root / 'results.csv').read_text().splitlines()
     assert 'elongated,ours,cgail,0,4096,4096,static,training,1,4' in rows and len(rows) == 5
+
+
+# ---------------------------------------------------------------------------- fresh budgets
+
+
+def test_the_authors_budgets_per_method():
+    """Their GAIL run was configured for 5M and stopped at 1,275,443 (training_status.json);
+    their C-GAIL ran 8M; an ablation gets their C-GAIL's 8M; ours their preset's max_steps."""
+    assert study.AUTHORS_STOPPED == {'gail': 1_275_443}
+    assert study.authors_budgets('gail') == (1_275_443, 5_000_000)
+    assert study.authors_budgets('cgail') == (8_000_000,)
+    assert study.authors_budgets('smoke') == ()
+    options = {'paper_code_cgail': 'paper_code', 'paper_code_gail': 'paper_code',
+               'paper_code_mu0': 'paper_code', 'cgail': 'ours', 'gail': 'ours'}
+    steps = {'paper_code_cgail': 1, 'paper_code_gail': 1, 'paper_code_mu0': 1,
+             'cgail': 500_000, 'gail': 2_000_000}
+    assert study.method_budgets(options, steps) == {
+        'paper_code_cgail': (8_000_000,), 'paper_code_gail': (1_275_443, 5_000_000),
+        'paper_code_mu0': (8_000_000,), 'cgail': (500_000,), 'gail': (2_000_000,)}
+    small = study.method_budgets(options, steps, 0.001)
+    assert small['paper_code_gail'] == (1_275, 5_000) and small['cgail'] == (500,)
+    assert study.method_budgets({'x': 'ours'}, {'x': 10}, 1e-6) == {'x': (1,)}
+    with pytest.raises(study.StudyError, match=r'--budget-scale: expected a factor in \(0, 1\]'):
+        study.method_budgets(options, steps, 2.0)
+
+
+def test_intervals_over_seeds_and_pooled_trials():
+    lo, hi = study.t_interval([0.5, 0.6, 0.7])  # mean 0.6, s 0.1, t(0.975, 2) 4.303
+    assert (lo, hi) == pytest.approx((0.6 - 0.248414, 0.6 + 0.248414), abs=1e-6)
+    assert study.t_interval([1.0, 0.0, 1.0]) == (0.0, 1.0)  # clipped
+    assert study.t_interval([1.0, 1.0, 1.0]) == (1.0, 1.0)  # the seeds agree: no width
+    assert study.t_interval([0.5]) is None
+    assert study.wilson_interval(study.Outcome(8, 10)) == pytest.approx((0.4902, 0.9433),
+                                                                        abs=1e-4)
+    assert study.wilson_interval(study.Outcome(0, 300))[1] == pytest.approx(0.01264, abs=1e-5)
+    st = study.seed_stats([study.Outcome(100, 100), study.Outcome(90, 100),
+                           study.Outcome(50, 100)])
+    assert st.mean == Fraction(4, 5) and st.range == (0.5, 1.0)
+    assert study.span(st.t95) == '14-100%' and study.span(st.wilson95) == '75-84%'
+    assert study.span(None) == '-' and study.seed_stats([study.Outcome(1, 2), None]) is None
+
+
+def test_fresh_budgets_are_runs_of_their_own(tmp_path):
+    """With fresh budgets no budget waits for another: each trains from scratch to its own
+    max_steps in budget_<N>/static/, per-method budgets, seed by seed."""
+    layout = study.Layout(tmp_path)
+    plan = study.StudyPlan(('paper_code_gail', 'smoke'), (0, 1), (2048, 4096, 8192),
+                           ('static', 'dynamic'), {'paper_code_gail': 'paper_code',
+                                                   'smoke': 'ours'}, fresh=True,
+                           method_budgets={'paper_code_gail': (2048, 8192), 'smoke': (4096,)})
+    tasks = {t.key: t for t in study.plan_tasks(layout, plan)}
+    assert len(tasks) == 2 * 3 * (1 + 1 + 2 + 4) + 2 * 4
+    assert 'smoke/seed0/8192/train-static' not in tasks
+    big = tasks['paper_code_gail/seed1/8192/train-static']
+    assert big.deps == [] and big.target == 8192
+    fresh_layout = study.Layout(tmp_path, fresh=True)
+    assert big.run == tmp_path / 'paper_code_gail' / 'seed1' / 'budget_8192' / 'static'
+    assert big.run == fresh_layout.static_run('paper_code_gail', 1, 8192)
+    assert big.command()[1:] == ['-m', 'cgail_learning.train', '--preset', 'paper_code_gail',
+                                 '--seed', '1', '--max-steps', '8192', '--out', str(big.run),
+                                 '--mode', 'static', *big.command()[-7:]]
+    # seed 0 of every method and budget before seed 1
+    assert [tasks[f'paper_code_gail/seed{s}/8192/train-{m}'].order
+            for s in (0, 1) for m in ('dynamic', 'static')] == [1, 2, 11, 12]
+    cmd = tasks['smoke/seed0/4096/train-dynamic'].command()
+    assert cmd[cmd.index('--init-from') + 1] == str(
+        tmp_path / 'smoke' / 'seed0' / 'budget_4096' / 'best.pt')
+    # an unfinished budget resumes from its own latest checkpoint
+    fake_run(big.run, 8192, 6144, final=False, checkpoints=(5120,))
+    assert big.command()[1:5] == ['-m', 'cgail_learning.train', '--resume', str(big.run)]
+    with pytest.raises(ValueError, match='one static run per budget'):
+        fresh_layout.static_run('smoke', 0)
+
+
+def test_the_report_of_fresh_per_method_budgets(tmp_path):
+    """Per-method budgets: each budget's table holds the methods that train to it, and the
+    orderings compare every method at its largest and at its smallest budget."""
+    layout = study.Layout(tmp_path / 'out', fresh=True)
+    plan = study.StudyPlan(('paper_code_cgail', 'paper_code_gail'), (0, 1, 2), (2048, 4096, 8192),
+                           ('static',), {m: 'paper_code' for m in ('paper_code_cgail',
+                                                                   'paper_code_gail')},
+                           trials=4, fresh=True,
+                           method_budgets={'paper_code_cgail': (8192,),
+                                           'paper_code_gail': (2048, 4096)})
+    wins = {('paper_code_cgail', 8192): 4, ('paper_code_gail', 2048): 0,
+            ('paper_code_gail', 4096): 3}
+    for (m, n), won in wins.items():
+        for s in plan.seeds:
+            write_scalars(layout.static_run(m, s, n), [(n // 2, 'eval/success_rate', 0.1 * s),
+                                                       (n, 'eval/success_rate', 0.5)])
+            layout.snapshot(m, s, n).write_text(json.dumps({'step': n, 'wall_s': 30.0}))
+            for k in plan.target_sets:
+                write_results(layout.evaluation(m, s, n, 'static', k), m, 'static',
+                              [i < won - (s == 2) for i in range(4)])
+    report = study.write_report(study.Layout(tmp_path / 'out'), plan, 'cmd').read_text()
+    assert 'Static: `train --mode static --max-steps N` from scratch for every budget' in report
+    assert '`paper_code_gail` 2,048, 4,096' in report
+    assert '### 8,192 steps' in report and '### 2,048 steps' in report
+    section = report.split('### 2,048 steps')[1].split('###')[0]
+    assert 'C-GAIL' not in section.split('Ordering')[0]
+    assert ('| C-GAIL (`paper_code_cgail`) | 8,192 (authors: 8,000,000) | 80% | 100%, 100%, 75% '
+            '(mean **92%**, 95% CI 56-100%) |') in report
+    assert 'fewer than two methods' not in report  # one method per budget: no ordering there
+    assert ('Ordering, each method at its largest budget (C-GAIL 8,192, GAIL 4,096) (ties: '
+            'within 5 points):\n\n- static, paper: C-GAIL 80% > GAIL 42%\n- static, training '
+            'targets: C-GAIL 92% > GAIL 67%; 1 of 1 pairs ordered as in the paper') in report
+    assert 'each method at its smallest budget (C-GAIL 8,192, GAIL 2,048)' in report
+    assert 'Training wall time (each run, from `train`)' in report
+    assert (tmp_path / 'out' / 'curves_paper_code_static.png').stat().st_size > 0
+    curves = study.static_curves(study.collect(layout, plan), 'paper_code')
+    assert list(curves)[:2] == ['paper_code_cgail 8,192 steps seed 0',
+                                'paper_code_cgail 8,192 steps seed 1']
+    assert curves['paper_code_gail 2,048 steps seed 2'] == [(1024, 0.2), (2048, 0.5)]
+
+
+@pytest.mark.parametrize('argv, message', [
+    (['--authors-budgets', '--steps', '4096'], '--steps: expected no budgets with'),
+    (['--budget-scale', '0.5'], '--budget-scale: expected only with --authors-budgets'),
+    (['--authors-budgets', '--budget-scale', '0'], '--budget-scale: expected a factor in'),
+])
+def test_bad_budget_options_are_one_line(argv, message, tmp_path, capsys):
+    assert study.main(['--methods', 'smoke', *argv, '--out', str(tmp_path / 'out')]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f'insilico_study: error: {message}') and err.count('\n') == 1
+
+
+def test_authors_budgets_plan_and_command():
+    args = study.build_parser().parse_args(
+        ['--methods', 'paper_code_gail', 'gail', '--authors-budgets', '--fresh-budgets',
+         '--budget-scale', '0.001', '--seeds', '0', '1', '2'])
+    plan = study.check_args(args)
+    assert plan.fresh and plan.method_budgets == {'paper_code_gail': (1_275, 5_000),
+                                                  'gail': (2_000,)}
+    assert plan.budgets == (1_275, 2_000, 5_000) and plan.budgets_of('gail') == (2_000,)
+    cmd = study.command_line(args)
+    assert '--authors-budgets --budget-scale 0.001 --fresh-budgets' in cmd
+    assert '--steps' not in cmd
+    default = study.check_args(study.build_parser().parse_args(['--methods', 'smoke']))
+    assert default.budgets == study.DEFAULT_STEPS and not default.fresh
+    assert '--steps 500000 2000000 --modes' in study.command_line(
+        study.build_parser().parse_args(['--methods', 'smoke']))
