@@ -10,8 +10,10 @@ subscriptions).
   so latched topics deliver their last sample). The offered profiles are stored in the bag's
   ``metadata.yaml`` (``offered_qos_profiles``) for the player.
 * Subscriptions are raw (``raw=True``): the CDR bytes are queued with the receive time (ns) and a
-  writer thread writes them, so the executor never blocks on disk; every ``--flush-period`` s the
-  writer closes the pending MCAP chunk and flushes the file.
+  writer thread writes them, so the executor never blocks on disk; the writer wakes every
+  ``WRITE_PERIOD_S`` and writes what was queued (a wake-up per message would cost the executor
+  a thread switch each), and every ``--flush-period`` s it closes the pending MCAP chunk and
+  flushes the file.
 * SIGINT/SIGTERM (or ``--max-duration``) stop the recording cleanly: subscriptions are drained,
   destroyed, the queue is written out and the bag is closed (MCAP summary + metadata.yaml), so
   nothing received is lost.
@@ -20,10 +22,10 @@ subscriptions).
 from __future__ import annotations
 
 import argparse
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-import queue
 import sys
 import threading
 import time
@@ -37,6 +39,8 @@ from cgail_sim.cli_help import tool_parser
 
 #: Topics never recorded by ``--all`` (ROS 2 infrastructure).
 EXCLUDED_BY_ALL = ('/rosout', '/parameter_events')
+#: Wall seconds between the writer thread's turns (module docstring).
+WRITE_PERIOD_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -80,7 +84,9 @@ class BagRecorder:
         self.config = config
         custom = {'condition': config.condition} if config.condition else {}
         self._writer = BagWriter(config.output, custom_data=custom, compress=config.compress)
-        self._queue: queue.SimpleQueue[tuple[str, Any, Any] | None] = queue.SimpleQueue()
+        # (kind, topic, payload), or None: the end; appended by the executor, taken by the writer
+        self._queue: deque[tuple[str, Any, Any] | None] = deque()
+        self._stopping = threading.Event()
         self._subs: dict[str, Any] = {}
         self._recorded: list[str] = []
         # Relative names resolve against the root namespace, as for `ros2 bag record`.
@@ -125,14 +131,15 @@ class BagRecorder:
                 self._node.get_logger().warning(f'not recording {topic}: {exc}')
                 self._subs[topic] = None
                 continue
-            self._queue.put(('add', topic, (msgtype, offered)))
+            self._queue.append(('add', topic, (msgtype, offered)))
 
             self.counts[topic] = 0
 
             def callback(data: bytes, topic: str = topic) -> None:
                 self._received += 1
                 self.counts[topic] += 1
-                self._queue.put(('msg', topic, (self._node.get_clock().now().nanoseconds, data)))
+                self._queue.append(('msg', topic, (self._node.get_clock().now().nanoseconds,
+                                                   data)))
 
             self._subs[topic] = self._node.create_subscription(
                 msg_class, topic, callback, subscription_qos(offered), raw=True)
@@ -141,19 +148,23 @@ class BagRecorder:
 
     def _write_loop(self) -> None:
         last_flush = time.monotonic()
+        items = self._queue
         while True:
+            self._stopping.wait(WRITE_PERIOD_S)
+            while items:
+                item = items.popleft()
+                if item is None:
+                    return
+                kind, topic, payload = item
+                try:
+                    if kind == 'add':
+                        self._writer.add_topic(topic, payload[0], payload[1])
+                    else:
+                        self._writer.write(topic, payload[0], payload[1])
+                except (BagError, OSError) as exc:
+                    self._error = exc
+                    return
             try:
-                item = self._queue.get(timeout=self.config.flush_period)
-            except queue.Empty:
-                item = ('flush', '', None)
-            if item is None:
-                return
-            kind, topic, payload = item
-            try:
-                if kind == 'add':
-                    self._writer.add_topic(topic, payload[0], payload[1])
-                elif kind == 'msg':
-                    self._writer.write(topic, payload[0], payload[1])
                 if time.monotonic() - last_flush >= self.config.flush_period:
                     self._writer.flush()
                     last_flush = time.monotonic()
@@ -175,7 +186,8 @@ class BagRecorder:
             if sub is not None:
                 self._node.destroy_subscription(sub)
         self._subs.clear()
-        self._queue.put(None)
+        self._queue.append(None)
+        self._stopping.set()
         self._thread.join()
         self._writer.close()
         if self._error is not None:
