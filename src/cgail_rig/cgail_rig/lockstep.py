@@ -7,7 +7,8 @@ seed and configuration, whatever the host's speed or load:
 * **One time source.** Every node's clock is attached to one :class:`rclpy.time_source.
   TimeSource` (no ``/clock`` subscription per node, no ``use_sim_time``): the executor sets
   the simulated time on all of them at once, so their timers, stamps and node-clock watchdogs
-  read simulated seconds.
+  read simulated seconds. Their ``now()`` returns the tick's one :class:`rclpy.time.Time`
+  (the value the clock holds, without a call into rcl and a new object each time).
 * **Ticks.** :meth:`LockstepExecutor.tick` advances the clock by one period, calls the world
   hooks (the phantom: physics and simulated devices, ``dt`` of simulated time), then fires the
   timers that are due, in a fixed order (nodes in the order they were added, timers in the
@@ -165,17 +166,25 @@ class LockstepExecutor:
         return self.period_ns * 1e-9
 
     def _set_clocks(self) -> None:
+        from rclpy.clock import ClockType
         from rclpy.time import Time
         from rosgraph_msgs.msg import Clock
 
         self.time_source.clock_callback(Clock(clock=Time(nanoseconds=self._now_ns).to_msg()))
+        self._now_time = Time(nanoseconds=self._now_ns, clock_type=ClockType.ROS_TIME)
+
+    def _clock_now(self) -> Any:
+        """``now()`` of the nodes' clocks: the simulated time (an immutable rclpy Time)."""
+        return self._now_time
 
     # ------------------------------------------------------------------ graph
     def add_node(self, node: Any) -> None:
         """Put ``node`` on the simulated clock and in the graph (its entities: :meth:`seal`)."""
         if node in self.nodes:
             return
-        self.time_source.attach_clock(node.get_clock())
+        clock = node.get_clock()
+        self.time_source.attach_clock(clock)
+        clock.now = self._clock_now  # (module docstring: the tick's Time, the clock's value)
         self.nodes.append(node)
 
     def add_hook(self, hook: Callable[[float], None]) -> None:
