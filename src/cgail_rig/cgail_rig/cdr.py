@@ -23,7 +23,8 @@ import importlib
 import struct
 from typing import Any
 
-# ops of a plan: (SKIP, alignment, bytes) primitives; (STRING,); (SEQ_PRIM, size);
+# ops of a plan: (SKIP, alignment, bytes) primitives; (STRING,); (SEQ_PRIM, alignment, bytes
+# per element): a sequence of primitives, or of messages of primitives of one size (Point[]);
 # (SEQ_STRING,); (SEQ_PLAN, plan); (REPEAT, plan, count) for an array of strings or messages
 SKIP, STRING, SEQ_PRIM, SEQ_STRING, SEQ_PLAN, REPEAT = range(6)
 
@@ -62,7 +63,8 @@ def _field_ops(slot: Any) -> list[tuple[Any, ...]]:
     if kind in ('UnboundedSequence', 'BoundedSequence'):
         inner = _field_ops(slot.value_type)
         if len(inner) == 1 and inner[0][0] == SKIP:
-            return [(SEQ_PRIM, inner[0][1])]
+            # (an element is a whole number of its alignment: the next one needs no gap)
+            return [(SEQ_PRIM, inner[0][1], inner[0][2])]
         if inner == [(STRING,)]:
             return [(SEQ_STRING,)]
         return [(SEQ_PLAN, tuple(inner))]
@@ -131,7 +133,7 @@ def _walk(out: bytearray, pos: int, ops: tuple[tuple[Any, ...], ...], u32: Any) 
         elif kind == SEQ_PRIM:
             count, pos = _length(out, pos, u32)
             if count:
-                pos = _align(out, pos, op[1]) + count * op[1]
+                pos = _align(out, pos, op[1]) + count * op[2]
         elif kind == SEQ_STRING:
             count, pos = _length(out, pos, u32)
             for _ in range(count):

@@ -370,10 +370,17 @@ def test_bad_transport_arguments(kwargs, match) -> None:
 
 def _cdr_samples():
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
+    from geometry_msgs.msg import (
+        Point,
+        Point32,
+        Polygon,
+        PoseStamped,
+        PoseWithCovarianceStamped,
+        TransformStamped,
+    )
     from nav_msgs.msg import Path
     from sensor_msgs.msg import JointState, Joy
-    from std_msgs.msg import Empty, Header, String
+    from std_msgs.msg import ColorRGBA, Empty, Header, String
     from tf2_msgs.msg import TFMessage
     from visualization_msgs.msg import Marker, MarkerArray
 
@@ -383,6 +390,11 @@ def _cdr_samples():
             Joy(axes=[0.1, 0.2], buttons=[1, 0, 1]), Empty(), String(data='hello'),
             TFMessage(transforms=[TransformStamped(child_frame_id='catheter_tip')] * 2),
             MarkerArray(markers=[Marker(ns='x'), Marker(ns='yy', text='t', frame_locked=True)]),
+            # sequences of messages of one primitive size (Point[], ColorRGBA[], Point32[])
+            MarkerArray(markers=[Marker(ns='s', points=[Point(x=1.0), Point(y=2.0)],
+                                        colors=[ColorRGBA(r=0.5)] * 3, text='after'),
+                                 Marker(ns='t', points=[Point(z=3.0)])]),
+            Polygon(points=[Point32(x=1.0), Point32(y=2.0), Point32(z=3.0)]),
             Path(header=Header(frame_id='p'), poses=[PoseStamped()] * 3),
             DiagnosticArray(status=[DiagnosticStatus(name='n',
                                                      values=[KeyValue(key='k', value='v')])])]
