@@ -31,10 +31,15 @@ seed and configuration, whatever the host's speed or load:
   a raw subscription (a recorder) gets the bytes DDS would give it (:mod:`cgail_rig.cdr`:
   rclpy's serializer leaves the padding undefined, a bag must be bit-identical); a publish
   nobody subscribes to is not serialized at all. Delivery order, the subscriptions' history
-  depth (KEEP_LAST drops the oldest) and QoS compatibility are those of DDS. These go through
-  DDS as before: a latched (transient-local) topic, a topic with a subscriber outside the
-  graph, an inactive lifecycle publisher, a subscription that wants the message info. Results
-  equal ``transport='dds'``.
+  depth (KEEP_LAST drops the oldest) and QoS compatibility are those of DDS. A latched
+  (transient-local, KEEP_LAST) topic goes in-process too, its publisher keeping the last
+  ``depth`` samples that DDS would hold for late joiners: when a subscriber joins (a new
+  subscription of the graph at :meth:`~LockstepExecutor.seal`, or one outside the graph, seen at
+  its next publish or sweep), the kept samples are handed to DDS (the graph's own subscriptions
+  drop the copies they already had) and the topic goes through DDS from then on. These go
+  through DDS as before: a volatile topic with a subscriber outside the graph, an inactive
+  lifecycle publisher, a subscription that wants the message info. Results equal
+  ``transport='dds'``.
 * **No threads racing the clock.** Devices are stepped by the world hooks; a node that talks to
   a device does so synchronously inside its timer callback (the Aurora node's ``poll_mode:
   clock``). Guard conditions (how a thread wakes an executor) are refused, and so are waitables
@@ -51,6 +56,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Iterable
+import contextlib
 from dataclasses import dataclass
 import inspect
 import time
@@ -147,6 +153,7 @@ class LockstepExecutor:
         # in-process transport: per publisher (id), its route; per subscription (id), its inbox
         self._routes: dict[int, _Route] = {}
         self._inboxes: dict[int, deque[bytes]] = {}
+        self._publish: dict[int, Callable[[Any], None]] = {}  # per publisher, rclpy's publish
         self._set_clocks()
 
     # ------------------------------------------------------------------ time
@@ -320,11 +327,17 @@ class LockstepExecutor:
                 qos = sub.qos_profile
                 depth = qos.depth if qos.history != HistoryPolicy.KEEP_ALL else None
                 self._inboxes[id(sub)] = deque(maxlen=depth if depth else None)
+        for key in list(self._routes):
+            self._demote(key)  # subscriptions may have joined: DDS holds the latched history
         self._routes.clear()
         for pub in pubs:
-            if pub.qos_profile.durability != DurabilityPolicy.VOLATILE:
-                continue  # latched: DDS keeps the history for late joiners
-            if pub.qos_profile.lifespan.nanoseconds > 0:
+            qos = pub.qos_profile
+            latched = qos.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            if qos.durability != DurabilityPolicy.VOLATILE and not latched:
+                continue
+            if latched and (qos.history == HistoryPolicy.KEEP_ALL or qos.depth < 1):
+                continue  # an unbounded history: DDS keeps it
+            if qos.lifespan.nanoseconds > 0:
                 continue  # samples that expire: the middleware's business
             # compatible (OK, or WARNING: a policy left to the system default) and matched:
             # seal waited for every one, and nothing else may be matched
@@ -344,13 +357,45 @@ class LockstepExecutor:
             self._routes[id(pub)] = _Route(
                 matched=len(targets), raw=raw,
                 targets=[(s, self._inboxes[id(s)], None if s.raw else s.msg_type)
-                         for s in targets])
+                         for s in targets],
+                pub=pub, history=deque(maxlen=qos.depth) if latched else None)
+
+    def _demote(self, key: int) -> None:
+        """Take publisher ``key`` off its in-process route; a latched one hands the samples
+        it kept to DDS, for late joiners (module docstring)."""
+        route = self._routes.pop(key, None)
+        if route is None or not route.history:
+            return
+        samples = list(route.history)
+        for data in samples:
+            if not route.raw:  # (what was kept is rclpy's bytes: give DDS's)
+                with contextlib.suppress(cdr.CdrError):
+                    data = cdr.zero_padding(data, route.pub.msg_type)
+            self._publish[key](data)
+        for sub, inbox, sub_type in route.targets:
+            # DDS delivered the samples to the graph's subscriptions too (inside publish), which
+            # had them in-process: drop those copies, hand on anything older (from outside)
+            taken: list[bytes] = []
+            try:
+                with sub.handle:
+                    while (got := sub.handle.take_message(sub.msg_type, True)) is not None:
+                        taken.append(got[0])
+            except InvalidHandle:
+                continue
+            copies = 0
+            while copies < min(len(taken), len(samples)) and \
+                    _same_cdr(taken[-1 - copies], samples[-1 - copies], route.pub.msg_type):
+                copies += 1
+            for data in taken[:len(taken) - copies]:
+                inbox.append(data)
+                self._pending.append((sub, inbox, sub_type))
 
     def _instrument(self, pub: Any) -> None:
         if id(pub) in self._wrapped:
             return
         publish = pub.publish
         subs = self._subs_by_topic.setdefault(pub.topic_name, [])
+        self._publish[id(pub)] = publish
         pending, stats, routes = self._pending, self.stats, self._routes
         serialize = _rclpy.rclpy_serialize
         msg_type = pub.msg_type
@@ -358,6 +403,10 @@ class LockstepExecutor:
 
         def instrumented(msg: Any) -> None:
             route = routes.get(key)
+            if route is not None and route.history is not None and \
+                    pub.get_subscription_count() != route.matched:
+                self._demote(key)  # a latched topic's late joiner: its history, then DDS
+                route = None
             if (route is None or not getattr(pub, '_enabled', True)
                     or pub.get_subscription_count() != route.matched):
                 publish(msg)  # through DDS (and lifecycle's inactive check, type check)
@@ -365,9 +414,12 @@ class LockstepExecutor:
                 pending.extend((s, None, None) for s in subs)
                 return
             raw = data = b''
+            history = route.history
             if isinstance(msg, msg_type):
-                # nobody listens: nothing to serialize (DDS would convert it and drop it)
-                data = raw = serialize(msg, msg_type) if route.targets else b''
+                # nobody listens: nothing to serialize (DDS would convert it and drop it),
+                # unless a late joiner may want it (latched)
+                data = raw = serialize(msg, msg_type) \
+                    if route.targets or history is not None else b''
                 if route.raw:
                     try:
                         raw = cdr.zero_padding(data, msg_type)
@@ -380,6 +432,8 @@ class LockstepExecutor:
             else:
                 raise TypeError(f'Expected {msg_type}, got {type(msg)}')
             stats.published += 1
+            if history is not None:
+                history.append(raw if route.raw else data)
             for sub, inbox, sub_type in route.targets:
                 inbox.append(data if sub_type is not None else raw)
                 pending.append((sub, inbox, sub_type))
@@ -450,7 +504,12 @@ class LockstepExecutor:
             self._call_sub(sub, taken)
 
     def _sweep(self) -> None:
-        """Handle what arrived outside the instrumented publishes, and service requests."""
+        """Hand a latched topic's history to DDS when a subscriber joined; handle what arrived
+        outside the instrumented publishes, and service requests."""
+        for key, route in list(self._routes.items()):
+            if route.history is not None and route.pub.get_subscription_count() != route.matched:
+                self._demote(key)
+        self._deliver()
         again = True
         while again:
             again = False
@@ -508,9 +567,23 @@ class LockstepExecutor:
 class _Route:
     """Where an in-process publish goes: ``matched`` is the publisher's match count when no
     subscriber outside the graph listens; ``raw``: a target takes the bytes; ``targets`` are
-    (subscription, inbox, message type to deserialize to or None for the bytes)."""
+    (subscription, inbox, message type to deserialize to or None for the bytes); ``pub`` the
+    publisher; ``history``: a latched topic's last samples (DDS's bytes if ``raw``, else
+    rclpy's), None for a volatile one."""
 
     matched: int
     raw: bool
     targets: list[tuple[Any, deque[bytes], Any]]
+    pub: Any = None
+    history: deque[bytes] | None = None
+
+
+def _same_cdr(a: bytes, b: bytes, msg_type: type) -> bool:
+    """Whether two serialized ``msg_type`` are the same message (their padding aside)."""
+    if a == b:
+        return True
+    try:
+        return cdr.zero_padding(a, msg_type) == cdr.zero_padding(b, msg_type)
+    except cdr.CdrError:
+        return False
 

@@ -341,6 +341,43 @@ def test_a_subscriber_outside_the_graph_gets_the_messages_through_dds(context) -
     assert got == [5] and seen == [5]
 
 
+def test_a_latched_topic_goes_in_process_and_late_joiners_get_its_history(context) -> None:
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    latched = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    ex = LockstepExecutor(period_s=0.02, transport='inprocess')
+    inside = _node(context, 'latched_pub')
+    ex.add_node(inside)
+    pub = inside.create_publisher(Int64, 'latched_topic', latched)
+    got: list[int] = []
+    inside.create_subscription(Int64, 'latched_topic', lambda m: got.append(m.data), latched)
+    raw: list[bytes] = []
+    inside.create_subscription(Int64, 'latched_topic', raw.append, latched, raw=True)
+    ex.seal()
+    assert id(pub) in ex._routes
+    for k in (1, 2, 3):
+        pub.publish(Int64(data=k))
+        ex.tick()
+    assert got == [1, 2, 3] and len(raw) == 3
+    late = _node(context, 'latched_late')  # e.g. a viewer: it must get the last 2 samples
+    seen: list[int] = []
+    late.create_subscription(Int64, 'latched_topic', lambda m: seen.append(m.data), latched)
+    while pub.get_subscription_count() < 3:
+        threading.Event().wait(0.01)
+    ex.tick()  # (sweep_every 1) the history goes to DDS, the graph drops its copies
+    assert id(pub) not in ex._routes
+    spinner = SingleThreadedExecutor(context=context)
+    spinner.add_node(late)
+    spinner.spin_once(timeout_sec=5.0)
+    spinner.spin_once(timeout_sec=0.5)
+    assert seen == [2, 3] and got == [1, 2, 3] and len(raw) == 3
+    pub.publish(Int64(data=4))  # through DDS from now on
+    ex.tick()
+    spinner.spin_once(timeout_sec=5.0)
+    assert seen == [2, 3, 4] and got == [1, 2, 3, 4] and len(raw) == 4
+
+
 def test_the_sweep_every_n_ticks_picks_up_outside_messages(context) -> None:
     ex = LockstepExecutor(period_s=0.02, transport='inprocess', sweep_every=3)
     inside = _node(context, 'swept')
