@@ -8,6 +8,12 @@ Run (from the workspace root, inside the workspace environment)::
     scripts/ws python bench/insilico_study.py --report-only      # rebuild OUT/report.md only
     scripts/ws python bench/insilico_study.py --methods smoke --seeds 0 --steps 4096 8192 \
         --trials 3 --dynamic-steps 2048 --out runs/insilico_smoke   # a smoke run, minutes
+    scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
+        cgail gail --seeds 0 1 2 --authors-budgets --fresh-budgets --jobs 1 \
+        --out runs/insilico_authors                   # issue 35: the authors' budgets, fresh
+    scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
+        cgail --seeds 0 1 --authors-budgets --budget-scale 0.001 --fresh-budgets --trials 3 \
+        --dynamic-steps 2048 --out /tmp/insilico_authors_smoke   # its shape, minutes
 
 Issue 13 (items 4 and 5): the baselines trained as the authors trained theirs, and the
 side-by-side report. For every preset of ``--methods`` (default the five "ours" presets: C-GAIL,
@@ -22,6 +28,21 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    is reported from one training. The linear schedules (learning rate, epsilon, beta) of the
    continued run first decayed towards N1 and then decay from there towards N2, so a budget
    reached by continuation is not the same run as a fresh run of that budget.
+
+   With ``--fresh-budgets`` every budget is **a run of its own from scratch**
+   (``train --preset P --seed S --max-steps N``, in ``budget_<N>/static/``), its schedules
+   decaying over that budget, as a single run of that budget would; no budget waits for
+   another, and with ``--jobs 1`` the study goes seed by seed (every method and budget of the
+   first seed, then the next), so the report compares the methods early. Its snapshot,
+   policies, dynamic re-training and evaluations are those of the continued budgets, in
+   ``budget_<N>/``.
+
+   **Budgets per method.** ``--authors-budgets`` (instead of ``--steps``) gives every preset
+   its own budgets: a ``paper_code`` preset the authors' budgets of its method
+   (:data:`AUTHORS_STEPS`: C-GAIL 8M; GAIL 5M and 1,275,443, where their run stopped,
+   :data:`AUTHORS_STOPPED`; the ablations their C-GAIL's 8M), any other preset (ours) its
+   preset's ``max_steps``. ``--budget-scale F`` multiplies them all by F in (0, 1] for a
+   smoke run of the same shape (a budget below one PPO buffer trains one buffer).
 2. **Dynamic re-training** (``--modes`` with ``dynamic``), as the committed dynamic policy was
    made (docs/reports/insilico.md, ``cgail_planner/models/insilico/report.md``):
    ``train --preset P --mode dynamic
@@ -36,12 +57,18 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    target set no run trained on), static policies in the static simulator and re-trained
    policies in the dynamic one; ``--baselines`` (default the centerline follower) run on the same
    target sets as references.
-5. **Report** ``OUT/report.md``: per option set (``ours``, ``paper_code``) and budget, success per
-   seed and their mean beside the paper's figures, the steps used beside the authors' budgets,
-   the ordering of the methods against the paper's; learning curves
-   ``OUT/curves_<options>_<mode>.png`` (``eval/success_rate`` against steps, one line per run,
-   from each run's ``scalars.csv``); ``OUT/results.csv`` in long form. A run that has not reached
-   a budget is shown with the steps it reached, marked.
+5. **Report** ``OUT/report.md``: per option set (``ours``, ``paper_code``) a summary of every
+   method at each of its budgets, per mode and target set: success per seed, the mean over the
+   seeds, their range, the 95% t interval over the seeds (the seed is the unit that varies: a
+   run finds the path or does not) and the 95% Wilson interval of the pooled trials (trial
+   noise only), beside the paper's figure (also ``OUT/summary.csv``); the orderings of the
+   methods against the paper's, per budget and, with per-method budgets, of each method at
+   its largest and at its smallest budget; per budget, a table of success per seed with the
+   mean and its t interval beside the paper's figures and the steps used beside the authors'
+   budgets; learning curves ``OUT/curves_<options>_<mode>.png`` (``eval/success_rate``
+   against steps, one line per run and seed, from each run's ``scalars.csv``);
+   ``OUT/results.csv`` in long form. A run that has not reached a budget is shown with the
+   steps it reached, marked.
 
 **Resuming.** Everything lives under ``--out`` (default ``runs/insilico_study``). Re-running the
 same command skips what is done (snapshots; policies newer than their checkpoint; evaluations
@@ -56,7 +83,10 @@ Layout of ``OUT``: ``<preset>/seed<S>/static/`` (the static run, continued budge
 ``<preset>/seed<S>/steps_<N>/`` (snapshot ``best.pt`` + ``scalars.csv`` + ``config.yaml`` +
 ``snapshot.json``, ``static.onnx``, ``dynamic/`` run, ``dynamic.onnx``,
 ``eval_<mode>_targets<K>/`` with ``evaluate``'s ``report.md`` and ``results.json``),
-``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``.
+``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``, ``summary.csv``,
+``results.csv``. With ``--fresh-budgets``: ``<preset>/seed<S>/budget_<N>/`` holds the same as
+``steps_<N>/`` and the budget's own static run in ``static/``. Re-run, or ``--report-only``,
+with the same budget options: they say which layout to read.
 
 **Anatomies.** This command runs in the default anatomy, with ``--demos``. ``bench/sweep.py``
 runs the same tasks in several anatomies (an :class:`Anatomy` each, what ``train`` and
@@ -903,8 +933,9 @@ def results_rows(results: Sequence[StudyResults]) -> list[list[Any]]:
 
 def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[int], path: Path,
                 title: str, xlabel: str = 'env steps') -> bool:
-    """One line per run (``eval/success_rate`` against steps), dotted lines at ``budgets``.
-    Returns False (and writes nothing) when no curve has a point."""
+    """One line per run (``eval/success_rate`` against steps), dotted lines at ``budgets``:
+    a colour per method (the label before `` seed``), a line style and hollow marker per run
+    of it (per seed). Returns False (and writes nothing) when no curve has a point."""
     if not any(curves.values()):
         return False
     import matplotlib
@@ -914,6 +945,7 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[in
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     styles = ['-', '--', ':', '-.']
+    markers = ['o', 's', '^', 'D']  # hollow: runs on the same values stay visible
     colours: dict[str, str] = {}
     count: dict[str, int] = {}
     for label, pts in curves.items():
@@ -923,7 +955,8 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[in
         colour = colours.setdefault(method, f'C{len(colours) % 10}')
         count[method] = count.get(method, -1) + 1
         xs, ys = zip(*pts, strict=True)
-        ax.plot(xs, ys, styles[count[method] % len(styles)], color=colour, marker='.',
+        ax.plot(xs, ys, styles[count[method] % len(styles)], color=colour,
+                marker=markers[count[method] % len(markers)], markersize=5, fillstyle='none',
                 label=label)
     for n in budgets:
         ax.axvline(n, color='0.6', linestyle=':', linewidth=1)
@@ -933,7 +966,7 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[in
     ax.set_ylabel('eval/success_rate')
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc='best')
+    ax.legend(fontsize=7, loc='best', handlelength=4)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
