@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
@@ -19,27 +21,42 @@ LEVEL_BYTES = {
 }
 
 
+def _floats(values: np.ndarray) -> list[float]:
+    """``values`` as Python floats (the float64 values a message field stores)."""
+    out: list[float] = np.asarray(values, dtype=np.float64).tolist()
+    return out
+
+
+def _fill(header, pose, tip: TipPose, stamp: Time, frame_id: str) -> None:
+    """Set a ``std_msgs/Header`` and a ``geometry_msgs/Pose`` from a :class:`TipPose`."""
+    header.stamp = stamp
+    header.frame_id = frame_id
+    p, q = pose.position, pose.orientation
+    p.x, p.y, p.z = _floats(tip.position_m)
+    q.x, q.y, q.z, q.w = _floats(tip.quat_xyzw)
+
+
 def tip_pose_to_msg(pose: TipPose, stamp: Time, frame_id: str) -> PoseStamped:
     """A :class:`TipPose` (phantom frame, SI) as ``geometry_msgs/PoseStamped``."""
     msg = PoseStamped()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    p, q = pose.position_m, pose.quat_xyzw
-    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in p)
-    (msg.pose.orientation.x, msg.pose.orientation.y, msg.pose.orientation.z,
-     msg.pose.orientation.w) = (float(v) for v in q)
+    _fill(msg.header, msg.pose, pose, stamp, frame_id)
     return msg
+
+
+@lru_cache(maxsize=16)
+def _covariance(rms_error_m: float) -> tuple[float, ...]:
+    """:func:`~em_tracker.core.pose.pose_covariance` flattened (row-major), per RMS error (a
+    tracker reports a handful of values: computed once each)."""
+    return tuple(_floats(pose_covariance(rms_error_m).ravel()))
 
 
 def tip_pose_to_cov_msg(pose: TipPose, stamp: Time,
                         frame_id: str) -> PoseWithCovarianceStamped:
     """A :class:`TipPose` as ``geometry_msgs/PoseWithCovarianceStamped``, its covariance from
     the RMS error (:func:`~em_tracker.core.pose.pose_covariance`)."""
-    stamped = tip_pose_to_msg(pose, stamp, frame_id)
     msg = PoseWithCovarianceStamped()
-    msg.header = stamped.header
-    msg.pose.pose = stamped.pose
-    msg.pose.covariance = [float(v) for v in pose_covariance(pose.rms_error_m).ravel()]
+    _fill(msg.header, msg.pose.pose, pose, stamp, frame_id)
+    msg.pose.covariance = list(_covariance(pose.rms_error_m))
     return msg
 
 
@@ -52,8 +69,8 @@ def transform_msg(stamp: Time, parent: str, child: str, translation_m: np.ndarra
     msg.header.frame_id = parent
     msg.child_frame_id = child
     t, q = msg.transform.translation, msg.transform.rotation
-    t.x, t.y, t.z = (float(v) for v in translation_m)
-    q.x, q.y, q.z, q.w = (float(v) for v in quat_xyzw)
+    t.x, t.y, t.z = _floats(translation_m)
+    q.x, q.y, q.z, q.w = _floats(quat_xyzw)
     return msg
 
 
