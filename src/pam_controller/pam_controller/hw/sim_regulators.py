@@ -187,31 +187,43 @@ class SimRegulatorBank:
                 while (msg := self._bus.recv(timeout=0.0)) is not None:
                     self._handle(msg)
             cfg = self.config
+            supply = self.supply_pressure_pa
+            run = self.mode is BankMode.RUN
             if (self._last_heartbeat is None
                     or self.time_s - self._last_heartbeat > cfg.host_timeout_s):
                 if self._last_heartbeat is not None:
                     self._faults.add('FAULT_HOST_TIMEOUT')
-                target = np.zeros(4)
-            elif self.mode is BankMode.RUN:
-                target = self.setpoints_pa.copy()
+                target = [0.0] * 4
+            elif run:
+                target = self.setpoints_pa.tolist()
             else:
-                target = np.zeros(4)
-            target = np.minimum(target, self.supply_pressure_pa)
-            if np.max(self.setpoints_pa) > self.supply_pressure_pa and self.mode is BankMode.RUN:
+                target = [0.0] * 4
+            # per channel in Python floats (four channels: numpy's per-call cost dominated);
+            # the same IEEE operations in the same order as the array form
+            target = [min(t, supply) for t in target]
+            if run and max(self.setpoints_pa.tolist()) > supply:
                 self._faults.add('FAULT_SUPPLY_LOW')
             alpha = 1.0 - math.exp(-dt / cfg.time_constant_s)
-            moved = self.pressures_pa + alpha * (target - self.pressures_pa)
-            self.pressures_pa = np.where(self._stuck, self.pressures_pa,
-                                         np.clip(moved, 0.0, self.supply_pressure_pa))
-            err = np.abs(target - self.pressures_pa) > cfg.stuck_detect_pa
-            self._track_error_since = np.where(
-                err, np.where(np.isnan(self._track_error_since), self.time_s,
-                              self._track_error_since), np.nan)
-            # (a channel on target holds NaN, and NaN >= x is False: not late)
-            late = err & (self.time_s - self._track_error_since >= cfg.stuck_detect_s)
-            if np.any(late):
+            now = self.time_s
+            pressures, since = self.pressures_pa.tolist(), self._track_error_since.tolist()
+            late_mask = 0
+            for i, (t, p, stuck) in enumerate(zip(target, pressures, self._stuck.tolist(),
+                                                  strict=True)):
+                if not stuck:
+                    p = min(max(p + alpha * (t - p), 0.0), supply)
+                    pressures[i] = p
+                if abs(t - p) > cfg.stuck_detect_pa:  # off target: since when (NaN: now)
+                    if since[i] != since[i]:
+                        since[i] = now
+                    if now - since[i] >= cfg.stuck_detect_s:
+                        late_mask |= 1 << i
+                else:
+                    since[i] = math.nan  # on target
+            self.pressures_pa = np.array(pressures)
+            self._track_error_since = np.array(since)
+            if late_mask:
                 self._faults.add('FAULT_STUCK')
-                self._channel_fault_mask |= int(sum(1 << i for i in np.flatnonzero(late)))
+                self._channel_fault_mask |= late_mask
             if self._silent:
                 return
             if self.time_s + 1e-12 >= self._next_measured:
