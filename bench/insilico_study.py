@@ -1049,7 +1049,8 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
             where = f' in `{res.anatomy}`' if by_anatomy else ''
             curves = static_curves(res, options)
             png = f'{stem}_static.png'
-            if plot_curves(curves, plan.budgets, out / png, f'option set {options}{where}: '
+            marks = sorted({n for m in methods_at(plan, options) for n in plan.budgets_of(m)})
+            if plot_curves(curves, marks, out / png, f'option set {options}{where}: '
                            'static training, periodic evaluation (training targets)'):
                 lines += [f'Learning curves{where} (periodic evaluation of each run on the '
                           'training targets, noise-free; one line per seed'
