@@ -9,8 +9,10 @@ the centerline (``planner_type: centerline``); trial ``k`` of a condition starts
 ``k mod 3`` with target ``k mod 5``. Each trial runs on a rig of its own, built from
 ``launch/sim_rig.launch.yaml``: ``phantom`` (the catheter-in-aorta physics, a simulated Aurora
 on a pty, the regulator bank and the sleeve driver on virtual CAN), the real ``aurora`` node
-(ndicapi over the pty), ``pam_controller``, ``sleeve_driver``, ``teleop``, ``planner`` and the
-scripted ``operator`` at the gamepad. After 1 s of simulated time (the tracker connects, the
+(``link: in_process``: the simulated Aurora answers its Combined API commands in the polling
+thread, no pty round trip per frame; ndicapi over the pty is the rig's path),
+``pam_controller``, ``sleeve_driver``, ``teleop``, ``planner`` and the scripted ``operator`` at
+the gamepad. After 1 s of simulated time (the tracker connects, the
 first poses arrive) the goal is published; the trial ends when the operator stops (target
 reached, or closest approach passed) or at the 3-minute limit, and is recorded to its own bag.
 If the beating wall blows up (the phantom freezes its physics, :class:`~cgail_sim.wall.
@@ -310,7 +312,10 @@ class TrialRig:
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
                         'marker_rate_hz': RECORDED_MARKER_RATE_HZ,
                         'lumen_rate_hz': RECORDED_LUMEN_RATE_HZ},
-            'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock'},
+            # the simulated Aurora answers in the polling thread (em_tracker.hw.aurora's
+            # InProcessAurora): no pty round trip and thread switch per frame
+            'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock',
+                       'link': 'in_process'},
             'pam_controller': {'control_rate_hz': control, **dict(s.pam_parameters)},
             'sleeve_driver': {'control_rate_hz': control},
             'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,

@@ -64,6 +64,11 @@ class TrackerConfig:
     """``'thread'``: a reader thread polls on the steady clock (a real rig). ``'clock'``: a
     timer of the node's clock polls synchronously at ``rate_hz`` (the lockstep simulated rig,
     where the node clock is simulated time; a slow reply then stalls the executor)."""
+    link: str = 'serial'
+    """``'serial'``: ndicapi on ``port`` (a rig, or a simulated Aurora's pty). ``'in_process'``:
+    the simulated Aurora of this process that serves ``port`` answers each command frame in
+    the caller's thread, no pty, ndicapi or serving thread (the lockstep simulated session:
+    :class:`~em_tracker.hw.aurora.InProcessAurora`); TX polling only."""
 
     def __post_init__(self) -> None:
         if not self.port:
@@ -76,6 +81,10 @@ class TrackerConfig:
             raise ValueError(f"priority must be 'D', 'S' or 'B', found {self.priority!r}")
         if self.poll_mode not in ('thread', 'clock'):
             raise ValueError(f"poll_mode must be 'thread' or 'clock', found {self.poll_mode!r}")
+        if self.link not in ('serial', 'in_process'):
+            raise ValueError(f"link must be 'serial' or 'in_process', found {self.link!r}")
+        if self.link == 'in_process' and self.use_bx:
+            raise ValueError('link in_process polls with TX: use_bx must be false, found true')
         for entry in self.srom_files:
             handle, _, path = entry.partition(':')
             if len(handle) != 2 or not path or not all(c in '0123456789abcdefABCDEF'

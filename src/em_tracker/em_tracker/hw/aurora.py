@@ -9,6 +9,13 @@ optional SROM images (``PVWR``) -> ``PHSR:02`` / ``PINIT:hh`` for every handle t
 initialising -> ``PHSR:03`` / ``PENA:hh<priority>`` for every handle that needs enabling ->
 ``TSTART:``. Polling: ``TX:0001`` (or ``BX:0001``). Shutdown: ``TSTOP:``.
 
+:class:`InProcessAurora` runs the same sequence against a simulated Aurora of this process
+(:class:`~em_tracker.hw.sim_aurora.SimAurora`), which answers each command frame in the
+caller's thread: no pty, no ndicapi, no serving thread. Its TX parsing gives ndicapi's values
+to the bit (the same scaling products); the lockstep simulated session takes it, since a
+serial exchange there is a thread switch and a pty round trip per frame, and the pty path is
+what a rig runs and what the package's tests drive.
+
 Known ndicapi hazard, and why :class:`IsolatedAurora` exists: when a reply fails (bad CRC,
 timeout) *and* its bytes are not valid UTF-8 (line noise), ``ndicapy.ndiCommand`` dereferences a
 NULL object and the process dies with SIGSEGV (observed with ndicapi 3.7.6). The node therefore
@@ -35,6 +42,7 @@ from em_tracker.core.errors import (
     EmTrackerError,
     ProtocolError,
 )
+from em_tracker.hw import combined_api as api
 
 # ndicapi error codes (host-side, see ndicapi.h).
 NDI_BAD_CRC = 0x100
@@ -211,15 +219,18 @@ class NdiAurora:
             self.command(f'PVWR:{handle:02X}{address:04X}'
                          f'{image[address:address + 64].hex().upper()}')
 
-    def connect(self) -> list[int]:
-        """Run the start-up sequence and return the enabled handles."""
-        self.close()
+    def _open(self) -> None:
         if not os.path.exists(self.settings.port):
             raise DeviceDisconnected(f'serial port {self.settings.port} does not exist')
         dev = self._ndi.ndiOpen(self.settings.port)
         if dev is None:
             raise DeviceDisconnected(f'ndiOpen could not open {self.settings.port}')
         self._dev = dev
+
+    def connect(self) -> list[int]:
+        """Run the start-up sequence and return the enabled handles."""
+        self.close()
+        self._open()
         self.command('INIT:')
         if self.settings.baud != 9600:
             self.command(f'COMM:{_BAUD_DIGIT[self.settings.baud]}0000')
@@ -273,6 +284,107 @@ class NdiAurora:
             self._ndi.ndiCommand(self._dev, 'TSTOP:')
         with contextlib.suppress(OSError):
             self._ndi.ndiClose(self._dev)
+        self._dev = None
+
+
+class InProcessAurora(NdiAurora):
+    """:class:`NdiAurora`'s sequence with a simulated Aurora of this process answering each
+    command frame in the caller's thread (module docstring); TX polling only.
+
+    Args:
+        settings: as for :class:`NdiAurora` (``port``: the simulated Aurora's ``port``).
+
+    Raises:
+        ValueError: ``use_bx`` set.
+    """
+
+    def __init__(self, settings: AuroraSettings) -> None:  # (no ndicapy)
+        if settings.use_bx:
+            raise ValueError('InProcessAurora polls with TX: use_bx must be false, found true')
+        self.settings = settings
+        self._dev: Any = None  # the SimAurora while open
+        self.handles: list[int] = []
+
+    def _open(self) -> None:
+        from em_tracker.hw.sim_aurora import in_process_device
+
+        device = in_process_device(self.settings.port)
+        if device is None:
+            raise DeviceDisconnected(f'no simulated Aurora of this process serves '
+                                     f'{self.settings.port}')
+        self._dev = device
+
+    def command(self, text: str) -> str:
+        """Send one command frame (with its CRC) and return the reply's body.
+
+        Raises:
+            DeviceDisconnected: not open, or the device's line is down.
+            DeviceTimeout: the device left the command unanswered.
+            ProtocolError: a reply that is not a text reply with a good CRC.
+            DeviceError: an ``ERRORxx`` reply (``code`` xx).
+        """
+        if self._dev is None:
+            raise DeviceDisconnected(f'{text}: port {self.settings.port} is not open')
+        try:
+            reply = self._dev.exchange(api.encode_command(text))
+        except OSError as exc:
+            raise DeviceDisconnected(f'{text}: {exc}') from exc
+        if reply is None:
+            raise DeviceTimeout(f'{text}: no reply')
+        body = api.decode_text_reply(reply)  # (ProtocolError: bad CRC, garbage)
+        if body.startswith('ERROR') and len(body) == 7:
+            raise DeviceError(f'{text}: the device answered {body}', int(body[5:], 16))
+        return body
+
+    def _phsr(self, option: str) -> list[int]:
+        body = self.command(f'PHSR:{option}')
+        return [int(body[2 + 5 * i:4 + 5 * i], 16) for i in range(int(body[:2], 16))]
+
+    def read(self) -> TrackingReply:
+        """Poll ``TX:0001``; the readings of the enabled handles, parsed as ndicapi parses
+        them (quaternion and error ``* 0.0001``, position ``* 0.01`` mm).
+
+        Raises:
+            ProtocolError: a reply that does not parse as a TX reply.
+        """
+        body = self.command('TX:0001')
+        now = time.monotonic()
+        records: dict[int, ToolReading] = {}
+        try:
+            pos = 2
+            for _ in range(int(body[:2], 16)):
+                handle = int(body[pos:pos + 2], 16)
+                pos += 2
+                values: tuple[float, ...] | None = None
+                if body.startswith('MISSING', pos):
+                    pos += 7
+                elif body.startswith('DISABLED', pos):
+                    pos += 8
+                else:
+                    f = body[pos:pos + 51]
+                    values = (*(int(f[k:k + 6]) * 0.0001 for k in range(0, 24, 6)),
+                              *(int(f[k:k + 7]) * 0.01 for k in range(24, 45, 7)),
+                              int(f[45:51]) * 0.0001)
+                    pos += 51
+                status, frame = int(body[pos:pos + 8], 16), int(body[pos + 8:pos + 16], 16)
+                pos += 16 + (body[pos + 16:pos + 17] == '\n')
+                records[handle] = ToolReading(handle, False, port_status=status,
+                                              frame_number=frame) if values is None else \
+                    ToolReading(handle, True, values[0:4], values[4:7],  # type: ignore[arg-type]
+                                values[7], status, frame)
+            system = int(body[pos:pos + 4], 16)
+        except ValueError as exc:
+            raise ProtocolError(f'TX:0001: expected a TX reply, found {body!r}') from exc
+        tools = tuple(records[h] if h in records else ToolReading(h, False)
+                      for h in self.handles)
+        return TrackingReply(tools, system, now)
+
+    def close(self) -> None:
+        """Send TSTOP if possible and let go of the device."""
+        if self._dev is None:
+            return
+        with contextlib.suppress(EmTrackerError):
+            self.command('TSTOP:')
         self._dev = None
 
 

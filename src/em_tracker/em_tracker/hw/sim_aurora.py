@@ -32,6 +32,11 @@ Faults (thread-safe setters): bad CRC on the next replies, MISSING tool, out of 
 partially out of volume, broken coil, extra port/system status bits, ``ERRORxx`` replies to
 tracking commands, garbage bytes before a reply, dropped frames, unanswered commands, and a
 disconnect (the pty is closed: the host gets read/write errors).
+
+In-process link: a started device is also found by its :attr:`~SimAurora.port` with
+:func:`in_process_device`, and :meth:`SimAurora.exchange` answers one command frame in the
+caller's thread, as the serving thread answers a line from the pty
+(:class:`em_tracker.hw.aurora.InProcessAurora`, the lockstep simulated session).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ import argparse
 from collections.abc import Callable, Sequence
 import contextlib
 from dataclasses import dataclass, field
+import errno
 import math
 import os
 import re
@@ -58,6 +64,8 @@ from em_tracker.core.errors import ProtocolError
 from em_tracker.hw import combined_api as api
 
 _NAME_COLON = re.compile(rb'[A-Z0-9]+:')
+#: The started devices of this process, by port (:func:`in_process_device`).
+_IN_PROCESS: dict[str, SimAurora] = {}
 _HEX_DIGITS = frozenset('0123456789ABCDEFabcdef')
 
 PoseSource = Callable[[float], tuple[Sequence[float] | np.ndarray, Sequence[float] | np.ndarray]]
@@ -360,10 +368,13 @@ class SimAurora:
         self._stop.clear()
         self._thread = threading.Thread(target=self._serve, name='sim_aurora', daemon=True)
         self._thread.start()
+        _IN_PROCESS[self.port] = self
         return self
 
     def close(self) -> None:
         """Stop serving and close the pty (and remove the symlink)."""
+        if _IN_PROCESS.get(self.port) is self:
+            del _IN_PROCESS[self.port]
         self._stop.set()
         os.write(self._wake_w, b'x')
         if self._thread is not None:
@@ -483,6 +494,18 @@ class SimAurora:
                     if reply is not None and self._master >= 0:
                         with contextlib.suppress(OSError):
                             os.write(self._master, reply)
+
+    def exchange(self, frame: bytes) -> bytes | None:
+        """Answer one command frame (up to its CR) in the caller's thread, as the serving
+        thread answers a line read from the pty: the reply, or None for no reply.
+
+        Raises:
+            OSError: the device is disconnected (the pty is closed).
+        """
+        with self._lock:
+            if self._master < 0:
+                raise OSError(errno.EIO, 'the simulated Aurora is disconnected')
+            return self._handle_safely(frame.rstrip(b'\r'))
 
     def _handle_safely(self, line: bytes) -> bytes | None:
         """:meth:`_handle`, answering ``ERROR01`` if it raises: the serving thread must never
@@ -729,6 +752,12 @@ class SimAurora:
                 position_mm=tuple(float(p) for p in pos),  # type: ignore[arg-type]
                 error_mm=self.error_mm, port_status=status, frame_number=frame_number))
         return out
+
+
+def in_process_device(port: str) -> SimAurora | None:
+    """The started :class:`SimAurora` of this process whose :attr:`~SimAurora.port` is
+    ``port``, or None."""
+    return _IN_PROCESS.get(port)
 
 
 def _hex(text: str, digits: int) -> int | None:

@@ -72,7 +72,13 @@ from cgail_node_utils.parameters import AUTOSTART_DESCRIPTION, configure_time_gu
 from em_tracker.core.config import TrackerConfig
 from em_tracker.core.pose import Registration, TipPose
 from em_tracker.core.tracking import TrackerHealth
-from em_tracker.hw.aurora import AuroraDevice, AuroraSettings, IsolatedAurora, NdiAurora
+from em_tracker.hw.aurora import (
+    AuroraDevice,
+    AuroraSettings,
+    InProcessAurora,
+    IsolatedAurora,
+    NdiAurora,
+)
 from em_tracker.hw.tracker_loop import TrackerLoop
 from em_tracker.nodes.conversions import (
     diagnostic_status,
@@ -124,6 +130,9 @@ _PARAMS: dict[str, tuple[object, str, tuple[float, float] | None]] = {
                        None),
     'poll_mode': (_DEFAULTS.poll_mode, "'thread': reader thread on the steady clock (a rig); "
                   "'clock': node-clock timer, synchronous (lockstep simulated rig)", None),
+    'link': (_DEFAULTS.link, "'serial': ndicapi on port; 'in_process': the simulated Aurora "
+             'of this process serving port, answered in the polling thread (TX only; the '
+             'lockstep simulated session)', None),
     'autostart': (True, AUTOSTART_DESCRIPTION, None),
 }
 #: Parameters fixed for the node's life (the others are read at configure).
@@ -153,14 +162,18 @@ def build_config(values: Mapping[str, Any]) -> TrackerConfig:
         reconnect_initial_s=values['reconnect_initial_s'],
         reconnect_max_s=values['reconnect_max_s'], stale_after_s=values['stale_after_s'],
         diagnostics_period_s=values['diagnostics_period_s'],
-        isolate_device=values['isolate_device'], poll_mode=values['poll_mode'])
+        isolate_device=values['isolate_device'], poll_mode=values['poll_mode'],
+        link=values['link'])
 
 
 def default_device(config: TrackerConfig) -> AuroraDevice:
-    """ndicapi device for ``config`` (in a child process unless ``isolate_device`` is off)."""
+    """The device for ``config``: ndicapi (in a child process unless ``isolate_device`` is
+    off), or the in-process link to a simulated Aurora (``link: in_process``)."""
     srom = tuple((int(h, 16), p) for h, _, p in (e.partition(':') for e in config.srom_files))
     settings = AuroraSettings(port=config.port, baud=config.baud, priority=config.priority,
                               use_bx=config.use_bx, srom_files=srom)
+    if config.link == 'in_process':
+        return InProcessAurora(settings)
     if config.isolate_device:
         return IsolatedAurora(settings, reply_timeout_s=config.reply_timeout_s)
     return NdiAurora(settings)
