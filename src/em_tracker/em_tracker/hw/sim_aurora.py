@@ -345,6 +345,7 @@ class SimAurora:
         self._lock = threading.RLock()
         self._master = -1
         self._slave = -1
+        self._generation = 0  # pty (re)opened or closed: a select's readiness is stale
         self._slave_name = ''
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -447,6 +448,7 @@ class SimAurora:
         self._last_frame_index = -1
 
     def _open_pty(self) -> None:
+        self._generation += 1
         master, slave = os.openpty()
         tty.setraw(slave)  # no echo / CR translation before the host configures the port
         self._master, self._slave = master, slave
@@ -459,6 +461,7 @@ class SimAurora:
             os.replace(tmp, self.link_path)
 
     def _close_fds(self) -> None:
+        self._generation += 1
         for name in ('_master', '_slave'):
             fd = getattr(self, name)
             if fd >= 0:
@@ -469,6 +472,9 @@ class SimAurora:
     def _serve(self) -> None:
         buffer = b''
         while not self._stop.is_set():
+            # (the pty it selected on, or a readiness seen on a closed one could send the read
+            # to a new pty's fd of the same number, blocking with the lock held)
+            generation = self._generation
             fds = [self._wake_r] + ([self._master] if self._master >= 0 else [])
             try:
                 ready, _, _ = select.select(fds, [], [], 0.5)
@@ -481,7 +487,7 @@ class SimAurora:
                 continue
             with self._lock:
                 master = self._master
-                if master < 0 or master not in ready:
+                if master < 0 or master not in ready or self._generation != generation:
                     continue
                 try:
                     chunk = os.read(master, 4096)
