@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 import enum
+from functools import lru_cache
 import math
 import re
 import struct
@@ -141,8 +142,10 @@ def crc_hex(data: bytes) -> bytes:
     return b'%04X' % crc16(data)
 
 
+@lru_cache(maxsize=256)
 def encode_command(text: str) -> bytes:
     """Frame a host command: ``NAME:params`` + CRC + CR (no CRC when there is no colon).
+    (Cached: a host polls with the same few commands.)
 
     Args:
         text: the command without CRC or CR, e.g. ``'TX:0001'``.
@@ -171,7 +174,8 @@ class Command:
 
 
 def decode_command(frame: bytes) -> Command:
-    """Parse one host command frame (with or without its trailing CR).
+    """Parse one host command frame (with or without its trailing CR). (Cached: a host polls
+    with the same few frames; a frame that raises is not cached.)
 
     Args:
         frame: bytes up to the CR, e.g. ``b'PENA:0AD8C3B'``.
@@ -184,6 +188,11 @@ def decode_command(frame: bytes) -> Command:
             name (a bare ``TX``), or its CRC does not match (the message names the expected
             and found CRC).
     """
+    return _decode_command(bytes(frame))
+
+
+@lru_cache(maxsize=256)
+def _decode_command(frame: bytes) -> Command:
     frame = frame.rstrip(CR)
     try:
         text = frame.decode('ascii')
