@@ -183,7 +183,8 @@ def test_every_old_console_script_runs_its_verb() -> None:
 
     assert scripts_of('cgail_planner') == {
         'planner_node': 'cgail_planner.nodes.planner_node:main',
-        'operator_node': 'cgail_planner.nodes.operator_node:main'}
+        'operator_node': 'cgail_planner.nodes.operator_node:main',
+        'autonomy_node': 'cgail_planner.nodes.autonomy_node:main'}
     assert scripts_of('cgail_gui') == {
         'gui_node': 'cgail_gui.nodes.gui_node:main',
         'igtl_bridge': 'cgail_gui.nodes.igtl_bridge:main',
