@@ -151,6 +151,8 @@ class PhantomPhysics:
         self._wall_pending = 0.0
         #: Axial load of the last wall contact on the tip, N (0 without contact or plant).
         self.load = 0.0
+        #: The tip's advance (insertion along the body, m) of the last step.
+        self.last_advance = 0.0
         #: Bench fixture: the clamped base pose and the tip pose of the current bend.
         self._base: tuple[FloatArray, FloatArray] | None = None
         self._bench: tuple[FloatArray, FloatArray] | None = None
@@ -212,6 +214,7 @@ class PhantomPhysics:
         if not (math.isfinite(dt) and dt > 0.0):
             raise ValueError(f"dt must be a positive number of seconds, found {dt!r}")
         self.time += dt
+        self.last_advance = 0.0
         if self._base is not None:  # bench fixture: clamped, in free air
             self._bench = bench_tip_pose(*self._base, bend, self.config.catheter,
                                          self.config.max_substep)
@@ -229,6 +232,7 @@ class PhantomPhysics:
                 if self.plant is not None:
                     delta = self.plant.advance(delta, self.load)
                 self.load = 0.0  # (set again by the contacts of this move)
+                self.last_advance = delta
                 self.move(delta, bend)
         if isinstance(self.wall, DeformableWall):
             self._wall_pending += dt

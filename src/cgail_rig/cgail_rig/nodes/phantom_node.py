@@ -84,6 +84,16 @@ from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.markers import body_marker, LumenMesh, MarkerConfig
 from cgail_planner.core.rotations import matrix_to_quaternion
 from cgail_planner.nodes import conversions as conv
+from cgail_rig.core.faults import (
+    CapMonitor,
+    Caps,
+    Fault,
+    FAULT_KINDS,
+    plan_fault,
+    push_direction,
+    push_offset,
+    SleeveSlip,
+)
 from cgail_rig.core.phantom import FIXTURES, PhantomConfig, PhantomPhysics
 from cgail_rig.core.plant import make_plant
 from cgail_sim.ftl_model import CatheterConfig
@@ -170,6 +180,13 @@ class PhantomNode(Node):
         self.plant_seed = seed if plant_seed < 0 else plant_seed
         diag_period = conv.declare(self, 'diagnostics_period_s', 1.0, '/diagnostics period, s',
                                    lo=0.05, hi=60.0)
+        fault_kind = conv.declare(self, 'fault', '', "fault to inject ('' none, or one of "
+                                  f'{FAULT_KINDS}; cgail_rig.core.faults)')
+        if fault_kind not in ('', *FAULT_KINDS):
+            raise ValueError(f"fault: expected '' or one of {FAULT_KINDS}, found {fault_kind!r}")
+        fault_goal_s = conv.declare(self, 'fault_goal_s', 1.0, "simulated time of the trial's "
+                                    'goal, s: the fault onset is drawn after it', lo=0.0,
+                                    hi=3600.0)
 
         from cgail_sim.anatomy_spec import anatomy_label
         from cgail_sim.wall import DeformableWall, StaticWall
@@ -208,6 +225,14 @@ class PhantomNode(Node):
         # zero). Lockstep: the node clock is the simulated time, from 0.
         self._clock_offset = 0.0 if self.lockstep else time.time()
         self._em_cache: tuple[float, np.ndarray, np.ndarray] | None = None
+        #: The injected fault (None: none), whether its onset passed, the push direction.
+        self.fault: Fault | None = plan_fault(fault_kind, seed, fault_goal_s) \
+            if fault_kind else None
+        self.fault_started = False
+        self._slip = SleeveSlip()
+        self._push_dir: np.ndarray | None = None
+        #: The catheter's largest tip speed, bend and pressure, measured on the plant.
+        self.caps = CapMonitor(Caps())
         self.reset_trial(self.start_id, self.target_id)
 
         self.devices: list[object] = []
@@ -327,6 +352,8 @@ class PhantomNode(Node):
 
         In lockstep the executor has already moved the node clock to the end of the step.
         """
+        if self.fault is not None:
+            self._apply_fault(self.sim_time + dt)
         if self.bank is not None:
             self.bank.step(dt)
         if self.driver is not None:
@@ -336,6 +363,10 @@ class PhantomNode(Node):
                 self.pressures = self.bank.pressures_pa.copy()
             if self.driver is not None:
                 self.insertion = self.driver.mechanism.catheter_position
+                if self.fault is not None:  # (the grip transmits the gripper's motion)
+                    self.insertion = self._slip.transmit(
+                        self.insertion, self.fault.kind == 'slipping_sleeve'
+                        and self.fault.active(self.sim_time + dt))
             self.bend = self.plant.bend(self.pressures, dt)
             if not self.physics_error:
                 try:
@@ -343,6 +374,7 @@ class PhantomNode(Node):
                 except WallError as exc:  # safe state: the catheter and the wall freeze
                     self.physics_error = f'physics stopped: {exc}'
                     self.get_logger().error(self.physics_error)
+            self.caps.observe(dt, self.physics.last_advance, self.bend, self.pressures)
             if self.lockstep:
                 self.sim_time = self.get_clock().now().nanoseconds * 1e-9
             else:
@@ -357,6 +389,27 @@ class PhantomNode(Node):
                                                  self.physics.tip_rotation))
         if self.mode == 'dynamic' and self._ticks % 5 == 0:
             self.publish_target()
+
+    def _apply_fault(self, t: float) -> None:
+        """Start or end the injected fault at simulated time ``t`` through the simulated
+        devices (the Aurora, the regulator bank); the sleeve slip and the push act in
+        :meth:`advance` and :meth:`_em_pose`."""
+        fault = self.fault
+        assert fault is not None
+        active = fault.active(t)
+        if active and not self.fault_started:
+            self.fault_started = True
+            self.get_logger().warning(f'fault injected: {fault.kind} at {t:.3f} s')
+            if fault.kind == 'dropout' and self.aurora is not None:
+                self.aurora.inject(missing=True)
+            elif fault.kind == 'stuck_pam' and self.bank is not None:
+                self.bank.set_stuck(fault.channel)
+            elif fault.kind == 'wall_push':
+                with self._lock:
+                    self._push_dir = push_direction(self.physics.tip_rotation, fault.angle)
+        elif self.fault_started and not active and fault.kind == 'dropout' \
+                and self.aurora is not None and self.aurora.faults.missing:
+            self.aurora.inject(missing=False)
 
     def publish_target(self) -> None:
         """Publish the current target on ``phantom/target`` (latched)."""
@@ -392,6 +445,8 @@ class PhantomNode(Node):
             cache = self._em_cache
             if cache is None or cache[0] != t_frame:
                 p, r = self.physics.measured_pose(self.rng)
+                if self._push_dir is not None and self.fault is not None:
+                    p = p + push_offset(self.fault, self.sim_time, self._push_dir)
                 x, y, z, w = matrix_to_quaternion(r)
                 cache = (t_frame, p * 1e3, np.array([w, x, y, z]))
                 self._em_cache = cache
