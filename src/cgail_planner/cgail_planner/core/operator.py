@@ -42,6 +42,14 @@ Model (documented assumptions, in simulated seconds; values and their sources at
 * **Protocol** (paper section IV-B): stop when the tip is within ``stop_distance`` of the target,
   or, once within ``epsilon``, when the distance grows again by ``overshoot`` (the closest
   approach has passed); or at ``time_limit_s`` (3 minutes). Stopping releases the deadman.
+* **Supervising** (:class:`SupervisingOperator`, shared autonomy): the person holds the deadman
+  from the start and leaves the driving to the autonomy. Assumptions: the thumbs rest off the
+  sticks (centred exactly, no stick noise) while the tip stays within ``threshold`` of the
+  displayed path; beyond it, seen after the same reaction delay, the person steers back with
+  the bend they would aim at when driving (:func:`aimed_bend`), ``K * bend / bend_scale``
+  (the autonomy adds ``bend_scale`` rad at full deflection), through the same second-order
+  stick response, and never touches the insertion stick (the autonomy inserts and stops at
+  the target; the person keeps only the time limit).
 
 References: E. R. Donges, "A two-level model of driver steering behavior", Human Factors 20(6),
 1978. M. F. Land, D. N. Lee, "Where we look when we steer", Nature 369, 1994. D. Elliott,
@@ -296,6 +304,8 @@ class Percept:
     bend: tuple[float, float]
     heading_error: float
     distance: float
+    deviation: float = 0.0
+    """Distance of the tip from the displayed path, m (what a supervising person watches)."""
 
 
 class ScriptedOperator:
@@ -401,3 +411,54 @@ class ScriptedOperator:
         self.sticks[:] = 0.0
         self._bend_rate[:] = 0.0
         return Sticks(0.0, 0.0, 0.0, False)
+
+
+class SupervisingOperator(ScriptedOperator):
+    """The person of shared autonomy (module docstring, *Supervising*): deadman held, sticks
+    centred until the tip strays more than ``threshold`` from the path, then a bend correction.
+
+    Args:
+        config: behaviour (reaction delay, stick response, correction gain, time limit).
+        threshold: deviation from the path beyond which the person corrects, m; (0, 0.05].
+        bend_scale: bend the autonomy adds at full deflection, rad (its
+            ``shared_scale_bend``); (0, pi/2].
+        seed: unused (no stick noise); kept for the driving operator's signature.
+    """
+
+    def __init__(self, config: OperatorConfig | None = None, threshold: float = 0.005,
+                 bend_scale: float = 0.5, seed: int = 0) -> None:
+        for name, value, high in (('threshold', threshold, 0.05),
+                                  ('bend_scale', bend_scale, math.pi / 2)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value)
+                    and 0.0 < value <= high):
+                raise ValueError(f'{name}: expected a number in (0, {high:g}], found {value!r}')
+        super().__init__(config, seed)
+        self.threshold = float(threshold)
+        self.bend_scale = float(bend_scale)
+        self.corrections = 0
+        """Steps in which the person aimed a bend stick away from centre."""
+
+    def step(self, t: float) -> Sticks:
+        """Stick deflections at time ``t`` (s): insertion 0, deadman held while running."""
+        cfg, skill = self.config, self.proficiency
+        dt = 0.0 if self.t_last is None else max(t - self.t_last, 0.0)
+        self.t_last = t
+        if self.state != "running":
+            self.sticks[:] = 0.0
+            self._bend_rate[:] = 0.0
+            return Sticks(0.0, 0.0, 0.0, False)
+        if t - self.t_start >= cfg.time_limit_s:
+            return self._stop(f"time limit {cfg.time_limit_s:.0f} s reached")
+        seen = self._delayed(t)
+        target = np.zeros(3)
+        if seen is not None and seen.deviation > self.threshold:
+            gain = skill.correction_gain / self.bend_scale
+            target[1:] = gain * seen.bend[0], gain * seen.bend[1]
+        self._move_sticks(target, dt)
+        bend = self.sticks[1:].copy()
+        norm = float(np.hypot(*bend))
+        if norm > MAX_BEND_DEFLECTION:
+            bend = bend * (MAX_BEND_DEFLECTION / norm)
+        if target[1] != 0.0 or target[2] != 0.0:
+            self.corrections += 1
+        return Sticks(0.0, float(bend[0]), float(bend[1]), True)

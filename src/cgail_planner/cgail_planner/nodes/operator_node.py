@@ -35,8 +35,17 @@ from std_srvs.srv import Trigger
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.guidance import PathFollower
-from cgail_planner.core.operator import aimed_bend, OperatorConfig, Percept, ScriptedOperator
+from cgail_planner.core.operator import (
+    aimed_bend,
+    OperatorConfig,
+    Percept,
+    ScriptedOperator,
+    SupervisingOperator,
+)
 from cgail_planner.nodes import conversions as conv
+
+#: ``role``: the person drives, or supervises the autonomy (shared autonomy).
+ROLES = ('drive', 'supervise')
 
 
 class OperatorNode(Node):
@@ -111,7 +120,19 @@ class OperatorNode(Node):
                              f'found {self.axes}')
         rate = conv.declare(self, 'rate_hz', 20.0, 'Joy publishing rate, Hz', lo=1.0, hi=200.0)
         seed = conv.declare(self, 'seed', 0, 'seed of the stick noise', lo=0, hi=2**31 - 1)
-        self.operator = ScriptedOperator(self.config, seed)
+        self.role = conv.declare(self, 'role', 'drive', "'drive' (the person drives through "
+                                 "teleop) or 'supervise' (shared autonomy: deadman held, "
+                                 'corrects only beyond supervise_threshold)')
+        if self.role not in ROLES:
+            raise ValueError(f'role: expected one of {ROLES}, found {self.role!r}')
+        threshold = conv.declare(self, 'supervise_threshold', 0.005, "'supervise': deviation "
+                                 'from the path beyond which the person corrects, m',
+                                 lo=1e-4, hi=0.05)
+        correction_scale = conv.declare(self, 'supervise_bend_scale', 0.5, "'supervise': bend "
+                                        'the autonomy adds at full deflection, rad (its '
+                                        'shared_scale_bend)', lo=0.01, hi=math.pi / 2)
+        self.operator = ScriptedOperator(self.config, seed) if self.role == 'drive' else \
+            SupervisingOperator(self.config, threshold, correction_scale, seed)
         self.goal: np.ndarray | None = None
         self.tip: np.ndarray | None = None
         self.heading: np.ndarray | None = None
@@ -201,9 +222,14 @@ class OperatorNode(Node):
             n = float(np.linalg.norm(to_wp))
             if n > 1e-9:
                 heading_error = math.acos(max(-1.0, min(1.0, float(self.heading @ to_wp) / n)))
+        deviation = 0.0
+        if self.role == 'supervise' and self.path is not None:
+            _, _, closest = self.path.project(self.tip)
+            deviation = float(np.linalg.norm(closest - self.tip))
         self.operator.perceive(Percept(t=self._now(), bend=bend,
                                        heading_error=heading_error,
-                                       distance=float(np.linalg.norm(self.goal - self.tip))))
+                                       distance=float(np.linalg.norm(self.goal - self.tip)),
+                                       deviation=deviation))
 
     def _on_waypoint(self, msg: PointStamped) -> None:
         self.waypoint = np.array([msg.point.x, msg.point.y, msg.point.z])

@@ -238,3 +238,61 @@ def test_session_trials_carry_the_skill_after_their_practice() -> None:
     alone = plan_trials(['centerline'], 2, 7, Path('/tmp/bags'), pretrain=10)
     assert alone == specs[3:5]
     assert plan_trials(['cgail'], 1, 7, Path('/tmp/bags'), pretrain=0)[0].skill == 0.0
+
+
+# ---------------------------------------------------------------- supervising (shared autonomy)
+def _supervisor_run(deviations: list[float], dt: float = 0.05):
+    from cgail_planner.core.operator import SupervisingOperator
+
+    op = SupervisingOperator(OperatorConfig(reaction_delay_s=0.25), threshold=0.005,
+                             bend_scale=0.5)
+    op.start(0.0)
+    out = []
+    for k, deviation in enumerate(deviations):
+        t = k * dt
+        op.perceive(Percept(t=t, bend=(0.2, -0.1), heading_error=0.0, distance=0.05,
+                            deviation=deviation))
+        out.append(op.step(t))
+    return op, out
+
+
+def test_supervising_operator_holds_the_deadman_with_centred_sticks_on_the_path() -> None:
+    op, out = _supervisor_run([0.004] * 40)
+    assert all(s.deadman for s in out)
+    assert all((s.insertion, s.alpha, s.gamma) == (0.0, 0.0, 0.0) for s in out)
+    assert op.corrections == 0
+    # never stops at the target: the autonomy does (distance 0 would stop a driving operator)
+    op.perceive(Percept(t=2.0, bend=(0.0, 0.0), heading_error=0.0, distance=0.0))
+    assert op.step(2.5).deadman and op.state == 'running'
+
+
+def test_supervising_operator_corrects_beyond_the_threshold_after_its_delay() -> None:
+    op, out = _supervisor_run([0.004] * 10 + [0.008] * 30)
+    # deviation seen from t = 0.5 s, acted on after the 0.25 s delay: not before t = 0.75 s
+    assert all((s.alpha, s.gamma) == (0.0, 0.0) for s in out[:15])
+    late = out[-1]
+    assert late.insertion == 0.0 and late.deadman
+    # towards K * bend / bend_scale = 0.9 * (0.2, -0.1) / 0.5 (second-order response)
+    assert late.alpha == pytest.approx(0.36, abs=0.05)
+    assert late.gamma == pytest.approx(-0.18, abs=0.05)
+    assert op.corrections > 0
+
+
+def test_supervising_operator_releases_the_deadman_at_the_time_limit() -> None:
+    from cgail_planner.core.operator import SupervisingOperator
+
+    op = SupervisingOperator(OperatorConfig(time_limit_s=1.0))
+    op.start(0.0)
+    assert op.step(0.5).deadman
+    assert not op.step(1.0).deadman and op.state == 'done' and 'time limit' in op.reason
+
+
+@pytest.mark.parametrize(('kwargs', 'match'), [
+    ({'threshold': 0.0}, r'threshold: expected a number in \(0, 0.05\], found 0.0'),
+    ({'bend_scale': 2.0}, r'bend_scale: expected a number in \(0, 1.5708\], found 2.0'),
+])
+def test_supervising_operator_refuses_bad_settings(kwargs: dict, match: str) -> None:
+    from cgail_planner.core.operator import SupervisingOperator
+
+    with pytest.raises(ValueError, match=match):
+        SupervisingOperator(**kwargs)
