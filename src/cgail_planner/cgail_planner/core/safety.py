@@ -38,6 +38,11 @@ one comes the output is the hold (insertion 0, bend where it is).
                               watchdogs (``pam_controller`` vents after 0.5 s, ``sleeve_driver``
                               stops after 0.2 s without a command) cover a supervisor that
                               stops ticking altogether
+``device_fault``              a device node of the rig (``pam_controller``, ``sleeve_driver``,
+                              ``aurora``) reports an error (:meth:`Supervisor.on_device`: its
+                              ``/diagnostics`` at level ERROR, e.g. the regulator bank's
+                              ``FAULT_STUCK``, a chamber that does not follow its setpoint);
+                              holds until that device reports no error
 ``deadman_released``          the operator's deadman not held (or its Joy stream older than
                               ``joy_timeout_s``), when ``deadman_required``
 ``estop``                     the e-stop is engaged (:meth:`Supervisor.set_estop`)
@@ -67,8 +72,9 @@ from cgail_planner.core.guidance import PathFollower
 FloatArray = NDArray[np.float64]
 
 #: Reason codes of a stop, in the order the conditions are checked.
-STOP_REASONS = ('estop', 'deadman_released', 'watchdog', 'tracking_lost', 'pose_jump',
-                'left_lumen', 'path_deviation', 'stall', 'stale_planner', 'stale_command')
+STOP_REASONS = ('estop', 'deadman_released', 'watchdog', 'device_fault', 'tracking_lost',
+                'pose_jump', 'left_lumen', 'path_deviation', 'stall', 'stale_planner',
+                'stale_command')
 #: Supervisor states.
 STATES = ('idle', 'running', 'stopped')
 
@@ -254,6 +260,7 @@ class Supervisor:
         self._tick_gap = 0.0
         self._bend = (0.0, 0.0)
         self._window: deque[tuple[float, float, float]] = deque()
+        self._device_errors: dict[str, str] = {}
 
     @property
     def output_bend(self) -> tuple[float, float]:
@@ -310,6 +317,15 @@ class Supervisor:
         self._joy_t = now
         self._check_events(now)
 
+    def on_device(self, now: float, device: str, error: str | None) -> None:
+        """A device node's health at ``now``: ``error`` is its error message, or None when it
+        reports none (clears that device's error)."""
+        if error is None:
+            self._device_errors.pop(device, None)
+        else:
+            self._device_errors[device] = error
+        self._check_events(now)
+
     def set_estop(self, now: float, engaged: bool) -> None:
         """Engage (stop at once, latched) or release the e-stop (releasing does not resume)."""
         self.estop = bool(engaged)
@@ -354,6 +370,9 @@ class Supervisor:
         if gap > cfg.tick_timeout_s:
             out.append(('watchdog', f'supervisor ticks {gap:.3f} s apart (limit '
                         f'{cfg.tick_timeout_s} s)'))
+        if self._device_errors:
+            out.append(('device_fault', '; '.join(f'{d}: {m}' for d, m in
+                                                  sorted(self._device_errors.items()))))
         if self._pose_t is None or now - self._pose_t > cfg.tracking_timeout_s:
             out.append(('tracking_lost', f'no valid EM pose for {_age(now, self._pose_t)} '
                         f'(limit {cfg.tracking_timeout_s} s)'))

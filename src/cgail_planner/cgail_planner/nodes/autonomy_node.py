@@ -16,7 +16,9 @@ separate supervisor process would add, surviving this process, the device nodes 
   poses are rejected and count as no pose); ``planner/path`` (latched): the path to track and
   measure the deviation from; ``planner/goal`` (command): the target; ``planner/next_waypoint``
   (sensor): the planner's guidance, its liveness; ``joy`` (sensor): the deadman
-  (``enable_button``) and, in ``shared`` mode, the person's corrections (teleop's layout).
+  (``enable_button``) and, in ``shared`` mode, the person's corrections (teleop's layout);
+  ``/diagnostics``: the device nodes' health (:data:`DEVICES`: a status at level ERROR stops
+  with ``device_fault``, one at OK or WARN clears it).
 * Every ``1 / rate_hz`` s: the controller's command from the latest pose (``controller``:
   ``path`` or ``policy``; ``shared``: corrected by the sticks,
   :func:`~cgail_planner.core.autonomy.shared_command`), through the supervisor, out on
@@ -90,6 +92,11 @@ LIMITS: dict[str, tuple[str, float, float]] = {
     'tick_timeout_s': ("stop when the supervisor's tick is this late, s", 0.001, 10.0),
     'joy_timeout_s': ('a deadman whose Joy is older than this is released, s', 0.001, 10.0),
 }
+
+
+#: Device nodes whose ``/diagnostics`` the supervisor watches: the status name's prefix
+#: before ':' (``pam_controller: regulator bank``).
+DEVICES = ('pam_controller', 'sleeve_driver', 'aurora')
 
 
 class AutonomyNode(Node):
@@ -187,6 +194,8 @@ class AutonomyNode(Node):
         self.create_subscription(PointStamped, '~/next_waypoint', self._on_waypoint,
                                  conv.SENSOR_QOS)
         self.create_subscription(Joy, '~/joy', self._on_joy, conv.SENSOR_QOS)
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics,
+                                 conv.DIAGNOSTICS_QOS)
         self.create_service(Trigger, '~/resume', self._on_resume)
         self.create_service(SetBool, '~/estop', self._on_estop)
         self.create_service(Trigger, '~/reset', self._on_reset)
@@ -248,6 +257,16 @@ class AutonomyNode(Node):
             held, self._sticks = False, (0.0, 0.0, 0.0)
             self._reject('rejected_inputs', f'Joy rejected: {exc}')
         self.supervisor.on_deadman(now, held)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        now = self._now()
+        for status in msg.status:
+            device = status.name.split(':', 1)[0].strip()
+            if device not in DEVICES:
+                continue
+            error = status.level == DiagnosticStatus.ERROR
+            self.supervisor.on_device(now, device, f'{status.name}: {status.message}'
+                                      if error else None)
 
     def _reject(self, counter: str, text: str) -> None:
         self.counts[counter] += 1

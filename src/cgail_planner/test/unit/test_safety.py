@@ -172,6 +172,16 @@ def _silence_joy(rig: Rig) -> None:
     rig.run(0.6)
 
 
+def _device_error(rig: Rig) -> None:
+    rig.sup.on_device(rig.t, 'pam_controller', 'FAULT_STUCK (channel 2)')
+    rig.step()
+
+
+def _device_ok(rig: Rig) -> None:
+    rig.sup.on_device(rig.t, 'pam_controller', None)
+    rig.step()
+
+
 def _estop(rig: Rig) -> None:
     rig.sup.set_estop(rig.t, True)
     rig.step()
@@ -193,6 +203,7 @@ CONDITIONS = {
     'deadman_released': (_release, _restore('deadman')),
     'deadman_silent': (_silence_joy, _restore('joy_ok')),
     'estop': (_estop, _release_estop),
+    'device_fault': (_device_error, _device_ok),
 }
 
 
