@@ -407,7 +407,7 @@ def test_bad_launch_arguments_name_the_problem(tmp_path, args, given, match):
         parse_launch(data, tmp_path, given, name='args')
 
 
-ANATOMY_NODES = ('phantom', 'planner', 'gui', 'igtl_bridge')
+ANATOMY_NODES = ('phantom', 'planner', 'autonomy', 'gui', 'igtl_bridge')
 
 
 def test_sim_rig_nodes_build_from_their_packages_node_classes():
@@ -421,7 +421,8 @@ def test_sim_rig_nodes_build_from_their_packages_node_classes():
         module, _, cls = node.plugin.partition(':')
         assert isinstance(getattr(importlib.import_module(module), cls), type), node.plugin
     owners = {'phantom': 'cgail_rig', 'planner': 'cgail_planner', 'operator': 'cgail_planner',
-              'igtl_bridge': 'cgail_gui', 'foxglove_bridge': 'cgail_gui'}  # each node's
+              'autonomy': 'cgail_planner', 'igtl_bridge': 'cgail_gui',
+              'foxglove_bridge': 'cgail_gui'}  # each node's
     # parameter file is its package's
     assert {n.name: n.parameters_files for n in spec.nodes if n.parameters_files} == {
         name: (str(PACKAGE.parent / owner / 'config' / f'{name}.yaml'),)

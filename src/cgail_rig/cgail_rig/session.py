@@ -75,6 +75,7 @@ from collections.abc import Callable, Sequence
 import concurrent.futures
 from dataclasses import dataclass, field
 import gc
+import math
 import multiprocessing
 import os
 from pathlib import Path
@@ -85,6 +86,7 @@ import tempfile
 import time
 from typing import Any
 
+from cgail_rig.core.faults import FAULT_KINDS
 from cgail_rig.launch_spec import default_launch_file
 from cgail_sim.cli_help import tool_parser
 
@@ -93,7 +95,21 @@ from cgail_sim.cli_help import tool_parser
 TOPICS = ('em_tracker/tip_pose', 'planner/path', 'planner/goal', 'planner/next_waypoint',
           'planner/suggested_bend', 'phantom/tip_pose', 'em_tracker/tip_pose_cov', '/tf',
           '/tf_static', 'phantom/lumen', 'phantom/markers', 'planner/markers')
+#: The guided conditions (the paper's): the scripted operator drives ``teleop`` from the
+#: planner's guidance, along the C-GAIL path or the centerline. The default.
 CONDITIONS = ('cgail', 'centerline')
+#: The autonomy's conditions (issue 36): ``autonomy_node`` drives the catheter along the
+#: planner's C-GAIL path, under its supervisor: ``autonomous`` (the path tracker, the default
+#: controller), ``autonomous-policy`` (the ONNX policy controller), ``shared`` (the path
+#: tracker, the scripted operator supervising: deadman held, corrections beyond a threshold).
+AUTONOMY_CONDITIONS = ('autonomous', 'autonomous-policy', 'shared')
+ALL_CONDITIONS = CONDITIONS + AUTONOMY_CONDITIONS
+#: The autonomy's bend cap in a session, rad: below the catheter's pi/2 by the identified
+#: PAM model's error on the true plant (a commanded pi/2 bent it to ~1.69 rad, +8 %), so the
+#: plant's bend stays under pi/2 (docs/guides/autonomy.md, "Caps").
+AUTONOMY_MAX_BEND = 1.4
+#: Recorded besides ``TOPICS`` in a trial of an autonomy condition.
+AUTONOMY_TOPICS = ('autonomy/state',)
 #: ``--plant``: the true plant with the controller's nominal model, the true plant with the
 #: model identified on it, or the controller's own model as the plant.
 PLANTS = ('nominal', 'identified', 'ideal')
@@ -178,6 +194,8 @@ class SessionSettings:
     """Seed of the true plant's draw: the session's ``--seed``, so every trial of a session,
     in both conditions, runs the same catheter (a rig has one), which the controller's nominal
     model misses by the same amount."""
+    autonomy_policy: str = ''
+    """ONNX policy of the ``autonomous-policy`` condition (default: ``policy``)."""
 
 
 @dataclass(frozen=True)
@@ -196,6 +214,8 @@ class TrialSpec:
     """Trials of this condition the operator did before this one (pre-training included)."""
     skill: float = 1.0
     """The operator's skill level in this trial (``skill_after(practice)``; 1: practised)."""
+    fault: str = ''
+    """Fault injected in this trial ('' none; :data:`cgail_rig.core.faults.FAULT_KINDS`)."""
 
     @property
     def label(self) -> str:
@@ -222,26 +242,61 @@ class TrialResult:
     """Messages that reached the rig from outside it during the trial (0 when isolated)."""
     failed: bool = False
     """The trial could not run (rig error), as opposed to a trial outcome."""
+    fault: FaultRecord | None = None
+    """The injected fault and what the supervisor made of it (None: no fault)."""
+    caps_exceeded: list[str] = field(default_factory=list)
+    """Caps the catheter exceeded on the true plant (autonomy conditions; empty: none)."""
+    caps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Largest tip speed (m/s), bend (rad) and chamber pressure (Pa) on the true plant."""
+
+
+@dataclass(frozen=True)
+class FaultRecord:
+    """An injected fault's onset and the supervisor's answer, in simulated seconds."""
+
+    kind: str
+    onset_s: float
+    """Onset, simulated s from the goal (NaN: the trial ended before it)."""
+    stop_reason: str = ''
+    """The supervisor's stop reason ('' : it did not stop)."""
+    detection_s: float = float('nan')
+    """Onset to stop, simulated s (NaN: not caught)."""
+    bound_s: float = float('nan')
+    """The stated detection bound of the kind, s."""
+
+    @property
+    def injected(self) -> bool:
+        """Whether the trial lasted until the onset."""
+        return self.onset_s == self.onset_s
+
+    @property
+    def caught(self) -> bool:
+        """Stopped by the supervisor at or after the onset, within the bound."""
+        return self.detection_s == self.detection_s and self.detection_s <= self.bound_s + 1e-9
 
 
 def trial_seed(seed: int, condition: str, index: int) -> int:
     """Seed of one trial from the session seed: independent of the order trials run in."""
     import numpy as np
 
-    entropy = [int(seed), CONDITIONS.index(condition) if condition in CONDITIONS else 99,
-               int(index)]
+    entropy = [int(seed), ALL_CONDITIONS.index(condition) if condition in ALL_CONDITIONS
+               else 99, int(index)]
     return int(np.random.SeedSequence(entropy).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 def plan_trials(conditions: Sequence[str], trials: int, seed: int, bags_dir: Path,
-                n_starts: int = 3, n_targets: int = 5, pretrain: int = 10) -> list[TrialSpec]:
+                n_starts: int = 3, n_targets: int = 5, pretrain: int = 10,
+                faults: Sequence[str] = ()) -> list[TrialSpec]:
     """The session's trials in protocol order; trial ``k`` of a condition follows ``pretrain``
-    pre-training trials and ``k`` measured ones (``practice``, ``skill``)."""
+    pre-training trials and ``k`` measured ones (``practice``, ``skill``). With ``faults``,
+    trial ``k`` of an autonomy condition has fault ``faults[k mod len(faults)]``."""
     from cgail_planner.core.operator import skill_after
 
     return [TrialSpec(condition, k, k % n_starts, k % n_targets, trial_seed(seed, condition, k),
                       str(bags_dir / condition / f'{condition}_{k + 1:02d}'),
-                      practice=pretrain + k, skill=skill_after(pretrain + k))
+                      practice=pretrain + k, skill=skill_after(pretrain + k),
+                      fault=faults[k % len(faults)] if faults and condition in
+                      AUTONOMY_CONDITIONS else '')
             for condition in conditions for k in range(trials)]
 
 
@@ -281,16 +336,22 @@ class TrialRig:
                 launch = load_launch_file(path, {k: v for k, v in given.items()
                                                  if k in launch.arguments})
             overrides = self._overrides(Path(self._tmp) / 'aurora')
+            autonomy = spec.condition in AUTONOMY_CONDITIONS
             for spec_node in launch.nodes:
                 if not {'gui': settings.gui, 'igtl_bridge': settings.igtl,
-                        'foxglove_bridge': settings.foxglove}.get(spec_node.name, True):
-                    continue  # started only when asked for
+                        'foxglove_bridge': settings.foxglove, 'autonomy': autonomy,
+                        'teleop': not autonomy,
+                        'operator': spec.condition not in ('autonomous', 'autonomous-policy'),
+                        }.get(spec_node.name, True):
+                    continue  # started only when asked for, or in its conditions
                 self.nodes[spec_node.name] = build_node(
                     spec_node, overrides.get(spec_node.name, {}), lean=True,
                     context=self.context, prepare=self.executor.add_node)
             self.phantom = self.nodes['phantom']
             self.planner = self.nodes['planner']
-            self.operator = self.nodes['operator']
+            # (None where the condition runs without it)
+            self.operator: Any = self.nodes.get('operator')
+            self.autonomy: Any = self.nodes.get('autonomy')
             self.executor.add_hook(self.phantom.advance)
             self.session = rclpy.create_node('session', context=self.context,
                                              start_parameter_services=False,
@@ -304,6 +365,9 @@ class TrialRig:
     def _overrides(self, link: Path) -> dict[str, dict[str, Any]]:
         s, spec = self.settings, self.spec
         control = s.physics_rate / 2.0  # host control loops: every second tick
+        autonomy = spec.condition in AUTONOMY_CONDITIONS
+        # a fault only where one is injected: the guided conditions' phantom is as it was
+        fault = {'fault': spec.fault, 'fault_goal_s': SETTLE_S} if spec.fault else {}
         return {
             'phantom': {'anatomy': s.anatomy, 'mode': s.mode, 'aurora_link': str(link),
                         'lockstep': True, 'seed': spec.seed, 'physics_rate_hz': s.physics_rate,
@@ -311,16 +375,26 @@ class TrialRig:
                         'start_id': spec.start_id, 'target_id': spec.target_id,
                         'marker_max_triangles': RECORDED_LUMEN_TRIANGLES,
                         'marker_rate_hz': RECORDED_MARKER_RATE_HZ,
-                        'lumen_rate_hz': RECORDED_LUMEN_RATE_HZ},
+                        'lumen_rate_hz': RECORDED_LUMEN_RATE_HZ, **fault},
             # the simulated Aurora answers in the polling thread (em_tracker.hw.aurora's
             # InProcessAurora): no pty round trip and thread switch per frame
             'aurora': {'port': str(link), 'rate_hz': s.tracker_rate, 'poll_mode': 'clock',
                        'link': 'in_process'},
             'pam_controller': {'control_rate_hz': control, **dict(s.pam_parameters)},
             'sleeve_driver': {'control_rate_hz': control},
+            # the autonomy tracks the C-GAIL path (the planner's guidance of the cgail condition)
             'planner': {'anatomy': s.anatomy, 'mode': s.mode, 'policy_path': s.policy,
-                        'planner_type': spec.condition},
-            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill},
+                        'planner_type': 'cgail' if autonomy else spec.condition},
+            'operator': {'time_limit_s': s.time_limit, 'seed': spec.seed, 'skill': spec.skill,
+                         **({'role': 'supervise'} if spec.condition == 'shared' else {})},
+            'autonomy': {'anatomy': s.anatomy, 'mode': s.mode, 'autostart': True,
+                         'controller': 'policy' if spec.condition == 'autonomous-policy'
+                         else 'path',
+                         'policy_path': s.autonomy_policy or s.policy,
+                         'autonomy_mode': 'shared' if spec.condition == 'shared'
+                         else 'autonomous',
+                         'deadman_required': spec.condition == 'shared',
+                         'rate_hz': control, 'max_bend': AUTONOMY_MAX_BEND},
             'gui': {'anatomy': s.anatomy, 'dynamic': s.mode == 'dynamic', 'port': s.gui_port},
             'igtl_bridge': {'anatomy': s.anatomy, 'port': s.igtl_port},
             'foxglove_bridge': {'port': s.foxglove_port},
@@ -334,14 +408,16 @@ class TrialRig:
 
         self._goal_pub = self.session.create_publisher(PoseStamped, 'planner/goal',
                                                        conv.COMMAND_QOS)
+        topics = TOPICS + (AUTONOMY_TOPICS if self.spec.condition in AUTONOMY_CONDITIONS
+                           else ())
         self.recorder = BagRecorder(self.session, RecorderConfig(
-            output=Path(self.spec.bag), topics=TOPICS, condition=self.spec.condition,
+            output=Path(self.spec.bag), topics=topics, condition=self.spec.condition,
             compress=True))
         # discovery of the rig's own publishers takes wall time, not simulated time
         deadline = time.monotonic() + 30.0
-        while len(self.recorder.topics) < len(TOPICS):
+        while len(self.recorder.topics) < len(topics):
             if time.monotonic() > deadline:
-                raise RuntimeError(f'expected the recorder to find {list(TOPICS)} within 30 s, '
+                raise RuntimeError(f'expected the recorder to find {list(topics)} within 30 s, '
                                    f'found {self.recorder.topics}')
             time.sleep(0.01)
             self.recorder.discover()
@@ -396,6 +472,8 @@ class TrialRig:
                     result.outcome = (f'simulation fault at {now - t0:.1f} s (anatomy '
                                       f'{self.settings.anatomy}, seed {self.spec.seed}): '
                                       f'{self.phantom.physics_error}')
+                elif self.autonomy is not None:
+                    result.outcome = self._autonomy_outcome(now - t0, failed_before)
                 elif self.operator.done:
                     result.outcome = self.operator.operator.reason
                 elif self.planner.counts['failed_plans'] > failed_before and \
@@ -407,6 +485,8 @@ class TrialRig:
                     last_goal = now
                     self.publish_goal()
             result.sim_s = ex.now_s - t0
+            if self.autonomy is not None:
+                self._autonomy_record(result, t0)
             end = ex.now_s + TAIL_S
             while ex.now_s < end - 1e-9:
                 tick()
@@ -414,6 +494,42 @@ class TrialRig:
         result.unscheduled = ex.stats.unscheduled - unscheduled_before
         result.callback_errors = list(ex.errors)
         return result
+
+    def _autonomy_outcome(self, elapsed: float, failed_before: int) -> str:
+        """The end of an autonomy trial ('' while it runs): ``done`` (the controller's arrival,
+        the operator's stop rule), ``stopped:<reason>: <message>``, no path, or the limit."""
+        autonomy = self.autonomy
+        state = autonomy.state
+        if state == 'done':
+            return str(autonomy.controller.done)
+        if state.startswith('stopped') and autonomy.supervisor.stop is not None:
+            return f'{state}: {autonomy.supervisor.stop.message}'
+        if self.planner.counts['failed_plans'] > failed_before and \
+                self.planner.follower is None and state == 'idle':
+            return f'no path: {self.planner.last_error}'
+        if elapsed >= self.settings.time_limit - 1e-9:
+            return f'time limit {self.settings.time_limit:.0f} s reached ({state})'
+        return ''
+
+    def _autonomy_record(self, result: TrialResult, t0: float) -> None:
+        """The caps measured on the true plant and the fault's detection
+        (:class:`FaultRecord`)."""
+        from cgail_rig.core.faults import DETECTION_BOUNDS_S
+
+        caps = self.phantom.caps
+        result.caps = (caps.max_speed, caps.max_bend, caps.max_pressure)
+        result.caps_exceeded = caps.exceeded()
+        fault = self.phantom.fault
+        if fault is None:
+            return
+        stop = self.autonomy.supervisor.stop
+        onset = fault.onset_s - t0 if self.phantom.fault_started else math.nan
+        caught = stop is not None and self.phantom.fault_started \
+            and stop.at >= fault.onset_s - 1e-9
+        result.fault = FaultRecord(
+            fault.kind, onset, stop.reason if stop is not None else '',
+            stop.at - fault.onset_s if caught and stop is not None else math.nan,
+            DETECTION_BOUNDS_S[fault.kind])
 
     def close(self) -> dict[str, int]:
         """Stop recording (the bag is closed), destroy the nodes and the context; returns the
@@ -429,7 +545,7 @@ class TrialRig:
             if node is not None:
                 node.destroy_node()
         self.nodes.clear()
-        for name in ('phantom', 'planner', 'operator', 'session', 'executor'):
+        for name in ('phantom', 'planner', 'operator', 'autonomy', 'session', 'executor'):
             self.__dict__.pop(name, None)  # the rig is spent: drop its references
         rclpy.try_shutdown(context=self.context)
         # the lifecycle nodes' handles are freed with the last reference to them (cycles): until
@@ -543,8 +659,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help='ONNX C-GAIL policy (cgail export-onnx); default: the committed '
                         'cgail_planner/models/cgail_<anatomy>_<mode>.onnx (static if there is no '
                         'policy for the mode)')
-    p.add_argument('--conditions', nargs='+', choices=CONDITIONS, default=list(CONDITIONS),
-                   help='conditions to run, in order')
+    p.add_argument('--conditions', nargs='+', choices=ALL_CONDITIONS, default=list(CONDITIONS),
+                   help="conditions to run, in order: the guided 'cgail' and 'centerline' (the "
+                        "scripted operator drives teleop), and the autonomy's (autonomy_node "
+                        "drives along the C-GAIL path under its supervisor): 'autonomous' (path "
+                        "tracker), 'autonomous-policy' (the ONNX policy controller, --policy), "
+                        "'shared' (path tracker; the operator holds the deadman and corrects "
+                        'beyond 5 mm from the path)')
+    p.add_argument('--faults', nargs='+', choices=FAULT_KINDS, default=[],
+                   help='inject one fault per trial of the autonomy conditions, trial k the '
+                        'k-th of these in turn, its onset 3-8 simulated s after the goal drawn '
+                        'from the trial seed (cgail_rig.core.faults); the report gives each '
+                        "fault's detection time and flags a miss")
     p.add_argument('--jobs', type=int, default=None,
                    help='worker processes running trials in parallel (default: the number of '
                         'CPUs); the results do not depend on it')
@@ -587,6 +713,81 @@ def build_parser() -> argparse.ArgumentParser:
                         "simulated bench, cached in <out>/identification/); 'ideal': the plant "
                         "is the controller's own nominal model (for comparison)")
     return p
+
+
+def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
+    """Markdown of the autonomy conditions' trials ([] without any): the end states per
+    condition, the injected faults (caught within the stated bound or flagged MISSED; detection
+    time median and max per kind) and the caps measured on the true plant."""
+    from cgail_rig.core.faults import Caps, DETECTION_BOUNDS_S
+
+    rows = [r for r in results if r.spec.condition in AUTONOMY_CONDITIONS and not r.failed]
+    if not rows:
+        return []
+    lines = ['', '## Autonomy: end states', '',
+             '| condition | trials | done | stopped (reason: count) | time limit / other |',
+             '|---|---:|---:|---|---:|']
+    for condition in AUTONOMY_CONDITIONS:
+        mine = [r for r in rows if r.spec.condition == condition]
+        if not mine:
+            continue
+        done = sum(not r.outcome.startswith(('stopped:', 'time limit', 'no path',
+                                             'simulation fault')) for r in mine)
+        reasons: dict[str, int] = {}
+        for r in mine:
+            if r.outcome.startswith('stopped:'):
+                key = r.outcome.split(':')[1]
+                reasons[key] = reasons.get(key, 0) + 1
+        stopped = ', '.join(f'{k}: {n}' for k, n in sorted(reasons.items())) or '-'
+        other = len(mine) - done - sum(reasons.values())
+        lines.append(f'| {condition} | {len(mine)} | {done} | {stopped} | {other} |')
+    faulted = [r for r in rows if r.fault is not None]
+    if faulted:
+        import numpy as np
+
+        lines += ['', '## Autonomy: injected faults', '',
+                  'Detection time: fault onset to the supervisor\'s stop, simulated s. A fault '
+                  'is caught when the supervisor stopped after its onset within the stated '
+                  'bound (docs/guides/autonomy.md); anything else is flagged MISSED.', '',
+                  '| fault | injected | caught | detection median (s) | detection max (s) | '
+                  'bound (s) | stop reasons | missed |', '|---|---:|---:|---:|---:|---:|---|---|']
+        for kind in FAULT_KINDS:
+            mine = [r for r in faulted if r.fault is not None and r.fault.kind == kind]
+            if not mine:
+                continue
+            records = [r.fault for r in mine if r.fault is not None]
+            injected = [f for f in records if f.injected]
+            caught = [f for f in injected if f.caught]
+            times = np.array([f.detection_s for f in injected if f.detection_s == f.detection_s])
+            reasons_seen = sorted({f.stop_reason for f in injected if f.stop_reason})
+            missed = [r.spec.label for r in mine if r.fault is not None and r.fault.injected
+                      and not r.fault.caught]
+            lines.append(
+                f'| {kind} | {len(injected)}/{len(mine)} | {len(caught)} | '
+                f'{np.median(times) if len(times) else math.nan:.3f} | '
+                f'{times.max() if len(times) else math.nan:.3f} | '
+                f'{DETECTION_BOUNDS_S[kind]:g} | {", ".join(reasons_seen) or "-"} | '
+                f'{"**MISSED: " + ", ".join(missed) + "**" if missed else "none"} |')
+        late = [r.spec.label for r in faulted if r.fault is not None and not r.fault.injected]
+        if late:
+            lines += ['', f'Trials that ended before their fault\'s onset (not counted): '
+                      f'{", ".join(late)}.']
+    caps = Caps()
+    worst = [max(r.caps[i] for r in rows) for i in range(3)]
+    exceeded = [f'{r.spec.label}: {"; ".join(r.caps_exceeded)}' for r in rows
+                if r.caps_exceeded]
+    lines += ['', '## Autonomy: caps on the true plant', '',
+              'Measured in the phantom on every physics step of every autonomy trial (the tip\'s '
+              'advance, the plant\'s bend, the regulators\' chamber pressures), not on the '
+              'commands.', '',
+              '| quantity | largest measured | cap |', '|---|---:|---:|',
+              f'| tip advance speed (mm/s) | {worst[0] * 1e3:.3f} | '
+              f'{caps.max_insertion_speed * 1e3:.3f} |',
+              f'| bend (rad) | {worst[1]:.3f} | {caps.max_bend:.3f} |',
+              f'| chamber pressure (kPa) | {worst[2] / 1e3:.1f} | '
+              f'{caps.max_pressure_pa / 1e3:.1f} |', '',
+              'Caps exceeded: ' + ('**' + ' | '.join(exceeded) + '**' if exceeded else 'none.')]
+    return lines
 
 
 def identified_pam_parameters(directory: Path, plant_seed: int,
@@ -680,15 +881,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     anatomy = args.anatomy if is_named(args.anatomy) else str(
         Path(args.anatomy).expanduser().resolve())
     label = anatomy_label(args.anatomy)
-    if args.policy is None and 'cgail' in args.conditions and not builtin:
+    needs_policy = sorted({'cgail', *AUTONOMY_CONDITIONS} & set(args.conditions))
+    if args.faults and not set(AUTONOMY_CONDITIONS) & set(args.conditions):
+        return fail(f'--faults: expected an autonomy condition {AUTONOMY_CONDITIONS} in '
+                    f'--conditions, found {args.conditions}')
+    if args.policy is None and needs_policy and not builtin:
         return fail(f'the cgail condition needs --policy <model.onnx> for anatomy {anatomy}: '
                     f'expected a policy trained on it (there is a committed one only for the '
                     f'built-in anatomies), found no --policy')
     if args.policy is None and builtin:
         args.policy = default_policy(args.anatomy, args.mode)
-    if 'cgail' in args.conditions and not args.policy.is_file():
-        return fail(f'the cgail condition needs --policy <model.onnx> (cgail export-onnx), '
-                    f'found no file at {args.policy}')
+    if needs_policy and not args.policy.is_file():
+        return fail(f'the {needs_policy[0]} condition needs --policy <model.onnx> (cgail '
+                    f'export-onnx), found no file at {args.policy}')
     bags_dir = args.out / 'bags'
     if bags_dir.exists() and any(bags_dir.iterdir()):
         return fail(f'{bags_dir} already holds bags; choose another --out')
@@ -697,7 +902,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except DomainError as exc:
         return fail(str(exc))
     specs = plan_trials(args.conditions, args.trials, args.seed, bags_dir,
-                        pretrain=args.pretrain)
+                        pretrain=args.pretrain, faults=tuple(args.faults))
     jobs = args.jobs or os.cpu_count() or 1
     jobs = max(1, min(jobs, len(specs)))
     notes = []
@@ -780,7 +985,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             '\n'.join(f'--- {r.spec.label}\n{e}' for r in results for e in r.callback_errors))
     outcomes = [(r.spec.condition, r.spec.index + 1, r.outcome) for r in results]
     code = report(args.out, bags_dir, outcomes, log, wall_s=wall_s, callback_errors=errors,
-                  jobs=jobs)
+                  jobs=jobs, results=results)
     log(f'cgail session: {len(results)} trials in {_clock(wall_s)} on {jobs} worker(s); '
         f'{_clock(time.monotonic() - t_command)} in all')
     return code if all(not r.failed for r in results) else max(code, 1)
@@ -788,8 +993,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
            log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
-           jobs: int = 1) -> int:
-    """Metrics of every evaluable trial bag: markdown table, CSV, box plots."""
+           jobs: int = 1, results: Sequence[TrialResult] = ()) -> int:
+    """Metrics of every evaluable trial bag: markdown table, CSV, box plots; with the trials
+    of autonomy conditions among ``results``, their end states, the injected faults'
+    detection and the caps (:func:`autonomy_report`)."""
     from cgail_bags.errors import BagError
     from cgail_bags.metrics_cli import evaluate_bags
     from cgail_bags.report import box_plots, markdown_report, write_csv
@@ -818,11 +1025,15 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
     if skipped:
         lines += ['', '## Trials without metrics', ''] + [f'- {s}' for s in skipped]
+    autonomy = autonomy_report(results)
     out.mkdir(parents=True, exist_ok=True)
-    (out / 'metrics.md').write_text('\n'.join(lines) + '\n\n' + text)
+    (out / 'metrics.md').write_text('\n'.join(lines) + '\n\n' + text
+                                    + ''.join(f'\n{line}' for line in autonomy))
     write_csv(trials, out / 'metrics.csv')
     png = box_plots(trials, tests, out / 'metrics_boxplot.png')
     log(text)
+    for line in autonomy:
+        log(line)
     log(f'cgail session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
         f'({wall_s:.0f} s wall)')
     return 0
