@@ -21,6 +21,15 @@ time; its bag is evaluated as a failure, the session goes on, and the report cou
 Then the offline metrics (``cgail bag metrics``) print the markdown table with the paper's in-vitro
 numbers side by side and write the box plots.
 
+**Autonomy conditions** (docs/guides/autonomy.md). ``autonomous``, ``autonomous-policy`` and
+``shared`` replace ``teleop`` with ``autonomy_node`` (path tracker, the ONNX policy of
+``--policy``, or the path tracker corrected by the scripted operator in its supervising role,
+who holds the deadman) along the planner's C-GAIL path, under the safety supervisor; the trial
+ends when ``autonomy/state`` reads ``done`` or ``stopped:<reason>``, or at the limit.
+``--faults`` injects a fault into each of their trials (:mod:`cgail_rig.core.faults`); the
+report adds the end states, each fault's detection time against its bound (a miss flagged) and
+the caps measured on the true plant. The guided trials are the same with or without them.
+
 **Operator practice** (:mod:`cgail_planner.core.operator`). The paper's participant did 10
 pre-training trials per condition before its 10 measured ones. The scripted operator's skill
 follows a learning curve of the number of trials it did before (the power law of practice), so
