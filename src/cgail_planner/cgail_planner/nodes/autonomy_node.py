@@ -265,8 +265,7 @@ class AutonomyNode(Node):
             if device not in DEVICES:
                 continue
             error = status.level == DiagnosticStatus.ERROR
-            self.supervisor.on_device(now, device, f'{status.name}: {status.message}'
-                                      if error else None)
+            self.supervisor.on_device(now, device, status.message if error else None)
 
     def _reject(self, counter: str, text: str) -> None:
         self.counts[counter] += 1
