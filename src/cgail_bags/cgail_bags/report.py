@@ -330,7 +330,9 @@ def session_box_plots(sessions: Mapping[str, Sequence[TrialMetrics]], path: Path
 
 def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
               path: Path) -> Path:
-    """Write one box plot per compared metric (conditions side by side) to a PNG."""
+    """Write one box plot per compared metric (conditions side by side) to a PNG, and a last
+    panel with each condition's success rate and its 95 % Wilson interval (a success is 0 or
+    1: a box of it would say nothing)."""
     import matplotlib
 
     matplotlib.use('Agg')
@@ -339,8 +341,24 @@ def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
     groups = group_by_condition(trials)
     pvalues = {t.metric: t.pvalue for t in tests}
     metrics = list(COMPARED_METRICS.items())
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.0 * len(metrics), 4.0))
-    for ax, (metric, (label, unit, scale)) in zip(np.atleast_1d(axes), metrics, strict=True):
+    fig, axes = plt.subplots(1, len(metrics) + 1, figsize=(4.0 * (len(metrics) + 1), 4.0))
+    axes = np.atleast_1d(axes)
+    # many or long condition names: slanted, or they run into each other
+    slant = len(groups) > 2 or any(len(c) > 10 for c in groups)
+    ax = axes[-1]
+    for i, members in enumerate(groups.values(), start=1):
+        wins = sum(bool(m.success) for m in members)
+        low, high = wilson_interval(wins, len(members))
+        rate = wins / len(members)
+        ax.bar(i, 100.0 * rate, width=0.6, alpha=0.6)
+        ax.errorbar(i, 100.0 * rate, yerr=[[100.0 * (rate - low)], [100.0 * (high - rate)]],
+                    fmt='none', ecolor='black', capsize=4)
+    ax.set_xticks(range(1, len(groups) + 1), list(groups))
+    ax.set_ylim(0.0, 105.0)
+    ax.set_title('success rate\n(95 % Wilson interval)', fontsize=10)
+    ax.set_ylabel('%')
+    ax.grid(axis='y', alpha=0.3)
+    for ax, (metric, (label, unit, scale)) in zip(axes[:-1], metrics, strict=True):
         data = [_finite(members, metric, scale) for members in groups.values()]
         ax.boxplot(data, tick_labels=list(groups), showmeans=True, showfliers=False)
         for i, values in enumerate(data, start=1):
@@ -351,6 +369,9 @@ def box_plots(trials: Sequence[TrialMetrics], tests: Sequence[KruskalResult],
         ax.set_title(f'{label}\n(Kruskal-Wallis {ptext})', fontsize=10)
         ax.set_ylabel(unit)
         ax.grid(axis='y', alpha=0.3)
+    if slant:
+        for ax in axes:
+            plt.setp(ax.get_xticklabels(), rotation=30, ha='right')
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
