@@ -308,6 +308,15 @@ class Percept:
     """Distance of the tip from the displayed path, m (what a supervising person watches)."""
 
 
+def _capped_bend(bend: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The two bend sticks scaled into :data:`MAX_BEND_DEFLECTION` (the teleop/PAM bend cap,
+    which rounding could pass), direction kept."""
+    norm = float(np.hypot(*bend))
+    if norm > MAX_BEND_DEFLECTION:
+        return bend * (MAX_BEND_DEFLECTION / norm)
+    return bend
+
+
 class ScriptedOperator:
     """State machine ``idle -> running -> done`` (module docstring).
 
@@ -352,17 +361,26 @@ class ScriptedOperator:
             self._percepts.appendleft(seen)  # keep the latest visible one
         return seen
 
-    def step(self, t: float) -> Sticks:
-        """Stick deflections at time ``t`` (s)."""
-        cfg, skill = self.config, self.proficiency
+    def _advance(self, t: float) -> tuple[float, Sticks | None]:
+        """The step ``dt`` to time ``t`` (s), and the sticks when the step ends here: released
+        when not running, the stop at the time limit; None while the trial goes on."""
+        cfg = self.config
         dt = 0.0 if self.t_last is None else max(t - self.t_last, 0.0)
         self.t_last = t
         if self.state != "running":
             self.sticks[:] = 0.0
             self._bend_rate[:] = 0.0
-            return Sticks(0.0, 0.0, 0.0, False)
+            return dt, Sticks(0.0, 0.0, 0.0, False)
         if t - self.t_start >= cfg.time_limit_s:
-            return self._stop(f"time limit {cfg.time_limit_s:.0f} s reached")
+            return dt, self._stop(f"time limit {cfg.time_limit_s:.0f} s reached")
+        return dt, None
+
+    def step(self, t: float) -> Sticks:
+        """Stick deflections at time ``t`` (s)."""
+        cfg, skill = self.config, self.proficiency
+        dt, ended = self._advance(t)
+        if ended is not None:
+            return ended
         seen = self._delayed(t)
         if seen is None:
             target = np.zeros(3)
@@ -382,10 +400,7 @@ class ScriptedOperator:
         self._move_sticks(target, dt)
         noisy = self.sticks + self.rng.normal(0.0, skill.stick_noise, 3) * (dt > 0.0)
         noisy[0] = min(noisy[0], cfg.max_insertion_fraction)
-        bend = noisy[1:]
-        norm = float(np.hypot(*bend))
-        if norm > MAX_BEND_DEFLECTION:  # stay inside the teleop/PAM bend cap despite rounding
-            bend = bend * (MAX_BEND_DEFLECTION / norm)
+        bend = _capped_bend(noisy[1:])
         return Sticks(float(np.clip(noisy[0], -1.0, 1.0)), float(bend[0]), float(bend[1]), True)
 
     def _move_sticks(self, target: NDArray[np.float64], dt: float) -> None:
@@ -440,25 +455,17 @@ class SupervisingOperator(ScriptedOperator):
 
     def step(self, t: float) -> Sticks:
         """Stick deflections at time ``t`` (s): insertion 0, deadman held while running."""
-        cfg, skill = self.config, self.proficiency
-        dt = 0.0 if self.t_last is None else max(t - self.t_last, 0.0)
-        self.t_last = t
-        if self.state != "running":
-            self.sticks[:] = 0.0
-            self._bend_rate[:] = 0.0
-            return Sticks(0.0, 0.0, 0.0, False)
-        if t - self.t_start >= cfg.time_limit_s:
-            return self._stop(f"time limit {cfg.time_limit_s:.0f} s reached")
+        skill = self.proficiency
+        dt, ended = self._advance(t)
+        if ended is not None:
+            return ended
         seen = self._delayed(t)
         target = np.zeros(3)
         if seen is not None and seen.deviation > self.threshold:
             gain = skill.correction_gain / self.bend_scale
             target[1:] = gain * seen.bend[0], gain * seen.bend[1]
         self._move_sticks(target, dt)
-        bend = self.sticks[1:].copy()
-        norm = float(np.hypot(*bend))
-        if norm > MAX_BEND_DEFLECTION:
-            bend = bend * (MAX_BEND_DEFLECTION / norm)
+        bend = _capped_bend(self.sticks[1:].copy())
         if target[1] != 0.0 or target[2] != 0.0:
             self.corrections += 1
         return Sticks(0.0, float(bend[0]), float(bend[1]), True)
