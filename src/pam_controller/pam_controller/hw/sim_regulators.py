@@ -7,9 +7,22 @@ discretisation), outputs saturated to ``[0, supply_pressure_pa]``; it decodes
 the host heartbeat stops (``FAULT_HOST_TIMEOUT``).
 
 Fault injection: :meth:`SimRegulatorBank.set_stuck` (a regulator frozen at its pressure, flagged
-``FAULT_STUCK`` after ``stuck_detect_s``), :meth:`SimRegulatorBank.set_silent` (bus silence /
+``FAULT_STUCK`` once its setpoint has been more than ``stuck_detect_pa`` away for
+``stuck_detect_s``), :meth:`SimRegulatorBank.set_silent` (bus silence /
 disconnect: nothing sent, nothing read), :meth:`SimRegulatorBank.send_garbage` (random frames,
 on our ids and others), :meth:`SimRegulatorBank.set_supply_pressure`.
+
+**When a stuck regulator becomes observable.** A stuck regulator that is asked for the
+pressure it holds delivers exactly that: nothing on the bus, and no sensor, tells it from a
+healthy one. Nor does a short tracking error: a healthy regulator lags a ramp by
+``rate * time_constant_s`` (48 kPa at ``pam_controller``'s 600 kPa/s slew limit and 80 ms),
+which is why the bank flags only an error that lasts ``stuck_detect_s``. The bank records, per
+stuck channel, when its tracking error first exceeded ``stuck_detect_pa``
+(:meth:`SimRegulatorBank.stuck_error_at`) and when the first excursion beyond it that lasted
+``stuck_detect_s`` began (:meth:`SimRegulatorBank.stuck_observable_at`: the excursion it flags
+``FAULT_STUCK`` for, ``stuck_detect_s`` later): the moment a stuck chamber became observable,
+from which a supervisor's detection time is measured (``cgail_rig.core.faults``). Recording
+them changes nothing the bank does.
 
 Drive it either with :meth:`step` (deterministic, explicit ``dt``; tests) or :meth:`start`
 (a background thread on the wall clock; the node's ``simulate_regulators`` and ``main``).
@@ -106,6 +119,12 @@ class SimRegulatorBank:
         self._last_heartbeat: float | None = None
         self._stuck = np.zeros(4, dtype=bool)
         self._track_error_since = np.full(4, np.nan)
+        # per channel, bank time (NaN: none) of the last set_stuck, of the stuck channel's first
+        # tracking error beyond stuck_detect_pa and of the start of its first one that lasted
+        # stuck_detect_s (stuck_error_at, stuck_observable_at)
+        self._stuck_at = [math.nan] * 4
+        self._stuck_error_at = [math.nan] * 4
+        self._stuck_observable_at = [math.nan] * 4
         self._faults: set[str] = set()
         self._channel_fault_mask = 0
         self._bad_frame_seen = False
@@ -120,11 +139,50 @@ class SimRegulatorBank:
 
     # ---- fault injection -------------------------------------------------------------
     def set_stuck(self, channel: int, stuck: bool = True) -> None:
-        """Freeze (or free) regulator ``channel`` (0..3) at its current pressure."""
+        """Freeze (or free) regulator ``channel`` (0..3) at its current pressure.
+
+        Freezing a channel that was not stuck starts its records afresh
+        (:meth:`stuck_error_at`, :meth:`stuck_observable_at`); freeing it keeps them.
+        """
         if not 0 <= channel < 4:
             raise ValueError(f'channel must be in 0..3, found {channel}')
         with self._lock:
+            if stuck and not self._stuck[channel]:
+                self._stuck_at[channel] = self.time_s
+                self._stuck_error_at[channel] = math.nan
+                self._stuck_observable_at[channel] = math.nan
             self._stuck[channel] = stuck
+
+    def stuck_error_at(self, channel: int) -> float | None:
+        """Bank time (:attr:`time_s`, s) of the first step at which stuck regulator ``channel``
+        was more than ``stuck_detect_pa`` off its target since it was frozen (None: not yet).
+
+        A short error is also what a healthy regulator shows on a ramp (module docstring); the
+        moment the stuck channel became observable is :meth:`stuck_observable_at`.
+        """
+        if not 0 <= channel < 4:
+            raise ValueError(f'channel must be in 0..3, found {channel}')
+        with self._lock:
+            t = self._stuck_error_at[channel]
+        return None if math.isnan(t) else t
+
+    def stuck_observable_at(self, channel: int) -> float | None:
+        """Bank time (:attr:`time_s`, s) at which stuck regulator ``channel`` became observable:
+        the start of the first tracking error beyond ``stuck_detect_pa`` that lasted
+        ``stuck_detect_s`` while it was stuck, i.e. the error the bank flags ``FAULT_STUCK`` for
+        (``stuck_detect_s`` after this time; an error already running at the freeze counts from
+        the freeze).
+
+        None: not observable (yet). It is known only once the error has lasted
+        ``stuck_detect_s``; a stuck regulator asked only for pressures within
+        ``stuck_detect_pa`` of the one it holds, or away from it only briefly, never becomes
+        observable.
+        """
+        if not 0 <= channel < 4:
+            raise ValueError(f'channel must be in 0..3, found {channel}')
+        with self._lock:
+            t = self._stuck_observable_at[channel]
+        return None if math.isnan(t) else t
 
     def set_silent(self, silent: bool = True) -> None:
         """Bus silence / disconnect: while silent the bank neither reads nor sends."""
@@ -217,6 +275,10 @@ class SimRegulatorBank:
                         since[i] = now
                     if now - since[i] >= cfg.stuck_detect_s:
                         late_mask |= 1 << i
+                        if stuck and self._stuck_observable_at[i] != self._stuck_observable_at[i]:
+                            self._stuck_observable_at[i] = max(since[i], self._stuck_at[i])
+                    if stuck and self._stuck_error_at[i] != self._stuck_error_at[i]:
+                        self._stuck_error_at[i] = now
                 else:
                     since[i] = math.nan  # on target
             self.pressures_pa = np.array(pressures)

@@ -118,6 +118,51 @@ def test_stuck_regulator_detected_with_channel_mask(rig):
     assert fb.status.channel_fault_mask == 0 and fb.status.state is proto.BankState.ACTIVE
 
 
+def test_a_stuck_regulator_asked_for_what_it_holds_never_becomes_observable(rig):
+    sim, host = rig
+    run(sim, host, 1.0, setpoints=[100e3] * 4)
+    sim.set_stuck(1)
+    # within stuck_detect_pa (20 kPa) of the held 100 kPa: delivered, nothing to see
+    fb = run(sim, host, 2.0, setpoints=[100e3, 115e3, 100e3, 100e3])
+    assert sim.stuck_error_at(1) is None and sim.stuck_observable_at(1) is None
+    assert fb.status.faults == frozenset() and fb.status.channel_fault_mask == 0
+    assert fb.measured[-1][1] == pytest.approx(100e3, abs=100.0)
+    # a healthy channel's lag (a 100 kPa step) is no stuck channel's observable time
+    run(sim, host, 1.0, setpoints=[200e3, 85e3, 100e3, 100e3])
+    assert sim.stuck_error_at(1) is None and sim.stuck_observable_at(1) is None
+    assert [sim.stuck_observable_at(c) for c in range(4)] == [None] * 4
+
+
+def test_a_stuck_regulator_is_observable_from_the_start_of_the_error_the_bank_flags(rig):
+    sim, host = rig
+    run(sim, host, 1.0, setpoints=[100e3] * 4)
+    sim.set_stuck(3)
+    run(sim, host, 1.0, setpoints=[100e3] * 4)
+    # 50 kPa away for 0.3 s (< stuck_detect_s): an error, not observable (a healthy lag looks so)
+    moved = sim.time_s + DT  # (the setpoint is read in the next step)
+    run(sim, host, 0.3, setpoints=[100e3, 100e3, 100e3, 150e3])
+    assert sim.stuck_error_at(3) == pytest.approx(moved, abs=1e-9)
+    run(sim, host, 0.5, setpoints=[100e3] * 4)
+    assert sim.stuck_observable_at(3) is None and 'FAULT_STUCK' not in sim.faults
+    # 50 kPa away and kept there: observable from when it moved, flagged stuck_detect_s later
+    moved = sim.time_s + DT
+    run(sim, host, 0.45, setpoints=[100e3, 100e3, 100e3, 50e3])
+    # (known once the error has lasted stuck_detect_s, when the bank flags it)
+    assert sim.stuck_observable_at(3) is None and 'FAULT_STUCK' not in sim.faults
+    fb = run(sim, host, 0.3, setpoints=[100e3, 100e3, 100e3, 50e3])
+    assert sim.stuck_observable_at(3) == pytest.approx(moved, abs=1e-9)
+    assert sim.stuck_error_at(3) < moved  # (the first, short error stays the first)
+    assert 'FAULT_STUCK' in fb.status.faults and fb.status.channel_fault_mask == 0b1000
+    assert [sim.stuck_observable_at(c) for c in range(3)] == [None] * 3
+    # frozen afresh: the records start afresh
+    sim.set_stuck(3, False)
+    assert sim.stuck_observable_at(3) == pytest.approx(moved, abs=1e-9)
+    sim.set_stuck(3)
+    assert sim.stuck_error_at(3) is None and sim.stuck_observable_at(3) is None
+    with pytest.raises(ValueError, match=r'channel must be in 0\.\.3, found 4'):
+        sim.stuck_observable_at(4)
+
+
 def test_bus_silence_then_recovery(rig):
     sim, host = rig
     run(sim, host, 0.2, setpoints=[50e3] * 4)
