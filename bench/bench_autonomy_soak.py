@@ -15,9 +15,10 @@ seconds, the process's CPU seconds and the resident memory (RSS, from ``/proc/se
 after the trial's rig was closed.
 
 At the end: whether every trial ended in a defined state (``done``, ``stopped:<reason>`` or
-the time limit, never a rig error), whether every injected fault was caught within its bound,
-and whether memory and CPU per trial stayed flat: the slope of a least-squares line through
-RSS against trial index (after the first ``--warmup`` trials, which load caches), in MB per
+the time limit, never a rig error), whether every injected fault was caught within its bound
+(a stuck PAM never observable, the chamber asked only for what it held, is no miss), and
+whether memory and CPU per trial stayed flat: the slope of a least-squares line through RSS
+against trial index (after the first ``--warmup`` trials, which load caches), in MB per
 100 trials, and through CPU seconds per simulated second against trial index, in percent of
 the mean per 100 trials. Flat: the RSS slope below ``--max-rss-slope`` MB per 100 trials and
 the CPU slope below ``--max-cpu-slope`` %. Exit status 1 if a trial failed or either is not flat.
@@ -124,8 +125,9 @@ def main(argv: list[str] | None = None) -> int:
                     f = result.fault
                     detail = (f'  fault {f.kind}: ' + (f'caught in {f.detection_s:.3f} s'
                               if f.caught else ('not reached' if not f.injected
+                                                else 'never observable' if f.never_observable
                                                 else 'MISSED')))
-                    if f.injected and not f.caught:
+                    if f.missed:
                         missed.append(f'{spec.label} {f.kind}')
                 print(f'[{k + 1:4d}] {spec.label:<20} {state[:60]:<60} {sim:6.1f} s sim  '
                       f'{cpu:5.2f} s CPU  RSS {rss:7.1f} MB{detail}', flush=True)

@@ -1,8 +1,9 @@
 """The simulated session's autonomy conditions and fault injection (issue 36), in process.
 
 Default: one trial with each fault injected (each ends within ~15 simulated s of the goal):
-the trial ends in a defined state, the supervisor caught the fault within its stated bound,
-and no cap was exceeded on the true plant. Slow (-m slow): one whole trial of each autonomy
+the trial ends in a defined state, the supervisor caught the fault within its stated bound (a
+stuck PAM's from when it became observable, recorded by the phantom), and no cap was exceeded
+on the true plant. Slow (-m slow): one whole trial of each autonomy
 condition, static, reaching its target.
 """
 
@@ -40,6 +41,11 @@ def test_each_injected_fault_is_caught_within_its_bound_and_no_cap_is_exceeded(
         f = r.fault
         assert f is not None and f.kind == r.spec.fault and f.injected, (r.spec.label, f)
         assert f.caught and 0.0 <= f.detection_s <= DETECTION_BOUNDS_S[f.kind], (f, r.outcome)
+        if f.kind == 'stuck_pam':  # stopped by the bank's flag: observable after the onset
+            assert f.stop_reason == 'device_fault' and f.observable_s >= 0.0, f
+            assert f.detection_s >= 0.5, f  # (the bank flags it stuck_detect_s after)
+        else:
+            assert f.observable_s != f.observable_s, f
         assert r.outcome.split(':')[1] == f.stop_reason
         assert r.caps_exceeded == [], (r.spec.label, r.caps_exceeded)
         assert 0.0 < r.caps[0] <= 0.005 and r.caps[2] <= 300e3, r.caps

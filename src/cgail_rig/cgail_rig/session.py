@@ -27,7 +27,8 @@ numbers side by side and write the box plots.
 who holds the deadman) along the planner's C-GAIL path, under the safety supervisor; the trial
 ends when ``autonomy/state`` reads ``done`` or ``stopped:<reason>``, or at the limit.
 ``--faults`` injects a fault into each of their trials (:mod:`cgail_rig.core.faults`); the
-report adds the end states, each fault's detection time against its bound (a miss flagged) and
+report adds the end states, each fault's detection time against its bound (a miss flagged; a
+stuck PAM's counted from when it became observable, one never observable counted apart) and
 the caps measured on the true plant. The guided trials are the same with or without them.
 
 **Operator practice** (:mod:`cgail_planner.core.operator`). The paper's participant did 10
@@ -270,9 +271,14 @@ class FaultRecord:
     stop_reason: str = ''
     """The supervisor's stop reason ('' : it did not stop)."""
     detection_s: float = float('nan')
-    """Onset to stop, simulated s (NaN: not caught)."""
+    """Detection time (:func:`cgail_rig.core.faults.detection_time`), simulated s: onset to
+    stop; ``stuck_pam``: observable to stop, 0 for a stop before it was observable (NaN: no
+    stop at or after the onset)."""
     bound_s: float = float('nan')
     """The stated detection bound of the kind, s."""
+    observable_s: float = float('nan')
+    """``stuck_pam``: simulated s from the onset to when the stuck chamber became observable
+    (NaN: never before the trial ended, or another kind)."""
 
     @property
     def injected(self) -> bool:
@@ -281,8 +287,21 @@ class FaultRecord:
 
     @property
     def caught(self) -> bool:
-        """Stopped by the supervisor at or after the onset, within the bound."""
+        """Stopped by the supervisor at or after the onset, within the bound (``stuck_pam``:
+        before the chamber became observable, or within the bound after)."""
         return self.detection_s == self.detection_s and self.detection_s <= self.bound_s + 1e-9
+
+    @property
+    def never_observable(self) -> bool:
+        """A stuck PAM injected, never observable before the trial ended and not stopped after
+        the onset: it delivered every pressure asked, so it is neither caught nor missed."""
+        return self.kind == 'stuck_pam' and self.injected \
+            and self.observable_s != self.observable_s and self.detection_s != self.detection_s
+
+    @property
+    def missed(self) -> bool:
+        """Injected, observable (every kind but a never observable stuck PAM), not caught."""
+        return self.injected and not self.caught and not self.never_observable
 
 
 def trial_seed(seed: int, condition: str, index: int) -> int:
@@ -524,7 +543,7 @@ class TrialRig:
     def _autonomy_record(self, result: TrialResult, t0: float) -> None:
         """The caps measured on the true plant and the fault's detection
         (:class:`FaultRecord`)."""
-        from cgail_rig.core.faults import DETECTION_BOUNDS_S
+        from cgail_rig.core.faults import DETECTION_BOUNDS_S, detection_time
 
         caps = self.phantom.caps
         result.caps = (caps.max_speed, caps.max_bend, caps.max_pressure)
@@ -533,13 +552,15 @@ class TrialRig:
         if fault is None:
             return
         stop = self.autonomy.supervisor.stop
-        onset = fault.onset_s - t0 if self.phantom.fault_started else math.nan
-        caught = stop is not None and self.phantom.fault_started \
-            and stop.at >= fault.onset_s - 1e-9
+        started = self.phantom.fault_started
+        seen = self.phantom.fault_observable_at
+        observable = math.nan if seen is None else seen
         result.fault = FaultRecord(
-            fault.kind, onset, stop.reason if stop is not None else '',
-            stop.at - fault.onset_s if caught and stop is not None else math.nan,
-            DETECTION_BOUNDS_S[fault.kind])
+            fault.kind, fault.onset_s - t0 if started else math.nan,
+            stop.reason if stop is not None else '',
+            detection_time(fault.kind, fault.onset_s if started else math.nan,
+                           stop.at if stop is not None else math.nan, observable),
+            DETECTION_BOUNDS_S[fault.kind], observable - fault.onset_s)
 
     def close(self) -> dict[str, int]:
         """Stop recording (the bag is closed), destroy the nodes and the context; returns the
@@ -727,8 +748,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
     """Markdown of the autonomy conditions' trials ([] without any): the end states per
-    condition, the injected faults (caught within the stated bound or flagged MISSED; detection
-    time median and max per kind) and the caps measured on the true plant."""
+    condition, the injected faults (caught within the stated bound, flagged MISSED, or for a
+    stuck PAM never observable; detection time median and max per kind; for stuck_pam the
+    delay from the onset until it became observable) and the caps measured on the true
+    plant."""
     from cgail_rig.core.faults import Caps, DETECTION_BOUNDS_S
 
     rows = [r for r in results if r.spec.condition in AUTONOMY_CONDITIONS and not r.failed]
@@ -756,11 +779,17 @@ def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
         import numpy as np
 
         lines += ['', '## Autonomy: injected faults', '',
-                  'Detection time: fault onset to the supervisor\'s stop, simulated s. A fault '
-                  'is caught when the supervisor stopped after its onset within the stated '
-                  'bound (docs/guides/autonomy.md); anything else is flagged MISSED.', '',
+                  'Detection time: fault onset to the supervisor\'s stop, simulated s; for '
+                  'stuck_pam from the moment the stuck chamber became observable (its setpoint '
+                  'off the held pressure by more than 20 kPa for 0.5 s: until then it delivers '
+                  'every pressure asked), 0 for a stop after the onset but before. A fault is '
+                  'caught when the supervisor stopped so within the stated bound '
+                  '(docs/guides/autonomy.md); a stuck PAM never observable before the trial '
+                  'ended, and not stopped, is counted apart (never observable: neither caught '
+                  'nor missed); anything else is flagged MISSED.', '',
                   '| fault | injected | caught | detection median (s) | detection max (s) | '
-                  'bound (s) | stop reasons | missed |', '|---|---:|---:|---:|---:|---:|---|---|']
+                  'bound (s) | stop reasons | missed | never observable | onset to observable, '
+                  'median / max (s) |', '|---|---:|---:|---:|---:|---:|---|---|---:|---|']
         for kind in FAULT_KINDS:
             mine = [r for r in faulted if r.fault is not None and r.fault.kind == kind]
             if not mine:
@@ -770,14 +799,21 @@ def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
             caught = [f for f in injected if f.caught]
             times = np.array([f.detection_s for f in injected if f.detection_s == f.detection_s])
             reasons_seen = sorted({f.stop_reason for f in injected if f.stop_reason})
-            missed = [r.spec.label for r in mine if r.fault is not None and r.fault.injected
-                      and not r.fault.caught]
+            missed = [r.spec.label for r in mine if r.fault is not None and r.fault.missed]
+            never, seen = '-', '-'
+            if kind == 'stuck_pam':
+                never = str(sum(f.never_observable for f in injected))
+                delays = np.array([f.observable_s for f in injected
+                                   if f.observable_s == f.observable_s])
+                seen = f'{np.median(delays):.3f} / {delays.max():.3f}' if len(delays) else \
+                    'never'
             lines.append(
                 f'| {kind} | {len(injected)}/{len(mine)} | {len(caught)} | '
                 f'{np.median(times) if len(times) else math.nan:.3f} | '
                 f'{times.max() if len(times) else math.nan:.3f} | '
                 f'{DETECTION_BOUNDS_S[kind]:g} | {", ".join(reasons_seen) or "-"} | '
-                f'{"**MISSED: " + ", ".join(missed) + "**" if missed else "none"} |')
+                f'{"**MISSED: " + ", ".join(missed) + "**" if missed else "none"} | '
+                f'{never} | {seen} |')
         late = [r.spec.label for r in faulted if r.fault is not None and not r.fault.injected]
         if late:
             lines += ['', f'Trials that ended before their fault\'s onset (not counted): '

@@ -20,8 +20,20 @@ faulted trial is as reproducible as any other.
 =================  ==============================================================================
 
 The onset is drawn uniformly in ``[onset_min_s, onset_max_s]`` simulated seconds after the
-trial's goal. :data:`DETECTION_BOUNDS_S` states how soon the supervisor must stop after the
-onset for each kind (docs/guides/autonomy.md says why).
+trial's goal. :data:`DETECTION_BOUNDS_S` states how soon the supervisor must stop for each kind
+(docs/guides/autonomy.md says why), :func:`detection_time` measures it:
+
+* ``dropout``, ``slipping_sleeve``, ``wall_push``: from the onset to the supervisor's stop.
+* ``stuck_pam``: from the moment the stuck chamber became **observable** to the stop, 0 when the
+  supervisor stopped (for another reason) after the onset but before that moment. Until its
+  setpoint leaves the pressure it holds by the bank's ``stuck_detect_pa`` (20 kPa) for its
+  ``stuck_detect_s`` (0.5 s), a stuck chamber delivers exactly the pressure asked, and no sensor
+  of the rig can tell it from a healthy one (a shorter error is what a healthy regulator's lag
+  on a ramp looks like): the bank's
+  :meth:`~pam_controller.hw.sim_regulators.SimRegulatorBank.stuck_observable_at` gives that
+  moment, the phantom records it. A stuck chamber that never became observable before the trial
+  ended, and was not stopped after the onset, is counted as *never observable*: neither caught
+  nor missed.
 """
 
 from __future__ import annotations
@@ -38,16 +50,23 @@ FloatArray = NDArray[np.float64]
 #: Fault kinds, in the order a session cycles through them.
 FAULT_KINDS = ('dropout', 'stuck_pam', 'slipping_sleeve', 'wall_push')
 
-#: How soon after the onset the supervisor must have stopped, simulated s, per kind (the
-#: reasons: docs/guides/autonomy.md, "Fault injection"). ``dropout``: the tracking timeout
-#: (0.25 s) plus two supervisor ticks and one Aurora frame. ``slipping_sleeve``: the stall
-#: window (4 s) plus one relay pause of the sleeve driver (return stroke and handovers, ~2.1 s)
-#: during which nothing is commanded. ``wall_push``: the push's ramp plus the frames until the
-#: deviation (10 mm) or the pose-jump bound is crossed. ``stuck_pam``: the supervisor cannot
-#: see a chamber; it sees the path deviation the wrong bend causes, which grows only with
-#: insertion: at the slowest insertion the controller commands (1.5 mm/s) and the catheter
-#: model's curvature, 10 mm of drift takes ~10 s; 15 s leaves room for a slow onset.
-DETECTION_BOUNDS_S = {'dropout': 0.35, 'stuck_pam': 15.0, 'slipping_sleeve': 6.5,
+#: How soon the supervisor must have stopped, simulated s, per kind: after the onset, and for
+#: ``stuck_pam`` after the stuck chamber became observable (module docstring; the reasons:
+#: docs/guides/autonomy.md, "Fault injection"). ``dropout``: the tracking timeout (0.25 s)
+#: plus two supervisor ticks and one Aurora frame. ``slipping_sleeve``: the stall window (4 s)
+#: plus one relay pause of the sleeve driver (return stroke and handovers, ~2.1 s) during which
+#: nothing is commanded. ``wall_push``: the push's ramp plus the frames until the deviation
+#: (10 mm) or the pose-jump bound is crossed. ``stuck_pam``: the chain from the bank to the
+#: supervisor, at the session's rates (physics 40 Hz, host loops 20 Hz): the bank flags
+#: ``FAULT_STUCK`` ``stuck_detect_s`` (0.5 s) after the error began, checked on its steps (one
+#: physics step, 0.025 s); its next ``PAM_STATUS`` carries it (``status_period_s`` 0.1 s);
+#: ``pam_controller`` reads the bus every control period (0.05 s) and publishes its
+#: ``/diagnostics`` at level ERROR every ``diagnostics_period_s`` (0.5 s); ``autonomy_node``
+#: stops on reception (``Supervisor.on_device``), one tick (0.05 s) of margin:
+#: 0.5 + 0.025 + 0.1 + 0.05 + 0.5 + 0.05 = 1.225 s, so 1.25 s. (It was 15 s from the onset,
+#: which no supervisor could promise: a stuck chamber asked for the pressure it holds cannot
+#: be seen at all.)
+DETECTION_BOUNDS_S = {'dropout': 0.35, 'stuck_pam': 1.25, 'slipping_sleeve': 6.5,
                       'wall_push': 0.3}
 
 
@@ -139,6 +158,29 @@ def plan_fault(kind: str, seed: int, goal_s: float, config: FaultConfig | None =
     if kind == 'slipping_sleeve':
         return Fault(kind, onset, cfg.slip_s)
     return Fault(kind, onset, math.inf, angle=angle, push_m=cfg.push_m, ramp_s=cfg.push_ramp_s)
+
+
+def detection_time(kind: str, onset_s: float, stop_s: float,
+                   observable_s: float = math.nan) -> float:
+    """A fault's detection time, simulated s, as :data:`DETECTION_BOUNDS_S` bounds it (module
+    docstring): from the onset to the stop; for ``stuck_pam`` from the moment the chamber became
+    observable to the stop, 0 when the stop came after the onset but before that moment (or
+    the chamber never became observable). NaN: no stop at or after the onset.
+
+    Args:
+        kind: one of :data:`FAULT_KINDS`.
+        onset_s: simulated time of the onset, s (NaN: the trial ended before it).
+        stop_s: simulated time of the supervisor's stop, s (NaN: no stop).
+        observable_s: ``stuck_pam``: simulated time the stuck chamber became observable, s
+            (NaN: never); ignored for the other kinds.
+    """
+    if not (onset_s == onset_s and stop_s == stop_s and stop_s >= onset_s - 1e-9):
+        return math.nan
+    if kind != 'stuck_pam':
+        return stop_s - onset_s
+    if observable_s != observable_s or stop_s < observable_s:
+        return 0.0
+    return stop_s - observable_s
 
 
 def push_direction(rotation: FloatArray, angle: float) -> FloatArray:

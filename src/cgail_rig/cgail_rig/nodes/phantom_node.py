@@ -229,6 +229,9 @@ class PhantomNode(Node):
         self.fault: Fault | None = plan_fault(fault_kind, seed, fault_goal_s) \
             if fault_kind else None
         self.fault_started = False
+        #: ``stuck_pam``: simulated time the stuck chamber became observable (the bank's
+        #: ``stuck_observable_at`` on this clock), None while it is not (cgail_rig.core.faults).
+        self.fault_observable_at: float | None = None
         self._slip = SleeveSlip()
         self._push_dir: np.ndarray | None = None
         #: The catheter's largest tip speed, bend and pressure, measured on the plant.
@@ -379,6 +382,18 @@ class PhantomNode(Node):
                 self.sim_time = self.get_clock().now().nanoseconds * 1e-9
             else:
                 self.sim_time += dt
+        if self.fault_started and self.fault_observable_at is None and self.bank is not None \
+                and self.fault is not None and self.fault.kind == 'stuck_pam':
+            seen = self.bank.stuck_observable_at(self.fault.channel)
+            if seen is not None:  # (the bank's clock is its steps: now is its time_s)
+                self.fault_observable_at = self.sim_time - (self.bank.time_s - seen)
+                first = self.bank.stuck_error_at(self.fault.channel)
+                first_s = self.sim_time - (self.bank.time_s - (seen if first is None else first))
+                self.get_logger().warning(
+                    f'stuck chamber {self.fault.channel} observable from '
+                    f'{self.fault_observable_at:.3f} s (off its setpoint by more than '
+                    f'{self.bank.config.stuck_detect_pa / 1e3:g} kPa for '
+                    f'{self.bank.config.stuck_detect_s:g} s; first off it at {first_s:.3f} s)')
         stamp = self.now_msg()
         if self._clock_pub is not None:
             self._clock_pub.publish(ClockMsg(clock=stamp))
@@ -393,7 +408,8 @@ class PhantomNode(Node):
     def _apply_fault(self, t: float) -> None:
         """Start or end the injected fault at simulated time ``t`` through the simulated
         devices (the Aurora, the regulator bank); the sleeve slip and the push act in
-        :meth:`advance` and :meth:`_em_pose`."""
+        :meth:`advance` and :meth:`_em_pose`, which also records when a stuck chamber became
+        observable (:attr:`fault_observable_at`)."""
         fault = self.fault
         assert fault is not None
         active = fault.active(t)

@@ -1,5 +1,6 @@
 """Fault injection's pure logic (cgail_rig.core.faults): the plan from the seed, the push, the
-sleeve slip, the cap monitor."""
+sleeve slip, the cap monitor, the detection time; the session's fault record and its report
+rows (cgail_rig.session, no rig)."""
 
 import math
 
@@ -10,6 +11,7 @@ from cgail_rig.core.faults import (
     CapMonitor,
     Caps,
     DETECTION_BOUNDS_S,
+    detection_time,
     Fault,
     FAULT_KINDS,
     FaultConfig,
@@ -103,3 +105,94 @@ def test_cap_monitor_keeps_the_largest_and_names_what_exceeded() -> None:
     caps.observe(0.025, -0.0002, (1.2, 0.0), np.array([0.0, 3.1e5, 0.0, 0.0]))
     assert caps.exceeded() == ['tip speed 8.00 mm/s > 5.00 mm/s', 'bend 1.200 rad > 1.000 rad',
                                'pressure 310.0 kPa > 300.0 kPa']
+
+
+def test_the_other_kinds_keep_their_bounds() -> None:
+    assert {k: b for k, b in DETECTION_BOUNDS_S.items() if k != 'stuck_pam'} == {
+        'dropout': 0.35, 'slipping_sleeve': 6.5, 'wall_push': 0.3}
+    # stuck_pam: the chain bank -> pam_controller -> autonomy, from when it became observable
+    assert DETECTION_BOUNDS_S['stuck_pam'] == 1.25
+
+
+@pytest.mark.parametrize(('kind', 'onset', 'stop', 'observable', 'expected'), [
+    ('dropout', 10.0, 10.27, math.nan, 0.27),
+    ('wall_push', 10.0, 10.05, 11.0, 0.05),  # (observable: stuck_pam's only)
+    ('dropout', 10.0, 9.0, math.nan, math.nan),  # stopped before the onset
+    ('dropout', 10.0, math.nan, math.nan, math.nan),  # no stop
+    ('dropout', math.nan, 9.0, math.nan, math.nan),  # the trial ended before the onset
+    ('stuck_pam', 10.0, 31.0, 30.0, 1.0),  # from observable, not from the onset
+    ('stuck_pam', 10.0, 12.0, 30.0, 0.0),  # stopped after the onset, before observable
+    ('stuck_pam', 10.0, 12.0, math.nan, 0.0),  # stopped after the onset, never observable
+    ('stuck_pam', 10.0, 9.0, math.nan, math.nan),  # stopped before the onset
+    ('stuck_pam', 10.0, math.nan, 30.0, math.nan),  # not stopped
+])
+def test_detection_time(kind: str, onset: float, stop: float, observable: float,
+                        expected: float) -> None:
+    got = detection_time(kind, onset, stop, observable)
+    if math.isnan(expected):
+        assert math.isnan(got)
+    else:
+        assert got == pytest.approx(expected, abs=1e-12)
+
+
+def _stuck(onset: float, stop: float, observable: float, reason: str = 'device_fault'):
+    from cgail_rig import session as s
+
+    return s.FaultRecord('stuck_pam', onset, reason if stop == stop else '',
+                         detection_time('stuck_pam', onset, stop, observable),
+                         DETECTION_BOUNDS_S['stuck_pam'], observable - onset)
+
+
+@pytest.mark.parametrize(('onset', 'stop', 'observable', 'caught', 'missed', 'never'), [
+    (5.0, 7.0, 20.0, True, False, False),  # stopped (another reason) before observable
+    (5.0, 7.0, math.nan, True, False, False),  # the same, never observable
+    (5.0, 21.2, 20.0, True, False, False),  # within the bound after observable (was 16.2 s)
+    (5.0, 21.3, 20.0, False, True, False),  # beyond the bound after observable: missed
+    (5.0, math.nan, 20.0, False, True, False),  # observable, never stopped: missed
+    (5.0, math.nan, math.nan, False, False, True),  # never observable, not stopped: neither
+    (math.nan, math.nan, math.nan, False, False, False),  # the trial ended before the onset
+])
+def test_a_stuck_pam_is_caught_from_when_it_became_observable(
+        onset: float, stop: float, observable: float, caught: bool, missed: bool,
+        never: bool) -> None:
+    f = _stuck(onset, stop, observable)
+    assert (f.caught, f.missed, f.never_observable) == (caught, missed, never), f
+
+
+def test_the_other_kinds_are_caught_from_the_onset_and_never_unobservable() -> None:
+    from cgail_rig import session as s
+
+    for stop, caught in ((5.3, True), (5.4, False), (math.nan, False)):
+        f = s.FaultRecord('dropout', 5.0, 'tracking_lost' if stop == stop else '',
+                          detection_time('dropout', 5.0, stop), DETECTION_BOUNDS_S['dropout'])
+        assert (f.caught, f.missed, f.never_observable) == (caught, not caught, False), f
+        assert math.isnan(f.observable_s)
+
+
+def test_the_report_counts_never_observable_stuck_pams_apart() -> None:
+    from cgail_rig import session as s
+
+    def result(k: int, outcome: str, fault) -> s.TrialResult:
+        spec = s.TrialSpec('autonomous', k, 0, 0, k, f'autonomous_{k + 1:02d}.mcap',
+                           fault=fault.kind)
+        return s.TrialResult(spec, outcome=outcome, fault=fault)
+
+    results = [
+        result(0, 'stopped:device_fault: regulator bank fault', _stuck(5.0, 21.0, 20.0)),
+        result(1, 'stopped:path_deviation: 10.2 mm', _stuck(5.0, 7.0, math.nan, 'path_deviation')),
+        result(2, 'at the target (1.2 mm)', _stuck(5.0, math.nan, math.nan)),
+        result(3, 'stopped:device_fault: regulator bank fault', _stuck(6.0, 14.0, 12.0)),
+        result(4, 'stopped:tracking_lost: no pose', s.FaultRecord(
+            'dropout', 4.0, 'tracking_lost', 0.27, DETECTION_BOUNDS_S['dropout'])),
+    ]
+    lines = s.autonomy_report(results)
+    text = '\n'.join(lines)
+    # the end states count every trial as usual, the never observable one's arrival included
+    assert '| autonomous | 5 | 1 | device_fault: 2, path_deviation: 1, tracking_lost: 1 | 0 |' \
+        in lines
+    assert 'never observable' in text and 'became observable' in text
+    # caught: 1.0 s after observable (trial 1), 0 (trial 2, before); missed: 2.0 s (trial 4);
+    # never observable: trial 3; onset to observable: 15 s and 6 s
+    assert ('| stuck_pam | 4/4 | 2 | 1.000 | 2.000 | 1.25 | device_fault, path_deviation | '
+            '**MISSED: autonomous_04** | 1 | 10.500 / 15.000 |') in lines, text
+    assert '| dropout | 1/1 | 1 | 0.270 | 0.270 | 0.35 | tracking_lost | none | - | - |' in lines
