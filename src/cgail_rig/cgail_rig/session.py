@@ -294,7 +294,8 @@ class FaultRecord:
     @property
     def never_observable(self) -> bool:
         """A stuck PAM injected, never observable before the trial ended and not stopped after
-        the onset: it delivered every pressure asked, so it is neither caught nor missed."""
+        the onset: it was never asked for long for a pressure it could not deliver, so nothing
+        could tell it from a healthy chamber; neither caught nor missed."""
         return self.kind == 'stuck_pam' and self.injected \
             and self.observable_s != self.observable_s and self.detection_s != self.detection_s
 
@@ -781,9 +782,9 @@ def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
         lines += ['', '## Autonomy: injected faults', '',
                   'Detection time: fault onset to the supervisor\'s stop, simulated s; for '
                   'stuck_pam from the moment the stuck chamber became observable (its setpoint '
-                  'off the held pressure by more than 20 kPa for 0.5 s: until then it delivers '
-                  'every pressure asked), 0 for a stop after the onset but before. A fault is '
-                  'caught when the supervisor stopped so within the stated bound '
+                  'off the held pressure by more than 20 kPa for 0.5 s: until then nothing '
+                  'tells it from a healthy one), 0 for a stop after the onset but before. A '
+                  'fault is caught when the supervisor stopped so within the stated bound '
                   '(docs/guides/autonomy.md); a stuck PAM never observable before the trial '
                   'ended, and not stopped, is counted apart (never observable: neither caught '
                   'nor missed); anything else is flagged MISSED.', '',
