@@ -6,6 +6,7 @@ Run (from the workspace root, inside the workspace environment)::
     scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
         paper_code_mu0 --seeds 0 1 --steps 500000 5000000 --jobs 2
     scripts/ws python bench/insilico_study.py --report-only      # rebuild OUT/report.md only
+    scripts/ws python bench/insilico_study.py --prepare-commit   # OUT/.gitignore, then git add OUT
     scripts/ws python bench/insilico_study.py --methods smoke --seeds 0 --steps 4096 8192 \
         --trials 3 --dynamic-steps 2048 --out runs/insilico_smoke   # a smoke run, minutes
     scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
@@ -71,22 +72,44 @@ GAIL and the three ablations) and every seed of ``--seeds`` it runs:
    steps it reached, marked.
 
 **Resuming.** Everything lives under ``--out`` (default ``runs/insilico_study``). Re-running the
-same command skips what is done (snapshots; policies newer than their checkpoint; evaluations
-of the current policy with ``--trials`` trials), resumes
+same command skips what is done (snapshots; policies exported from their current checkpoint;
+evaluations of the current policy with ``--trials`` trials), resumes
 unfinished trainings from their latest checkpoint (``train --resume``; a run without a
 checkpoint restarts) and rebuilds the report. Ctrl-C or SIGTERM stops the running processes;
 their checkpoints stay. Each process logs to ``OUT/logs/<task>.log`` (appended across
 invocations). A progress line per running training every ``--progress-every`` seconds gives its
 steps, steps/s, ETA and last evaluation success.
 
+What is done is judged by content, not file times: each output records the sha256 of what it
+was made from (``snapshot.json`` and a run's ``study_state.json``: their policy checkpoint's
+``policy_sha256``; ``static.onnx.sha256.json`` beside a policy: its checkpoint's;
+``eval_*/results.json.sha256.json``: the evaluated policy's), and is done while those inputs
+still hash the same, or are not there (a checkpoint left out of git: then compared with the
+hash recorded where it was made). So a budget whose ``snapshot.json``, policies and
+evaluations agree is done without any ``*.pt``. Outputs made before these records are judged
+by file times (an output not older than its inputs) and recorded by content on the next run
+(or ``--prepare-commit``) on the machine that made them.
+
+*Across machines: commit OUT.* Every run writes ``OUT/.gitignore``: ``git add OUT`` then takes
+the reports, CSVs, PNGs, JSON, YAML, ONNX policies and logs, and of the checkpoints (``*.pt``)
+only what a task not done yet needs: an unfinished training's latest periodic checkpoint
+(``checkpoints/step_<n>.pt``), ``final.pt`` and ``best.pt`` (``train --resume`` needs no more
+beside ``config.yaml`` and ``scalars.csv``), and a budget's ``best.pt`` until its exports and
+dynamic re-training are done. To end a session: stop the study (Ctrl-C or SIGTERM: it rewrites
+``OUT/.gitignore`` as it stops; after a harder stop, or for a folder made before this, run the
+same command with ``--prepare-commit``, which runs nothing), then ``git add OUT && git commit``.
+A later session re-runs the same command in its clone and continues where it stopped.
+Checkpoints committed earlier that no task needs any more stay tracked until removed:
+``git rm --cached $(git ls-files -ci --exclude-standard OUT)``.
+
 Layout of ``OUT``: ``<preset>/seed<S>/static/`` (the static run, continued budget after budget),
 ``<preset>/seed<S>/steps_<N>/`` (snapshot ``best.pt`` + ``scalars.csv`` + ``config.yaml`` +
 ``snapshot.json``, ``static.onnx``, ``dynamic/`` run, ``dynamic.onnx``,
 ``eval_<mode>_targets<K>/`` with ``evaluate``'s ``report.md`` and ``results.json``),
 ``baselines/<options>/eval_<mode>_targets<K>/``, ``logs/``, ``report.md``, ``summary.csv``,
-``results.csv``. With ``--fresh-budgets``: ``<preset>/seed<S>/budget_<N>/`` holds the same as
-``steps_<N>/`` and the budget's own static run in ``static/``. Re-run, or ``--report-only``,
-with the same budget options: they say which layout to read.
+``results.csv``, ``.gitignore``. With ``--fresh-budgets``: ``<preset>/seed<S>/budget_<N>/``
+holds the same as ``steps_<N>/`` and the budget's own static run in ``static/``. Re-run, or
+``--report-only``, with the same budget options: they say which layout to read.
 
 **Anatomies.** This command runs in the default anatomy, with ``--demos``. ``bench/sweep.py``
 runs the same tasks in several anatomies (an :class:`Anatomy` each, what ``train`` and
@@ -104,6 +127,7 @@ from dataclasses import dataclass, field, replace
 import datetime
 from fractions import Fraction
 from functools import partial
+import hashlib
 import itertools
 import json
 import os
@@ -1155,6 +1179,11 @@ class Task:
     target: int = 0
     """A training's step budget (progress lines)."""
     order: int = 0
+    keep: Callable[[], list[Path]] | None = None
+    """The checkpoints (``*.pt``) the task needs while it is not done, which ``OUT/.gitignore``
+    lets git commit (:func:`write_gitignore`)."""
+    adopt: Callable[[], object] | None = None
+    """Record by content what the task made before records were kept (:func:`adopt`)."""
 
 
 def python_module(module: str, *args: str) -> list[str]:
@@ -1183,6 +1212,7 @@ def snapshot(run: Path, dest: Path, budget: int, log: Path) -> None:
     shutil.copy2(run / 'config.yaml', dest / 'config.yaml')
     ev = [v for s, v in sc.get('eval/success_rate', []) if s <= step]
     info = {'budget': budget, 'step': step, 'policy': policy,
+            'policy_sha256': sha256_file(dest / 'best.pt'),
             'best_eval_success': max(ev) if ev else None,
             'wall_s': wall_seconds_from_log(log),
             'time': datetime.datetime.now().isoformat(timespec='seconds')}
@@ -1192,9 +1222,13 @@ def snapshot(run: Path, dest: Path, budget: int, log: Path) -> None:
 
 
 def record_state(run: Path) -> None:
-    """After a ``train`` invocation ended well: the step its final.pt holds."""
-    (run / 'study_state.json').write_text(
-        json.dumps({'step': last_step(read_scalars(run / 'scalars.csv'))}) + '\n')
+    """After a ``train`` invocation ended well: the step its final.pt holds and the sha256 of
+    the policy an export takes from it (``best.pt``, else ``final.pt``), which tells whether
+    that export is current once the checkpoints are not there (a git clone)."""
+    policy = export_source(run / 'best.pt')
+    (run / 'study_state.json').write_text(json.dumps(
+        {'step': last_step(read_scalars(run / 'scalars.csv')),
+         'policy_sha256': sha256_file(policy) if policy.is_file() else None}) + '\n')
 
 
 def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) -> list[str] | None:
@@ -1220,31 +1254,195 @@ def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) ->
 
 
 def up_to_date(output: Path, *inputs: Path) -> bool:
-    """Whether ``output`` exists and is not older than any of the ``inputs`` that exist."""
+    """Whether ``output`` exists and is not older than any of the ``inputs`` that exist (the
+    rule for outputs made before :func:`record_inputs`; file times mean nothing in a clone)."""
     if not output.is_file():
         return False
     t = output.stat().st_mtime
     return all(t >= i.stat().st_mtime for i in inputs if i.is_file())
 
 
+# Content records: what an output was made from, by sha256, so that the study resumes from a
+# git clone (arbitrary file times, no ``*.pt`` of finished work; ``--prepare-commit``).
+
+#: An output's record lies beside it: ``static.onnx`` -> ``static.onnx.sha256.json``.
+RECORD_SUFFIX = '.sha256.json'
+
+
+def sha256_file(path: Path) -> str:
+    """The sha256 of a file's bytes, hex."""
+    h = hashlib.sha256()
+    with path.open('rb') as f:
+        for chunk in iter(lambda: f.read(1 << 20), b''):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def record_path(output: Path) -> Path:
+    """Where the record of ``output`` lies."""
+    return output.with_name(output.name + RECORD_SUFFIX)
+
+
+def record_inputs(output: Path, inputs: dict[str, Path]) -> None:
+    """Write the record of ``output`` after it was made from ``inputs`` (name -> file): the
+    sha256 of it and of each input (:func:`made_from` reads it)."""
+    data = {'sha256': sha256_file(output),
+            'inputs': {name: sha256_file(path) for name, path in inputs.items()}}
+    tmp = record_path(output).with_suffix('.tmp')
+    tmp.write_text(json.dumps(data, indent=1) + '\n')
+    tmp.replace(record_path(output))
+
+
+def made_from(output: Path, inputs: dict[str, Path],
+              known: dict[str, str | None] | None = None) -> bool | None:
+    """Whether ``output`` is what its record says and was made from the ``inputs`` as they are
+    now; None when it has no record (made before records: judge it by :func:`up_to_date`).
+
+    An input that is not here (a checkpoint left out of git) is compared by the sha256 that
+    ``known`` gives for its name (recorded where it was made: ``snapshot.json``,
+    ``study_state.json``); with neither, the record stands.
+    """
+    path = record_path(output)
+    if not output.is_file():
+        return False
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+        recorded, was = data['sha256'], dict(data['inputs'])
+    except (ValueError, KeyError, TypeError):
+        return False  # a damaged record: make the output again
+    if recorded != sha256_file(output):
+        return False
+    for name, file in inputs.items():
+        now = sha256_file(file) if file.is_file() else (known or {}).get(name)
+        if name not in was or (now is not None and now != was[name]):
+            return False
+    return True
+
+
+def current(output: Path, inputs: dict[str, Path],
+            known: dict[str, str | None] | None = None) -> bool:
+    """Whether ``output`` is current: by its record (:func:`made_from`), or, made before
+    records, not older than the inputs that are here (:func:`up_to_date`)."""
+    by_content = made_from(output, inputs, known)
+    return up_to_date(output, *inputs.values()) if by_content is None else by_content
+
+
+def adopt(output: Path, inputs: dict[str, Path]) -> bool:
+    """Record ``output`` made before records (it has none) when its file times say it is
+    current and every input is here, so that a clone judges it by content; returns whether it
+    wrote the record. Run where the output was made: a clone's file times mean nothing."""
+    if (not output.is_file() or record_path(output).is_file()
+            or not all(p.is_file() for p in inputs.values())
+            or not up_to_date(output, *inputs.values())):
+        return False
+    record_inputs(output, inputs)
+    return True
+
+
+def recorded_sha256(path: Path, key: str = 'policy_sha256') -> str | None:
+    """``key`` of a JSON file (``snapshot.json``, ``study_state.json``); None when absent."""
+    if not path.is_file():
+        return None
+    try:
+        value = json.loads(path.read_text()).get(key)
+    except (ValueError, AttributeError):
+        return None
+    return value if isinstance(value, str) else None
+
+
+def adopt_policy_hash(path: Path, policy: Path) -> bool:
+    """Add ``policy_sha256`` of ``policy`` to ``path`` (``snapshot.json``,
+    ``study_state.json``) written before it held one; returns whether it did."""
+    if not path.is_file() or not policy.is_file() or recorded_sha256(path) is not None:
+        return False
+    data = json.loads(path.read_text())
+    data['policy_sha256'] = sha256_file(policy)
+    tmp = path.with_suffix('.tmp')
+    tmp.write_text(json.dumps(data, indent=1) + '\n')
+    tmp.replace(path)
+    return True
+
+
 def evaluated(folder: Path, policy: Path | None, trials: int) -> bool:
-    """Whether ``folder/results.json`` holds ``trials`` trials of the current ``policy``."""
+    """Whether ``folder/results.json`` holds ``trials`` trials of the current ``policy``
+    (:func:`current`: by the sha256 of the policy it recorded, else by file times)."""
     path = folder / 'results.json'
-    if not up_to_date(path, *([policy] if policy is not None else [])):
+    if not path.is_file() or (policy is not None and not current(path, {'policy': policy})):
         return False
     return bool(json.loads(path.read_text()).get('trials') == trials)
 
 
-def dynamic_done(run: Path, steps: int) -> bool:
-    """Whether the dynamic re-training in ``run`` finished its ``steps``."""
-    return trained_to(run, steps) and (run / 'study_state.json').is_file()
+def export_source(ckpt: Path) -> Path:
+    """The checkpoint an export of ``ckpt`` (``best.pt``) takes: it, or ``final.pt`` beside
+    it when the run made no periodic evaluation."""
+    return ckpt if ckpt.is_file() else ckpt.with_name('final.pt')
+
+
+def exported(policy: Path, ckpt: Path, known_from: Path) -> bool:
+    """Whether ``policy`` is the current export of ``ckpt`` (:func:`export_source`): by its
+    record, with the checkpoint's sha256 from ``known_from`` (``snapshot.json``,
+    ``study_state.json``) when the checkpoint is not here; else by file times."""
+    return current(policy, {'checkpoint': export_source(ckpt)},
+                   {'checkpoint': recorded_sha256(known_from)})
+
+
+def dynamic_done(run: Path, steps: int, policy: Path | None = None) -> bool:
+    """Whether the dynamic re-training in ``run`` finished its ``steps``: its ``final.pt`` is
+    here, or (its checkpoints left out of git) ``policy`` is the recorded export of it."""
+    if not (run / 'study_state.json').is_file():
+        return False
+    if trained_to(run, steps):
+        return True
+    return (policy is not None and run_max_steps(run) == steps
+            and last_step(read_scalars(run / 'scalars.csv')) >= steps
+            and made_from(policy, {'checkpoint': export_source(run / 'best.pt')},
+                          {'checkpoint': recorded_sha256(run / 'study_state.json')}) is True)
 
 
 def export_command(ckpt: Path, policy: Path) -> list[str]:
     """Export ``ckpt`` (``best.pt``; ``final.pt`` beside it when the run made no periodic
     evaluation) to ``policy``."""
-    use = ckpt if ckpt.is_file() else ckpt.with_name('final.pt')
-    return python_module('cgail_learning.export', str(use), '--out', str(policy))
+    return python_module('cgail_learning.export', str(export_source(ckpt)), '--out', str(policy))
+
+
+def record_export(ckpt: Path, policy: Path) -> None:
+    """After an export: record the checkpoint ``policy`` was made from."""
+    record_inputs(policy, {'checkpoint': export_source(ckpt)})
+
+
+def export_keep(ckpt: Path) -> list[Path]:
+    """What an export not done needs: its checkpoint (:func:`export_source`)."""
+    return [export_source(ckpt)]
+
+
+def adopt_export(ckpt: Path, policy: Path) -> bool:
+    """:func:`adopt` an export made before records."""
+    return adopt(policy, {'checkpoint': export_source(ckpt)})
+
+
+def dynamic_keep(run: Path, init: Path) -> list[Path]:
+    """What a dynamic re-training not done needs: its :func:`resume_files`, and the static
+    ``best.pt`` it starts from (``init``) should it restart."""
+    return [*resume_files(run), init]
+
+
+def adopt_state(state: Path, ckpt: Path) -> bool:
+    """:func:`adopt_policy_hash` of a finished run's ``study_state.json`` made before it held
+    one."""
+    return adopt_policy_hash(state, export_source(ckpt))
+
+
+def resume_files(run: Path) -> list[Path]:
+    """What ``train --resume`` needs of ``run`` beside its small files (``config.yaml``,
+    ``scalars.csv``, ``study_state.json``): the highest periodic checkpoint and ``final.pt``
+    (:func:`cgail_learning.train.latest_checkpoint` takes the later of them), and ``best.pt``
+    (the resumed run overwrites it only with a better evaluation). Those that exist."""
+    steps = checkpoint_steps(run)
+    files = ([run / 'checkpoints' / f'step_{steps[-1]}.pt'] if steps else []) + [
+        run / 'final.pt', run / 'best.pt']
+    return [f for f in files if f.is_file()]
 
 
 def static_post(layout: Layout, preset: str, seed: int, budget: int, log: Path) -> None:
@@ -1282,37 +1480,45 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
                     key = f'{at}{m}/seed{s}/{n}'
                     static_key = f'{key}/train-static'
                     rank = 10 * (si if plan.fresh else bi)
+                    snap = layout.snapshot(m, s, n)
+                    best = snap.with_name('best.pt')
                     tasks.append(Task(
                         static_key, 'train', [prev] if prev and not plan.fresh else [],
-                        done=layout.snapshot(m, s, n).is_file,
+                        done=snap.is_file,
                         command=partial(train_command, run, n,
                                         ['--preset', m, '--seed', str(s)],
                                         ['--mode', 'static', *common]),
                         post=partial(static_post, layout, m, s, n, root.log(static_key)),
-                        run=run, target=n, order=rank + 2))
+                        run=run, target=n, order=rank + 2, keep=partial(resume_files, run),
+                        adopt=partial(adopt_policy_hash, snap, best)))
                     prev = static_key
-                    best = layout.budget(m, s, n) / 'best.pt'
                     for mode in plan.modes:
                         policy = layout.policy(m, s, n, mode)
                         if mode == 'static':
-                            ckpt, source = best, static_key
+                            ckpt, source, known = best, static_key, snap
                         else:
                             dyn, d = layout.dynamic_run(m, s, n), plan.dynamic_steps
                             ckpt, source = dyn / 'best.pt', f'{key}/train-dynamic'
+                            known = dyn / 'study_state.json'
                             tasks.append(Task(
                                 source, 'train', [static_key],
-                                done=partial(dynamic_done, dyn, d),
+                                done=partial(dynamic_done, dyn, d, policy),
                                 command=partial(train_command, dyn, d,
                                                 ['--preset', m, '--seed', str(s), '--init-from',
                                                  str(best)], ['--mode', 'dynamic', *common]),
                                 post=partial(record_state, dyn), run=dyn, target=d,
-                                order=rank + 1))
+                                order=rank + 1,
+                                keep=partial(dynamic_keep, dyn, best),
+                                adopt=partial(adopt_state, known, ckpt)))
                         tasks.append(Task(f'{key}/export-{mode}', 'export', [source],
-                                          done=partial(up_to_date, policy, ckpt,
-                                                       ckpt.with_name('final.pt')),
-                                          command=partial(export_command, ckpt, policy)))
+                                          done=partial(exported, policy, ckpt, known),
+                                          command=partial(export_command, ckpt, policy),
+                                          post=partial(record_export, ckpt, policy),
+                                          keep=partial(export_keep, ckpt),
+                                          adopt=partial(adopt_export, ckpt, policy)))
                         for k in plan.target_sets:
                             folder = layout.evaluation(m, s, n, mode, k)
+                            results = {'policy': policy}
                             tasks.append(Task(
                                 f'{key}/eval-{mode}-targets{k}', 'eval',
                                 [f'{key}/export-{mode}'],
@@ -1320,7 +1526,9 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
                                 command=partial(python_module, evaluate, '--policy',
                                                 f'{m}={policy}', '--baselines', '--modes', mode,
                                                 *in_anatomy, '--scenario-seed', str(k),
-                                                '--out', str(folder))))
+                                                '--out', str(folder)),
+                                post=partial(record_inputs, folder / 'results.json', results),
+                                adopt=partial(adopt, folder / 'results.json', results)))
         if plan.baselines:
             for options in plan.options():
                 for mode in plan.modes:
@@ -1335,6 +1543,62 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
                                             str(k), '--out', str(folder)),
                             order=1))
     return tasks
+
+
+#: The fixed part of ``OUT/.gitignore`` (:func:`write_gitignore`).
+GITIGNORE_HEAD = """\
+# Written by bench/insilico_study.py on every run and by --prepare-commit: what `git add OUT`
+# commits so that the study resumes from a clone. Kept: reports, CSVs, PNGs, JSON (snapshots,
+# content records *.sha256.json, evaluation results), YAML, ONNX policies, logs. Left out:
+# the lock, temporary files, TensorBoard event files (scalars.csv holds the same) and every
+# checkpoint (*.pt) but those a task not done yet needs (the "!" lines: an unfinished
+# training's latest checkpoint, final.pt and best.pt; a snapshot's best.pt until its exports
+# and its dynamic re-training are done).
+/.lock
+*.tmp
+events.out.tfevents.*
+*.pt
+"""
+
+
+def gitignore_pattern(path: Path) -> str:
+    """A ``.gitignore`` line matching exactly ``path`` (relative to the file's folder), with
+    git's special characters escaped."""
+    return '/' + re.sub(r'([\\*?\[\]!# ])', r'\\\1', path.as_posix())
+
+
+def gitignore_text(root: Path, tasks: Sequence[Task]) -> str:
+    """``OUT/.gitignore``: :data:`GITIGNORE_HEAD`, then a ``!`` line for every checkpoint that
+    a task not done needs (:attr:`Task.keep`) and that exists under ``root``."""
+    keep = sorted({p.resolve() for t in tasks if t.keep is not None and not t.done()
+                   for p in t.keep() if p.is_file()})
+    lines = [f'!{gitignore_pattern(p.relative_to(root.resolve()))}' for p in keep
+             if p.is_relative_to(root.resolve())]
+    return GITIGNORE_HEAD + ''.join(f'{ln}\n' for ln in lines)
+
+
+def write_gitignore(root: Path, tasks: Sequence[Task]) -> Path:
+    """Write ``root/.gitignore`` (:func:`gitignore_text`); returns its path."""
+    root.mkdir(parents=True, exist_ok=True)
+    path = root / '.gitignore'
+    tmp = path.with_name('.gitignore.tmp')
+    tmp.write_text(gitignore_text(root, tasks))
+    tmp.replace(path)
+    return path
+
+
+def adopt_records(tasks: Sequence[Task]) -> int:
+    """Record by content what the tasks made before records were kept (:attr:`Task.adopt`,
+    judged by file times, so on the machine that made it); returns how many it recorded."""
+    return sum(bool(t.adopt()) for t in tasks if t.adopt is not None)
+
+
+def prepare_commit(layout: Layout, plan: StudyPlan) -> tuple[Path, int]:
+    """``--prepare-commit``: record what is done by content (:func:`adopt_records`) and write
+    ``OUT/.gitignore``; returns its path and how many records were added."""
+    tasks = plan_tasks(layout, plan)
+    added = adopt_records(tasks)
+    return write_gitignore(layout.root, tasks), added
 
 
 def child_env() -> dict[str, str]:
@@ -1548,6 +1812,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='seconds between progress lines of the running trainings')
     p.add_argument('--report-only', action='store_true',
                    help='rebuild OUT/report.md from what exists; run nothing')
+    p.add_argument('--prepare-commit', action='store_true',
+                   help='before `git add OUT`: record what is done by content (outputs made '
+                        'before records, judged by their file times here) and write '
+                        'OUT/.gitignore (every run writes it too); run nothing')
     return p
 
 
@@ -1662,6 +1930,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.report_only:
         say(f'report: {write_report(layout, plan, command)}')
         return 0
+    if args.prepare_commit:
+        path, added = prepare_commit(layout, plan)
+        say(f'{added} outputs recorded by content; {path} written: git add {args.out}')
+        return 0
     try:
         with study_lock(layout.root):
             return run_study(layout, plan, command, args.jobs, args.progress_every)
@@ -1681,17 +1953,24 @@ def run_study(layout: Layout, plan: StudyPlan, command: str, jobs: int, progress
     signal.signal(signal.SIGTERM, _terminate)
     t0 = time.monotonic()
     tasks = plan_tasks(layout, plan)
+    adopted = adopt_records(tasks)
+    if adopted:
+        say(f'{adopted} outputs made before content records: recorded by content')
+    write_gitignore(layout.root, tasks)
 
     def on_done(task: Task) -> None:
         if task.kind == 'eval':
             write_report(layout, plan, command)
+        write_gitignore(layout.root, tasks)
 
     try:
         n_done, n_bad = run_tasks(tasks, layout, jobs, progress_every, on_done, launch)
     except KeyboardInterrupt:
         say('interrupted; re-run the same command to continue')
         write_report(layout, plan, command)
+        write_gitignore(layout.root, tasks)
         return 130
+    write_gitignore(layout.root, tasks)
     path = write_report(layout, plan, command)
     say(f'{n_done} of {n_done + n_bad} tasks done in '
         f'{format_duration(time.monotonic() - t0)}; report: {path}')

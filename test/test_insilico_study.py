@@ -573,3 +573,167 @@ def test_authors_budgets_plan_and_command():
     assert default.budgets == study.DEFAULT_STEPS and not default.fresh
     assert '--steps 500000 2000000 --modes' in study.command_line(
         study.build_parser().parse_args(['--methods', 'smoke']))
+
+
+# ---------------------------------------------------------------------------- resuming in a clone
+
+
+def _budget_done(layout, plan, s: int = 0, n: int = 4096) -> None:
+    """Every output of budget ``n`` as the study makes them, content records included; the
+    static run (continued) then stopped at 6144 of 8192 with periodic checkpoints."""
+    run = fake_run(layout.static_run('smoke', s, n), n, n, state=n)
+    (run / 'best.pt').write_bytes(b'static best')
+    log = layout.log('x')
+    log.parent.mkdir(parents=True, exist_ok=True)
+    log.write_text('time/wall_s: 1.0\n')
+    study.snapshot(run, layout.budget('smoke', s, n), n, log)
+    dyn = fake_run(layout.dynamic_run('smoke', s, n), plan.dynamic_steps, plan.dynamic_steps,
+                   checkpoints=(1024,))
+    (dyn / 'best.pt').write_bytes(b'dynamic best')
+    study.record_state(dyn)
+    for mode, ckpt in (('static', layout.budget('smoke', s, n) / 'best.pt'),
+                       ('dynamic', dyn / 'best.pt')):
+        policy = layout.policy('smoke', s, n, mode)
+        policy.write_bytes(f'onnx of {ckpt.read_bytes()!r}'.encode())
+        study.record_export(ckpt, policy)
+        for k in plan.target_sets:
+            folder = layout.evaluation('smoke', s, n, mode, k)
+            write_results(folder, 'smoke', mode, [True, False])
+            study.record_inputs(folder / 'results.json', {'policy': policy})
+    fake_run(run, 8192, 6144, checkpoints=(5120, 6144), state=n)
+    (run / 'events.out.tfevents.1.host').write_bytes(b'tb')
+
+
+def _clone_plan():
+    return study.StudyPlan(('smoke',), (0,), (4096, 8192), ('static', 'dynamic'),
+                           {'smoke': 'ours'}, trials=2, dynamic_steps=2048, baselines=())
+
+
+def _budget_tasks(tasks, n: int = 4096):
+    return [t for t in tasks if t.key.startswith(f'smoke/seed0/{n}/')]
+
+
+def test_done_by_content_survives_shuffled_times_and_missing_checkpoints(tmp_path):
+    """A clone: file times arbitrary (every output older than its inputs) and no *.pt of a
+    finished budget; its snapshot, policies and evaluations agree by sha256, so it is done."""
+    import os
+
+    layout, plan = study.Layout(tmp_path), _clone_plan()
+    _budget_done(layout, plan)
+    tasks = study.plan_tasks(layout, plan)
+    done = _budget_tasks(tasks)
+    assert len(done) == 1 + 1 + 2 + 4 and all(t.done() for t in done)
+    for i, path in enumerate(sorted(tmp_path.rglob('*'))):
+        if path.is_file():  # outputs (.onnx, results.json) before their inputs (.pt, .onnx)
+            t = 2e9 - 2000 * (path.name == 'results.json') - 1000 * (path.suffix == '.onnx') + i
+            os.utime(path, (t, t))
+    assert not study.up_to_date(layout.policy('smoke', 0, 4096, 'static'),
+                                layout.budget('smoke', 0, 4096) / 'best.pt')
+    assert all(t.done() for t in done)
+    for pt in tmp_path.rglob('*.pt'):
+        pt.unlink()
+    assert all(t.done() for t in done), [t.key for t in done if not t.done()]
+    # what the clone does not have: the next budget (its training resumes; see the gitignore)
+    assert not any(t.done() for t in _budget_tasks(tasks, 8192))
+
+
+def test_a_changed_policy_or_checkpoint_is_not_done(tmp_path):
+    layout, plan = study.Layout(tmp_path), _clone_plan()
+    _budget_done(layout, plan)
+    tasks = {t.key: t for t in study.plan_tasks(layout, plan)}
+    key = 'smoke/seed0/4096'
+    policy = layout.policy('smoke', 0, 4096, 'static')
+    policy.write_bytes(b'another policy')  # re-exported: different bytes
+    assert not tasks[f'{key}/eval-static-targets0'].done()
+    assert not tasks[f'{key}/eval-static-targets1'].done()
+    assert not tasks[f'{key}/export-static'].done()  # not the recorded output any more
+    assert tasks[f'{key}/eval-dynamic-targets0'].done()
+    # the dynamic run's best.pt changed: its export is stale; absent, the recorded hash holds
+    best = layout.dynamic_run('smoke', 0, 4096) / 'best.pt'
+    best.write_bytes(b'another best')
+    assert not tasks[f'{key}/export-dynamic'].done()
+    best.unlink()
+    (best.parent / 'final.pt').unlink()
+    assert tasks[f'{key}/export-dynamic'].done() and tasks[f'{key}/train-dynamic'].done()
+    # a snapshot whose best.pt is not the one its static.onnx was exported from
+    study.record_export(layout.budget('smoke', 0, 4096) / 'best.pt', policy)  # exported again
+    assert tasks[f'{key}/export-static'].done()
+    (layout.budget('smoke', 0, 4096) / 'best.pt').unlink()
+    assert tasks[f'{key}/export-static'].done()  # by the snapshot's policy_sha256
+    snap = layout.snapshot('smoke', 0, 4096)
+    snap.write_text(json.dumps({**json.loads(snap.read_text()), 'policy_sha256': 'f' * 64}))
+    assert tasks[f'{key}/train-static'].done() and not tasks[f'{key}/export-static'].done()
+
+
+def test_outputs_made_before_records_go_by_file_times_then_are_recorded(tmp_path):
+    import os
+
+    policy, folder = tmp_path / 'static.onnx', tmp_path / 'eval'
+    policy.write_bytes(b'onnx')
+    write_results(folder, 'smoke', 'static', [True])
+    os.utime(policy, (1_000, 1_000))
+    assert study.made_from(folder / 'results.json', {'policy': policy}) is None
+    assert study.evaluated(folder, policy, 1)
+    assert study.adopt(folder / 'results.json', {'policy': policy})
+    assert not study.adopt(folder / 'results.json', {'policy': policy})  # recorded once
+    os.utime(policy, (4e9, 4e9))  # newer, same bytes: by content still current
+    assert study.evaluated(folder, policy, 1)
+    other = tmp_path / 'old' / 'results.json'
+    write_results(other.parent, 'smoke', 'static', [True])
+    os.utime(other, (1_000, 1_000))
+    assert not study.adopt(other, {'policy': policy})  # older than its policy: not adopted
+
+
+def _check_ignore(repo: Path, paths: list[str]) -> set[str]:
+    import subprocess
+
+    got = subprocess.run(['git', 'check-ignore', '--no-index', '--stdin'], cwd=repo,
+                         input='\n'.join(paths) + '\n', capture_output=True, text=True,
+                         check=False)
+    assert got.returncode in (0, 1), got.stderr
+    return set(got.stdout.split())
+
+
+def test_the_gitignore_keeps_small_files_and_the_checkpoints_a_resume_needs(tmp_path):
+    import subprocess
+
+    repo = tmp_path / 'repo'
+    subprocess.run(['git', 'init', '-q', str(repo)], check=True)
+    layout, plan = study.Layout(repo / 'OUT'), _clone_plan()
+    _budget_done(layout, plan)
+    (repo / 'OUT' / '.lock').write_text('1\n')
+    for name in ('report.md', 'summary.csv', 'results.csv', 'curves_ours_static.png'):
+        (repo / 'OUT' / name).write_text('x')
+    path = study.write_gitignore(layout.root, study.plan_tasks(layout, plan))
+    assert path == repo / 'OUT' / '.gitignore'
+    kept = ['report.md', 'summary.csv', 'results.csv', 'curves_ours_static.png', 'logs/x.log',
+            'smoke/seed0/static/config.yaml', 'smoke/seed0/static/scalars.csv',
+            'smoke/seed0/static/study_state.json',
+            # the unfinished training: its latest checkpoint, final.pt and best.pt
+            'smoke/seed0/static/checkpoints/step_6144.pt', 'smoke/seed0/static/final.pt',
+            'smoke/seed0/static/best.pt',
+            'smoke/seed0/steps_4096/snapshot.json', 'smoke/seed0/steps_4096/config.yaml',
+            'smoke/seed0/steps_4096/static.onnx', 'smoke/seed0/steps_4096/static.onnx.sha256.json',
+            'smoke/seed0/steps_4096/dynamic.onnx', 'smoke/seed0/steps_4096/dynamic/scalars.csv',
+            'smoke/seed0/steps_4096/eval_static_targets1/results.json',
+            'smoke/seed0/steps_4096/eval_static_targets1/results.json.sha256.json',
+            'smoke/seed0/steps_4096/eval_dynamic_targets0/report.md']
+    ignored = ['.lock', 'smoke/seed0/static/checkpoints/step_5120.pt',
+               'smoke/seed0/static/events.out.tfevents.1.host',
+               'smoke/seed0/static/checkpoints/step_7168.pt.tmp',
+               'smoke/seed0/steps_4096/best.pt', 'smoke/seed0/steps_4096/dynamic/best.pt',
+               'smoke/seed0/steps_4096/dynamic/final.pt',
+               'smoke/seed0/steps_4096/dynamic/checkpoints/step_1024.pt']
+    got = _check_ignore(repo, [f'OUT/{p}' for p in kept + ignored])
+    assert got == {f'OUT/{p}' for p in ignored}
+    # before the dynamic re-training is done the snapshot's best.pt (its --init-from) stays
+    (layout.dynamic_run('smoke', 0, 4096) / 'study_state.json').unlink()
+    study.write_gitignore(layout.root, study.plan_tasks(layout, plan))
+    got = _check_ignore(repo, ['OUT/smoke/seed0/steps_4096/best.pt',
+                               'OUT/smoke/seed0/steps_4096/dynamic/checkpoints/step_1024.pt',
+                               'OUT/smoke/seed0/steps_4096/dynamic/final.pt'])
+    assert got == set()
+
+
+def test_gitignore_patterns_escape_special_characters():
+    assert study.gitignore_pattern(Path('a b/[x]*?.pt')) == r'/a\ b/\[x\]\*\?.pt'
