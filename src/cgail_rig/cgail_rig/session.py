@@ -586,7 +586,29 @@ class TrialRig:
         gc.collect()
         self.context.destroy()
         shutil.rmtree(self._tmp, ignore_errors=True)
+        release_freed_heap()
         return counts
+
+
+def release_freed_heap() -> None:
+    """Return the heap a closed rig freed to the OS (glibc's ``malloc_trim``; nothing
+    elsewhere).
+
+    glibc keeps freed chunks for reuse and returns only the top of its main heap: after each
+    trial the freed messages, bag buffers and middleware entities stayed resident and the next
+    trial's allocations landed around them, so a process running trial after trial
+    (``bench/bench_autonomy_soak.py``, ``cgail session --jobs 1``) kept ~15 MB more resident
+    after 20 trials (glibc's free heap 16 -> 30 MB) while its Python objects, traced
+    allocations, glibc's in-use bytes, threads and file descriptors stayed flat. Trimming after
+    each trial hands that back (a few ms); the recorded data is unchanged.
+    """
+    if not sys.platform.startswith('linux'):
+        return
+    import contextlib
+    import ctypes
+
+    with contextlib.suppress(OSError, AttributeError):  # not glibc (musl: no malloc_trim)
+        ctypes.CDLL(None).malloc_trim(0)
 
 
 def run_trial(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> TrialResult:
