@@ -1060,6 +1060,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     return code if all(not r.failed for r in results) else max(code, 1)
 
 
+def success_over_every_trial(trials: Sequence[Any], outcomes: Sequence[tuple[str, int, str]]
+                             ) -> list[str]:
+    """Markdown: per condition, the success rate over every trial that ran, a trial without
+    metrics (no path planned, an unreadable bag) counted as a failure, with its Wilson
+    interval. The conditions table beside it rates the evaluable trials only."""
+    from cgail_planner.core.metrics import wilson_interval
+
+    ran: dict[str, int] = {}
+    for condition, _, _ in outcomes:
+        ran[condition] = ran.get(condition, 0) + 1
+    lines = ['', '## Success over every trial (a trial without metrics is a failure)', '',
+             '| condition | trials run | evaluable | successes | success [95 % Wilson] |',
+             '|---|---:|---:|---:|---|']
+    for condition in sorted(ran):
+        members = [m for m in trials if m.condition == condition]
+        wins = sum(bool(m.success) for m in members)
+        n = ran[condition]
+        lo, hi = wilson_interval(wins, n)
+        lines.append(f'| {condition} | {n} | {len(members)} | {wins} | {100 * wins / n:.0f} % '
+                     f'[{100 * lo:.0f}-{100 * hi:.0f}] |')
+    return lines
+
+
 def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
            log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
            jobs: int = 1, results: Sequence[TrialResult] = ()) -> int:
@@ -1094,6 +1117,8 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     lines += [f'| {k} | {c} | {o} |' for c, k, o in outcomes]
     if skipped:
         lines += ['', '## Trials without metrics', ''] + [f'- {s}' for s in skipped]
+    every = success_over_every_trial(trials, outcomes)
+    lines += every
     autonomy = autonomy_report(results)
     out.mkdir(parents=True, exist_ok=True)
     (out / 'metrics.md').write_text('\n'.join(lines) + '\n\n' + text
@@ -1101,7 +1126,7 @@ def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
     write_csv(trials, out / 'metrics.csv')
     png = box_plots(trials, tests, out / 'metrics_boxplot.png')
     log(text)
-    for line in autonomy:
+    for line in [*every, *autonomy]:
         log(line)
     log(f'cgail session: wrote {out / "metrics.md"}, {out / "metrics.csv"} and {png} '
         f'({wall_s:.0f} s wall)')

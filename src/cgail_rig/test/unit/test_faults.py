@@ -196,3 +196,20 @@ def test_the_report_counts_never_observable_stuck_pams_apart() -> None:
     assert ('| stuck_pam | 4/4 | 2 | 1.000 | 2.000 | 1.25 | device_fault, path_deviation | '
             '**MISSED: autonomous_04** | 1 | 10.500 / 15.000 |') in lines, text
     assert '| dropout | 1/1 | 1 | 0.270 | 0.270 | 0.35 | tracking_lost | none | - | - |' in lines
+
+
+def test_success_over_every_trial_counts_a_trial_without_metrics_as_a_failure() -> None:
+    from types import SimpleNamespace
+
+    from cgail_rig.session import success_over_every_trial
+
+    trials = [SimpleNamespace(condition='shared', success=True) for _ in range(28)]
+    trials += [SimpleNamespace(condition='cgail', success=True) for _ in range(29)]
+    trials += [SimpleNamespace(condition='cgail', success=False)]
+    outcomes = [('shared', k, 'at the target') for k in range(1, 29)]
+    outcomes += [('shared', 29, 'no path: planning failed'), ('shared', 30, 'no path: x')]
+    outcomes += [('cgail', k, 'at the target') for k in range(1, 31)]
+    lines = success_over_every_trial(trials, outcomes)
+    rows = {line.split('|')[1].strip(): line for line in lines if line.startswith('| ')}
+    assert rows['shared'] == '| shared | 30 | 28 | 28 | 93 % [79-98] |'
+    assert rows['cgail'] == '| cgail | 30 | 30 | 29 | 97 % [83-99] |'
