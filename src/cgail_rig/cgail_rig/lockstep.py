@@ -66,9 +66,12 @@ import time
 import traceback
 from typing import Any
 
+from rclpy.clock import ClockType
 from rclpy.exceptions import InvalidHandle
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
+from rclpy.time import Time
+from rosgraph_msgs.msg import Clock
 
 from cgail_rig import cdr
 
@@ -176,10 +179,6 @@ class LockstepExecutor:
         return self.period_ns * 1e-9
 
     def _set_clocks(self) -> None:
-        from rclpy.clock import ClockType
-        from rclpy.time import Time
-        from rosgraph_msgs.msg import Clock
-
         self.time_source.clock_callback(Clock(clock=Time(nanoseconds=self._now_ns).to_msg()))
         self._now_time = Time(nanoseconds=self._now_ns, clock_type=ClockType.ROS_TIME)
 
@@ -408,14 +407,16 @@ class LockstepExecutor:
         except cdr.CdrError:
             encode = None
 
+        # (the publisher's count without rclpy's wrapper, once per publish: one thread here)
+        matched_now = pub.handle.get_subscription_count
+
         def instrumented(msg: Any) -> None:
             route = routes.get(key)
-            if route is not None and route.history is not None and \
-                    pub.get_subscription_count() != route.matched:
-                self._demote(key)  # a latched topic's late joiner: its history, then DDS
+            if route is not None and matched_now() != route.matched:
+                if route.history is not None:
+                    self._demote(key)  # a latched topic's late joiner: its history, then DDS
                 route = None
-            if (route is None or not getattr(pub, '_enabled', True)
-                    or pub.get_subscription_count() != route.matched):
+            if route is None or not getattr(pub, '_enabled', True):
                 publish(msg)  # through DDS (and lifecycle's inactive check, type check)
                 stats.published += 1
                 pending.extend((s, None, None) for s in subs)
