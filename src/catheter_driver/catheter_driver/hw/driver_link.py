@@ -19,6 +19,7 @@ from catheter_driver.hw.can_protocol import (
     ESTOP_ID,
     STATUS_ID,
 )
+from cgail_node_utils.virtual_can import open_bus
 
 MAX_FRAMES_PER_POLL = 256
 
@@ -67,9 +68,9 @@ class CanDriverLink:
         """
         try:
             if interface == 'virtual':
-                bus = can.Bus(interface=interface, channel=channel)
+                bus = open_bus(interface, channel)
             else:
-                bus = can.Bus(interface=interface, channel=channel, bitrate=bitrate)
+                bus = open_bus(interface, channel, bitrate=bitrate)
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise DeviceDisconnectedError(
                 f'expected to open CAN {interface}:{channel}, found error: {exc}') from exc

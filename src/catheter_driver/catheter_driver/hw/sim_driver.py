@@ -34,6 +34,7 @@ from catheter_driver.hw.can_protocol import (
     ESTOP_ID,
     STATUS_ID,
 )
+from cgail_node_utils.virtual_can import open_bus
 
 
 class SimulatedDriver:
@@ -62,7 +63,7 @@ class SimulatedDriver:
         self.codec = codec or DriverCodec()
         self.rate_hz = rate_hz
         self.command_timeout = command_timeout
-        self._bus = can.Bus(interface='virtual', channel=channel, receive_own_messages=False)
+        self._bus = open_bus('virtual', channel, receive_own_messages=False)
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self._command = ActuatorCommand(0.0, False, True)

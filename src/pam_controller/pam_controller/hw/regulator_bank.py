@@ -18,6 +18,7 @@ import can
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from cgail_node_utils.virtual_can import open_bus
 from pam_controller.core.supervisor import BankMode
 from pam_controller.errors import DeviceUnavailableError, ProtocolError
 from pam_controller.hw import can_protocol as proto
@@ -133,11 +134,11 @@ class CanRegulatorBank:
     def open(self) -> None:
         """Open the bus (closing a previous one first)."""
         self.close()
-        kwargs: dict[str, object] = {'interface': self.interface, 'channel': self.channel}
+        kwargs: dict[str, object] = {}
         if self.interface != 'virtual':
             kwargs['bitrate'] = self.bitrate
         try:
-            self._bus = can.Bus(**kwargs)  # type: ignore[arg-type]
+            self._bus = open_bus(self.interface, self.channel, **kwargs)
         except (can.CanError, OSError, ValueError, ImportError) as err:
             self._bus = None
             raise DeviceUnavailableError(

@@ -42,6 +42,7 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
+from cgail_node_utils.virtual_can import open_bus
 from pam_controller.core.supervisor import BankMode
 from pam_controller.errors import ProtocolError
 from pam_controller.hw import can_protocol as proto
@@ -107,8 +108,8 @@ class SimRegulatorBank:
 
     def __init__(self, config: SimRegulatorConfig | None = None, seed: int = 0) -> None:
         self.config = config if config is not None else SimRegulatorConfig()
-        self._bus = can.Bus(interface=self.config.interface, channel=self.config.channel,
-                            receive_own_messages=False)
+        self._bus = open_bus(self.config.interface, self.config.channel,
+                             receive_own_messages=False)
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()
         self.pressures_pa = np.zeros(4)
