@@ -43,6 +43,51 @@ def quaternion_to_matrix(q: Sequence[float] | FloatArray) -> FloatArray:
     return np.array(quat_to_matrix(*(arr / n).tolist()))  # = Rotation.from_quat(.).as_matrix()
 
 
+def pose_from_quaternion(position: Sequence[float], q: Sequence[float]
+                         ) -> tuple[FloatArray, FloatArray]:
+    """``(position (3,), rotation (3, 3))`` of a position and a unit quaternion ``(x, y, z, w)``:
+    :func:`quaternion_to_matrix` then :func:`validate_pose`, the same arrays bit for bit.
+
+    A message's pose is converted and checked once per message in two nodes (planner and
+    operator, 40 Hz each); on one pose numpy's array set-up dominates, so the checks of finite
+    values and of a proper rotation run on plain floats here (they only decide pass or fail),
+    and only the quaternion's norm stays numpy's (BLAS's dot, whose rounding the rotation
+    depends on). Anything but 3 + 4 finite values takes the general path, for its errors.
+
+    Raises:
+        InvalidInputError: as :func:`quaternion_to_matrix` and :func:`validate_pose`.
+    """
+    if len(position) == 3 and len(q) == 4:
+        px, py, pz = position
+        x, y, z, w = q
+        isfinite = math.isfinite
+        if (isfinite(px) and isfinite(py) and isfinite(pz) and isfinite(x) and isfinite(y)
+                and isfinite(z) and isfinite(w)):
+            arr = np.array((x, y, z, w), dtype=np.float64)
+            n = math.sqrt(float(arr @ arr))  # = np.linalg.norm(arr), the same bits
+            if abs(n - 1.0) <= UNIT_TOLERANCE:
+                rows = quat_to_matrix(x / n, y / n, z / n, w / n)
+                if _proper_rotation(rows):
+                    return (np.array((px, py, pz), dtype=np.float64),
+                            np.array(rows, dtype=np.float64))
+    return validate_pose(np.asarray(position, dtype=np.float64), quaternion_to_matrix(q))
+
+
+def _proper_rotation(m: Sequence[Sequence[float]]) -> bool:
+    """Whether the 3 rows ``m`` pass :func:`validate_pose`'s test: ``|m^T m - I| <=``
+    :data:`UNIT_TOLERANCE` everywhere and ``det(m) >= 0`` (plain floats)."""
+    (a, b, c), (d, e, f), (g, h, i) = m
+    cols = ((a, d, g), (b, e, h), (c, f, i))
+    for j in range(3):
+        u = cols[j]
+        for k in range(j, 3):
+            v = cols[k]
+            dot = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+            if not abs(dot - (1.0 if j == k else 0.0)) <= UNIT_TOLERANCE:
+                return False
+    return a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) >= 0.0
+
+
 def matrix_to_quaternion(r: FloatArray) -> FloatArray:
     """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix, or ``(N, 4)`` of
     ``(N, 3, 3)``. ``r`` must be a rotation (as every pose here is: checked or composed of

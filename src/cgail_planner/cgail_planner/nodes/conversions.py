@@ -36,7 +36,7 @@ from cgail_planner.core.markers import (
     SPHERE,
     TRIANGLE_LIST,
 )
-from cgail_planner.core.rotations import matrix_to_quaternion, quaternion_to_matrix, validate_pose
+from cgail_planner.core.rotations import matrix_to_quaternion, pose_from_quaternion
 
 SENSOR_QOS = qos_profile_sensor_data
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
@@ -87,9 +87,7 @@ def pose_from_msg(msg: PoseStamped) -> tuple[np.ndarray, np.ndarray]:
     """
     p = msg.pose.position
     q = msg.pose.orientation
-    position = np.array([p.x, p.y, p.z], dtype=np.float64)
-    rotation = quaternion_to_matrix((q.x, q.y, q.z, q.w))
-    return validate_pose(position, rotation)
+    return pose_from_quaternion((p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
 
 
 def point_from_pose_msg(msg: PoseStamped) -> np.ndarray:

@@ -2,6 +2,7 @@
 pose checks."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from cgail_planner.core.errors import InvalidInputError
 from cgail_planner.core.rotations import (
     matrix_to_quaternion,
+    pose_from_quaternion,
     quaternion_to_matrix,
     rotate_onto,
     rotvec_to_matrix,
@@ -60,3 +62,30 @@ def test_rotvec_and_rotate_onto() -> None:
 def test_validate_pose_refuses_what_is_not_a_pose(p, r, match) -> None:
     with pytest.raises(InvalidInputError, match=match):
         validate_pose(np.array(p, dtype=float), r)
+
+
+def test_pose_from_quaternion_is_quaternion_to_matrix_then_validate_pose() -> None:
+    # the plain-float checks decide pass or fail only: the arrays are the general path's
+    rng = np.random.default_rng(7)
+    for k in range(300):
+        q = rng.normal(size=4)
+        q *= (1.0 + (rng.uniform(-2e-3, 2e-3) if k % 3 == 0 else 0.0)) / np.linalg.norm(q)
+        p = tuple(rng.normal(size=3).tolist())
+        try:
+            want = validate_pose(np.array(p), quaternion_to_matrix(q))
+        except InvalidInputError as exc:
+            with pytest.raises(InvalidInputError, match=re.escape(str(exc))):
+                pose_from_quaternion(p, tuple(q.tolist()))
+            continue
+        got = pose_from_quaternion(p, tuple(q.tolist()))
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize(('p', 'q', 'match'), [
+    ((0.0, 0.0, np.inf), (0.0, 0.0, 0.0, 1.0), 'tip pose must be finite'),
+    ((0.0, 0.0, 0.0), (0.0, 0.0, np.nan, 1.0), 'unit quaternion'),
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 2.0), r'unit quaternion.*\(norm 2\)'),
+])
+def test_pose_from_quaternion_refuses_what_is_not_a_pose(p, q, match) -> None:
+    with pytest.raises(InvalidInputError, match=match):
+        pose_from_quaternion(p, q)
