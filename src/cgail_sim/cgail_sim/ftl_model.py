@@ -78,6 +78,7 @@ what                 batched (the env)           single pose (Python)        num
 ===================  ==========================  ==========================  ===================
 action -> command    :func:`action_to_command`   :func:`action_to_command`   :func:`command_nb`
 one inserting step   :func:`advance_batch`       :func:`advance_pose`        :func:`advance_nb`
+steps at one bend    (as one step)               :func:`advance_pose_steps`  (as one step)
 steer at a point     :func:`steer_towards`       :func:`steer_towards`       :func:`steer_nb`
 retraction           :func:`retract_chain` (one numba implementation, called by every form)
 observation          :func:`observe_batch`       :func:`observe_pose`        :func:`observe_nb`
@@ -767,6 +768,26 @@ def advance_pose(p: FloatArray, r: FloatArray, alpha: float, gamma: float, delta
     bend = np.array([[cg, -sg, 0.0], [ca * sg, ca * cg, -sa], [sa * sg, sa * cg, ca]])
     r_new: FloatArray = r @ bend
     return p + delta_l * r_new[:, 1], r_new
+
+
+def advance_pose_steps(p: FloatArray, r: FloatArray, alpha: float, gamma: float,
+                       delta_l: float, steps: int) -> tuple[FloatArray, FloatArray]:
+    """``steps`` calls of :func:`advance_pose` at one bend ``(alpha, gamma)``: the tip's
+    positions ``(steps + 1, 3)`` (the start first) and its final rotation.
+
+    The same arithmetic as the calls, so the same bits, with the bend matrix built once: the
+    arc of a held bend (the planner's suggested-bend marker, the simulated bench's clamped
+    segment: ~100 steps a reading) is this loop, and the matrix was most of each call's cost.
+    """
+    ca, sa, cg, sg = math.cos(alpha), math.sin(alpha), math.cos(gamma), math.sin(gamma)
+    bend = np.array([[cg, -sg, 0.0], [ca * sg, ca * cg, -sa], [sa * sg, sa * cg, ca]])
+    out = np.empty((steps + 1, 3))
+    out[0] = p
+    for k in range(1, steps + 1):
+        r = r @ bend
+        p = p + delta_l * r[:, 1]
+        out[k] = p
+    return out, r
 
 
 @njit(cache=True)

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from cgail_sim.ftl_model import (
-    advance_pose,
+    advance_pose_steps,
     CatheterBatch,
     CatheterConfig,
     segment_bend_step,
@@ -272,22 +272,16 @@ def bend_arc(position: FloatArray, rotation: FloatArray, bend: tuple[float, floa
 
     The catheter model's segment bend (:func:`~cgail_sim.ftl_model.segment_bend_step`:
     per inserted ``dl`` the heading turns by ``bend * dl / L``) stepped with
-    :func:`~cgail_sim.ftl_model.advance_pose`.
+    :func:`~cgail_sim.ftl_model.advance_pose` (:func:`~cgail_sim.ftl_model.advance_pose_steps`).
 
     Returns:
         ``(points (steps + 1, 3), rotation (3, 3))``: the arc from the tip, and the tip
         rotation at its end.
     """
-    p = np.asarray(position, dtype=np.float64)
-    r = np.asarray(rotation, dtype=np.float64)
     dl = float(length) / steps
-    out = np.empty((steps + 1, 3))
-    out[0] = p
-    for k in range(steps):
-        alpha, gamma = segment_bend_step(bend, dl, catheter.theta_max, catheter.segment_length)
-        p, r = advance_pose(p, r, alpha, gamma, dl)
-        out[k + 1] = p
-    return out, r
+    alpha, gamma = segment_bend_step(bend, dl, catheter.theta_max, catheter.segment_length)
+    return advance_pose_steps(np.asarray(position, dtype=np.float64),
+                              np.asarray(rotation, dtype=np.float64), alpha, gamma, dl, steps)
 
 
 def bend_markers(position: FloatArray, rotation: FloatArray, bend: tuple[float, float],

@@ -46,7 +46,7 @@ from numpy.typing import NDArray
 from cgail_planner.core.rotations import rotate_onto
 from cgail_rig.core.plant import Plant
 from cgail_sim.ftl_model import (
-    advance_pose,
+    advance_pose_steps,
     bend_rotation,
     CatheterBatch,
     CatheterConfig,
@@ -68,7 +68,8 @@ def bench_tip_pose(position: FloatArray, rotation: FloatArray, bend: tuple[float
     The catheter model's constant-curvature arc: the segment's length ``L`` inserted from the
     base in equal steps of at most ``max_step`` at the step bends of
     :func:`~cgail_sim.ftl_model.segment_bend_step` (the bend saturates at
-    ``theta_max``), each by :func:`~cgail_sim.ftl_model.advance_pose`. The tip's
+    ``theta_max``), each by :func:`~cgail_sim.ftl_model.advance_pose` (the n steps at one bend:
+    :func:`~cgail_sim.ftl_model.advance_pose_steps`, the same bits). The tip's
     rotation relative to the base is the rotation vector ``(alpha, ~0, gamma)``: the product
     of equal steps ``Rx(a) Rz(g)``, so its y part is ``O(alpha gamma / n)``.
     """
@@ -76,11 +77,9 @@ def bench_tip_pose(position: FloatArray, rotation: FloatArray, bend: tuple[float
     n = max(1, math.ceil(length / max_step - 1e-9))
     dl = length / n
     alpha, gamma = segment_bend_step(bend, dl, catheter.theta_max, length)
-    p = np.asarray(position, dtype=np.float64).copy()
-    r = np.asarray(rotation, dtype=np.float64).copy()
-    for _ in range(n):
-        p, r = advance_pose(p, r, alpha, gamma, dl)
-    return p, r
+    points, r = advance_pose_steps(np.asarray(position, dtype=np.float64),
+                                   np.asarray(rotation, dtype=np.float64), alpha, gamma, dl, n)
+    return points[-1], r
 
 
 @dataclass(frozen=True)

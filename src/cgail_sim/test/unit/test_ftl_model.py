@@ -20,6 +20,7 @@ from cgail_sim.ftl_model import (
     advance_batch,
     advance_nb,
     advance_pose,
+    advance_pose_steps,
     bend_limit,
     bend_rotation,
     CatheterBatch,
@@ -120,6 +121,22 @@ def test_step_forms_are_equal(poses) -> None:
         for pos, rot in ((p_s, r_s), (p_n, r_n)):
             np.testing.assert_allclose(pos, p_b[i], rtol=0, atol=1e-15)
             np.testing.assert_allclose(rot, r_b[i], rtol=0, atol=1e-15)
+
+
+def test_steps_at_one_bend_are_the_single_steps_repeated(poses) -> None:
+    # the same arithmetic with the bend matrix built once: equal arrays, not merely close
+    p, r, _, _, act = poses
+    alpha, gamma, _ = action_to_command(act, MODEL.theta_max, MODEL.segment_length,
+                                        MODEL.max_step_insertion)
+    for i in range(8):
+        points, rot = advance_pose_steps(p[i], r[i], alpha[i], gamma[i], 5e-4, 30)
+        pos, want_rot = p[i], r[i]
+        want = [pos]
+        for _ in range(30):
+            pos, want_rot = advance_pose(pos, want_rot, alpha[i], gamma[i], 5e-4)
+            want.append(pos)
+        assert points.shape == (31, 3)
+        assert np.array_equal(points, np.array(want)) and np.array_equal(rot, want_rot)
 
 
 def test_the_bend_is_rx_then_rz_as_scipy_composes_it() -> None:
