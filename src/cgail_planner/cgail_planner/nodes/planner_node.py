@@ -54,7 +54,13 @@ from visualization_msgs.msg import Marker, MarkerArray
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import ContractError, InvalidInputError, PlannerError
 from cgail_planner.core.guidance import GuidanceConfig, PathFollower
-from cgail_planner.core.markers import MarkerConfig, PATH_NS, planner_markers, TipGuidance
+from cgail_planner.core.markers import (
+    MarkerConfig,
+    PATH_NS,
+    planner_markers,
+    TARGET_NS,
+    TipGuidance,
+)
 from cgail_planner.core.planner import (
     model_world_from_sim,
     Planner,
@@ -225,7 +231,8 @@ class PlannerNode(Node):
         self.last_guidance: TipGuidance | None = None
         self._markers_changed = True
         self._markers_sent = False
-        self._path_marker: tuple[PathFollower, Marker] | None = None  # (converted once)
+        # per namespace (path, target): the Marker converted once and what it was converted from
+        self._fixed_markers: dict[str, tuple[object, Marker]] = {}
 
         self._path_pub = self.create_publisher(Path, '~/path', conv.LATCHED_QOS)
         self._wp_pub = self.create_publisher(PointStamped, '~/next_waypoint', conv.SENSOR_QOS)
@@ -373,15 +380,20 @@ class PlannerNode(Node):
             goal_radius=self.config.goal_tolerance,
             path=self.follower.points if self.follower is not None else None,
             guidance=self.last_guidance if self.follower is not None else None)
-        # the path's LINE_STRIP (hundreds of points) is converted once per planned path, not
-        # at every snapshot: the same message as converting it again
+        # the path's LINE_STRIP (hundreds of points) is converted once per planned path and the
+        # goal's SPHERE once per goal, not at every snapshot: restamped, the same message as
+        # converting them again (only the guidance's markers change between snapshots)
         header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.frame_id)
         out = [Marker(header=header, action=Marker.DELETEALL)]
         for geometry in markers:
-            if geometry.ns == PATH_NS and self.follower is not None:
-                if self._path_marker is None or self._path_marker[0] is not self.follower:
-                    self._path_marker = (self.follower, conv.marker_msg(header, geometry))
-                marker = self._path_marker[1]
+            source = self.follower if geometry.ns == PATH_NS else \
+                self.goal if geometry.ns == TARGET_NS else None
+            if source is not None:
+                cached = self._fixed_markers.get(geometry.ns)
+                if cached is None or cached[0] is not source:
+                    cached = self._fixed_markers[geometry.ns] = (
+                        source, conv.marker_msg(header, geometry))
+                marker = cached[1]
                 marker.header = header
             else:
                 marker = conv.marker_msg(header, geometry)
