@@ -179,8 +179,20 @@ class LockstepExecutor:
         return self.period_ns * 1e-9
 
     def _set_clocks(self) -> None:
-        self.time_source.clock_callback(Clock(clock=Time(nanoseconds=self._now_ns).to_msg()))
-        self._now_time = Time(nanoseconds=self._now_ns, clock_type=ClockType.ROS_TIME)
+        now = Time(nanoseconds=self._now_ns, clock_type=ClockType.ROS_TIME)
+        source = self.time_source
+        clocks = getattr(source, '_associated_clocks', None)
+        if clocks is None or not hasattr(source, '_last_time_set'):
+            source.clock_callback(Clock(clock=now.to_msg()))  # (an rclpy laid out otherwise)
+        else:
+            # TimeSource.clock_callback without the Clock message and a Time per clock (once a
+            # tick, ~10 clocks): the override set from the one Time, kept for late attachers
+            source._last_time_set = now
+            handle = now._time_handle
+            for clock in clocks:
+                with clock.handle:
+                    clock.handle.set_ros_time_override(handle)
+        self._now_time = now
 
     def _clock_now(self) -> Any:
         """``now()`` of the nodes' clocks: the simulated time (an immutable rclpy Time)."""
