@@ -29,7 +29,7 @@ from nav_msgs.msg import Path
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState, Joy
-from std_msgs.msg import Bool, Header
+from std_msgs.msg import Bool
 from std_srvs.srv import Trigger
 
 from cgail_node_utils.entry_point import run_node
@@ -246,8 +246,10 @@ class OperatorNode(Node):
         axes[self.axes[2]] = sticks.gamma
         buttons = [0] * self._n_buttons
         buttons[self.enable_button] = 1 if sticks.deadman else 0
-        self._joy_pub.publish(Joy(header=Header(stamp=self.get_clock().now().to_msg(),
-                                                frame_id='joy'), axes=axes, buttons=buttons))
+        joy = Joy(axes=axes, buttons=buttons)  # (the default header, set in place)
+        joy.header.stamp = self.get_clock().now().to_msg()
+        joy.header.frame_id = 'joy'
+        self._joy_pub.publish(joy)
         if self._was_running and not running:
             self.get_logger().info(f'operator stopped: {self.operator.reason}')
             self._done_pub.publish(Bool(data=True))

@@ -351,8 +351,10 @@ class AuroraNode(LifecycleNode):
             pose, host_time = self._queue.popleft()
             age_ns = int(max(0.0, now_link - host_time) * 1e9)
             # clamped: under use_sim_time the clock can be younger than the frame's wall age
-            stamp = rclpy.time.Time(nanoseconds=max(0, now_ros.nanoseconds - age_ns),
-                                    clock_type=now_ros.clock_type).to_msg()
+            # (clock mode polls and publishes at one instant: age 0, the clock's own stamp)
+            stamp = now_ros.to_msg() if age_ns == 0 else rclpy.time.Time(
+                nanoseconds=max(0, now_ros.nanoseconds - age_ns),
+                clock_type=now_ros.clock_type).to_msg()
             self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
             self._cov_pub.publish(tip_pose_to_cov_msg(pose, stamp, self.config.frame_id))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
