@@ -53,10 +53,11 @@ FAULT_KINDS = ('dropout', 'stuck_pam', 'slipping_sleeve', 'wall_push')
 #: How soon the supervisor must have stopped, simulated s, per kind: after the onset, and for
 #: ``stuck_pam`` after the stuck chamber became observable (module docstring; the reasons:
 #: docs/guides/autonomy.md, "Fault injection"). ``dropout``: the tracking timeout (0.25 s)
-#: plus two supervisor ticks and one Aurora frame. ``slipping_sleeve``: set for a 4 s stall window
-#: plus one relay pause of the sleeve driver (return stroke and handovers, ~2.1 s); with the
-#: 6 s window of issue 36 a stopped tip is caught once less than ``stall_min_ratio`` (25 %) of
-#: the window's insertion came before it stopped, (1 - 0.25) * 6 = 4.5 s. ``wall_push``: the push's ramp plus the frames until the deviation
+#: plus two supervisor ticks and one Aurora frame. ``slipping_sleeve``: set for a 4 s stall
+#: window plus one relay pause of the sleeve driver (return stroke and handovers, ~2.1 s);
+#: with the 6 s window of issue 36 a stopped tip is caught once less than
+#: ``stall_min_ratio`` (25 %) of the window's insertion came before it stopped,
+#: (1 - 0.25) * 6 = 4.5 s. ``wall_push``: the push's ramp plus the frames until the deviation
 #: (10 mm) or the pose-jump bound is crossed. ``stuck_pam``: the chain from the bank to the
 #: supervisor, at the session's rates (physics 40 Hz, host loops 20 Hz): the bank flags
 #: ``FAULT_STUCK`` ``stuck_detect_s`` (0.5 s) after the error began, checked on its steps (one
