@@ -136,6 +136,8 @@ class PathFollower:
         seg = np.diff(pts, axis=0)
         self._seg = seg
         self._seg_len2 = np.einsum("ij,ij->i", seg, seg)
+        # (a zero-length segment divides by 1: its t is 0)
+        self._seg_den = np.where(self._seg_len2 > 0.0, self._seg_len2, 1.0)
         lengths = np.sqrt(self._seg_len2)
         self.arc = np.concatenate([[0.0], np.cumsum(lengths)])
         if self.arc[-1] <= 0.0:
@@ -163,12 +165,13 @@ class PathFollower:
             hi = min(n_seg, self._last_seg + self._window + 1)
         a = self.points[lo:hi]
         seg = self._seg[lo:hi]
-        l2 = self._seg_len2[lo:hi]
-        t = np.einsum("ij,ij->i", position - a, seg) / np.where(l2 > 0.0, l2, 1.0)
-        np.clip(t, 0.0, 1.0, out=t)
+        # (ndarray methods rather than numpy's function wrappers: the same ufuncs, once per
+        # tip pose in two nodes)
+        t = np.einsum("ij,ij->i", position - a, seg) / self._seg_den[lo:hi]
+        t.clip(0.0, 1.0, out=t)
         closest = a + t[:, None] * seg
         diff = closest - position
-        k = int(np.argmin(np.einsum("ij,ij->i", diff, diff)))
+        k = int(np.einsum("ij,ij->i", diff, diff).argmin())
         i = lo + k
         self._last_seg = i
         arc = float(self.arc[i] + t[k] * math.sqrt(float(self._seg_len2[i])))
@@ -177,7 +180,7 @@ class PathFollower:
     def point_at(self, arc: float) -> FloatArray:
         """Path point at arc length ``arc`` (clamped to the path), m."""
         s = min(max(arc, 0.0), self.length)
-        i = int(np.searchsorted(self.arc, s, side="right")) - 1
+        i = int(self.arc.searchsorted(s, side="right")) - 1
         i = min(max(i, 0), len(self._seg) - 1)
         seg_len = self.arc[i + 1] - self.arc[i]
         t = 0.0 if seg_len <= 0.0 else (s - self.arc[i]) / seg_len
@@ -190,8 +193,9 @@ class PathFollower:
         waypoint = self.point_at(arc + cfg.lookahead)
         alpha, gamma, theta = suggested_bend(position, rotation, waypoint, cfg.segment_length,
                                              cfg.max_bend)
-        return Guidance(
+        to_closest, to_waypoint = closest - position, waypoint - position
+        return Guidance(  # (norms as np.linalg.norm computes a vector's: sqrt of its dot)
             next_waypoint=waypoint, bend=(alpha, gamma), heading_error=theta,
-            cross_track=float(np.linalg.norm(closest - position)), arc_position=arc,
+            cross_track=math.sqrt(float(to_closest @ to_closest)), arc_position=arc,
             remaining=self.length - arc,
-            distance_to_waypoint=float(np.linalg.norm(waypoint - position)))
+            distance_to_waypoint=math.sqrt(float(to_waypoint @ to_waypoint)))

@@ -243,6 +243,10 @@ def arrival(distance: float, min_distance: float, stop_distance: float, epsilon:
     return None
 
 
+#: The bend rule of the nominal catheter (built once: :func:`aimed_bend` runs per suggested bend).
+_NOMINAL_GUIDANCE = GuidanceConfig()
+
+
 def aimed_bend(follower: PathFollower, position: NDArray[np.float64],
                rotation: NDArray[np.float64], waypoint: NDArray[np.float64],
                shown_bend: tuple[float, float], look_ahead: float,
@@ -265,7 +269,7 @@ def aimed_bend(follower: PathFollower, position: NDArray[np.float64],
     """
     if look_ahead <= 0.0:
         return shown_bend
-    g = guidance or GuidanceConfig()
+    g = guidance or _NOMINAL_GUIDANCE
     _, arc, _ = follower.project(waypoint)
     aim = follower.point_at(arc + look_ahead)
     alpha, gamma, _ = suggested_bend(position, rotation, aim, g.segment_length, g.max_bend)

@@ -219,16 +219,17 @@ class OperatorNode(Node):
                               self.config.look_ahead)
         if self.waypoint is not None and self.heading is not None:
             to_wp = self.waypoint - self.tip
-            n = float(np.linalg.norm(to_wp))
+            n = math.sqrt(float(to_wp @ to_wp))  # = np.linalg.norm(to_wp)
             if n > 1e-9:
                 heading_error = math.acos(max(-1.0, min(1.0, float(self.heading @ to_wp) / n)))
         deviation = 0.0
         if self.role == 'supervise' and self.path is not None:
             _, _, closest = self.path.project(self.tip)
             deviation = float(np.linalg.norm(closest - self.tip))
+        to_goal = self.goal - self.tip
         self.operator.perceive(Percept(t=self._now(), bend=bend,
                                        heading_error=heading_error,
-                                       distance=float(np.linalg.norm(self.goal - self.tip)),
+                                       distance=math.sqrt(float(to_goal @ to_goal)),
                                        deviation=deviation))
 
     def _on_waypoint(self, msg: PointStamped) -> None:
