@@ -347,7 +347,7 @@ class Plant(Protocol):
 
 def _check_pressures(pressures: ArrayLike) -> FloatArray:
     p = np.asarray(pressures, dtype=np.float64).reshape(-1)
-    if p.shape != (4,) or not np.all(np.isfinite(p)):
+    if p.shape != (4,) or not np.isfinite(p).all():
         raise ValueError(f'expected 4 finite chamber pressures, found {np.asarray(pressures)!r}')
     return p
 

@@ -89,7 +89,7 @@ MAX_COUPLING = 0.5
 
 def _check_pair(name: str, value: tuple[float, float], low: float, high: float) -> None:
     arr = np.asarray(value, dtype=np.float64)
-    if arr.shape != (2,) or not np.all(np.isfinite(arr) & (arr >= low) & (arr <= high)):
+    if arr.shape != (2,) or not (np.isfinite(arr) & (arr >= low) & (arr <= high)).all():
         raise ValueError(f'{name} must be 2 numbers in [{low}, {high}], found {value!r}')
 
 
@@ -180,7 +180,7 @@ def check_bend(bend: ArrayLike, max_bend_rad: float) -> FloatArray:
     arr = np.asarray(bend, dtype=np.float64).reshape(-1)
     if arr.shape != (2,):
         raise CommandRejectedError(f'expected 2 bend angles [alpha, gamma], found {arr.size}')
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise CommandRejectedError(f'expected finite bend angles, found {arr.tolist()}')
     total = float(np.hypot(arr[0], arr[1]))
     if total > max_bend_rad + 1e-12:
@@ -195,7 +195,7 @@ def check_pressures(pressures: ArrayLike) -> FloatArray:
     arr = np.asarray(pressures, dtype=np.float64).reshape(-1)
     if arr.shape != (4,):
         raise ValueError(f'expected 4 chamber pressures, found {arr.size}')
-    if not np.all(np.isfinite(arr)):
+    if not np.isfinite(arr).all():
         raise ValueError(f'expected finite pressures, found {arr.tolist()}')
     return arr
 
@@ -224,7 +224,7 @@ class BendingModel:
     def clip_pressures(self, pressures: ArrayLike) -> FloatArray:
         """Clip to ``[min_pressure_pa, max_pressure_pa]`` (NaN/inf raise ``ValueError``)."""
         arr = check_pressures(pressures)
-        return np.clip(arr, self.config.min_pressure_pa, self.config.max_pressure_pa)
+        return arr.clip(self.config.min_pressure_pa, self.config.max_pressure_pa)
 
     def differential_to_pressures(self, dp: ArrayLike) -> FloatArray:
         """``[dp_alpha, dp_gamma]`` -> the four chamber pressures around the bias, clipped."""
@@ -252,7 +252,7 @@ class BendingModel:
         target = check_bend(bend, self.config.max_bend_rad)
         dp = self._command.solve(self._k_inv @ (target - self._offset))
         lim = self.config.max_differential_pa
-        dp = np.clip(dp, -lim, lim)
+        dp = dp.clip(-lim, lim)
         self._command.apply(dp)
         return self.differential_to_pressures(dp)
 

@@ -116,7 +116,7 @@ class PrandtlIshlinskii:
         if arr.shape != (self.channels,):
             raise ValueError(
                 f'{name} must have {self.channels} values, found shape {np.shape(values)}')
-        if not np.all(np.isfinite(arr)):
+        if not np.isfinite(arr).all():
             raise ValueError(f'{name} must be finite, found {arr.tolist()}')
         return arr
 

@@ -200,7 +200,7 @@ class PamSupervisor:
             self._enter_vent(Phase.STALE)
         if self._phase is Phase.ACTIVE:
             step = self.config.max_pressure_rate_pa_s * dt
-            delta = np.clip(self._target - self._setpoints, -step, step)
+            delta = (self._target - self._setpoints).clip(-step, step)
             self._setpoints = self.model.clip_pressures(self._setpoints + delta)
             mode = BankMode.RUN
         elif self._phase is Phase.ESTOP:

@@ -154,7 +154,7 @@ Decoded = Setpoints | Measured | Status | HostHeartbeat
 
 def _four(values: ArrayLike, name: str) -> FloatArray:
     arr = np.asarray(values, dtype=np.float64).reshape(-1)
-    if arr.shape != (4,) or not np.all(np.isfinite(arr)):
+    if arr.shape != (4,) or not np.isfinite(arr).all():
         raise ProtocolError(f'expected 4 finite {name}, found {np.asarray(values).tolist()}')
     return arr
 
@@ -190,7 +190,7 @@ def encode_setpoints(pressures_pa: ArrayLike, counter: int) -> can.Message:
 def encode_measured(pressures_pa: ArrayLike, counter: int) -> can.Message:
     """``PAM_MEASURED`` frame; pressures are clipped to the encodable -10..399.5 kPa (sensor
     saturation)."""
-    kpa = np.clip(_four(pressures_pa, 'pressures (Pa)') / 1e3, MEASURED_MIN_KPA, MEASURED_MAX_KPA)
+    kpa = (_four(pressures_pa, 'pressures (Pa)') / 1e3).clip(MEASURED_MIN_KPA, MEASURED_MAX_KPA)
     sig: dict[str, float | int] = {f'PRESSURE_{i}': float(kpa[i]) for i in range(4)}
     return _encode('PAM_MEASURED', {**sig, 'COUNTER': counter % 16})
 

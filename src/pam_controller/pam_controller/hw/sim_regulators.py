@@ -225,9 +225,9 @@ class SimRegulatorBank:
         elif isinstance(decoded, proto.Setpoints):
             self.setpoint_frames_received += 1
             sp = decoded.pressures_pa
-            if np.any(sp > self.config.max_setpoint_pa):
+            if (sp > self.config.max_setpoint_pa).any():
                 self._faults.add('FAULT_OVERPRESSURE')
-            self.setpoints_pa = np.clip(sp, 0.0, self.config.max_setpoint_pa)
+            self.setpoints_pa = sp.clip(0.0, self.config.max_setpoint_pa)
 
     def _state(self) -> proto.BankState:
         if self._channel_fault_mask:
