@@ -21,7 +21,8 @@ see this machine's nodes only.
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+import concurrent.futures
 import contextlib
 from dataclasses import dataclass, field
 import errno
@@ -30,6 +31,9 @@ import os
 from pathlib import Path
 import sys
 import time
+from typing import TypeVar
+
+_T = TypeVar('_T')
 
 #: Node names of the rig's devices: a session never shares a domain with one it did not start.
 DEVICE_NODES = ('aurora', 'pam_controller', 'sleeve_driver')
@@ -199,6 +203,33 @@ def reserve_domain(*, env: Mapping[str, str] | None = None,
         lease.release()
     raise DomainError(f'expected a free ROS domain among {candidates!r}, found every one held '
                       f'by another session or in use ({tried} probed)')
+
+
+def reserve_domain_during(work: Callable[[], _T], *, env: Mapping[str, str] | None = None
+                          ) -> tuple[DomainLease, _T]:
+    """:func:`reserve_domain` in a thread while ``work()`` runs in this one; returns the lease
+    and what ``work`` returned.
+
+    A probe mostly waits (:data:`PROBE_S` for the nodes of the domain to answer), so a process
+    about to build a rig can do its other preparation meanwhile (``cgail identify-pam`` and
+    every worker of ``cgail session`` import the nodes' modules: ~1 s of CPU each). ``work``
+    must not touch any ROS domain: the one it would use is not known yet. The check itself is
+    unchanged: nothing runs on the domain before the probe has found it free.
+
+    Raises:
+        DomainError: as :func:`reserve_domain` (after ``work`` returned).
+    """
+    import rclpy  # noqa: F401  (imported here first: the probe's thread imports nothing heavy)
+
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix='domain_probe') as pool:
+        pending = pool.submit(reserve_domain, env=env)
+        try:
+            value = work()
+        except BaseException:
+            with contextlib.suppress(DomainError):
+                pending.result().release()
+            raise
+        return pending.result(), value
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -7,7 +7,11 @@
 EM sensor at the tip; the insertion is held. ``--sim`` builds that rig on a lockstep executor
 (:mod:`cgail_rig.lockstep`) from the nodes of ``launch/sim_rig.launch.yaml``: the
 ``phantom`` with ``fixture: bench`` (the tip is the arc of the true plant's bend, through the
-simulated Aurora with its EM noise), ``aurora`` and ``pam_controller``. It runs the scripted
+simulated Aurora with its EM noise), ``aurora`` and ``pam_controller``, the way ``cgail session``
+runs its trials' rigs: messages in-process (the executor's ``transport='inprocess'``: the bytes
+DDS would carry, in DDS's order) and the Aurora node's Combined API commands answered by the
+simulated Aurora in its polling call (``link: in_process``), the same bag as through DDS and the
+pty, in a fraction of the time. It runs the scripted
 excitation (:mod:`pam_controller.core.identification`: vented rest, triangular sweeps of
 growing amplitude per axis, a multisine on both) and records ``em_tracker/tip_pose``,
 ``pam/pressures`` (and the commands and the true pose) to ``<out>/bench_bag``. On a real rig,
@@ -36,7 +40,7 @@ on cgail_planner (cgail_planner depends on it).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 import gc
 import math
@@ -64,6 +68,12 @@ EXCITATION_PAM_PARAMETERS: dict[str, Any] = {
     'hysteresis_fraction': 0.0, 'hysteresis_gain_rad_per_pa': COMMAND_GAIN_RAD_PER_PA}
 #: Lockstep tick of the simulated bench, Hz (the session's: one tick per Aurora frame).
 PHYSICS_RATE_HZ = 40.0
+#: The bench's nodes (of the launch file): the phantom as the bench fixture, the tracker, the
+#: PAM controller.
+BENCH_NODES = ('phantom', 'aurora', 'pam_controller')
+#: Simulated seconds between two sweeps of the bench for what reached it from outside (the
+#: session's ``SWEEP_S``): nothing outside talks to the bench.
+SWEEP_S = 0.25
 #: ros-args of the bench's context: node logs to the log file only.
 ROS_ARGS = ['--ros-args', '--disable-stdout-logs', '--disable-rosout-logs']
 
@@ -127,14 +137,19 @@ def run_bench(bag: Path, *, plant: str = 'true', plant_seed: int = 0, seed: int 
     recorder = None
     session = None
     try:
-        executor = LockstepExecutor(period_s=dt)
+        # the session's cheap paths (TrialRig): messages between the bench's nodes in-process
+        # (the same bytes DDS would carry, the same delivery order), the simulated Aurora
+        # answering the aurora node in its polling call; the same nodes and the same data
+        executor = LockstepExecutor(period_s=dt, transport='inprocess',
+                                    sweep_every=max(1, round(SWEEP_S * PHYSICS_RATE_HZ)))
         link = str(Path(tmp) / 'aurora')
         overrides = {
             'phantom': {'fixture': 'bench', 'lockstep': True, 'aurora_link': link,
                         'seed': seed, 'plant': plant, 'plant_seed': plant_seed,
                         'physics_rate_hz': PHYSICS_RATE_HZ, 'simulate_driver': False,
                         'marker_rate_hz': 0.1},
-            'aurora': {'port': link, 'rate_hz': PHYSICS_RATE_HZ, 'poll_mode': 'clock'},
+            'aurora': {'port': link, 'rate_hz': PHYSICS_RATE_HZ, 'poll_mode': 'clock',
+                       'link': 'in_process'},
             'pam_controller': {'control_rate_hz': PHYSICS_RATE_HZ / 2.0,
                                **EXCITATION_PAM_PARAMETERS},
         }
@@ -345,9 +360,15 @@ def report_text(result: Any, data: Any, source: str, extra: Sequence[str] = ()) 
     return '\n'.join(lines) + '\n'
 
 
-def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str] = ()) -> Any:
+def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str] = (),
+                 plots: list[Callable[[], Path]] | None = None) -> Any:
     """Fit a bench bag and write ``pam_identified.yaml``, ``loops.png``, ``report.md`` to
     ``out``; returns the :class:`~pam_controller.core.identification.FitResult`.
+
+    With ``plots`` (a list), ``loops.png`` is not drawn here: a callable that draws it is
+    appended, for a caller that needs the model now and the figure later (``cgail session``
+    draws it while its trials run: matplotlib and the figure cost ~1-2 s that would otherwise
+    delay every trial).
 
     Raises:
         BagError: unreadable bag or a topic missing.
@@ -368,16 +389,40 @@ def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str]
               f'{result.errors["identified"]["all"]:.4f} rad (report.md).']
     (out / 'pam_identified.yaml').write_text(
         parameters_yaml(pam_config_file().read_text(), values, header))
-    loops_png(data, result, out / 'loops.png', f'identify_pam: {source or bag.name}')
     (out / 'report.md').write_text(report_text(result, data, source or str(bag), extra))
+
+    def draw() -> Path:
+        return loops_png(data, result, out / 'loops.png', f'identify_pam: {source or bag.name}')
+
+    if plots is None:
+        draw()
+    else:
+        plots.append(draw)
     return result
 
 
+def bench_modules(launch_file: Path | None = None) -> None:
+    """Import what :func:`run_bench` needs (rclpy, the recorder, the lockstep executor, the
+    modules of the bench's nodes), so that :func:`identify_sim` does it while its domain probe
+    listens (:func:`~cgail_rig.domain.reserve_domain_during`); touches no ROS domain."""
+    import importlib
+
+    import cgail_bags.record  # noqa: F401
+    from cgail_rig.launch_spec import default_launch_file, load_launch_file
+    import cgail_rig.launcher
+    import cgail_rig.lockstep  # noqa: F401
+
+    for spec in load_launch_file(Path(launch_file or default_launch_file())).nodes:
+        if spec.name in BENCH_NODES:
+            importlib.import_module(spec.plugin.partition(':')[0])
+
+
 def identify_sim(out: Path, *, plant_seed: int, plant: str = 'true', seed: int = 0,
-                 excitation: Any = None, domain_id: int | None = None) -> Any:
+                 excitation: Any = None, domain_id: int | None = None,
+                 plots: list[Callable[[], Path]] | None = None) -> Any:
     """Record the excitation on the simulated bench to ``out/bench_bag`` (on ``domain_id``, or
-    a free domain of its own), then :func:`identify_bag`."""
-    from cgail_rig.domain import reserve_domain
+    a free domain of its own), then :func:`identify_bag` (``plots``: as there)."""
+    from cgail_rig.domain import reserve_domain_during
     from pam_controller.core import identification as idf
 
     bag = out / 'bench_bag'
@@ -386,7 +431,7 @@ def identify_sim(out: Path, *, plant_seed: int, plant: str = 'true', seed: int =
     out.mkdir(parents=True, exist_ok=True)
     lease = None
     if domain_id is None:
-        lease = reserve_domain()
+        lease, _ = reserve_domain_during(bench_modules)
         domain_id = lease.domain_id
     try:
         run_bench(bag, plant=plant, plant_seed=plant_seed, seed=seed, excitation=excitation,
@@ -399,7 +444,7 @@ def identify_sim(out: Path, *, plant_seed: int, plant: str = 'true', seed: int =
              f'noise seed {seed}: {exc_cfg.duration_s:.0f} s.', '', '```',
              *(f'{k}: {v}' for k, v in asdict(exc_cfg).items()), '```']
     return identify_bag(bag, out, source=f'simulated bench, plant {plant} seed {plant_seed}',
-                        extra=extra)
+                        extra=extra, plots=plots)
 
 
 # ---------------------------------------------------------------------- command line
