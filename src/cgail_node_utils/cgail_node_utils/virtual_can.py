@@ -4,10 +4,13 @@
 ``virtual`` interface gets a :class:`LightVirtualBus`: python-can's own ``VirtualBus`` on the
 same channels (it talks to any other ``virtual`` bus of the process, as before), which copies a
 sent frame for each receiver by constructing it rather than by ``copy.deepcopy`` (the same
-fields, its own ``data`` bytearray: what deepcopy gives) and takes a frame without the queue's
-condition wait when ``recv(timeout=0)`` polls. The simulated rig sends and polls ~7 frames per
-40 Hz tick in one thread; the generic path cost ~40 us of it per tick. Any other interface
-(``socketcan`` on the rig) is python-can's, untouched.
+fields, its own ``data`` bytearray: what deepcopy gives), receives into an unbounded
+``queue.SimpleQueue`` (C, thread-safe; python-can's default ``rx_queue_size=0`` is unbounded
+too, and peers put into it as into a ``queue.Queue``) and answers ``recv(timeout=0)`` (the
+device nodes' poll) with one ``get_nowait`` when no filters are set, without ``BusABC.recv``'s
+timing loop. The simulated rig sends and polls ~7 frames per 40 Hz tick in one thread; the
+generic path cost ~40 us of it per tick. Any other interface (``socketcan`` on the rig) is
+python-can's, untouched.
 """
 
 from __future__ import annotations
@@ -17,12 +20,34 @@ import time
 from typing import Any
 
 import can
-from can.interfaces.virtual import VirtualBus
+from can.interfaces.virtual import channels_lock, VirtualBus
 
 
 class LightVirtualBus(VirtualBus):
     """``VirtualBus`` with a cheaper copy per receiver and a non-blocking zero-timeout take
     (module docstring); behaviour otherwise python-can's."""
+
+    def __init__(self, channel: Any = None, receive_own_messages: bool = False,
+                 rx_queue_size: int = 0, **kwargs: Any) -> None:
+        super().__init__(channel=channel, receive_own_messages=receive_own_messages,
+                         rx_queue_size=rx_queue_size, **kwargs)
+        if rx_queue_size <= 0:  # unbounded: the C queue in the channel's list, in its place
+            with channels_lock:
+                fast: Any = queue.SimpleQueue()
+                self.channel[next(i for i, q in enumerate(self.channel)
+                                  if q is self.queue)] = fast
+                self.queue = fast
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        """As ``BusABC.recv``; a zero timeout without filters is one non-blocking take."""
+        if timeout is not None and timeout <= 0.0 and not self._filters:
+            self._check_if_open()
+            try:
+                msg: can.Message = self.queue.get_nowait()
+            except queue.Empty:
+                return None
+            return msg
+        return super().recv(timeout)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         """As ``VirtualBus.send``: every other queue of the channel (and this one with

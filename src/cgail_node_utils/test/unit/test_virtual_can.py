@@ -26,3 +26,20 @@ def test_a_light_bus_talks_to_python_cans_virtual_bus_with_copies_of_its_own() -
     finally:
         light.shutdown()
         plain.shutdown()
+
+
+def test_a_light_bus_with_filters_or_a_bounded_queue_takes_python_cans_path() -> None:
+    light = open_bus('virtual', 'test_light_vcan2', rx_queue_size=2)
+    peer = open_bus('virtual', 'test_light_vcan2')
+    try:
+        light.set_filters([{'can_id': 0x10, 'can_mask': 0x7FF}])
+        for can_id in (0x11, 0x10):
+            peer.send(can.Message(arbitration_id=can_id, data=b'\x01'))
+        # python-can's filtered loop: a zero timeout drops 0x11 and gives up, as it does
+        assert light.recv(timeout=0.0) is None
+        got = light.recv(timeout=0.0)
+        assert got is not None and got.arbitration_id == 0x10
+        assert light.recv(timeout=0.0) is None
+    finally:
+        light.shutdown()
+        peer.shutdown()
