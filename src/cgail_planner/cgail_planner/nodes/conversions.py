@@ -25,7 +25,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 from sensor_msgs.msg import JointState, Joy
-from std_msgs.msg import ColorRGBA, Float64MultiArray, Header
+from std_msgs.msg import Float64MultiArray, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_planner.core.errors import InvalidInputError
@@ -179,11 +179,12 @@ def marker_msg(header: Header, geometry: MarkerGeometry) -> Marker:
                type=_MARKER_TYPES[geometry.kind], action=Marker.ADD)
     m.pose.orientation.w = 1.0
     m.scale.x, m.scale.y, m.scale.z = (float(v) for v in geometry.scale)
-    r, g, b, a = (float(c) for c in geometry.color)
-    m.color = ColorRGBA(r=r, g=g, b=b, a=a)
+    color = m.color  # (set in place: the constructor built the default already)
+    color.r, color.g, color.b, color.a = (float(c) for c in geometry.color)
     if geometry.kind == SPHERE:
         c = geometry.points[0]
-        m.pose.position = Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+        position = m.pose.position
+        position.x, position.y, position.z = float(c[0]), float(c[1]), float(c[2])
     else:
         m.points = _points(geometry.points)
     return m

@@ -233,6 +233,7 @@ class PlannerNode(Node):
         self._markers_sent = False
         # per namespace (path, target): the Marker converted once and what it was converted from
         self._fixed_markers: dict[str, tuple[object, Marker]] = {}
+        self._delete_all = Marker(action=Marker.DELETEALL)  # (restamped at each snapshot)
 
         self._path_pub = self.create_publisher(Path, '~/path', conv.LATCHED_QOS)
         self._wp_pub = self.create_publisher(PointStamped, '~/next_waypoint', conv.SENSOR_QOS)
@@ -384,7 +385,8 @@ class PlannerNode(Node):
         # goal's SPHERE once per goal, not at every snapshot: restamped, the same message as
         # converting them again (only the guidance's markers change between snapshots)
         header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.frame_id)
-        out = [Marker(header=header, action=Marker.DELETEALL)]
+        self._delete_all.header = header
+        out = [self._delete_all]
         for geometry in markers:
             source = self.follower if geometry.ns == PATH_NS else \
                 self.goal if geometry.ns == TARGET_NS else None

@@ -56,8 +56,18 @@ def tip_pose_to_cov_msg(pose: TipPose, stamp: Time,
     the RMS error (:func:`~em_tracker.core.pose.pose_covariance`)."""
     msg = PoseWithCovarianceStamped()
     _fill(msg.header, msg.pose.pose, pose, stamp, frame_id)
-    msg.pose.covariance = list(_covariance(pose.rms_error_m))
+    # a float64 array of 36 is stored as given (a list is checked value by value and
+    # converted, ~10 us per message at 40 Hz): a copy of the cached one, each message its own
+    msg.pose.covariance = _covariance_array(pose.rms_error_m).copy()
     return msg
+
+
+@lru_cache(maxsize=16)
+def _covariance_array(rms_error_m: float) -> np.ndarray:
+    """:func:`_covariance` as the float64 array the message field holds (read-only)."""
+    arr = np.array(_covariance(rms_error_m), dtype=np.float64)
+    arr.setflags(write=False)
+    return arr
 
 
 def transform_msg(stamp: Time, parent: str, child: str, translation_m: np.ndarray,
