@@ -260,12 +260,18 @@ class PhantomPhysics:
         if self.wall is None:
             return
         tip = self.catheter.tip_position[0]
-        contact = self.wall.tip_contact(tip, self.radius, 0.01)
+        x, y, z = tip.tolist()
+        if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
+            # what tip_contact checks, on floats (a (3,) float64 tip, the configured radius):
+            # the query itself, once per physics sub-step
+            contact = self.wall.tip_contact_unchecked(tip, self.radius, 0.01)
+        else:
+            contact = self.wall.tip_contact(tip, self.radius, 0.01)  # (its error)
         if contact.penetration <= 0.0:
             return
         self.contacts += 1
         normal = np.asarray(contact.normal, dtype=np.float64)
-        norm = float(np.linalg.norm(normal))
+        norm = math.sqrt(float(normal @ normal))  # = np.linalg.norm(normal)
         if norm < 1e-12:
             return
         normal = normal / norm
@@ -282,7 +288,7 @@ class PhantomPhysics:
         # the compliant tip leaves the wall at ``deflection`` inwards at least (0: it slides)
         if outward > -math.sin(deflection):
             tangent = heading - outward * normal
-            n2 = float(np.linalg.norm(tangent))
+            n2 = math.sqrt(float(tangent @ tangent))  # = np.linalg.norm(tangent)
             if n2 > 1e-9:
                 new_heading = (math.cos(deflection) * tangent / n2
                                - math.sin(deflection) * normal)
