@@ -260,13 +260,7 @@ class PhantomPhysics:
         if self.wall is None:
             return
         tip = self.catheter.tip_position[0]
-        x, y, z = tip.tolist()
-        if math.isfinite(x) and math.isfinite(y) and math.isfinite(z):
-            # what tip_contact checks, on floats (a (3,) float64 tip, the configured radius):
-            # the query itself, once per physics sub-step
-            contact = self.wall.tip_contact_unchecked(tip, self.radius, 0.01)
-        else:
-            contact = self.wall.tip_contact(tip, self.radius, 0.01)  # (its error)
+        contact = self.wall.tip_contact(tip, self.radius, 0.01)
         if contact.penetration <= 0.0:
             return
         self.contacts += 1
