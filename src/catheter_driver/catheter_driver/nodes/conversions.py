@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Iterable
 import math
 import time
@@ -58,8 +59,10 @@ def insertion_state(stamp: Time, position: float, velocity: float) -> JointState
     msg = JointState()
     msg.header.stamp = stamp.to_msg()
     msg.name = [INSERTION_JOINT]
-    msg.position = [float(position)]
-    msg.velocity = [float(velocity)]
+    # (float64 sequences as array('d'), which the generated setters store as given; a list they
+    # check value by value and convert to the same array: several messages per 40 Hz tick)
+    msg.position = array('d', (float(position),))
+    msg.velocity = array('d', (float(velocity),))
     return msg
 
 
@@ -68,7 +71,7 @@ def insertion_command(stamp: Time, velocity: float) -> JointState:
     msg = JointState()
     msg.header.stamp = stamp.to_msg()
     msg.name = [INSERTION_JOINT]
-    msg.velocity = [float(velocity)]
+    msg.velocity = array('d', (float(velocity),))
     return msg
 
 
@@ -77,7 +80,7 @@ def bend_command(stamp: Time, bend: tuple[float, float]) -> JointState:
     msg = JointState()
     msg.header.stamp = stamp.to_msg()
     msg.name = list(BEND_JOINTS)
-    msg.position = [float(bend[0]), float(bend[1])]
+    msg.position = array('d', (float(bend[0]), float(bend[1])))
     return msg
 
 

@@ -7,6 +7,7 @@ QoS names follow docs/interfaces.md: ``SENSOR_QOS`` (best effort, keep last 5), 
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Sequence
 from typing import TypeVar
 
@@ -155,7 +156,7 @@ def bend_msg(stamp: Time, alpha: float, gamma: float) -> JointState:
     msg = JointState()
     msg.header.stamp = stamp
     msg.name = list(BEND_JOINTS)
-    msg.position = [float(alpha), float(gamma)]
+    msg.position = array('d', (float(alpha), float(gamma)))  # (stored as given, unchecked)
     return msg
 
 

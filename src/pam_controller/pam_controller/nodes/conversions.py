@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from array import array
 from collections.abc import Iterable, Sequence
 import math
 import time
@@ -46,7 +47,9 @@ def bend_to_joint_state(bend: Sequence[float] | np.ndarray, stamp: Time) -> Join
     msg = JointState()
     msg.header.stamp = stamp
     msg.name = list(BEND_JOINT_NAMES)
-    msg.position = [float(b) for b in bend]
+    # (an array('d') is stored as given; a list is checked value by value and converted to
+    # the same array: the control loop publishes this and the pressures at 40 Hz)
+    msg.position = array('d', [float(b) for b in bend])
     return msg
 
 
@@ -55,7 +58,7 @@ def pressures_to_multiarray(pressures_pa: Sequence[float] | np.ndarray) -> Float
     msg = Float64MultiArray()
     msg.layout.dim = [MultiArrayDimension(label=PRESSURE_LAYOUT_LABEL, size=4, stride=4)]
     msg.layout.data_offset = 0
-    msg.data = [float(p) for p in pressures_pa]
+    msg.data = array('d', [float(p) for p in pressures_pa])
     return msg
 
 
