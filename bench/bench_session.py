@@ -22,7 +22,9 @@ and the N with the most cumulative time.
 ``bash scripts/demo.sh --out <tmp>/run<k> --trials <n>`` (setup check, identification, then
 the simulated in-vitro session) ``--runs`` times, and prints for each run the wall time of the
 whole command and of the trials, the simulated trial time, real time overall and per core
-(simulated seconds per wall second of the trials, over the workers); then whether the runs
+(simulated seconds per wall second of the trials, over the workers), and the phases (setup,
+the session's start, identification, trials and report, from their printed lines; the main job's
+bar is the time after setup); then whether the runs
 printed identical metrics tables and recorded identical bags (message counts and content), and
 the bags' total size. ``--busy N`` keeps N busy-loop processes running during every run after
 the first (the results must not change). Load average before each run is printed.
@@ -48,6 +50,21 @@ def tables(stdout: str) -> str:
     start = stdout.find('## Trials')
     return '\n'.join(line for line in stdout[start:].splitlines()
                      if not line.startswith('cgail session: '))
+
+
+def phases(stdout: str, stderr: str, wall: float) -> str:
+    """Where the demo's wall time went: setup (``[setup Ns] ready``), then the session's own
+    phases (its ``phases:`` line: start, identification, trials, report) and what is left
+    (the interpreter's start and exit)."""
+    m = re.search(r'\[setup\s+(\d+)s\] ready', stderr + stdout)
+    setup = float(m.group(1)) if m else float('nan')
+    found = dict(re.findall(r'(start|identification|trials|report) ([\d.]+) s',
+                            stdout[stdout.rfind('phases:'):] if 'phases:' in stdout else ''))
+    parts = {k: float(v) for k, v in found.items()}
+    rest = wall - setup - sum(parts.values())
+    return ('phases: setup ' + f'{setup:.0f} s, ' + ', '.join(
+        f'{k} {v:.1f} s' for k, v in parts.items()) + f', other {rest:.1f} s'
+        + f'; after setup {wall - setup:.1f} s')
 
 
 def digests(out: Path) -> dict[str, object]:
@@ -151,6 +168,7 @@ def demo(runs: int, trials: int, busy_loops: int, extra: list[str]) -> int:
                   f'{sum(sim) / session_wall / jobs:.1f}x per core; per trial '
                   f'{min(trial_walls):.1f}-{max(trial_walls):.1f} s wall; bags '
                   f'{bag_bytes(out) / 1e6:.0f} MB', flush=True)
+            print(f'run {k + 1}: {phases(done.stdout, done.stderr, wall)}', flush=True)
             results.append((tables(done.stdout), digests(out), done.stdout))
         same_tables = all(r[0] == results[0][0] for r in results)
         same_bags = all(r[1] == results[0][1] for r in results)

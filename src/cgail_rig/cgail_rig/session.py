@@ -63,6 +63,10 @@ allows (``--time-scale`` caps it, e.g. 1 to watch it live with ``--gui``).
 
 **Parallel trials.** ``--jobs N`` (default: the number of CPUs) runs the trials in N worker
 processes, each with its own rig, ROS domain and time source; the results equal ``--jobs 1``.
+The workers start before the PAM model is identified and warm up meanwhile (imports, domain
+probe, one throw-away rig: :class:`Workers`), as many at once as there are cores besides the
+identification's; each trial's bag is evaluated as the trial ends, while the others run. Neither
+changes a bag or a number: what a trial records does not depend on what ran before it.
 
 **Isolation** (:mod:`cgail_rig.domain`). Every rig runs on a ROS domain of its own:
 a free one picked automatically and printed, or ``ROS_DOMAIN_ID`` if set (then the trials run
@@ -71,7 +75,9 @@ one at a time on it). A session refuses to start on a domain where device nodes 
 never command a real rig.
 
 **Console.** One line per trial (with the elapsed time and an estimate of the time left, at
-the pace of the trials done so far), then the table; the nodes' logs go to ``<out>/logs/``.
+the pace of the trials done so far), then the table, then where the time went (``phases:``
+start, identification, trials, report); the nodes' logs go to ``<out>/logs/`` (the
+identification's bench and the workers' warm-up rigs too).
 
 **Bags.** Each trial's bag is zstd-compressed MCAP; the lumen is on its own latched topic
 (``phantom/lumen``: a static wall recorded once, a dynamic one when it moved, at most at
@@ -81,8 +87,10 @@ the pace of the trials done so far), then the table; the nodes' logs go to ``<ou
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 import concurrent.futures
+import contextlib
+import dataclasses
 from dataclasses import dataclass, field
 import gc
 import math
@@ -636,45 +644,156 @@ def run_trial(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> Tri
     return result
 
 
+def rig_modules(launch_file: str = '') -> None:
+    """Import the modules a trial's rig needs (rclpy, the recorder, the lockstep executor, the
+    modules of the launch file's nodes), touching no ROS domain: what a process can do while its
+    domain probe listens (:func:`~cgail_rig.domain.reserve_domain_during`)."""
+    import importlib
+
+    import cgail_bags.record  # noqa: F401
+    from cgail_rig.launch_spec import load_launch_file
+    import cgail_rig.launcher
+    import cgail_rig.lockstep  # noqa: F401
+
+    for spec in load_launch_file(Path(launch_file or default_launch_file())).nodes:
+        importlib.import_module(spec.plugin.partition(':')[0])
+
+
+#: Simulated seconds a warm-up rig runs after its goal (:func:`warm_up`): the planner plans and
+#: the operator starts to drive, so every node's code has run once.
+WARM_UP_S = 1.0
+
+
+def warm_up(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> None:
+    """Build ``spec``'s rig on ``domain_id`` with its bag in a temporary directory, run it a
+    moment past its goal (:data:`WARM_UP_S`), and throw it away.
+
+    A process's first trial cost ~2 s more than the next ones (the nodes' imports, the ONNX
+    policy's session, the numba kernels loaded from their cache, first calls): a worker of
+    :class:`Workers` pays that while the session identifies the PAM model, instead of in
+    its first trial. What a trial records does not depend on what ran before it in its process
+    (module docstring), so the trials are those of a cold worker.
+    """
+    from dataclasses import replace
+
+    with tempfile.TemporaryDirectory(prefix='cgail_warm_up_') as tmp:
+        rig = TrialRig(settings, replace(spec, bag=str(Path(tmp) / 'bag')), domain_id)
+        try:
+            ex = rig.executor
+            while ex.now_s < SETTLE_S - 1e-9:
+                ex.tick()
+            rig.publish_goal()
+            end = ex.now_s + WARM_UP_S
+            while ex.now_s < end - 1e-9:
+                ex.tick()
+        finally:
+            rig.close()
+
+
 # ---------------------------------------------------------------------- worker processes
 _WORKER: dict[str, Any] = {}
 
 
-def _worker_init(log_dir: str) -> None:
-    """A worker: Ctrl-C is the parent's to handle; a domain of its own; logs to ``log_dir``."""
-    from cgail_rig.domain import reserve_domain
+def _worker_init(log_dir: str, warm: tuple[SessionSettings, TrialSpec] | None = None,
+                 gate: Any = None) -> None:
+    """A worker: Ctrl-C is the parent's to handle; a domain of its own (the rig's modules
+    imported while it is probed); logs to ``log_dir``; with ``warm``, :func:`warm_up` on it;
+    all that while holding ``gate`` (a semaphore: :class:`Workers`)."""
+    from cgail_rig.domain import reserve_domain_during
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ['ROS_LOG_DIR'] = log_dir
-    _WORKER['lease'] = reserve_domain(env={})
+    launch_file = warm[0].launch_file if warm is not None else ''
+    with gate if gate is not None else contextlib.nullcontext():
+        _WORKER['lease'], _ = reserve_domain_during(lambda: rig_modules(launch_file), env={})
+        if warm is not None:
+            with contextlib.suppress(Exception):  # (the trials themselves report what fails)
+                warm_up(*warm, _WORKER['lease'].domain_id)
+
+
+def _worker_ready() -> int:
+    return os.getpid()
 
 
 def _worker_run(settings: SessionSettings, spec: TrialSpec) -> TrialResult:
     return run_trial(settings, spec, _WORKER['lease'].domain_id)
 
 
+class Workers:
+    """``jobs`` worker processes for :func:`run_trials` (:attr:`pool`), started now: each
+    reserves a domain of its own and, with ``warm`` (settings and a trial), warms up
+    (:func:`warm_up`).
+
+    Started before the trials are known (``cgail session`` starts them before it identifies the
+    PAM model, which the trials' settings need), they spend the identification on their own
+    start (Python and the rig's imports, the domain probe, the first rig: ~4 s of a core each)
+    instead of delaying their first trials. ``hold`` of them wait to start until
+    :meth:`release`: while this process identifies the model on one core, the workers starting
+    at once on the others leave it that core (on 2 cores, two workers starting beside it would
+    slow the identification, which every trial waits for, by a third).
+
+    Args:
+        jobs: worker processes.
+        log_dir: ``ROS_LOG_DIR`` of the workers.
+        warm: ``(settings, spec)`` of the warm-up rig; None: no warm-up.
+        hold: workers that start only after :meth:`release` (0..jobs-1).
+    """
+
+    def __init__(self, jobs: int, log_dir: Path,
+                 warm: tuple[SessionSettings, TrialSpec] | None = None, hold: int = 0) -> None:
+        ctx = multiprocessing.get_context('spawn')
+        self._gate = ctx.Semaphore(jobs)
+        self._held = max(0, min(hold, jobs - 1))
+        for _ in range(self._held):
+            self._gate.acquire()
+        self.pool = concurrent.futures.ProcessPoolExecutor(
+            max_workers=jobs, mp_context=ctx, initializer=_worker_init,
+            initargs=(str(log_dir), warm, self._gate))
+        # a pool that spawns its processes starts one per task submitted while none is idle
+        for _ in range(jobs):
+            self.pool.submit(_worker_ready)
+
+    def release(self) -> None:
+        """Let the held workers start (idempotent)."""
+        while self._held:
+            self._held -= 1
+            self._gate.release()
+
+    def shutdown(self) -> None:
+        """Release the held workers and wait for the pool to end (pending tasks cancelled)."""
+        self.release()
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
 def run_trials(settings: SessionSettings, specs: Sequence[TrialSpec], *, jobs: int,
                domain_id: int | None, log_dir: Path,
-               on_result: Callable[[TrialResult], None]) -> list[TrialResult]:
+               on_result: Callable[[TrialResult], None],
+               pool: concurrent.futures.ProcessPoolExecutor | None = None,
+               while_running: Sequence[Callable[[], Any]] = ()) -> list[TrialResult]:
     """Run ``specs``: in this process on ``domain_id`` (``jobs == 1``), or in ``jobs`` worker
-    processes with a domain each. ``on_result`` sees each result as it completes; the list
-    comes back in ``specs`` order. Ctrl-C stops early: the finished trials come back."""
+    processes with a domain each (``pool``: those of :class:`Workers`, shut down here; else
+    started here). ``on_result`` sees each result as it completes; the list comes back in
+    ``specs`` order. ``while_running`` are called in this process once the trials are handed to
+    the workers (before them with ``jobs == 1``). Ctrl-C stops early: the finished trials come
+    back."""
     results: dict[TrialSpec, TrialResult] = {}
     if jobs == 1:
         assert domain_id is not None
         try:
+            for work in while_running:
+                work()
             for spec in specs:
                 results[spec] = run_trial(settings, spec, domain_id)
                 on_result(results[spec])
         except KeyboardInterrupt:
             pass
         return [results[s] for s in specs if s in results]
-    ctx = multiprocessing.get_context('spawn')
-    pool = concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
-                                                  initializer=_worker_init,
-                                                  initargs=(str(log_dir),))
-    futures = {pool.submit(_worker_run, settings, spec): spec for spec in specs}
+    if pool is None:
+        pool = Workers(jobs, log_dir).pool
     try:
+        futures = {pool.submit(_worker_run, settings, spec): spec for spec in specs}
+        for work in while_running:
+            work()
         for future in concurrent.futures.as_completed(futures):
             spec = futures[future]
             try:
@@ -683,8 +802,7 @@ def run_trials(settings: SessionSettings, specs: Sequence[TrialSpec], *, jobs: i
                 results[spec] = TrialResult(spec, outcome=f'worker error: {exc}', failed=True)
             on_result(results[spec])
     except KeyboardInterrupt:
-        for f in futures:
-            f.cancel()
+        pass
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     return [results[s] for s in specs if s in results]
@@ -859,12 +977,29 @@ def autonomy_report(results: Sequence[TrialResult]) -> list[str]:
     return lines
 
 
+def identification_cached(directory: Path, plant_seed: int) -> bool:
+    """Whether ``<directory>/plant_seed_<seed>/pam_identified.yaml`` holds a model of every key
+    of ``IDENTIFIED_KEYS`` (else :func:`identified_pam_parameters` identifies it: none yet, or
+    one of an older model)."""
+    import yaml
+
+    from pam_controller.core.identification import IDENTIFIED_KEYS
+
+    path = directory / f'plant_seed_{plant_seed}' / 'pam_identified.yaml'
+    cached = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters'] \
+        if path.is_file() else {}
+    return set(IDENTIFIED_KEYS) <= set(cached)
+
+
 def identified_pam_parameters(directory: Path, plant_seed: int,
-                              log: Callable[[str], None]) -> tuple[tuple[str, float], ...]:
+                              log: Callable[[str], None], *, domain_id: int | None = None,
+                              plots: list[Callable[[], Path]] | None = None
+                              ) -> tuple[tuple[str, float], ...]:
     """The pam_controller model identified on the true plant of ``plant_seed``: read from
     ``<directory>/plant_seed_<seed>/pam_identified.yaml``, after running ``identify_pam``'s
     simulated bench there if it is not cached yet (or was identified for an older model, without
-    every key of ``IDENTIFIED_KEYS``)."""
+    every key of ``IDENTIFIED_KEYS``), on ``domain_id`` (None: a free domain of its own).
+    ``plots``: as :func:`cgail_rig.identify_pam.identify_bag` (``loops.png`` drawn later)."""
     import yaml
 
     from cgail_rig.identify_pam import identify_sim
@@ -872,13 +1007,11 @@ def identified_pam_parameters(directory: Path, plant_seed: int,
 
     where = directory / f'plant_seed_{plant_seed}'
     path = where / 'pam_identified.yaml'
-    cached = yaml.safe_load(path.read_text())['pam_controller']['ros__parameters'] \
-        if path.is_file() else {}
-    if not set(IDENTIFIED_KEYS) <= set(cached):  # none yet, or of an older model: identify
+    if not identification_cached(directory, plant_seed):
         log(f'cgail session: identifying the PAM model on plant seed {plant_seed} '
             f'(cgail identify-pam --sim, {where})')
         t0 = time.monotonic()
-        result = identify_sim(where, plant_seed=plant_seed)
+        result = identify_sim(where, plant_seed=plant_seed, domain_id=domain_id, plots=plots)
         e = result.errors
         log(f'cgail session: RMS bend error nominal {e["nominal"]["all"]:.4f} rad, identified '
             f'{e["identified"]["all"]:.4f} rad ({time.monotonic() - t0:.0f} s)')
@@ -914,7 +1047,7 @@ def _trial_line(done: int, total: int, r: TrialResult, pace: str = '') -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``cgail session``; returns the exit status."""
-    from cgail_rig.domain import DomainError, requested_domain, reserve_domain
+    from cgail_rig.domain import DomainError, requested_domain, reserve_domain_during
 
     args = build_parser().parse_args(argv)
     t_command = time.monotonic()
@@ -984,21 +1117,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         notes.append(f'ROS_DOMAIN_ID={user_domain} is set: one trial at a time on it (unset it '
                      f'to run trials in parallel on free domains)')
     time_scale = args.time_scale if args.time_scale is not None else (1.0 if args.gui else 0.0)
-    pam_parameters: tuple[tuple[str, float], ...] = ()
-    if args.plant == 'identified':
-        try:
-            pam_parameters = identified_pam_parameters(args.out / 'identification', args.seed,
-                                                       print)
-        except (OSError, ValueError, RuntimeError) as exc:  # bag, fit, domain, bench
-            return fail(f'identification of plant seed {args.seed} failed: {exc}')
     settings = SessionSettings(
         anatomy=anatomy, mode=args.mode, policy=str(args.policy or ''),
         time_limit=args.time_limit, physics_rate=args.physics_rate,
         tracker_rate=args.tracker_rate, launch_file=str(args.launch_file or ''),
         time_scale=time_scale, gui=args.gui, gui_port=args.gui_port, igtl=args.igtl,
         igtl_port=args.igtl_port, foxglove=args.foxglove, foxglove_port=args.foxglove_port,
-        plant='ideal' if args.plant == 'ideal' else 'true',
-        plant_seed=args.seed, pam_parameters=pam_parameters)
+        plant='ideal' if args.plant == 'ideal' else 'true', plant_seed=args.seed)
     log_dir = (args.out / 'logs').resolve()
     log_dir.mkdir(parents=True, exist_ok=True)
     os.environ['ROS_LOG_DIR'] = str(log_dir)
@@ -1006,15 +1131,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     def log(text: str) -> None:
         print(text, flush=True)
 
+    # The workers start first (their imports, domain probes and a warm-up rig with the nominal
+    # PAM model, on the other core) while this process identifies the PAM model; one trial at a
+    # time: this process's domain, which the identification's bench uses too.
     lease = None
+    workers = None
     if jobs == 1:
         try:
-            lease = reserve_domain()
+            lease, _ = reserve_domain_during(lambda: rig_modules(settings.launch_file))
         except DomainError as exc:
             return fail(str(exc))
         where = f'ROS domain {lease.domain_id} ({lease.source})'
     else:
+        # while this process identifies the model on a core, workers start on the others
+        identifying = args.plant == 'identified' and not identification_cached(
+            args.out / 'identification', args.seed)
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else \
+            (os.cpu_count() or 1)
+        workers = Workers(jobs, log_dir, warm=(settings, specs[0]),
+                          hold=jobs - max(1, cpus - 1) if identifying else 0)
         where = f'{jobs} worker processes, each on a free ROS domain of its own'
+    plots: list[Callable[[], Path]] = []
+    t_identify = time.monotonic()
+    try:
+        if args.plant == 'identified':
+            settings = dataclasses.replace(settings, pam_parameters=identified_pam_parameters(
+                args.out / 'identification', args.seed, log,
+                domain_id=lease.domain_id if lease else None, plots=plots))
+    except BaseException as exc:
+        if workers is not None:
+            workers.shutdown()
+        if lease is not None:
+            lease.release()
+        if isinstance(exc, (OSError, ValueError, RuntimeError)):  # bag, fit, domain, bench
+            return fail(f'identification of plant seed {args.seed} failed: {exc}')
+        raise
+    if workers is not None:
+        workers.release()
     t_start = time.monotonic()
     log(f'cgail session: {len(specs)} trials ({", ".join(args.conditions)}; '
         f'{label}, {args.mode}) on {where}; policy {args.policy or "-"}; node logs in '
@@ -1030,21 +1183,37 @@ def main(argv: Sequence[str] | None = None) -> int:
             'trial runs (Foxglove: Open connection, Foxglove WebSocket; layout '
             'src/cgail_rig/config/foxglove/cgail_layout.json)')
     done = [0]
+    # each trial's bag is evaluated as it comes in, while the other trials run, instead of all
+    # at the end (~0.1 s of a core each: 5 s for the main job's 60)
+    evaluated: dict[tuple[str, str], tuple[list[Any], str]] = {}
 
     def on_result(result: TrialResult) -> None:
         done[0] += 1
         now = time.monotonic()
         log(_trial_line(done[0], len(specs), result,
                         progress(done[0], len(specs), now - t_command, now - t_start)))
+        bag = Path(result.spec.bag)
+        if bag.is_dir():
+            with contextlib.suppress(Exception):  # (then the report evaluates it, as it would)
+                evaluated[(bag.parent.name, bag.name)] = evaluate_trial_bag(bag)
+
+    def draw_plots() -> None:
+        for draw in plots:
+            try:
+                draw()
+            except Exception as exc:  # (a figure: the trials go on)
+                log(f'cgail session: could not draw the identification\'s figure: {exc}')
 
     try:
         results = run_trials(settings, specs, jobs=jobs,
                              domain_id=lease.domain_id if lease else None, log_dir=log_dir,
-                             on_result=on_result)
+                             on_result=on_result, pool=workers.pool if workers else None,
+                             while_running=[draw_plots])
     finally:
         if lease is not None:
             lease.release()
-    wall_s = time.monotonic() - t_start
+    t_trials = time.monotonic()
+    wall_s = t_trials - t_start
     if len(results) < len(specs):
         log(f'cgail session: interrupted after {len(results)} of {len(specs)} trials; '
             f'evaluating those')
@@ -1054,9 +1223,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             '\n'.join(f'--- {r.spec.label}\n{e}' for r in results for e in r.callback_errors))
     outcomes = [(r.spec.condition, r.spec.index + 1, r.outcome) for r in results]
     code = report(args.out, bags_dir, outcomes, log, wall_s=wall_s, callback_errors=errors,
-                  jobs=jobs, results=results)
+                  jobs=jobs, results=results, evaluated=evaluated)
+    t_end = time.monotonic()
     log(f'cgail session: {len(results)} trials in {_clock(wall_s)} on {jobs} worker(s); '
-        f'{_clock(time.monotonic() - t_command)} in all')
+        f'{_clock(t_end - t_command)} in all')
+    log(f'cgail session: phases: start {t_identify - t_command:.1f} s, identification '
+        f'{t_start - t_identify:.1f} s, trials {wall_s:.1f} s, report {t_end - t_trials:.1f} s')
     return code if all(not r.failed for r in results) else max(code, 1)
 
 
@@ -1083,24 +1255,39 @@ def success_over_every_trial(trials: Sequence[Any], outcomes: Sequence[tuple[str
     return lines
 
 
-def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
-           log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
-           jobs: int = 1, results: Sequence[TrialResult] = ()) -> int:
-    """Metrics of every evaluable trial bag: markdown table, CSV, box plots; with the trials
-    of autonomy conditions among ``results``, their end states, the injected faults'
-    detection and the caps (:func:`autonomy_report`)."""
+def evaluate_trial_bag(bag: Path) -> tuple[list[Any], str]:
+    """``(metrics, '')`` of a trial's bag (``cgail bag metrics``, its condition the name of the
+    directory it sits in), or ``([], why)`` when it has none (unreadable, no path planned)."""
     from cgail_bags.errors import BagError
     from cgail_bags.metrics_cli import evaluate_bags
+    from cgail_planner.core.metrics import MetricsError
+
+    try:
+        return evaluate_bags([bag], condition=bag.parent.name), ''
+    except (BagError, MetricsError) as exc:
+        return [], str(exc)
+
+
+def report(out: Path, bags_dir: Path, outcomes: list[tuple[str, int, str]],
+           log: Callable[[str], None], wall_s: float, callback_errors: int = 0,
+           jobs: int = 1, results: Sequence[TrialResult] = (),
+           evaluated: Mapping[tuple[str, str], tuple[list[Any], str]] | None = None) -> int:
+    """Metrics of every evaluable trial bag: markdown table, CSV, box plots; with the trials
+    of autonomy conditions among ``results``, their end states, the injected faults'
+    detection and the caps (:func:`autonomy_report`). ``evaluated``: bags already evaluated
+    (:func:`evaluate_trial_bag`), by ``(condition directory, bag name)``; the others are
+    evaluated here."""
     from cgail_bags.report import box_plots, markdown_report, write_csv
-    from cgail_planner.core.metrics import kruskal_by_condition, MetricsError
+    from cgail_planner.core.metrics import kruskal_by_condition
 
     trials = []
     skipped = []
     for bag in sorted(p for p in bags_dir.glob('*/*') if p.is_dir()):
-        try:
-            trials += evaluate_bags([bag], condition=bag.parent.name)
-        except (BagError, MetricsError) as exc:
-            skipped.append(f'{bag.name}: {exc}')
+        got = (evaluated or {}).get((bag.parent.name, bag.name))
+        metrics, why = got if got is not None else evaluate_trial_bag(bag)
+        trials += metrics
+        if why:
+            skipped.append(f'{bag.name}: {why}')
     if not trials:
         log('cgail session: no trial could be evaluated')
         for s in skipped:
