@@ -179,7 +179,7 @@ class LockstepExecutor:
         return self.period_ns * 1e-9
 
     def _set_clocks(self) -> None:
-        now = Time(nanoseconds=self._now_ns, clock_type=ClockType.ROS_TIME)
+        now = _TickTime(self._now_ns)
         source = self.time_source
         clocks = getattr(source, '_associated_clocks', None)
         if clocks is None or not hasattr(source, '_last_time_set'):
@@ -585,10 +585,26 @@ class LockstepExecutor:
             if self._on_error is not None:
                 self._on_error(text)
             return None
-        if inspect.iscoroutine(result):
+        if result is not None and inspect.iscoroutine(result):
             result.close()
             raise LockstepError(f'{fn!r}: coroutine callbacks are not supported in lockstep')
         return result
+
+
+class _TickTime(Time):
+    """The ROS time of one tick, as :meth:`LockstepExecutor._clock_now` hands it to every node:
+    an rclpy ``Time`` whose ``nanoseconds`` (what ``now().nanoseconds``, ``to_msg()`` and the
+    comparisons read, dozens of times a tick) is the int it was made from rather than a call
+    into its rcl handle. Immutable like any ``Time``."""
+
+    def __init__(self, nanoseconds: int) -> None:
+        super().__init__(nanoseconds=nanoseconds, clock_type=ClockType.ROS_TIME)
+        self._nanoseconds = int(nanoseconds)
+
+    @property
+    def nanoseconds(self) -> int:
+        """:return: the total number of nanoseconds since the clock's epoch."""
+        return self._nanoseconds
 
 
 @dataclass
