@@ -40,7 +40,9 @@ on cgail_planner (cgail_planner depends on it).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+import contextlib
+import ctypes
 from dataclasses import asdict
 import gc
 import math
@@ -360,6 +362,43 @@ def report_text(result: Any, data: Any, source: str, extra: Sequence[str] = ()) 
     return '\n'.join(lines) + '\n'
 
 
+#: (get, set) entry points of the thread count of an OpenBLAS build (numpy's and scipy's wheels
+#: prefix theirs), tried in turn.
+_OPENBLAS_THREADS = (('scipy_openblas_get_num_threads64_', 'scipy_openblas_set_num_threads64_'),
+                     ('scipy_openblas_get_num_threads', 'scipy_openblas_set_num_threads'),
+                     ('openblas_get_num_threads64_', 'openblas_set_num_threads64_'),
+                     ('openblas_get_num_threads', 'openblas_set_num_threads'))
+
+
+@contextlib.contextmanager
+def one_blas_thread() -> Iterator[None]:
+    """Every OpenBLAS loaded in this process (numpy's, scipy's) on one thread inside the block,
+    its thread count restored after; nothing where there is none (another BLAS, not Linux).
+
+    The fit's least squares (an SVD of a small Jacobian per step) gains nothing from a second
+    BLAS thread, which spins waiting for work: on 2 cores the fit took 0.8 s wall and 1.5 s CPU
+    on two threads, 0.73 s and 0.73 s on one, and once 4.9 s on two while the other core was
+    busy, as it is in ``cgail session`` (its workers warm up beside the identification). The
+    fitted model was the same to the last bit on one thread and on two (plant seeds 0 and 1).
+    """
+    restore: list[tuple[Any, int]] = []
+    try:
+        with contextlib.suppress(OSError):
+            paths = {line.split()[-1] for line in Path('/proc/self/maps').read_text().splitlines()
+                     if 'openblas' in line.rsplit('/', 1)[-1] and '.so' in line}
+            for path in sorted(paths):
+                lib = ctypes.CDLL(path)
+                for get, put in _OPENBLAS_THREADS:
+                    if hasattr(lib, get) and hasattr(lib, put):
+                        restore.append((getattr(lib, put), int(getattr(lib, get)())))
+                        getattr(lib, put)(1)
+                        break
+        yield
+    finally:
+        for put, threads in restore:
+            put(threads)
+
+
 def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str] = (),
                  plots: list[Callable[[], Path]] | None = None) -> Any:
     """Fit a bench bag and write ``pam_identified.yaml``, ``loops.png``, ``report.md`` to
@@ -381,7 +420,8 @@ def identify_bag(bag: Path, out: Path, *, source: str = '', extra: Sequence[str]
     data = idf.align(pt, p, et, rot)
     model = BendingModelConfig()
     idf.check_excitation(data, model)
-    result = idf.fit_bending_model(data, model)
+    with one_blas_thread():
+        result = idf.fit_bending_model(data, model)
     out.mkdir(parents=True, exist_ok=True)
     values = idf.identified_parameters(result.config)
     header = [f'pam_controller parameters identified by identify_pam on {source or bag}.',

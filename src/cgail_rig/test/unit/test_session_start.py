@@ -126,3 +126,36 @@ def test_identification_cached_needs_every_identified_key(tmp_path) -> None:
     del values[IDENTIFIED_KEYS[0]]
     path.write_text(yaml.safe_dump({'pam_controller': {'ros__parameters': values}}))
     assert not identification_cached(tmp_path, 0)
+
+
+def test_the_fit_runs_blas_on_one_thread_and_restores_it() -> None:
+    """The identification's fit (:func:`cgail_rig.identify_pam.one_blas_thread`): one thread in
+    the block, each OpenBLAS's own count after it; the results of numpy within are numpy's."""
+    import ctypes
+
+    import numpy as np
+
+    from cgail_rig.identify_pam import _OPENBLAS_THREADS, one_blas_thread
+
+    def counts() -> list[int]:
+        found = []
+        maps = Path('/proc/self/maps').read_text().splitlines()
+        for path in sorted({line.split()[-1] for line in maps
+                            if 'openblas' in line.rsplit('/', 1)[-1] and '.so' in line}):
+            lib = ctypes.CDLL(path)
+            for get, _ in _OPENBLAS_THREADS:
+                if hasattr(lib, get):
+                    found.append(int(getattr(lib, get)()))
+                    break
+        return found
+
+    if not Path('/proc/self/maps').is_file():
+        pytest.skip('expected /proc/self/maps (Linux), found none')
+    a = np.arange(36.0).reshape(6, 6)
+    before = counts()
+    with one_blas_thread():
+        inside = counts()
+        product = a @ a
+    assert inside == [1] * len(before)
+    assert counts() == before
+    assert np.array_equal(product, a @ a)
