@@ -208,15 +208,24 @@ def _pad(out: bytearray, alignment: int) -> None:
         out += bytes(gap)
 
 
+#: A string's CDR bytes after its alignment (length, UTF-8 up to the first NUL, NUL), per
+#: string: a rig sends the same few (frame ids, joint names, marker namespaces) ~25 times a tick.
+_STR_BYTES: dict[str, bytes] = {}
+_STR_CACHE_MAX = 4096
+
+
 def _put_str(out: bytearray, s: str) -> None:
-    data = s.encode()
-    nul = data.find(b'\x00')  # (rosidl's String assign copies up to the first NUL)
-    if nul >= 0:
-        data = data[:nul]
+    data = _STR_BYTES.get(s)
+    if data is None:
+        raw = s.encode()
+        nul = raw.find(b'\x00')  # (rosidl's String assign copies up to the first NUL)
+        if nul >= 0:
+            raw = raw[:nul]
+        data = _U32.pack(len(raw) + 1) + raw + b'\x00'
+        if len(_STR_BYTES) < _STR_CACHE_MAX and type(s) is str:
+            _STR_BYTES[s] = data
     _pad(out, 4)
-    out += _U32.pack(len(data) + 1)
     out += data
-    out += b'\x00'
 
 
 def _put_strs(out: bytearray, seq: Any) -> None:
