@@ -1052,6 +1052,10 @@ class CatheterBatch:
             The applied ``(alpha, gamma, delta_l)``: bends are 0 while retracting and
             ``delta_l`` is the signed distance the tip actually travelled along the body.
         """
+        if (self.n_envs == 1 and active is None and type(alpha) is np.ndarray
+                and type(gamma) is np.ndarray and type(delta_l) is np.ndarray
+                and alpha.shape == gamma.shape == delta_l.shape == (1,)):
+            return self._step_one(float(alpha[0]), float(gamma[0]), float(delta_l[0]))
         cfg = self.config
         # (np.minimum/np.maximum: the same values as np.clip for finite input, a third of the
         # cost on the tiny arrays of a single environment)
@@ -1089,6 +1093,40 @@ class CatheterBatch:
         applied_al = np.where(fwd, al, 0.0)
         applied_ga = np.where(fwd, ga, 0.0)
         return applied_al, applied_ga, applied_dl
+
+    def _step_one(self, alpha: float, gamma: float, delta_l: float
+                  ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """:meth:`step` of a single catheter (the simulated rig's, one per physics sub-step):
+        the same operations on Python floats where :meth:`step` works on 1-element arrays
+        (clamps as min/max, which like np.minimum/np.maximum return the first argument on a
+        tie and propagate NaN; the bend limit in the same order), the step itself by
+        :func:`advance_batch` on the same (1, 3, 3) and (1, 3) copies, so the same bits."""
+        m = self.max_step
+        dl = min(max(delta_l, -m), m)
+        limit = self.theta_max * abs(dl) / self.config.segment_length
+        applied = np.zeros(1)
+        if dl > 0.0:
+            al = min(max(alpha, -limit), limit)
+            ga = min(max(gamma, -limit), limit)
+            tip = int(self.n_nodes[0]) - 1
+            if tip + 1 >= self.capacity:
+                self._grow()
+            idx, at = self._rows, np.array([tip])
+            step = np.array([dl])
+            r_new, p_new = advance_batch(self.rotations[idx, at], self.positions[idx, at],
+                                         np.array([al]), np.array([ga]), step)
+            self.positions[0, tip + 1] = p_new[0]
+            self.rotations[0, tip + 1] = r_new[0]
+            self.arc[0, tip + 1] = self.arc[0, tip] + dl
+            self.n_nodes[0] += 1
+            applied[0] = dl
+            return np.array([al]), np.array([ga]), applied
+        if dl < 0.0:
+            n, travelled = retract_chain(self.positions[0], self.arc[0], int(self.n_nodes[0]),
+                                         -dl)
+            self.n_nodes[0] = n
+            applied[0] = -travelled
+        return np.zeros(1), np.zeros(1), applied
 
     # ------------------------------------------------------------------ body
     def body_points(self, i: int, spacing: float) -> FloatArray:

@@ -139,6 +139,30 @@ def test_steps_at_one_bend_are_the_single_steps_repeated(poses) -> None:
         assert np.array_equal(points, np.array(want)) and np.array_equal(rot, want_rot)
 
 
+def test_a_single_catheter_steps_as_the_batch_does() -> None:
+    # the one-catheter path (Python floats) against the batch path (forced by ``active``):
+    # the same chains and returns, equal arrays, through insertions, retractions and clamps
+    rng = np.random.default_rng(21)
+    fast = CatheterBatch(1, MODEL, capacity=8)
+    batch = CatheterBatch(1, MODEL, capacity=8)
+    for cat in (fast, batch):
+        cat.n_nodes[:] = 1  # a chain of one node at the origin
+    everyone = np.array([True])
+    for k in range(400):
+        a, g = rng.uniform(-0.05, 0.05, 2)
+        d = rng.choice([rng.uniform(-2e-3, 2e-3), 0.0, MODEL.max_step_insertion * 3])
+        got = fast.step(np.array([a]), np.array([g]), np.array([d]))
+        want = batch.step(np.array([a]), np.array([g]), np.array([d]), everyone)
+        for x, y in zip(got, want, strict=True):
+            assert np.array_equal(x, y), k
+        assert np.array_equal(fast.n_nodes, batch.n_nodes)
+        n = int(fast.n_nodes[0])
+        assert np.array_equal(fast.positions[:, :n], batch.positions[:, :n])
+        assert np.array_equal(fast.rotations[:, :n], batch.rotations[:, :n])
+        assert np.array_equal(fast.arc[:, :n], batch.arc[:, :n])
+    assert fast.capacity > 8  # it grew on the way
+
+
 def test_the_bend_is_rx_then_rz_as_scipy_composes_it() -> None:
     rng = np.random.default_rng(3)
     a, g = rng.uniform(-1.5, 1.5, (2, 20))
