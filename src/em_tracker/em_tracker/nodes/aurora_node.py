@@ -58,7 +58,7 @@ import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, TransformStamped
 import rclpy
 from rclpy.guard_condition import GuardCondition
 from rclpy.lifecycle import LifecycleNode, LifecyclePublisher, State, TransitionCallbackReturn
@@ -216,12 +216,20 @@ class AuroraNode(LifecycleNode):
         self._diag_timer: Timer | None = None
         self._poll_timer: Timer | None = None
         self._clocked = self.config.poll_mode == 'clock'
+        # the messages of a frame, refilled for each (a publish serializes before it returns:
+        # conversions.tip_pose_to_msg's ``out``)
+        self._pose_msg, self._cov_msg = PoseStamped(), PoseWithCovarianceStamped()
+        self._tf_msg = TFMessage(transforms=[TransformStamped()])
 
     # ------------------------------------------------------------------ lifecycle
     def on_configure(self, state: State) -> TransitionCallbackReturn:
         # (valid: the guard refused any value build_config rejects)
         self.config = build_config(self._parameter_values())
         self._clocked = self.config.poll_mode == 'clock'
+        # the messages of a frame, refilled for each (a publish serializes before it returns:
+        # conversions.tip_pose_to_msg's ``out``)
+        self._pose_msg, self._cov_msg = PoseStamped(), PoseWithCovarianceStamped()
+        self._tf_msg = TFMessage(transforms=[TransformStamped()])
         self._device = self._device_factory(self.config)
         self._pose_pub = self.create_lifecycle_publisher(PoseStamped, '~/tip_pose',
                                                          qos_profile_sensor_data)
@@ -355,12 +363,13 @@ class AuroraNode(LifecycleNode):
             stamp = now_ros.to_msg() if age_ns == 0 else rclpy.time.Time(
                 nanoseconds=max(0, now_ros.nanoseconds - age_ns),
                 clock_type=now_ros.clock_type).to_msg()
-            self._pose_pub.publish(tip_pose_to_msg(pose, stamp, self.config.frame_id))
-            self._cov_pub.publish(tip_pose_to_cov_msg(pose, stamp, self.config.frame_id))
+            frame_id = self.config.frame_id
+            self._pose_pub.publish(tip_pose_to_msg(pose, stamp, frame_id, out=self._pose_msg))
+            self._cov_pub.publish(tip_pose_to_cov_msg(pose, stamp, frame_id, out=self._cov_msg))
             self._rms_pub.publish(Float64(data=pose.rms_error_m))
             if self._tf_pub is not None:
-                self._tf_pub.publish(tip_tf(pose, stamp, self.config.frame_id,
-                                            self.config.tip_frame_id))
+                self._tf_pub.publish(tip_tf(pose, stamp, frame_id, self.config.tip_frame_id,
+                                            out=self._tf_msg))
             with self._health_lock:
                 self.health.published += 1
 
