@@ -150,10 +150,12 @@ class SafetyConfig:
     ``stall_min_ratio``: :meth:`Supervisor._check_stall`), short enough that a slipping
     sleeve is stopped within (1 - ``stall_min_ratio``) of it, 4.5 s, inside its 6.5 s bound
     (``cgail_rig.core.faults.DETECTION_BOUNDS_S``); (0, 30]."""
-    stall_min_commanded: float = 0.005
+    stall_min_commanded: float = 0.0075
     """Insertion the path allows over the window (the commanded insertion, capped by the path
-    left beyond the tip at the window's start) below which the stall test does not apply, m;
-    (0, 0.1]."""
+    left beyond the tip at the window's start) below which the stall test does not apply, m:
+    a mean commanded speed of 1.25 mm/s over the 6 s window, as 5 mm was over the earlier 4 s
+    one, and a quarter of it (1.9 mm) is ~2.7 times the noise of the advance measured between
+    two EM poses (0.7 mm RMS); (0, 0.1]."""
     stall_min_ratio: float = 0.25
     """Stop when the tip's progress along the path is below this share of the insertion the
     path allows over the window (a relay pause alone leaves ~0.6 of a 6 s window); (0, 1)."""
@@ -477,8 +479,12 @@ class Supervisor:
         30-trial sessions came 4.3-10.0 mm from the target, on tips the phantom's true pose
         showed advancing. A replay of their recorded EM poses with the path tracker's
         commands found the lowest ratio of a healthy window 0.45-0.53 with a 6 s window
-        (``stall_window_s``). A tip that stops is caught once less than ``stall_min_ratio``
-        of the window's insertion came before it stopped: (1 - 0.25) * 6 = 4.5 s at most.
+        (``stall_window_s``). A longer window holds more insertion at the same speed, so
+        ``stall_min_commanded`` grew with it (5 -> 7.5 mm): at 5 mm over 6 s the test reached
+        the slowest final approaches (0.85 mm/s, a quarter of it within the EM noise) and
+        tripped 5 of the first 30 static path-tracker trials. A tip that stops is caught once
+        less than ``stall_min_ratio`` of the window's insertion came before it stopped:
+        (1 - 0.25) * 6 = 4.5 s at most.
         """
         cfg, w = self.config, self._window
         while len(w) > 2 and now - w[1][0] >= cfg.stall_window_s:
