@@ -141,9 +141,15 @@ def path_points(msg: Path) -> np.ndarray:
                      for p in msg.poses], dtype=np.float64).reshape(-1, 3)
 
 
-def point_msg(stamp: Time, frame_id: str, point: np.ndarray) -> PointStamped:
-    """A PointStamped."""
-    msg = PointStamped()
+def point_msg(stamp: Time, frame_id: str, point: np.ndarray,
+              out: PointStamped | None = None) -> PointStamped:
+    """A PointStamped; ``out``: one to refill (every field is set) instead of a new one.
+
+    ``out`` (here and below) serves a node that publishes per tip pose: a publish serializes
+    the message before it returns (rclpy, and the lockstep rig's in-process transport), so the
+    node can refill one object, where a new message builds all its nested defaults first.
+    """
+    msg = PointStamped() if out is None else out
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     p = msg.point
@@ -151,9 +157,11 @@ def point_msg(stamp: Time, frame_id: str, point: np.ndarray) -> PointStamped:
     return msg
 
 
-def bend_msg(stamp: Time, alpha: float, gamma: float) -> JointState:
-    """A bend JointState (``bend_alpha``, ``bend_gamma``; rad)."""
-    msg = JointState()
+def bend_msg(stamp: Time, alpha: float, gamma: float,
+             out: JointState | None = None) -> JointState:
+    """A bend JointState (``bend_alpha``, ``bend_gamma``; rad); ``out``: one this function
+    filled before, to refill (:func:`point_msg`)."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp
     msg.name = list(BEND_JOINTS)
     msg.position = array('d', (float(alpha), float(gamma)))  # (stored as given, unchecked)
@@ -173,11 +181,17 @@ def _points(points: np.ndarray) -> list[Point]:
     return out
 
 
-def marker_msg(header: Header, geometry: MarkerGeometry) -> Marker:
+def marker_msg(header: Header, geometry: MarkerGeometry, out: Marker | None = None) -> Marker:
     """One ADD ``visualization_msgs/Marker`` of a :class:`MarkerGeometry` (a SPHERE's centre
-    goes in the pose, the other kinds' points in ``points``; identity orientation)."""
-    m = Marker(header=header, ns=geometry.ns, id=geometry.id,
-               type=_MARKER_TYPES[geometry.kind], action=Marker.ADD)
+    goes in the pose, the other kinds' points in ``points``; identity orientation); ``out``: a
+    Marker this function filled for a geometry of the same namespace, id and kind, to refill
+    (:func:`point_msg`; a Marker's constructor is the costliest of the messages here)."""
+    if out is None:
+        m = Marker(header=header, ns=geometry.ns, id=geometry.id,
+                   type=_MARKER_TYPES[geometry.kind], action=Marker.ADD)
+    else:
+        m = out
+        m.header = header
     m.pose.orientation.w = 1.0
     m.scale.x, m.scale.y, m.scale.z = (float(v) for v in geometry.scale)
     color = m.color  # (set in place: the constructor built the default already)

@@ -144,6 +144,7 @@ class OperatorNode(Node):
         self._was_running = False
 
         self._joy_pub = self.create_publisher(Joy, '~/joy', conv.SENSOR_QOS)
+        self._joy_msg = Joy()
         self._done_pub = self.create_publisher(Bool, '~/done', conv.LATCHED_QOS)
         self.create_subscription(Path, '~/path', self._on_path, conv.LATCHED_QOS)
         self.create_subscription(JointState, '~/suggested_bend', self._on_bend, conv.SENSOR_QOS)
@@ -247,9 +248,10 @@ class OperatorNode(Node):
         axes[self.axes[2]] = sticks.gamma
         buttons = [0] * self._n_buttons
         buttons[self.enable_button] = 1 if sticks.deadman else 0
-        joy = Joy(axes=axes, buttons=buttons)  # (the default header, set in place)
+        joy = self._joy_msg  # refilled: a publish serializes before it returns
         joy.header.stamp = self.get_clock().now().to_msg()
         joy.header.frame_id = 'joy'
+        joy.axes, joy.buttons = axes, buttons
         self._joy_pub.publish(joy)
         if self._was_running and not running:
             self.get_logger().info(f'operator stopped: {self.operator.reason}')

@@ -234,6 +234,9 @@ class PlannerNode(Node):
         # per namespace (path, target): the Marker converted once and what it was converted from
         self._fixed_markers: dict[str, tuple[object, Marker]] = {}
         self._delete_all = Marker(action=Marker.DELETEALL)  # (restamped at each snapshot)
+        self._guidance_markers: dict[tuple[str, int, str], Marker] = {}
+        # per tip pose, refilled (conv.point_msg's out)
+        self._wp_msg, self._bend_msg = PointStamped(), JointState()
 
         self._path_pub = self.create_publisher(Path, '~/path', conv.LATCHED_QOS)
         self._wp_pub = self.create_publisher(PointStamped, '~/next_waypoint', conv.SENSOR_QOS)
@@ -320,8 +323,9 @@ class PlannerNode(Node):
                 assert self.follower is not None
                 guide = self.follower.guide(position, rotation)
         stamp = msg.header.stamp
-        self._wp_pub.publish(conv.point_msg(stamp, self.frame_id, guide.next_waypoint))
-        self._bend_pub.publish(conv.bend_msg(stamp, *guide.bend))
+        self._wp_pub.publish(conv.point_msg(stamp, self.frame_id, guide.next_waypoint,
+                                            out=self._wp_msg))
+        self._bend_pub.publish(conv.bend_msg(stamp, *guide.bend, out=self._bend_msg))
         self.last_guidance = TipGuidance(position, rotation, guide.next_waypoint, guide.bend,
                                          guide.distance_to_waypoint)
         self._markers_changed = True
@@ -397,8 +401,10 @@ class PlannerNode(Node):
                         source, conv.marker_msg(header, geometry))
                 marker = cached[1]
                 marker.header = header
-            else:
-                marker = conv.marker_msg(header, geometry)
+            else:  # (the guidance's markers: refilled, conv.marker_msg's out)
+                key = (geometry.ns, geometry.id, geometry.kind)
+                marker = self._guidance_markers[key] = conv.marker_msg(
+                    header, geometry, out=self._guidance_markers.get(key))
             out.append(marker)
         self._markers_pub.publish(MarkerArray(markers=out))
 

@@ -167,3 +167,29 @@ def test_bad_geometry_is_refused(kwargs, match) -> None:
 def test_bad_config_is_refused(field, value, match) -> None:
     with pytest.raises(ValueError, match=match):
         mk.MarkerConfig(**{field: value})
+
+
+def test_refilled_guidance_messages_equal_new_ones() -> None:
+    # the planner node refills its per-pose messages and guidance markers (conversions' out=)
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
+
+    from cgail_planner.nodes import conversions as conv
+
+    cat = CatheterConfig()
+    cfg = mk.MarkerConfig()
+    outs: dict[tuple[str, int, str], object] = {}
+    point_out = bend_out = None
+    for k, bend in enumerate(((0.1, -0.2), (-0.3, 0.05))):
+        header = Header(stamp=Time(sec=k, nanosec=7), frame_id='phantom')
+        p = np.array([0.01 * k, 0.02, -0.01])
+        geometries = [mk.waypoint_marker(p, cfg.waypoint_diameter),
+                      *mk.bend_markers(p, np.eye(3), bend, 0.02 + 0.01 * k, cat, cfg)]
+        for g in geometries:
+            key = (g.ns, g.id, g.kind)
+            outs[key] = conv.marker_msg(header, g, out=outs.get(key))
+            assert outs[key] == conv.marker_msg(header, g)
+        point_out = conv.point_msg(header.stamp, 'phantom', p, out=point_out)
+        assert point_out == conv.point_msg(header.stamp, 'phantom', p)
+        bend_out = conv.bend_msg(header.stamp, *bend, out=bend_out)
+        assert bend_out == conv.bend_msg(header.stamp, *bend)
