@@ -54,9 +54,17 @@ def insertion_velocity(msg: JointState, max_speed: float) -> float:
     return value
 
 
-def insertion_state(stamp: Time, position: float, velocity: float) -> JointState:
-    """``insertion`` JointState with position (m) and velocity (m/s)."""
-    msg = JointState()
+def insertion_state(stamp: Time, position: float, velocity: float,
+                    out: JointState | None = None) -> JointState:
+    """``insertion`` JointState with position (m) and velocity (m/s); ``out``: one this
+    function filled before, to refill instead of a new one.
+
+    ``out`` (here and below) serves a node that publishes every control tick: a publish
+    serializes the message before it returns (rclpy, and the lockstep rig's in-process
+    transport), so the node can refill one object, where a new message builds all its nested
+    defaults first.
+    """
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp.to_msg()
     msg.name = [INSERTION_JOINT]
     # (float64 sequences as array('d'), which the generated setters store as given; a list they
@@ -66,18 +74,22 @@ def insertion_state(stamp: Time, position: float, velocity: float) -> JointState
     return msg
 
 
-def insertion_command(stamp: Time, velocity: float) -> JointState:
-    """``insertion`` JointState carrying only a velocity command (m/s)."""
-    msg = JointState()
+def insertion_command(stamp: Time, velocity: float, out: JointState | None = None
+                      ) -> JointState:
+    """``insertion`` JointState carrying only a velocity command (m/s); ``out``: one this
+    function filled before (:func:`insertion_state`)."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp.to_msg()
     msg.name = [INSERTION_JOINT]
     msg.velocity = array('d', (float(velocity),))
     return msg
 
 
-def bend_command(stamp: Time, bend: tuple[float, float]) -> JointState:
-    """``bend_alpha``/``bend_gamma`` JointState with the bend setpoint (rad)."""
-    msg = JointState()
+def bend_command(stamp: Time, bend: tuple[float, float], out: JointState | None = None
+                 ) -> JointState:
+    """``bend_alpha``/``bend_gamma`` JointState with the bend setpoint (rad); ``out``: one this
+    function filled before (:func:`insertion_state`)."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp.to_msg()
     msg.name = list(BEND_JOINTS)
     msg.position = array('d', (float(bend[0]), float(bend[1])))

@@ -181,6 +181,7 @@ class DriverNode(LifecycleNode):
         self.reconnects = 0
         self._active = False
         self._state_pub: LifecyclePublisher | None = None
+        self._state_msg = JointState()  # refilled per publish (conv.insertion_state's out)
         self._diag_pub: LifecyclePublisher | None = None
         self._sub_command: Subscription | None = None
         self._srv_estop: Service | None = None
@@ -376,7 +377,7 @@ class DriverNode(LifecycleNode):
         assert self._state_pub is not None
         self._state_pub.publish(conv.insertion_state(
             self.get_clock().now(), self._controller.position,
-            catheter_velocity(fb, self._feedback.sleeve_velocity)))
+            catheter_velocity(fb, self._feedback.sleeve_velocity), out=self._state_msg))
 
     def _on_diagnostics(self) -> None:
         if not self._active or self._diag_pub is None:

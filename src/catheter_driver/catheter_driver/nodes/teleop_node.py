@@ -50,6 +50,8 @@ class TeleopNode(Node):
         self._insertion_pub = self.create_publisher(JointState, '~/insertion_command',
                                                     conv.COMMAND_QOS)
         self._bend_pub = self.create_publisher(JointState, '~/bend_command', conv.COMMAND_QOS)
+        # refilled per publish (conv.insertion_state's out)
+        self._insertion_msg, self._bend_msg = JointState(), JointState()
         self.create_subscription(Joy, '~/joy', self._on_joy, conv.SENSOR_QOS)
         self.create_timer(0.05, self._on_tick)
 
@@ -70,9 +72,10 @@ class TeleopNode(Node):
     def _publish(self, out: TeleopOutput) -> None:
         stamp = self.get_clock().now()
         if out.insertion_velocity is not None:
-            self._insertion_pub.publish(conv.insertion_command(stamp, out.insertion_velocity))
+            self._insertion_pub.publish(conv.insertion_command(stamp, out.insertion_velocity,
+                                                               out=self._insertion_msg))
         if out.bend is not None:
-            self._bend_pub.publish(conv.bend_command(stamp, out.bend))
+            self._bend_pub.publish(conv.bend_command(stamp, out.bend, out=self._bend_msg))
 
 
 def main(args: list[str] | None = None) -> None:

@@ -156,3 +156,22 @@ def test_bad_parameters_raise(harness, params, error, match):
     with pytest.raises(error, match=match):
         TeleopNode(parameter_overrides=[Parameter(k, value=v) for k, v in
                                         {**PARAMS, **params}.items()])
+
+
+def test_refilled_command_messages_equal_new_ones() -> None:
+    # the driver and teleop nodes refill their per-tick JointStates (conversions' out=)
+    from rclpy.clock import ClockType
+    from rclpy.time import Time
+    from sensor_msgs.msg import JointState
+
+    from catheter_driver.nodes import conversions as conv
+
+    outs = [JointState(), JointState(), JointState()]
+    for k in range(2):
+        stamp = Time(nanoseconds=10 + k, clock_type=ClockType.ROS_TIME)
+        outs[0] = conv.insertion_state(stamp, 0.01 * k, -0.002, out=outs[0])
+        assert outs[0] == conv.insertion_state(stamp, 0.01 * k, -0.002)
+        outs[1] = conv.insertion_command(stamp, 0.001 * k, out=outs[1])
+        assert outs[1] == conv.insertion_command(stamp, 0.001 * k)
+        outs[2] = conv.bend_command(stamp, (0.1, -0.1 * k), out=outs[2])
+        assert outs[2] == conv.bend_command(stamp, (0.1, -0.1 * k))

@@ -42,9 +42,13 @@ def bend_from_joint_state(msg: JointState) -> NDArray[np.float64]:
     return np.array([float(positions[names.index(n)]) for n in BEND_JOINT_NAMES])
 
 
-def bend_to_joint_state(bend: Sequence[float] | np.ndarray, stamp: Time) -> JointState:
-    """JointState with ``bend_alpha``, ``bend_gamma`` positions (rad)."""
-    msg = JointState()
+def bend_to_joint_state(bend: Sequence[float] | np.ndarray, stamp: Time,
+                        out: JointState | None = None) -> JointState:
+    """JointState with ``bend_alpha``, ``bend_gamma`` positions (rad); ``out``: one this
+    function filled before, to refill instead of a new one (a publish serializes the message
+    before it returns, so the control loop refills one object per topic: a new message builds
+    all its nested defaults first)."""
+    msg = JointState() if out is None else out
     msg.header.stamp = stamp
     msg.name = list(BEND_JOINT_NAMES)
     # (an array('d') is stored as given; a list is checked value by value and converted to
@@ -53,11 +57,16 @@ def bend_to_joint_state(bend: Sequence[float] | np.ndarray, stamp: Time) -> Join
     return msg
 
 
-def pressures_to_multiarray(pressures_pa: Sequence[float] | np.ndarray) -> Float64MultiArray:
-    """Four chamber pressures (Pa) in the documented layout."""
-    msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label=PRESSURE_LAYOUT_LABEL, size=4, stride=4)]
-    msg.layout.data_offset = 0
+def pressures_to_multiarray(pressures_pa: Sequence[float] | np.ndarray,
+                            out: Float64MultiArray | None = None) -> Float64MultiArray:
+    """Four chamber pressures (Pa) in the documented layout; ``out``: one this function filled
+    before (its layout kept), to refill (:func:`bend_to_joint_state`)."""
+    if out is None:
+        msg = Float64MultiArray()
+        msg.layout.dim = [MultiArrayDimension(label=PRESSURE_LAYOUT_LABEL, size=4, stride=4)]
+        msg.layout.data_offset = 0
+    else:
+        msg = out
     msg.data = array('d', [float(p) for p in pressures_pa])
     return msg
 

@@ -254,6 +254,9 @@ class PamNode(LifecycleNode):
         self.link_error = 'not connected yet'
         self.measured_pa = np.full(4, np.nan)
         self.bend_estimate = np.full(2, np.nan)
+        # refilled per publish (conv.bend_to_joint_state's out)
+        self._pressures_msg: Float64MultiArray | None = None
+        self._bend_msg: JointState | None = None
         self.bank_status: proto.Status | None = None
         self.bad_frames_recent = 0
         self._next_heartbeat = 0.0
@@ -419,8 +422,12 @@ class PamNode(LifecycleNode):
             self.link_error = ''
             self.backoff.succeeded()
             stamp = self.get_clock().now().to_msg()
-            self.pub_pressures.publish(conv.pressures_to_multiarray(self.measured_pa))
-            self.pub_bend.publish(conv.bend_to_joint_state(self.bend_estimate, stamp))
+            self._pressures_msg = conv.pressures_to_multiarray(self.measured_pa,
+                                                               out=self._pressures_msg)
+            self._bend_msg = conv.bend_to_joint_state(self.bend_estimate, stamp,
+                                                      out=self._bend_msg)
+            self.pub_pressures.publish(self._pressures_msg)
+            self.pub_bend.publish(self._bend_msg)
         out = self.supervisor.tick(now)
         if not self.bank.is_open:
             return

@@ -41,3 +41,16 @@ def test_diagnostic_values_formatting():
                                                       'd': 'True'}
     assert (st.level, st.name, st.hardware_id, st.message) == (DiagnosticStatus.WARN, 'n', 'hw',
                                                                'm')
+
+
+def test_refilled_messages_equal_new_ones():
+    # the control loop refills its pressures and bend messages (out=)
+    from builtin_interfaces.msg import Time
+
+    pressures = bend = None
+    for k in range(2):
+        p, b, stamp = np.array([1e5, 2e5, 3e5, 4e5]) * (k + 1), (0.1 * k, -0.2), Time(sec=k)
+        pressures = conv.pressures_to_multiarray(p, out=pressures)
+        assert pressures == conv.pressures_to_multiarray(p)
+        bend = conv.bend_to_joint_state(b, stamp, out=bend)
+        assert bend == conv.bend_to_joint_state(b, stamp)
