@@ -98,14 +98,15 @@ def point_from_pose_msg(msg: PoseStamped) -> np.ndarray:
 
 
 def pose_msg(stamp: Time, frame_id: str, position: np.ndarray,
-             rotation: np.ndarray) -> PoseStamped:
-    """A PoseStamped from a position and a rotation matrix.
+             rotation: np.ndarray, out: PoseStamped | None = None) -> PoseStamped:
+    """A PoseStamped from a position and a rotation matrix; ``out``: one to refill (every
+    field is set; :func:`point_msg`).
 
     This and the other per-pose messages below set their fields in place: a message's
     constructor builds its nested defaults (a Header, a Time, ...) even when they are passed,
     so passing them built each twice (up to 160 messages a simulated second).
     """
-    msg = PoseStamped()
+    msg = PoseStamped() if out is None else out
     msg.header.stamp = stamp
     msg.header.frame_id = frame_id
     p, q = msg.pose.position, msg.pose.orientation

@@ -75,9 +75,9 @@ from rclpy.node import Node
 from rclpy.time import Time
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray, String
+from std_msgs.msg import Float64MultiArray, Header, String
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import MarkerArray
+from visualization_msgs.msg import Marker, MarkerArray
 
 from cgail_node_utils.entry_point import run_node
 from cgail_planner.core.errors import InvalidInputError
@@ -212,6 +212,11 @@ class PhantomNode(Node):
         self.lumen = LumenMesh(self.world.anatomy, self.marker_config.max_triangles)
         self._lumen_sent: np.ndarray | None = None  # (the wall vertices last published)
         self._markers_sent = False
+        # refilled per publish (a publish serializes before it returns: conv.pose_msg's and
+        # conv.marker_msg's out): the tip pose, the body snapshot's DELETEALL and LINE_STRIP
+        self._pose_msg = PoseStamped()
+        self._body_delete = Marker(action=Marker.DELETEALL)
+        self._body_msg: Marker | None = None
         #: Why the physics stopped (a deformable wall beyond its bound), '' while it runs.
         self.physics_error = ''
         self.rng = np.random.default_rng(seed)
@@ -401,7 +406,8 @@ class PhantomNode(Node):
         if self._ticks % self._pose_every == 0:
             self._pose_pub.publish(conv.pose_msg(stamp, self.frame_id,
                                                  self.physics.tip_position,
-                                                 self.physics.tip_rotation))
+                                                 self.physics.tip_rotation,
+                                                 out=self._pose_msg))
         if self.mode == 'dynamic' and self._ticks % 5 == 0:
             self.publish_target()
 
@@ -451,8 +457,14 @@ class PhantomNode(Node):
             return
         with self._lock:
             body = body_marker(self.physics.catheter, 0, self.marker_config.body_spacing)
-        self._markers_pub.publish(conv.marker_array_msg(self.now_msg(), self.frame_id,
-                                                        [] if body is None else [body]))
+        # (conv.marker_array_msg's snapshot, its two markers refilled)
+        header = Header(stamp=self.now_msg(), frame_id=self.frame_id)
+        self._body_delete.header = header
+        markers = [self._body_delete]
+        if body is not None:
+            self._body_msg = conv.marker_msg(header, body, out=self._body_msg)
+            markers.append(self._body_msg)
+        self._markers_pub.publish(MarkerArray(markers=markers))
         self._markers_sent = True
 
     def _em_pose(self, t_frame: float) -> tuple[np.ndarray, np.ndarray]:
