@@ -722,7 +722,8 @@ def _worker_init(log_dir: str, warm: tuple[SessionSettings, TrialSpec] | None = 
                  gate: Any = None) -> None:
     """A worker: Ctrl-C is the parent's to handle; a domain of its own (the rig's modules
     imported while it is probed); logs to ``log_dir``; with ``warm``, :func:`warm_up` on it;
-    all that while holding ``gate`` (a semaphore: :class:`Workers`)."""
+    all that while holding ``gate`` (a semaphore: :class:`Workers`); then what it holds frozen
+    for the garbage collector (``gc.freeze``)."""
     from cgail_rig.domain import reserve_domain_during
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -733,6 +734,11 @@ def _worker_init(log_dir: str, warm: tuple[SessionSettings, TrialSpec] | None = 
         if warm is not None:
             with contextlib.suppress(Exception):  # (the trials themselves report what fails)
                 warm_up(*warm, _WORKER['lease'].domain_id)
+        # what the worker holds from now on (modules, caches, the policy's session: ~216k
+        # objects) is never garbage: out of the collector's sight, each trial's gc.collect()
+        # (TrialRig.close) scans that trial's objects only, 6 ms instead of 80 ms
+        gc.collect()
+        gc.freeze()
 
 
 def _worker_ready() -> int:
