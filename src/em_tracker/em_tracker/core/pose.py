@@ -227,19 +227,24 @@ def convert_sample(quat_wxyz: Sequence[float], position_mm: Sequence[float], err
         ValueError: NaN/inf values, a quaternion far from unit norm, or a position outside the
             plausible volume; the message names the value found and what was expected.
     """
+    # (the checks on plain floats, once per tracker frame: numpy's reductions and norm on 3 and 4
+    # values cost more than the sample's arithmetic; they only decide pass or fail, and the
+    # norm is the one np.linalg.norm computes, sqrt of the dot)
     q = np.asarray(quat_wxyz, dtype=float)
     p = np.asarray(position_mm, dtype=float)
     if q.shape != (4,) or p.shape != (3,):
         raise ValueError(f'expected 4 quaternion and 3 position values, found {q.shape}, '
                          f'{p.shape}')
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p)) and math.isfinite(error_mm)):
-        raise ValueError(f'expected finite pose values, found q={q.tolist()} '
-                         f'p={p.tolist()} error={error_mm!r}')
-    norm = float(np.linalg.norm(q))
+    q_list, p_list = q.tolist(), p.tolist()
+    if not (all(map(math.isfinite, q_list)) and all(map(math.isfinite, p_list))
+            and math.isfinite(error_mm)):
+        raise ValueError(f'expected finite pose values, found q={q_list} '
+                         f'p={p_list} error={error_mm!r}')
+    norm = math.sqrt(float(q @ q))
     if abs(norm - 1.0) > 0.01:
         raise ValueError(f'expected a unit quaternion (|q| within 0.01 of 1), found |q|={norm}')
     p_m = mm_to_m(p)
-    if float(np.max(np.abs(p_m))) > max_abs_position_m:
+    if max(map(abs, p_m.tolist())) > max_abs_position_m:
         raise ValueError(f'expected |x|,|y|,|z| <= {max_abs_position_m} m, found '
                          f'{p_m.tolist()}')
     if error_mm < 0:
