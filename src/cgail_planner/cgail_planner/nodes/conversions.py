@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from array import array
 from collections.abc import Sequence
+import math
 from typing import TypeVar
 
 from builtin_interfaces.msg import Time
@@ -231,14 +232,15 @@ def joint_positions(msg: JointState, names: Sequence[str]) -> list[float]:
         InvalidInputError: a joint missing, or a non-finite value.
     """
     out = []
+    joints = list(msg.name)
     for name in names:
         try:
-            k = list(msg.name).index(name)
+            k = joints.index(name)
             value = float(msg.position[k])
         except (ValueError, IndexError):
             raise InvalidInputError(f'JointState must carry a position for {name!r}, found '
-                                    f'names {list(msg.name)}') from None
-        if not np.isfinite(value):
+                                    f'names {joints}') from None
+        if not math.isfinite(value):  # (a float: math's test, numpy's without its call)
             raise InvalidInputError(f'{name} must be finite, found {value}')
         out.append(value)
     return out
