@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent workspace setup: .venv with the pinned requirements, then colcon build.
-# Safe to re-run: pip runs only when requirements.txt changed, colcon build is incremental.
+# Safe to re-run: pip runs only when requirements.txt changed, colcon build only when a file
+# under src/ changed, and then incrementally.
 #   bash scripts/setup.sh            # everything
 #   CGAIL_SKIP_BUILD=1 bash scripts/setup.sh   # venv only
 set -euo pipefail
@@ -73,14 +74,31 @@ if [ -z "${CGAIL_SKIP_BUILD:-}" ]; then
         log "removing the build of cgail_planner from before the package split"
         rm -rf build/cgail_planner install/cgail_planner
     fi
-    # The interface packages (tf2_msgs: no wheel has it) first, with the rosidl tools.
-    bash scripts/build_interfaces.sh
-    log "colcon build"
-    # colcon reads tests_require to find pytest; setuptools warns it is unknown: silence that.
-    PYTHONWARNINGS="ignore:Unknown distribution option" \
-        colcon --log-base log build --symlink-install --event-handlers console_cohesion- summary+ \
-            --packages-skip tf2_msgs \
-        2>&1 | grep -v -E '^(Starting >>>|Finished <<<)' >&2
+    # colcon build only when a file under src/ (or the build scripts, or the venv's
+    # requirements) was added, removed or changed since the last successful build: with
+    # --symlink-install an edit to a module needs no build, but colcon still spends ~10 s
+    # checking 11 packages, which every run of the main job (scripts/demo.sh) would pay.
+    build_stamp=build/.cgail-sources.sha256
+    sources=$({ find src -name __pycache__ -prune -o -type f -printf '%p %s %T@\n'
+                stat -c '%n %s %Y' scripts/setup.sh scripts/build_interfaces.sh
+                cat .venv/.requirements.sha256 2>/dev/null || true; } | LC_ALL=C sort | sha256sum)
+    sources=${sources%% *}
+    if [ -f "$build_stamp" ] && [ "$(cat "$build_stamp")" = "$sources" ] \
+            && [ -f install/setup.bash ]; then
+        log "colcon build: nothing under src/ changed since the last build"
+    else
+        rm -f "$build_stamp"
+        # The interface packages (tf2_msgs: no wheel has it) first, with the rosidl tools.
+        bash scripts/build_interfaces.sh
+        log "colcon build"
+        # colcon reads tests_require to find pytest; setuptools warns it is unknown: silence
+        # that.
+        PYTHONWARNINGS="ignore:Unknown distribution option" \
+            colcon --log-base log build --symlink-install --event-handlers console_cohesion- \
+                summary+ --packages-skip tf2_msgs \
+            2>&1 | grep -v -E '^(Starting >>>|Finished <<<)' >&2
+        echo "$sources" > "$build_stamp"
+    fi
     # 6. numba kernels and built-in anatomies into their disk caches (~1 min on a fresh clone,
     #    a few seconds after that), so no test deadline or first trial pays the compile.
     log "warm-up: numba kernels and anatomy caches"
