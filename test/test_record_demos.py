@@ -154,7 +154,7 @@ def test_a_nan_joy_axis_is_one_line_and_loses_nothing(rclpy_context, tmp_path: P
     assert nan_lines == ['cgail record-demos: joy (gamepad): expected Joy axis 1 finite in '
                          '[-1, 1], found nan: teleop stopped the catheter (deadman released); '
                          'fix the device or its axes'], lines
-    assert proc.returncode == 0
+    assert proc.returncode == 0, lines  # (the output says which node failed)
     summary = json.loads(lines[-1])
     assert summary['interrupted'] is True and summary['saved'] >= 2
     assert sum(summary['rejected_inputs'].values()) >= 1
