@@ -3,6 +3,7 @@
 
     python3 bench/bench_autonomy_soak.py [--minutes 60] [--conditions autonomous shared]
         [--faults dropout stuck_pam slipping_sleeve wall_push none] [--mode static] [--seed 0]
+        [--detail]
 
 Runs trials of the session's autonomy conditions (``cgail_rig.session``: default anatomy, the
 committed C-GAIL policy, the true plant of ``--seed`` with the controller's nominal model) one
@@ -22,6 +23,10 @@ against trial index (after the first ``--warmup`` trials, which load caches), in
 100 trials, and through CPU seconds per simulated second against trial index, in percent of
 the mean per 100 trials. Flat: the RSS slope below ``--max-rss-slope`` MB per 100 trials and
 the CPU slope below ``--max-cpu-slope`` %. Exit status 1 if a trial failed or either is not flat.
+
+``--detail`` says where the memory is after each trial (anonymous, file-backed and shared-memory
+pages; glibc's heap in use and free; mappings, threads, open files) and their slopes at the end.
+(Each trial's rig hands glibc's free heap back when it closes: ``cgail_rig.session``.)
 """
 
 from __future__ import annotations
@@ -42,6 +47,42 @@ def rss_mb() -> float:
         if line.startswith('VmRSS:'):
             return int(line.split()[1]) / 1024.0
     return math.nan
+
+
+def memory_detail() -> dict[str, float]:
+    """Where the resident memory is: ``/proc/self/smaps_rollup`` (anonymous, file-backed and
+    shared-memory KB as MB), glibc's ``mallinfo2`` (bytes in use and free inside the heap and
+    its arenas, MB), and the counts of memory mappings, threads and open files."""
+    out: dict[str, float] = {}
+    for line in Path('/proc/self/smaps_rollup').read_text().splitlines()[1:]:
+        key, _, rest = line.partition(':')
+        if key in ('Anonymous', 'Pss_File', 'Pss_Shmem'):
+            out[key] = int(rest.split()[0]) / 1024.0
+    info = _mallinfo2()
+    if info is not None:
+        out['heap_used'] = info.uordblks / 2**20
+        out['heap_free'] = info.fordblks / 2**20
+        out['mmapped'] = info.hblkhd / 2**20
+        out['arena'] = info.arena / 2**20
+    out['maps'] = float(len(Path('/proc/self/maps').read_text().splitlines()))
+    out['threads'] = float(len(os.listdir('/proc/self/task')))
+    out['fds'] = float(len(os.listdir('/proc/self/fd')))
+    return out
+
+
+def _mallinfo2():  # (a ctypes structure, or None off glibc >= 2.33)
+    import ctypes
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in (
+            'arena', 'ordblks', 'smblks', 'hblks', 'hblkhd', 'usmblks', 'fsmblks',
+            'uordblks', 'fordblks', 'keepcost')]
+    try:
+        libc = ctypes.CDLL('libc.so.6')
+        libc.mallinfo2.restype = MallInfo2
+    except (OSError, AttributeError):
+        return None
+    return libc.mallinfo2()
 
 
 def slope(ys: list[float]) -> float:
@@ -70,6 +111,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument('--seed', type=int, default=0, help='plant and trial seeds')
     p.add_argument('--time-limit', type=float, default=180.0, help='trial limit, simulated s')
     p.add_argument('--warmup', type=int, default=2, help='trials left out of the slopes')
+    p.add_argument('--detail', action='store_true',
+                   help='also print where the memory is after each trial (anonymous, file, '
+                        'shared memory, glibc heap in use and free, mappings, threads, files)')
     p.add_argument('--max-rss-slope', type=float, default=5.0,
                    help='flat: RSS grows less than this, MB per 100 trials (default 5)')
     p.add_argument('--max-cpu-slope', type=float, default=10.0,
@@ -95,6 +139,7 @@ def main(argv: list[str] | None = None) -> int:
           f'load {os.getloadavg()[0]:.1f}', flush=True)
     rows: list[tuple[float, float, float]] = []  # (rss MB, cpu s, simulated s)
     undefined, missed = [], []
+    details: list[dict[str, float]] = []
     end = time.monotonic() + args.minutes * 60.0
     k = 0
     with tempfile.TemporaryDirectory(prefix='autonomy_soak_') as tmp:
@@ -131,6 +176,11 @@ def main(argv: list[str] | None = None) -> int:
                         missed.append(f'{spec.label} {f.kind}')
                 print(f'[{k + 1:4d}] {spec.label:<20} {state[:60]:<60} {sim:6.1f} s sim  '
                       f'{cpu:5.2f} s CPU  RSS {rss:7.1f} MB{detail}', flush=True)
+                if args.detail:
+                    mem = memory_detail()
+                    details.append(mem)
+                    print('       ' + '  '.join(f'{key} {value:.1f}' for key, value
+                                                in mem.items()), flush=True)
                 k += 1
         finally:
             lease.release()
@@ -147,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f'RSS: {rows[0][0]:.1f} MB after trial 1, {rows[-1][0]:.1f} MB after trial {k}; '
           f'slope {rss_slope:+.2f} MB per 100 trials (after {args.warmup} warm-up): '
           f'{"flat" if flat_rss else "GROWING"}' if rows else 'RSS: no trial')
+    if len(details) > args.warmup + 1:
+        print('memory slopes per 100 trials: ' + ', '.join(
+            f'{key} {slope([d[key] for d in details[args.warmup:]]) * 100.0:+.2f}'
+            for key in details[0]))
     print(f'CPU per simulated second: mean {mean:.4f} s/s; slope {cpu_slope:+.2f} % of the '
           f'mean per 100 trials: {"flat" if flat_cpu else "GROWING"}')
     return 0 if rows and not undefined and flat_rss and flat_cpu else 1

@@ -299,7 +299,7 @@ def test_in_process_nodes_take_the_launch_files_remaps(rclpy_context):
             node.destroy_node()
 
 
-def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_context):
+def test_lean_in_process_nodes_offer_no_parameter_type_or_lifecycle_services(rclpy_context):
     built = []
     try:
         for lean in (False, True):
@@ -313,7 +313,10 @@ def test_lean_in_process_nodes_offer_no_parameter_or_lifecycle_services(rclpy_co
                 services = {s.srv_name for s in node.services}
                 has_params = any(s.endswith('/get_parameters') for s in services)
                 has_lifecycle = any(s.endswith('/change_state') for s in services)
+                # (rclpy's type description service keeps heap per node it served: LEAN_PARAMETERS)
+                has_types = any(s.endswith('/get_type_description') for s in services)
                 assert has_params == (not lean), (name, services)
+                assert has_types == (not lean), (name, services)
                 if name == 'sleeve_driver':
                     assert has_lifecycle == (not lean), services
                     if lean:  # no lifecycle services, so nothing public reports the state

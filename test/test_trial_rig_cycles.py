@@ -5,6 +5,8 @@ Each :class:`cgail_rig.session.TrialRig` is built and closed a few times; after 
 (which loads the caches) the live rclpy nodes, contexts, executors, Python threads, OS threads
 and file descriptors return to the same counts after every close (object counts, not memory:
 deterministic), the rig's context is shut down, and the heap it freed is handed back to the OS.
+No node of the rig serves type descriptions (the service leaves heap behind per node in Jazzy's
+rclpy: ``cgail_rig.launcher.LEAN_PARAMETERS``).
 """
 
 from collections import Counter
@@ -67,6 +69,10 @@ def test_a_closed_rig_leaves_no_nodes_contexts_threads_or_fds(tmp_path: Path,
             rig = s.TrialRig(settings, spec, lease.domain_id)
             context = rig.context
             assert rig.executor.nodes  # (the rig was built)
+            # no node serves type descriptions: rclpy keeps ~1 KB of heap per node that did,
+            # after it is destroyed (launcher.LEAN_PARAMETERS)
+            assert not [n.get_name() for n in rig.executor.nodes if any(
+                srv.srv_name.endswith('/get_type_description') for srv in n.services)]
             rig.close()
             assert not _ok(context)
             del rig, context

@@ -378,9 +378,10 @@ class TrialRig:
 
     def __init__(self, settings: SessionSettings, spec: TrialSpec, domain_id: int) -> None:
         import rclpy
+        from rclpy.parameter import Parameter
         from rclpy.signals import SignalHandlerOptions
 
-        from cgail_rig.launcher import build_node
+        from cgail_rig.launcher import build_node, LEAN_PARAMETERS
         from cgail_rig.lockstep import LockstepExecutor
 
         self.settings, self.spec = settings, spec
@@ -415,9 +416,10 @@ class TrialRig:
             self.operator: Any = self.nodes.get('operator')
             self.autonomy: Any = self.nodes.get('autonomy')
             self.executor.add_hook(self.phantom.advance)
-            self.session = rclpy.create_node('session', context=self.context,
-                                             start_parameter_services=False,
-                                             enable_rosout=False)
+            self.session = rclpy.create_node(
+                'session', context=self.context, start_parameter_services=False,
+                enable_rosout=False, parameter_overrides=[
+                    Parameter(k, value=v) for k, v in LEAN_PARAMETERS.items()])
             self.executor.add_node(self.session)
             self._start_recorder()
         except BaseException:
