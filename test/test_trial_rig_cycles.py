@@ -4,7 +4,8 @@ a closed rig leaves nothing behind (issue 36).
 Each :class:`cgail_rig.session.TrialRig` is built and closed a few times; after the first
 (which loads the caches) the live rclpy nodes, contexts, executors, Python threads, OS threads
 and file descriptors return to the same counts after every close (object counts, not memory:
-deterministic), the rig's context is shut down, and the heap it freed is handed back to the OS.
+deterministic), the rig's context is shut down, the heap it freed is handed back to the OS, and
+glibc's heap arenas are capped before the rig starts its threads.
 No node of the rig serves type descriptions (the service leaves heap behind per node in Jazzy's
 rclpy: ``cgail_rig.launcher.LEAN_PARAMETERS``).
 """
@@ -58,6 +59,9 @@ def test_a_closed_rig_leaves_no_nodes_contexts_threads_or_fds(tmp_path: Path,
         release()
 
     monkeypatch.setattr(s, 'release_freed_heap', counted)
+    capped: list[int] = []
+    limit = s.limit_heap_arenas
+    monkeypatch.setattr(s, 'limit_heap_arenas', lambda: (capped.append(1), limit()))
     settings = s.SessionSettings(policy=str(s.default_policy()), plant='true', plant_seed=0)
     autonomous, shared = (s.plan_trials([c], 2, 0, tmp_path / 'bags')
                           for c in ('autonomous', 'shared'))
@@ -82,3 +86,4 @@ def test_a_closed_rig_leaves_no_nodes_contexts_threads_or_fds(tmp_path: Path,
     assert counts[1] == counts[0] and counts[2] == counts[0], counts
     assert counts[0].get('nodes', 0) == 0 and counts[0].get('lockstep executors', 0) == 0
     assert trimmed == [1, 1, 1]  # the freed heap went back after every close
+    assert capped == [1, 1, 1]  # glibc's arenas capped before each rig's middleware threads
