@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                    help='flat: CPU per simulated second grows less than this, %% of its mean '
                         'per 100 trials (default 10)')
     args = p.parse_args(argv)
+    s.limit_heap_arenas()  # (before the domain probe's middleware threads, as the session does)
     if not args.minutes > 0.0:
         print(f'bench_autonomy_soak: error: --minutes must be > 0, found {args.minutes}',
               file=sys.stderr)

@@ -660,7 +660,8 @@ def limit_heap_arenas() -> None:
     --detail``) kept 47-50 MB of free heap after 150 trials and went on growing (free heap
     +3.3 MB per 100 trials, RSS +3.2) while the heap in use stayed flat. With two arenas the
     free heap stayed at 19 MB (``MALLOC_ARENA_MAX=2``, same soak). Arenas already made are kept;
-    the cap holds for those made after it (the first rig's middleware threads).
+    the cap holds for those made after it. A process that runs trials calls it first (``cgail
+    session``, its workers, the soak), and every rig again when it is built.
     """
     if not sys.platform.startswith('linux'):
         return
@@ -754,6 +755,7 @@ def _worker_init(log_dir: str, warm: tuple[SessionSettings, TrialSpec] | None = 
     for the garbage collector (``gc.freeze``)."""
     from cgail_rig.domain import reserve_domain_during
 
+    limit_heap_arenas()  # (before the domain probe's middleware threads)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ['ROS_LOG_DIR'] = log_dir
     launch_file = warm[0].launch_file if warm is not None else ''
@@ -1108,6 +1110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from cgail_rig.domain import DomainError, requested_domain, reserve_domain_during
 
     args = build_parser().parse_args(argv)
+    limit_heap_arenas()  # (before any middleware thread of this process)
     t_command = time.monotonic()
 
     def fail(text: str) -> int:
