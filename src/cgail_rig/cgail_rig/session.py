@@ -637,13 +637,18 @@ def release_freed_heap() -> None:
     allocations, glibc's in-use bytes, threads and file descriptors stayed flat. Trimming after
     each trial hands that back (a few ms); the recorded data is unchanged.
     """
+    _glibc('malloc_trim', 0)
+
+
+def _glibc(function: str, *args: int) -> None:
+    """Call glibc's allocator ``function`` with ``args`` on Linux; nothing elsewhere, nor where
+    the C library has no such function (musl)."""
     if not sys.platform.startswith('linux'):
         return
-    import contextlib
     import ctypes
 
-    with contextlib.suppress(OSError, AttributeError):  # not glibc (musl: no malloc_trim)
-        ctypes.CDLL(None).malloc_trim(0)
+    with contextlib.suppress(OSError, AttributeError):
+        getattr(ctypes.CDLL(None), function)(*args)
 
 
 #: glibc heap arenas a process that builds rig after rig may keep (:func:`limit_heap_arenas`).
@@ -663,13 +668,7 @@ def limit_heap_arenas() -> None:
     the cap holds for those made after it. A process that runs trials calls it first (``cgail
     session``, its workers, the soak), and every rig again when it is built.
     """
-    if not sys.platform.startswith('linux'):
-        return
-    import contextlib
-    import ctypes
-
-    with contextlib.suppress(OSError, AttributeError):  # not glibc (musl: no mallopt cap)
-        ctypes.CDLL(None).mallopt(-8, HEAP_ARENAS)  # M_ARENA_MAX
+    _glibc('mallopt', -8, HEAP_ARENAS)  # -8: M_ARENA_MAX
 
 
 def run_trial(settings: SessionSettings, spec: TrialSpec, domain_id: int) -> TrialResult:
