@@ -163,7 +163,9 @@ def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = Tr
     rs = run_state or {}
     logger = ScalarLogger(out, resume_step=trainer.step if run_state is not None else None)
     next_eval = rs.get('next_eval', cfg.eval_every or math.inf)
-    next_ckpt = rs.get('next_ckpt', cfg.checkpoint_every or math.inf)
+    next_ckpt = rs.get('next_ckpt', math.inf)
+    if cfg.checkpoint_every:  # (a resumed run given a shorter interval keeps to it from now)
+        next_ckpt = min(next_ckpt, trainer.step + cfg.checkpoint_every)
     last: dict[str, float] = {}
     best = rs.get('best', -1.0)
     t0, step0, spent = time.monotonic(), trainer.step, float(rs.get('wall_s', 0.0))
@@ -255,6 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "rather than replaying it bit for bit")
     p.add_argument('--max-steps', type=int, default=None, help='override the preset max_steps')
     p.add_argument('--num-envs', type=int, default=None, help='override the preset num_envs')
+    p.add_argument('--checkpoint-every', type=int, default=None, metavar='STEPS',
+                   help='override the preset checkpoint_every: how many steps a stopped run '
+                        'can lose (checkpoints change nothing in the training)')
     p.add_argument('--threads', type=int, default=1, help='torch CPU threads (1-2; default 1)')
     p.add_argument('--out', type=Path, default=None,
                    help='run directory (default runs/<preset>_<mode>)')
@@ -283,10 +288,13 @@ def main(argv: list[str] | None = None) -> int:
             args.out = args.out or args.resume
         else:
             cfg = load_config(args.preset)
-        if args.max_steps is not None or args.num_envs is not None:
+        if (args.max_steps is not None or args.num_envs is not None
+                or args.checkpoint_every is not None):
             d = config_to_dict(cfg)
             d['max_steps'] = args.max_steps or cfg.max_steps
             d['num_envs'] = args.num_envs or cfg.num_envs
+            if args.checkpoint_every is not None:
+                d['checkpoint_every'] = args.checkpoint_every
             cfg = config_from_dict(d)
         if cfg.population.enabled and args.anatomy != 'default':
             also = ''.join(f' and {n}' for n in cfg.population.include)

@@ -32,6 +32,11 @@ from cgail_learning.gail import Gail
 from cgail_learning.networks import Actor, Critic, RunningNormalizer
 from cgail_learning.ppo import linear_schedule, ppo_loss
 
+#: Settings a resumed run may change (``train --resume --max-steps/--checkpoint-every``): the
+#: budget (the linear schedules then decay towards the new end) and how often checkpoints are
+#: written (nothing in training reads it).
+RESUME_MAY_CHANGE = frozenset({'max_steps', 'checkpoint_every'})
+
 
 def seed_everything(seed: int) -> np.random.Generator:
     """Seed python, numpy and torch in one place; return the trainer's numpy generator."""
@@ -415,13 +420,16 @@ class Trainer:
             raise PolicyLoadError(f'{path}: expected a checkpoint with its resume state '
                                   '(train writes one every checkpoint_every steps), found a '
                                   'checkpoint without it; use --init-from to fine-tune from it')
-        mine = {k: v for k, v in config_to_dict(self.cfg).items() if k != 'max_steps'}
-        theirs = {k: v for k, v in ckpt['config'].items() if k != 'max_steps'}
+        # (the budget and the checkpoint interval may change on resume: neither alters training)
+        mine = {k: v for k, v in config_to_dict(self.cfg).items() if k not in RESUME_MAY_CHANGE}
+        theirs = {k: v for k, v in ckpt['config'].items() if k not in RESUME_MAY_CHANGE}
         if mine != theirs or ckpt['obs_dim'] != self.obs_dim:
+            differ = sorted(k for k in {*mine, *theirs} if mine.get(k) != theirs.get(k))
             raise PolicyLoadError(f'{path}: expected a checkpoint of this configuration '
                                   f'(preset {self.cfg.name!r}, obs dim {self.obs_dim}), found '
                                   f'preset {ckpt["config"].get("name")!r}, obs dim '
-                                  f'{ckpt["obs_dim"]} or other settings')
+                                  f'{ckpt["obs_dim"]}'
+                                  + (f', other {", ".join(differ)}' if differ else ''))
         try:
             self.actor.load_state_dict(ckpt['actor'])
             self.critic.load_state_dict(ckpt['critic'])

@@ -419,6 +419,18 @@ def test_train_resume_continues_a_run_from_its_latest_checkpoint(tmp_path: Path)
     assert main(['--resume', str(tmp_path / 'nothing'), *base]) == 2
     assert main(['--resume', str(run), '--mode', 'dynamic', '--demos', str(demos),
                  '--no-progress']) == 2
+    # --checkpoint-every overrides the preset's interval, fresh or resumed; a resumed run
+    # given a shorter one keeps to it from its resume step (not from the stored next step)
+    other = tmp_path / 'other'
+    assert main(['--preset', str(tmp_path / 'tiny.yaml'), '--out', str(other),
+                 '--checkpoint-every', '2048', *base]) == 0
+    assert sorted(p.name for p in (other / 'checkpoints').iterdir()) == ['step_2048.pt']
+    assert main(['--resume', str(other), '--max-steps', '4096', '--checkpoint-every', '1024',
+                 *base]) == 0
+    assert sorted(p.name for p in (other / 'checkpoints').iterdir()) == [
+        'step_2048.pt', 'step_3072.pt', 'step_4096.pt']
+    assert yaml.safe_load((other / 'config.yaml').read_text())['checkpoint_every'] == 1024
+    assert main(['--resume', str(other), '--checkpoint-every', '-1', *base]) == 2
 
 
 def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys):
