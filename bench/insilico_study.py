@@ -1231,6 +1231,13 @@ def record_state(run: Path) -> None:
          'policy_sha256': sha256_file(policy) if policy.is_file() else None}) + '\n')
 
 
+#: Steps between the periodic checkpoints of every training of the study, whatever its preset
+#: says (``paper_code`` presets keep the authors' 500,000): a stopped session loses at most this
+#: much of a training. Checkpoints change nothing in the training; the superseded ones are
+#: deleted when the training resumes.
+CHECKPOINT_EVERY = 51_200
+
+
 def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) -> list[str] | None:
     """Resume ``run`` to ``steps``, start it fresh (``fresh`` + ``common``), or None when it
     already finished at ``steps``.
@@ -1245,6 +1252,8 @@ def train_command(run: Path, steps: int, fresh: list[str], common: list[str]) ->
         if at >= steps:
             raise StudyError(f'{run}: expected a run before {steps:,} steps, found one at '
                              f'{at:,}: that budget was not snapshotted; use another --out')
+        for step in checkpoint_steps(run)[:-1]:  # (superseded: a resume reads the latest only)
+            (run / 'checkpoints' / f'step_{step}.pt').unlink()
         return python_module('cgail_learning.train', '--resume', str(run),
                              '--max-steps', str(steps), *common)
     if run.exists():
@@ -1470,6 +1479,7 @@ def plan_tasks(root: Layout, plan: StudyPlan) -> list[Task]:
         layout = plan_layout(root, plan).of_anatomy(anatomy.name)
         at = '' if anatomy.name == DEFAULT_ANATOMY else f'{anatomy.name}/'
         common = ['--demos', *[str(d) for d in anatomy.demos], '--threads', '1',
+                  '--checkpoint-every', str(CHECKPOINT_EVERY),
                   '--no-progress', *anatomy.train_args]
         in_anatomy = ['--trials', str(plan.trials), *anatomy.eval_args]
         for m in plan.methods:

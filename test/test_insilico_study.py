@@ -116,6 +116,13 @@ def test_a_larger_budget_resumes_the_run(tmp_path):
                        '--max-steps', '8192', '--mode', 'static']
 
 
+def test_a_resume_deletes_the_superseded_checkpoints(tmp_path):
+    run = fake_run(tmp_path / 'run', 8192, 6144, checkpoints=(2048, 4096, 6144), final=False)
+    cmd = study.train_command(run, 8192, ['--preset', 'smoke'], [])
+    assert cmd[cmd.index('--resume') + 1] == str(run)
+    assert sorted(p.name for p in (run / 'checkpoints').iterdir()) == ['step_6144.pt']
+
+
 def test_a_run_past_the_budget_cannot_give_it(tmp_path):
     run = fake_run(tmp_path / 'run', 16384, 12288, checkpoints=(5120, 10240))
     assert study.resumable_step(run) == 10240
@@ -276,6 +283,10 @@ def test_plan_tasks_chain_budgets_and_modes(tmp_path):
         'smoke/seed0/8192/export-dynamic']
     cmd = tasks['smoke/seed0/4096/train-dynamic'].command()
     assert cmd[cmd.index('--init-from') + 1] == str(layout.budget('smoke', 0, 4096) / 'best.pt')
+    for task in tasks.values():  # (a stopped session loses at most the study's interval)
+        if task.kind == 'train':
+            cmd = task.command()
+            assert cmd[cmd.index('--checkpoint-every') + 1] == str(study.CHECKPOINT_EVERY)
     cmd = tasks['smoke/seed0/4096/eval-static-targets1'].command()
     assert cmd[cmd.index('--scenario-seed') + 1] == '1' and '--baselines' in cmd
 
@@ -492,7 +503,7 @@ def test_fresh_budgets_are_runs_of_their_own(tmp_path):
     assert big.run == fresh_layout.static_run('paper_code_gail', 1, 8192)
     assert big.command()[1:] == ['-m', 'cgail_learning.train', '--preset', 'paper_code_gail',
                                  '--seed', '1', '--max-steps', '8192', '--out', str(big.run),
-                                 '--mode', 'static', *big.command()[-7:]]
+                                 '--mode', 'static', *big.command()[-9:]]
     # seed 0 of every method and budget before seed 1
     assert [tasks[f'paper_code_gail/seed{s}/8192/train-{m}'].order
             for s in (0, 1) for m in ('dynamic', 'static')] == [1, 2, 11, 12]
