@@ -35,6 +35,7 @@ pages; glibc's heap in use and free; mappings, threads, open files) and their sl
 from __future__ import annotations
 
 import argparse
+from array import array
 from dataclasses import replace
 import math
 import os
@@ -141,9 +142,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f'bench_autonomy_soak: {args.minutes:g} min of {", ".join(args.conditions)} '
           f'({args.mode}) with faults {", ".join(args.faults)}; ROS domain {lease.domain_id}; '
           f'load {os.getloadavg()[0]:.1f}', flush=True)
-    rows: list[tuple[float, float, float]] = []  # (rss MB, cpu s, simulated s)
+    # Per-trial figures in flat arrays of doubles (8 bytes a value): a list of tuples or of
+    # dicts would itself grow the heap ~1 KB a trial and show up in the slopes it measures.
+    rss_col, cpu_col, sim_col = array('d'), array('d'), array('d')
     undefined, missed = [], []
-    details: list[dict[str, float]] = []
+    details: dict[str, array] = {}
     end = time.monotonic() + args.minutes * 60.0
     k = 0
     with tempfile.TemporaryDirectory(prefix='autonomy_soak_') as tmp:
@@ -160,7 +163,9 @@ def main(argv: list[str] | None = None) -> int:
                 cpu = time.process_time() - cpu0
                 sim = result.ticks / settings.physics_rate
                 rss = rss_mb()
-                rows.append((rss, cpu, sim))
+                rss_col.append(rss)
+                cpu_col.append(cpu)
+                sim_col.append(sim)
                 for bag in Path(tmp, 'bags').rglob('*.mcap'):
                     bag.unlink()  # (an hour of bags would fill a small disk)
                 state = result.outcome
@@ -182,12 +187,14 @@ def main(argv: list[str] | None = None) -> int:
                       f'{cpu:5.2f} s CPU  RSS {rss:7.1f} MB{detail}', flush=True)
                 if args.detail:
                     mem = memory_detail()
-                    details.append(mem)
+                    for key, value in mem.items():
+                        details.setdefault(key, array('d')).append(value)
                     print('       ' + '  '.join(f'{key} {value:.1f}' for key, value
                                                 in mem.items()), flush=True)
                 k += 1
         finally:
             lease.release()
+    rows = list(zip(rss_col, cpu_col, sim_col, strict=True))  # (RSS MB, CPU s, simulated s)
     used = rows[args.warmup:] if len(rows) > args.warmup + 1 else rows
     rss_slope = slope([r[0] for r in used]) * 100.0
     late = [r[0] for r in used[len(used) // 2:]]
@@ -206,10 +213,10 @@ def main(argv: list[str] | None = None) -> int:
           f'{late_slope:+.2f} over the second half; mean per quarter '
           + ' / '.join(f'{sum(r[0] for r in q) / len(q):.1f}' for q in quarters if q)
           + f' MB: {"flat" if flat_rss else "GROWING"}' if rows else 'RSS: no trial')
-    if len(details) > args.warmup + 1:
+    if details and len(next(iter(details.values()))) > args.warmup + 1:
         print('memory slopes per 100 trials: ' + ', '.join(
-            f'{key} {slope([d[key] for d in details[args.warmup:]]) * 100.0:+.2f}'
-            for key in details[0]))
+            f'{key} {slope(list(column[args.warmup:])) * 100.0:+.2f}'
+            for key, column in details.items()))
     print(f'CPU per simulated second: mean {mean:.4f} s/s; slope {cpu_slope:+.2f} % of the '
           f'mean per 100 trials: {"flat" if flat_cpu else "GROWING"}')
     return 0 if rows and not undefined and flat_rss and flat_cpu else 1
