@@ -163,9 +163,9 @@ def run_training(trainer: Trainer, eval_env: Any, out: Path, progress: bool = Tr
     rs = run_state or {}
     logger = ScalarLogger(out, resume_step=trainer.step if run_state is not None else None)
     next_eval = rs.get('next_eval', cfg.eval_every or math.inf)
-    next_ckpt = rs.get('next_ckpt', math.inf)
-    if cfg.checkpoint_every:  # (a resumed run given a shorter interval keeps to it from now)
-        next_ckpt = min(next_ckpt, trainer.step + cfg.checkpoint_every)
+    # (a resumed run given a shorter interval keeps to it from now; 0: no periodic checkpoint)
+    next_ckpt = (min(rs.get('next_ckpt', math.inf), trainer.step + cfg.checkpoint_every)
+                 if cfg.checkpoint_every else math.inf)
     last: dict[str, float] = {}
     best = rs.get('best', -1.0)
     t0, step0, spent = time.monotonic(), trainer.step, float(rs.get('wall_s', 0.0))

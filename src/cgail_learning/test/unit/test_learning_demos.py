@@ -431,6 +431,10 @@ def test_train_resume_continues_a_run_from_its_latest_checkpoint(tmp_path: Path)
         'step_2048.pt', 'step_3072.pt', 'step_4096.pt']
     assert yaml.safe_load((other / 'config.yaml').read_text())['checkpoint_every'] == 1024
     assert main(['--resume', str(other), '--checkpoint-every', '-1', *base]) == 2
+    assert main(['--resume', str(other), '--max-steps', '6144', '--checkpoint-every', '0',
+                 *base]) == 0  # (0: none from now on, not one per iteration)
+    assert sorted(p.name for p in (other / 'checkpoints').iterdir()) == [
+        'step_2048.pt', 'step_3072.pt', 'step_4096.pt']
 
 
 def test_train_runs_the_bc_warm_start_of_the_preset_once(tmp_path: Path, capsys):
