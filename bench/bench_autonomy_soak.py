@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
           f'{late_slope:+.2f} over the second half; mean per quarter '
           + ' / '.join(f'{sum(r[0] for r in q) / len(q):.1f}' for q in quarters if q)
           + f' MB: {"flat" if flat_rss else "GROWING"}' if rows else 'RSS: no trial')
-    if details and len(next(iter(details.values()))) > args.warmup + 1:
+    if details and len(rss_col) > args.warmup + 1:  # (details: one value a trial, as rss_col)
         print('memory slopes per 100 trials: ' + ', '.join(
             f'{key} {slope(list(column[args.warmup:])) * 100.0:+.2f}'
             for key, column in details.items()))
