@@ -911,7 +911,8 @@ def ordering_lines(res: StudyResults, budgets: dict[str, int]) -> list[str]:
             ours = seed_means(res, budgets, mode, k)
             where = 'training targets' if k == TRAINING_TARGETS else 'unseen targets'
             if len(ours) < 2:
-                lines.append(f'- {mode}, {where}: fewer than two methods evaluated yet')
+                lines.append(f'- {mode}, {where}: fewer than two methods with every seed '
+                             'evaluated yet')
                 continue
             line = f'- {mode}, {where}: {format_ordering(ours, TIE, method_label)}'
             agree, total, differ = pair_agreement(ours, paper)
@@ -1001,8 +1002,8 @@ def plot_curves(curves: dict[str, list[tuple[int, float]]], budgets: Sequence[in
 def build_report(results: Sequence[StudyResults], command: str, out: Path,
                  notes: str = '') -> str:
     """The study's markdown report of every anatomy's results (the default anatomy's alone
-    reads as before anatomies were an axis); writes the learning-curve PNGs next to it in
-    ``out``."""
+    reads as before anatomies were an axis), then ``notes`` (markdown placed as it is, after
+    the tables); writes the learning-curve PNGs next to it in ``out``."""
     plan = results[0].plan
     seeds = ', '.join(str(s) for s in plan.seeds)
     lines = [
@@ -1035,8 +1036,6 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
               f'second anatomy ({PAPER_SECOND_ANATOMY}%, Table IV) is not part of this study. '
               '† budget not reached yet (steps reached so far; no evaluation). * the authors\' '
               'repository has no ablation run: their C-GAIL run\'s budget.', '']
-    if notes:
-        lines += [notes, '']
     by_anatomy = len(results) > 1
     for options in plan.options():
         lines += [f'## Option set `{options}`', '']
@@ -1088,6 +1087,8 @@ def build_report(results: Sequence[StudyResults], command: str, out: Path,
                     dyn, [], out / png, f'option set {options}{where}: dynamic re-training, '
                     'periodic evaluation', 'env steps of the re-training'):
                 lines += [f'![dynamic]({png})', '']
+    if notes:  # the reading of the tables above
+        lines += [notes, '']
     walls = [f"{m}{f' {res.anatomy}' if by_anatomy else ''} seed {s} {n:,}: "
              f"{format_duration(float(snap['wall_s']))}"
              for res in results for (m, s, n), snap in sorted(res.snapshots.items())
@@ -1144,9 +1145,17 @@ def static_curves(res: StudyResults, options: str) -> dict[str, list[tuple[int, 
             for m in methods_at(plan, options) for s in plan.seeds}
 
 
+#: A hand-written section of ``OUT`` that the report places after its tables: why the
+#: ordering differs from the paper's, with the evidence (the results are generated; their
+#: reading is not).
+REASONS = 'reasons.md'
+#: Its heading when it starts without one.
+REASONS_HEADING = "## Why the ordering differs from the paper's"
+
+
 def write_report(layout: Layout, plan: StudyPlan, command: str) -> Path:
-    """Collect the results and write ``report.md``, the curves, ``results.csv`` and
-    ``summary.csv``."""
+    """Collect the results and write ``report.md`` (with ``OUT/reasons.md`` when there is
+    one, :data:`REASONS`), the curves, ``results.csv`` and ``summary.csv``."""
     results = [collect(layout, plan, a.name) for a in plan.anatomies]
     layout.root.mkdir(parents=True, exist_ok=True)
     with (layout.root / 'results.csv').open('w', newline='') as f:
@@ -1154,7 +1163,11 @@ def write_report(layout: Layout, plan: StudyPlan, command: str) -> Path:
     with (layout.root / 'summary.csv').open('w', newline='') as f:
         csv.writer(f).writerows([SUMMARY_HEAD, *summary_rows(results)])
     path = layout.root / 'report.md'
-    path.write_text(build_report(results, command, layout.root))
+    reasons = layout.root / REASONS
+    notes = reasons.read_text().strip() if reasons.is_file() else ''
+    if notes and not notes.startswith('#'):  # a section of its own under the tables
+        notes = f'{REASONS_HEADING}\n\n{notes}'
+    path.write_text(build_report(results, command, layout.root, notes))
     return path
 
 

@@ -53,6 +53,9 @@ Configuration (YAML; relative paths are relative to the workspace root)::
     seeds: [0, 1, 2]                # training seeds, >= 1
     anatomies: [default, elongated] # see below, >= 1
     budgets: [500000, 2000000]      # static step budgets, increasing (a larger one continues)
+    authors_budgets: false          # optional: true for each preset's own budgets instead
+                                    # (the study's --authors-budgets; then no budgets key)
+    fresh_budgets: false            # optional: true to train each budget from scratch
     modes: [static, dynamic]        # optional (default both)
     trials: 100                     # optional: evaluation trials per policy and target set
     dynamic_steps: 102400           # optional: dynamic re-training from each static best
@@ -90,11 +93,16 @@ WS = study.WS
 REQUIRED = ('presets', 'seeds', 'anatomies', 'budgets')
 OPTIONAL: dict[str, Any] = {'modes': list(study.MODES), 'trials': 100,
                             'dynamic_steps': 102_400, 'unseen_scenario_seed': 1,
-                            'baselines': ['centerline']}
+                            'baselines': ['centerline'], 'authors_budgets': False,
+                            'fresh_budgets': False}
+#: The switches among OPTIONAL (the study's flags of the same names); ``authors_budgets: true``
+#: replaces ``budgets`` (each preset gets its own, as ``--authors-budgets`` gives them).
+SWITCHES = ('authors_budgets', 'fresh_budgets')
 #: The study's flag of each configuration key (its errors name the flag; ours the key).
 STUDY_FLAG = {'presets': 'methods', 'seeds': 'seeds', 'budgets': 'steps', 'modes': 'modes',
               'trials': 'trials', 'dynamic_steps': 'dynamic_steps',
-              'unseen_scenario_seed': 'unseen_scenario_seed', 'baselines': 'baselines'}
+              'unseen_scenario_seed': 'unseen_scenario_seed', 'baselines': 'baselines',
+              'authors_budgets': 'authors_budgets', 'fresh_budgets': 'fresh_budgets'}
 BASELINES = ('centerline', 'expert')
 ANATOMY_KEYS = ('name', 'train', 'evaluate', 'demos')
 NAME = re.compile(r'[A-Za-z0-9][A-Za-z0-9_.-]*')
@@ -193,12 +201,16 @@ def _plan(data: Any) -> study.StudyPlan:
         raise SweepError(f'expected a mapping of {list(REQUIRED)} and optional '
                          f'{list(OPTIONAL)}, found {type(data).__name__}')
     unknown = sorted(set(data) - set(REQUIRED) - set(OPTIONAL))
-    missing = [k for k in REQUIRED if k not in data]
+    authors = data.get('authors_budgets', False)
+    missing = [k for k in REQUIRED if k not in data and not (k == 'budgets' and authors)]
     if unknown or missing:
         raise SweepError(f'expected keys {list(REQUIRED)} and optional {list(OPTIONAL)}, found '
                          + ', '.join([f'unknown {unknown}'] * bool(unknown)
                                      + [f'no {missing}'] * bool(missing)))
     cfg = {**OPTIONAL, **data}
+    for key in SWITCHES:
+        if not isinstance(cfg[key], bool):
+            raise SweepError(f'{key}: expected true or false, found {cfg[key]!r}')
     for key in ('trials', 'dynamic_steps', 'unseen_scenario_seed'):
         if not isinstance(cfg[key], int) or isinstance(cfg[key], bool):
             raise SweepError(f'{key}: expected an integer, found {cfg[key]!r}')
@@ -216,9 +228,11 @@ def _plan(data: Any) -> study.StudyPlan:
         raise SweepError(f'anatomies: expected distinct names, found {names}')
     args = argparse.Namespace(
         methods=_strings('presets', cfg['presets']), seeds=_ints('seeds', cfg['seeds']),
-        steps=_ints('budgets', cfg['budgets']), modes=modes, trials=cfg['trials'],
-        dynamic_steps=cfg['dynamic_steps'], unseen_scenario_seed=cfg['unseen_scenario_seed'],
-        baselines=baselines, jobs=1, demos=[], report_only=False)
+        steps=_ints('budgets', cfg['budgets']) if 'budgets' in cfg else None, modes=modes,
+        trials=cfg['trials'], dynamic_steps=cfg['dynamic_steps'],
+        unseen_scenario_seed=cfg['unseen_scenario_seed'], baselines=baselines, jobs=1,
+        demos=[], report_only=False, authors_budgets=cfg['authors_budgets'],
+        fresh_budgets=cfg['fresh_budgets'])
     try:
         plan = study.check_args(args)
     except study.StudyError as exc:  # '--methods: ...' -> 'presets: ...'
@@ -438,7 +452,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f'sweep: error: {exc}', file=sys.stderr)
         return 2
     out = (args.out or Path('runs') / f'sweep_{args.config.stem}').resolve()
-    layout = study.Layout(out)
+    layout = study.Layout(out, plan.fresh)
     command = command_line(args, out)
     if args.report_only:
         study.say(f'report: {study.write_report(layout, plan, command)}')

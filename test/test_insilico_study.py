@@ -268,6 +268,21 @@ def test_collect_and_the_report(fake_study):
     assert 'default,ours,cgail,1,8192,9216,static,unseen (scenario seed 1),2,4' in rows
 
 
+def test_the_report_places_the_hand_written_reasons_after_its_tables(fake_study):
+    layout, plan = fake_study
+    report = study.write_report(layout, plan, 'cmd').read_text()
+    assert study.REASONS_HEADING not in report  # no reasons.md: no section
+    (layout.root / study.REASONS).write_text('GAIL never reached a target in training.\n')
+    report = study.write_report(layout, plan, 'cmd').read_text()
+    head = report.index(study.REASONS_HEADING)
+    assert report.index('GAIL never reached a target in training.') > head
+    assert report.rindex('### ') < head  # after the last budget's table
+    (layout.root / study.REASONS).write_text('## Reasons\n\nBC finds the path.\n')
+    report = study.write_report(layout, plan, 'cmd').read_text()
+    assert '## Reasons\n\nBC finds the path.' in report
+    assert study.REASONS_HEADING not in report  # its own heading is kept
+
+
 # ---------------------------------------------------------------------------- tasks
 
 

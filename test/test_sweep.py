@@ -48,6 +48,18 @@ def test_the_shipped_configurations_load():
         ('smoke',), (0, 1), (1024,), 2)
     assert [a.demos for a in smoke.anatomies] == [(WS / 'bags' / 'demos' / 'default',),
                                                  (WS / 'bags' / 'demos' / 'elongated',)]
+    # the study at the authors' budgets: the same plan as its insilico_study command line
+    authors = sweep.load_sweep(WS / 'bench' / 'sweeps' / 'authors.yaml')
+    args = study.build_parser().parse_args([
+        '--methods', 'paper_code_cgail', 'paper_code_gail', 'cgail', 'gail', '--seeds', '0',
+        '1', '2', '--authors-budgets', '--fresh-budgets', '--modes', 'static', 'dynamic'])
+    cli = study.check_args(args)
+    assert authors.fresh and authors.method_budgets == cli.method_budgets == {
+        'paper_code_cgail': (8_000_000,), 'paper_code_gail': (1_275_443, 5_000_000),
+        'cgail': (500_000,), 'gail': (2_000_000,)}
+    layout = study.Layout(Path('/nowhere'), fresh=True)
+    keys = [t.key for t in study.plan_tasks(layout, authors)]
+    assert keys == [t.key for t in study.plan_tasks(layout, cli)] and len(keys) == 128
 
 
 def test_an_anatomy_mapping_says_what_train_and_evaluate_are_told():
@@ -68,8 +80,8 @@ GOOD = {'presets': ['smoke'], 'seeds': [0], 'budgets': [1024], 'anatomies': ['de
 
 @pytest.mark.parametrize('change, message', [
     ({'seed': [0]}, "expected keys ['presets', 'seeds', 'anatomies', 'budgets'] and optional "
-                    "['modes', 'trials', 'dynamic_steps', 'unseen_scenario_seed', 'baselines'], "
-                    "found unknown ['seed']"),
+                    "['modes', 'trials', 'dynamic_steps', 'unseen_scenario_seed', 'baselines', "
+                    "'authors_budgets', 'fresh_budgets'], found unknown ['seed']"),
     ({'presets': None}, 'presets: expected a non-empty list of strings, found None'),
     ({'presets': ['nope']}, 'presets: expected a preset name in ['),
     ({'seeds': [0, 'one']}, "seeds: expected a non-empty list of integers, found [0, 'one']"),
@@ -88,6 +100,8 @@ GOOD = {'presets': ['smoke'], 'seeds': [0], 'budgets': [1024], 'anatomies': ['de
     ({'trials': 'many'}, "trials: expected an integer, found 'many'"),
     ({'baselines': ['rrt']}, "baselines: expected some of ['centerline', 'expert']"),
     ({'unseen_scenario_seed': 0}, 'unseen_scenario_seed: expected a target set other than'),
+    ({'authors_budgets': 'yes'}, "authors_budgets: expected true or false, found 'yes'"),
+    ({'authors_budgets': True}, 'budgets: expected no budgets with --authors-budgets'),
 ])
 def test_bad_configuration_is_one_line_and_exit_2(change, message, tmp_path, capsys):
     import yaml
@@ -230,16 +244,19 @@ def _check_tiny(out: Path, seeds: list[int], anatomies: list[str], stdout: str) 
 
 
 def test_a_tiny_sweep_on_local_ray_and_its_rerun(tmp_path):
-    """The CI sweep (the fast variant of the one below): smoke, one seed, in the elongated
-    anatomy (its own folder), on local Ray with 2 CPUs; a second run runs nothing."""
+    """The CI sweep (the fast variant of the one below, whose budgets continue one run):
+    smoke, one seed, in the elongated anatomy (its own folder), each budget a run of its own
+    (``fresh_budgets``, as the authors' study), on local Ray with 2 CPUs; a second run runs
+    nothing."""
     config = tmp_path / 'tiny.yaml'
-    config.write_text(TINY.format(seeds='[0]', anatomies='[elongated]'))
+    config.write_text(TINY.format(seeds='[0]', anatomies='[elongated]')
+                      + 'fresh_budgets: true\n')
     out = tmp_path / 'out'
     first = _sweep(config, out)
     assert first.returncode == 0, first.stdout[-2000:] + first.stderr[-2000:]
     _check_tiny(out, [0], ['elongated'], first.stdout)
-    assert (out / 'anatomies' / 'elongated' / 'smoke' / 'seed0' / 'steps_1024' /
-            'static.onnx').is_file()
+    run = out / 'anatomies' / 'elongated' / 'smoke' / 'seed0' / 'budget_1024'
+    assert (run / 'static.onnx').is_file() and (run / 'static' / 'scalars.csv').is_file()
     again = _sweep(config, out)
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
     assert '4 tasks: 4 already done, 0 to run' in again.stdout
