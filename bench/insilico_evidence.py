@@ -25,6 +25,10 @@ its own, ``<preset>/seed<S>/budget_<N>/``) and writes ``STUDY/evidence.md`` and
   when done for the current policy (by its sha256, as the study records it). Policies with 0% on
   every static evaluation are not run (they cannot reach a target; a stalled ``paper_code``
   policy also takes its 20,000-step limit per trial).
+- **How far the heartbeat moves the wall and the targets** in the dynamic simulator of each
+  option set (``paper_code``, ``ours``): two heartbeats with the tip parked at a start, each
+  target's largest displacement, the wall's, and how many wall vertices move more than 1 mm
+  (seconds).
 
 Re-running skips what is done; ``--no-run`` only rewrites the tables from what is there.
 """
@@ -32,6 +36,7 @@ Re-running skips what is done; ``--no-run`` only rewrites the tables from what i
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from dataclasses import dataclass
 import json
 from pathlib import Path
@@ -48,6 +53,8 @@ SEED = re.compile(r'seed(\d+)')
 TRAINING = study.TRAINING_TARGETS
 #: The starts of the paper's scenario (trial k: start k % STARTS).
 STARTS = 3
+#: The option sets whose heartbeats are measured (:func:`heartbeat_motion`).
+MOTION_OPTIONS = ('paper_code', 'ours')
 
 
 @dataclass(frozen=True)
@@ -217,12 +224,57 @@ def plot_zero_shot(rows: list[tuple[Run, list[float | None]]], path: Path) -> bo
     return True
 
 
+@dataclass(frozen=True)
+class Motion:
+    """How far the heartbeat of one option set moves the wall and the targets."""
+
+    options: str
+    period: float
+    """The heartbeat's period, s."""
+    targets_mm: tuple[float, ...]
+    """Per target of the training set, its largest displacement from rest, mm."""
+    wall_mm: float
+    """The largest displacement of any wall vertex, mm."""
+    moving: int
+    """Wall vertices displaced more than 1 mm at some time."""
+    vertices: int
+
+
+def heartbeat_motion(options: str, cycles: float = 2.0) -> Motion:
+    """Step the dynamic simulator of ``options`` (default anatomy, training targets) for
+    ``cycles`` heartbeats with the tip parked at start 0 (zero actions), one episode per target,
+    and measure how far the targets and the wall move."""
+    import numpy as np
+
+    from cgail_sim.config import EnvConfig
+    from cgail_sim.env import NavEngine
+
+    cfg = EnvConfig.from_options(options, mode='dynamic')
+    n = len(NavEngine(cfg, 1).scenarios.targets)
+    engine = NavEngine(cfg, n)
+    for i in range(n):
+        engine.reset_env(i, 0, i)
+    rest_targets = engine.target.copy()
+    rest_wall = engine.walls[0].vertices.copy()
+    target_peak = np.zeros(n)
+    wall_peak = np.zeros(len(rest_wall))
+    for _ in range(int(np.ceil(cycles * cfg.heartbeat.period / cfg.dt))):
+        engine.step(np.zeros((n, 3)))
+        target_peak = np.maximum(target_peak,
+                                 np.linalg.norm(engine.target - rest_targets, axis=1))
+        wall_peak = np.maximum(wall_peak,
+                               np.linalg.norm(engine.walls[0].vertices - rest_wall, axis=1))
+    return Motion(options, cfg.heartbeat.period, tuple(1000 * target_peak),
+                  1000 * float(wall_peak.max()), int((wall_peak > 1e-3).sum()), len(rest_wall))
+
+
 def table(head: list[str], rows: list[list[str]]) -> list[str]:
     return ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head),
             *('| ' + ' | '.join(r) + ' |' for r in rows)]
 
 
-def build_evidence(root: Path, runs: list[Run], trials: int) -> str:
+def build_evidence(root: Path, runs: list[Run], trials: int,
+                   motions: Sequence[Motion] = ()) -> str:
     """``evidence.md`` (and its PNG in ``root``)."""
     lines = ['# Evidence for the study\'s reading', '',
              'Made by `scripts/ws python bench/insilico_evidence.py --study '
@@ -258,6 +310,18 @@ def build_evidence(root: Path, runs: list[Run], trials: int) -> str:
     png = 'evidence_static_in_dynamic.png'
     if plot_zero_shot(zs, root / png):
         lines += [f'![static policy in the beating aorta]({png})', '']
+    if motions:
+        lines += ['## How far the heartbeat moves the wall and the targets', '',
+                  'The dynamic simulator of each option set (default anatomy, the training '
+                  'targets), two heartbeats with the tip parked at start 0 (zero actions): '
+                  'each target\'s largest displacement from rest (it rides on its wall vertex), '
+                  'the wall\'s largest vertex displacement, and how many wall vertices move '
+                  'more than 1 mm.', '',
+                  *table(['option set', 'period', 'targets (mm)', 'wall, largest (mm)',
+                          'wall vertices moving > 1 mm'],
+                         [[f'`{m.options}`', f'{m.period:.2f} s',
+                           ', '.join(f'{d:.1f}' for d in m.targets_mm), f'{m.wall_mm:.1f}',
+                           f'{m.moving:,} of {m.vertices:,}'] for m in motions]), '']
     return '\n'.join(lines) + '\n'
 
 
@@ -287,8 +351,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         study.say('interrupted; re-run the same command to continue')
         return 130
+    motions = [heartbeat_motion(options) for options in MOTION_OPTIONS]
     path = root / 'evidence.md'
-    path.write_text(build_evidence(root, runs, args.trials))
+    path.write_text(build_evidence(root, runs, args.trials, motions))
     study.say(f'evidence: {path}')
     return 0
 

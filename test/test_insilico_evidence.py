@@ -88,6 +88,8 @@ def test_static_policies_run_in_the_beating_aorta_once(fake, monkeypatch, capsys
         return subprocess.CompletedProcess(cmd, 0)
 
     monkeypatch.setattr(evidence.subprocess, 'run', fake_evaluate)
+    monkeypatch.setattr(evidence, 'heartbeat_motion', lambda options: evidence.Motion(
+        options, 0.74, (0.5, 6.0), 5.5, 120, 2455))
     assert evidence.main(['--study', str(fake.root), '--trials', '6']) == 0
     # GAIL never succeeded in a static evaluation: not run
     assert [c[c.index('--policy') + 1].split('=')[0] for c in calls] == ['cgail', 'cgail']
@@ -95,6 +97,7 @@ def test_static_policies_run_in_the_beating_aorta_once(fake, monkeypatch, capsys
     assert '| cgail | 1 | 2,048 | 67% | 83% | 83% |' in text
     assert '| gail | 0 | 2,048 | 0% | - | 0% |' in text
     assert (fake.root / 'evidence_static_in_dynamic.png').stat().st_size > 0
+    assert '| `paper_code` | 0.74 s | 0.5, 6.0 | 5.5 | 120 of 2,455 |' in text
     calls.clear()
     assert evidence.main(['--study', str(fake.root), '--trials', '6']) == 0
     assert calls == []  # done for the current policies
@@ -123,3 +126,12 @@ def test_bad_input_is_one_line_and_exit_2(argv, message, tmp_path, capsys):
     assert evidence.main(argv) == 2
     err = capsys.readouterr().err
     assert err.startswith(f'insilico_evidence: error: {message}') and err.count('\n') == 1
+
+
+def test_the_heartbeat_motion_of_both_option_sets():
+    """The measured motion (coarse bounds: the physics, not its last bits): the authors'
+    one-sided axial push moves the wall near the root, ours moves the root and its targets."""
+    theirs, ours = (evidence.heartbeat_motion(o, cycles=1.0) for o in ('paper_code', 'ours'))
+    assert theirs.period == pytest.approx(0.74) and len(theirs.targets_mm) == 5
+    assert 4.0 < theirs.wall_mm < 9.0 and max(theirs.targets_mm) < 2.0
+    assert min(ours.targets_mm) > 3.0 and ours.moving > 2 * theirs.moving
