@@ -199,7 +199,7 @@ def plot_zero_shot(rows: list[tuple[Run, list[float | None]]], path: Path) -> bo
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(max(6.0, 1.1 * len(shown) + 2), 4.2))
+    fig, ax = plt.subplots(figsize=(max(8.0, 1.1 * len(shown) + 2), 4.6))
     labels = ['static policy, static aorta', 'static policy, beating aorta (no re-training)',
               'after 102,400 steps of re-training, beating aorta']
     width = 0.27
@@ -216,7 +216,7 @@ def plot_zero_shot(rows: list[tuple[Run, list[float | None]]], path: Path) -> bo
     ax.set_ylim(0, 115)
     ax.set_ylabel('success, training targets (%)')
     ax.set_title('What the heartbeat does to a static policy, and what re-training adds')
-    ax.legend(fontsize=7, loc='lower right')
+    ax.legend(fontsize=7, loc='upper center', bbox_to_anchor=(0.5, -0.16), ncol=3)
     ax.grid(axis='y', alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
