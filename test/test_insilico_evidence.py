@@ -4,25 +4,15 @@ and its one-line errors."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 import subprocess
-import sys
 
+from bench_modules import bench_module
 import pytest
 
-WS = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(WS / 'bench'))  # the script imports insilico_study, as it does when run
-for _name in ('insilico_study', 'insilico_evidence'):
-    if _name not in sys.modules:
-        _spec = importlib.util.spec_from_file_location(_name, WS / 'bench' / f'{_name}.py')
-        assert _spec is not None and _spec.loader is not None
-        _module = importlib.util.module_from_spec(_spec)
-        sys.modules[_name] = _module
-        _spec.loader.exec_module(_module)
-study = sys.modules['insilico_study']
-evidence = sys.modules['insilico_evidence']
+study = bench_module('insilico_study')
+evidence = bench_module('insilico_evidence')
 
 
 def write_results(folder: Path, name: str, mode: str, outcomes: str) -> None:

@@ -4,20 +4,15 @@ ordering, the report and the task scheduler, on fake run folders."""
 from __future__ import annotations
 
 from fractions import Fraction
-import importlib.util
 import json
 from pathlib import Path
 import sys
 
+from bench_modules import bench_module
 import pytest
 
 WS = Path(__file__).resolve().parent.parent
-_spec = importlib.util.spec_from_file_location('insilico_study',
-                                              WS / 'bench' / 'insilico_study.py')
-assert _spec is not None and _spec.loader is not None
-study = importlib.util.module_from_spec(_spec)
-sys.modules['insilico_study'] = study
-_spec.loader.exec_module(study)
+study = bench_module('insilico_study')
 
 
 def write_scalars(run: Path, rows: list[tuple[int, str, float]], tail: str = '') -> None:

@@ -3,26 +3,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 from pathlib import Path
 import subprocess
 import sys
 import time
 
+from bench_modules import bench_module
 import pytest
 
 WS = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(WS / 'bench'))  # sweep imports insilico_study, as it does when run
-for _name in ('insilico_study', 'sweep'):
-    if _name not in sys.modules:
-        _spec = importlib.util.spec_from_file_location(_name, WS / 'bench' / f'{_name}.py')
-        assert _spec is not None and _spec.loader is not None
-        _module = importlib.util.module_from_spec(_spec)
-        sys.modules[_name] = _module
-        _spec.loader.exec_module(_module)
-study = sys.modules['insilico_study']
-sweep = sys.modules['sweep']
+study = bench_module('insilico_study')
+sweep = bench_module('sweep')
 
 TINY = """presets: [smoke]
 seeds: {seeds}
