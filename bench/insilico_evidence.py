@@ -149,8 +149,9 @@ def zero_shot_folder(root: Path, run: Run) -> Path:
 
 def worth_running(runs: list[Run], run: Run) -> bool:
     """Whether a policy of ``run``'s preset ever succeeded in a static evaluation."""
-    return any((rate(trials_of(r.folder / f'eval_static_targets{k}')) or 0) > 0
-               for r in runs if r.preset == run.preset for k in (TRAINING, 1))
+    return any((rate(trials_of(folder)) or 0) > 0
+               for r in runs if r.preset == run.preset
+               for folder in r.folder.glob('eval_static_targets*'))
 
 
 def run_zero_shot(root: Path, runs: list[Run], trials: int) -> None:
