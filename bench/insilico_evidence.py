@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
-import json
 from pathlib import Path
 import re
 import subprocess
@@ -93,18 +92,6 @@ def find_runs(root: Path) -> list[Run]:
     return sorted(runs, key=lambda r: (r.preset, r.seed, r.budget))
 
 
-def trials_of(folder: Path) -> list[dict] | None:
-    """The trial records of the first method and mode of ``folder/results.json``."""
-    path = folder / 'results.json'
-    if not path.is_file():
-        return None
-    data = json.loads(path.read_text())
-    for methods in data['modes'].values():
-        for method in methods.values():
-            return list(method['trials'])
-    return None
-
-
 def pct(x: float | None) -> str:
     return '-' if x is None else f'{100 * x:.0f}%'
 
@@ -127,7 +114,7 @@ def training_row(run: Run) -> list[str]:
 
 def failure_row(run: Run, mode: str) -> list[str] | None:
     """Successes, collisions, other failures and failures per start of one evaluation."""
-    trials = trials_of(run.folder / f'eval_{mode}_targets{TRAINING}')
+    trials = study.load_trials(run.folder / f'eval_{mode}_targets{TRAINING}')
     if trials is None:
         return None
     fails = [k for k, t in enumerate(trials) if not t['success']]
@@ -149,7 +136,7 @@ def zero_shot_folder(root: Path, run: Run) -> Path:
 
 def worth_running(runs: list[Run], run: Run) -> bool:
     """Whether a policy of ``run``'s preset ever succeeded in a static evaluation."""
-    return any((rate(trials_of(folder)) or 0) > 0
+    return any((rate(study.load_trials(folder)) or 0) > 0
                for r in runs if r.preset == run.preset
                for folder in r.folder.glob('eval_static_targets*'))
 
@@ -175,16 +162,16 @@ def run_zero_shot(root: Path, runs: list[Run], trials: int) -> None:
         if code != 0:
             raise study.StudyError(f'{r.name}: evaluate exited {code}; see {out / "evaluate.log"}')
         study.record_inputs(out / 'results.json', {'policy': policy})
-        study.say(f'[{i}/{len(todo)}] {r.name}: {pct(rate(trials_of(out)))}')
+        study.say(f'[{i}/{len(todo)}] {r.name}: {pct(rate(study.load_trials(out)))}')
 
 
 def zero_shot_rows(root: Path, runs: list[Run]) -> list[tuple[Run, list[float | None]]]:
     """Per run with a static policy: study static, static policy in dynamic, re-trained."""
     rows = []
     for r in runs:
-        got = [rate(trials_of(r.folder / f'eval_static_targets{TRAINING}')),
-               rate(trials_of(zero_shot_folder(root, r))),
-               rate(trials_of(r.folder / f'eval_dynamic_targets{TRAINING}'))]
+        got = [rate(study.load_trials(r.folder / f'eval_static_targets{TRAINING}')),
+               rate(study.load_trials(zero_shot_folder(root, r))),
+               rate(study.load_trials(r.folder / f'eval_dynamic_targets{TRAINING}'))]
         if any(g is not None for g in got):
             rows.append((r, got))
     return rows

@@ -474,9 +474,9 @@ class Outcome:
         return Fraction(self.successes, self.trials)
 
 
-def load_outcome(folder: Path, name: str | None = None) -> Outcome | None:
-    """The outcome of method ``name`` (default: the first method) of the first mode in
-    ``folder/results.json`` (``evaluate``'s), or None when it is not there."""
+def load_trials(folder: Path, name: str | None = None) -> list[dict[str, Any]] | None:
+    """The trial records of method ``name`` (default: the first method) of the first mode in
+    ``folder/results.json`` (``evaluate``'s), or None when they are not there."""
     path = folder / 'results.json'
     if not path.is_file():
         return None
@@ -484,9 +484,16 @@ def load_outcome(folder: Path, name: str | None = None) -> Outcome | None:
     for methods in data['modes'].values():
         key = name if name is not None else next(iter(methods), None)
         if key in methods:
-            trials = methods[key]['trials']
-            return Outcome(sum(bool(t['success']) for t in trials), len(trials))
+            return list(methods[key]['trials'])
     return None
+
+
+def load_outcome(folder: Path, name: str | None = None) -> Outcome | None:
+    """The outcome of :func:`load_trials` (None when they are not there)."""
+    trials = load_trials(folder, name)
+    if trials is None:
+        return None
+    return Outcome(sum(bool(t['success']) for t in trials), len(trials))
 
 
 def load_baselines(folder: Path) -> dict[str, Outcome]:
