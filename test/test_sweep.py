@@ -43,15 +43,16 @@ def test_the_shipped_configurations_load():
     # the study at the authors' budgets: the same plan as its insilico_study command line
     authors = sweep.load_sweep(WS / 'bench' / 'sweeps' / 'authors.yaml')
     args = study.build_parser().parse_args([
-        '--methods', 'paper_code_cgail', 'paper_code_gail', 'cgail', 'gail', '--seeds', '0',
-        '1', '2', '--authors-budgets', '--fresh-budgets', '--modes', 'static', 'dynamic'])
+        '--methods', 'paper_code_cgail', 'paper_code_gail', 'cgail', 'gail', 'mu0', 'lambda0',
+        'nu0', '--seeds', '0', '1', '2', '--authors-budgets', '--fresh-budgets', '--modes', 'static', 'dynamic'])
     cli = study.check_args(args)
     assert authors.fresh and authors.method_budgets == cli.method_budgets == {
         'paper_code_cgail': (8_000_000,), 'paper_code_gail': (1_275_443, 5_000_000),
-        'cgail': (500_000,), 'gail': (2_000_000,)}
+        'cgail': (500_000,), 'gail': (2_000_000,), 'mu0': (500_000,), 'lambda0': (500_000,),
+        'nu0': (500_000,)}
     layout = study.Layout(Path('/nowhere'), fresh=True)
     keys = [t.key for t in study.plan_tasks(layout, authors)]
-    assert keys == [t.key for t in study.plan_tasks(layout, cli)] and len(keys) == 128
+    assert keys == [t.key for t in study.plan_tasks(layout, cli)] and len(keys) == 200
 
 
 def test_an_anatomy_mapping_says_what_train_and_evaluate_are_told():
