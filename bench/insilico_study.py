@@ -10,7 +10,7 @@ Run (from the workspace root, inside the workspace environment)::
     scripts/ws python bench/insilico_study.py --methods smoke --seeds 0 --steps 4096 8192 \
         --trials 3 --dynamic-steps 2048 --out runs/insilico_smoke   # a smoke run, minutes
     scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
-        cgail gail --seeds 0 1 2 --authors-budgets --fresh-budgets --jobs 1 \
+        cgail gail mu0 lambda0 nu0 --seeds 0 1 2 --authors-budgets --fresh-budgets --jobs 1 \
         --out runs/insilico_authors                   # issue 35: the authors' budgets, fresh
     scripts/ws python bench/insilico_study.py --methods paper_code_cgail paper_code_gail \
         cgail --seeds 0 1 --authors-budgets --budget-scale 0.001 --fresh-budgets --trials 3 \
@@ -1943,6 +1943,29 @@ def study_lock(root: Path) -> Iterator[None]:
         yield
 
 
+def left_out(layout: Layout, plan: StudyPlan) -> list[str]:
+    """The presets that have runs in the study's folder (``<preset>/seed<S>/`` of any anatomy)
+    but are not in ``plan``: the report this plan writes leaves them out, and so does the
+    ``.gitignore``'s list of checkpoints kept for their unfinished tasks."""
+    roots = [layout.of_anatomy(a.name).root for a in plan.anatomies]
+    found = {d.name for r in roots if r.is_dir() for d in r.iterdir()
+             if d.is_dir() and any(c.is_dir() and SEED_FOLDER.fullmatch(c.name)
+                                   for c in d.iterdir())}
+    return sorted(found - set(plan.methods))
+
+
+def note_left_out(layout: Layout, plan: StudyPlan) -> None:
+    """Say which presets of the folder :func:`left_out` finds (nothing when none)."""
+    others = left_out(layout, plan)
+    if others:
+        say(f'note: {layout.root} also holds runs of {", ".join(others)}, which this command '
+            'leaves out of the report and of .gitignore; add them to --methods to keep them')
+
+
+#: A seed's folder under its preset's (:meth:`Layout.run_root`).
+SEED_FOLDER = re.compile(r'seed\d+')
+
+
 def _terminate(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
@@ -1957,6 +1980,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     layout = Layout(args.out.resolve(), plan.fresh)
     command = command_line(args)
+    note_left_out(layout, plan)
     if args.report_only:
         say(f'report: {write_report(layout, plan, command)}')
         return 0

@@ -454,6 +454,7 @@ def main(argv: list[str] | None = None) -> int:
     out = (args.out or Path('runs') / f'sweep_{args.config.stem}').resolve()
     layout = study.Layout(out, plan.fresh)
     command = command_line(args, out)
+    study.note_left_out(layout, plan)
     if args.report_only:
         study.say(f'report: {study.write_report(layout, plan, command)}')
         return 0

@@ -13,6 +13,7 @@ import pytest
 
 WS = Path(__file__).resolve().parent.parent
 study = bench_module('insilico_study')
+sweep = bench_module('sweep')
 
 
 def write_scalars(run: Path, rows: list[tuple[int, str, float]], tail: str = '') -> None:
@@ -276,6 +277,32 @@ def test_the_report_places_the_hand_written_reasons_after_its_tables(fake_study)
     report = study.write_report(layout, plan, 'cmd').read_text()
     assert '## Reasons\n\nBC finds the path.' in report
     assert study.REASONS_HEADING not in report  # its own heading is kept
+
+
+def test_a_command_without_some_of_the_folders_presets_says_it_leaves_them_out(fake_study,
+                                                                                 capsys):
+    layout, plan = fake_study
+    (layout.root / 'logs').mkdir()  # the study's own folders are not presets
+    (layout.root / 'gail' / 'notes').mkdir()
+    assert study.left_out(layout, plan) == []
+    only = study.StudyPlan(('cgail',), plan.seeds, plan.budgets, plan.modes,
+                           {'cgail': 'ours'}, trials=4)
+    assert study.left_out(layout, only) == ['gail']
+    argv = ['--methods', 'cgail', '--seeds', '0', '1', '--steps', '4096', '8192', '--trials',
+            '4', '--out', str(layout.root), '--report-only']
+    assert study.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f'note: {layout.root} also holds runs of gail, which this command leaves out' in out
+    report = (layout.root / 'report.md').read_text()
+    assert '(`cgail`)' in report and '(`gail`)' not in report  # what the note warns of
+    assert study.main([*argv[:1], 'cgail', 'gail', *argv[2:]]) == 0
+    assert 'also holds' not in capsys.readouterr().out
+    # the sweep says the same of its configuration's presets
+    cfg = layout.root.parent / 'only_cgail.yaml'
+    cfg.write_text('presets: [cgail]\nseeds: [0, 1]\nbudgets: [4096, 8192]\ntrials: 4\n'
+                   'anatomies: [default]\n')
+    assert sweep.main([str(cfg), '--out', str(layout.root), '--report-only']) == 0
+    assert 'also holds runs of gail' in capsys.readouterr().out
 
 
 # ---------------------------------------------------------------------------- tasks

@@ -44,7 +44,8 @@ def test_the_shipped_configurations_load():
     authors = sweep.load_sweep(WS / 'bench' / 'sweeps' / 'authors.yaml')
     args = study.build_parser().parse_args([
         '--methods', 'paper_code_cgail', 'paper_code_gail', 'cgail', 'gail', 'mu0', 'lambda0',
-        'nu0', '--seeds', '0', '1', '2', '--authors-budgets', '--fresh-budgets', '--modes', 'static', 'dynamic'])
+        'nu0', '--seeds', '0', '1', '2', '--authors-budgets', '--fresh-budgets', '--modes',
+        'static', 'dynamic'])
     cli = study.check_args(args)
     assert authors.fresh and authors.method_budgets == cli.method_budgets == {
         'paper_code_cgail': (8_000_000,), 'paper_code_gail': (1_275_443, 5_000_000),
