@@ -6,6 +6,7 @@ from __future__ import annotations
 from fractions import Fraction
 import json
 from pathlib import Path
+import re
 import sys
 
 from bench_modules import bench_module
@@ -303,6 +304,43 @@ def test_a_command_without_some_of_the_folders_presets_says_it_leaves_them_out(f
                    'anatomies: [default]\n')
     assert sweep.main([str(cfg), '--out', str(layout.root), '--report-only']) == 0
     assert 'also holds runs of gail' in capsys.readouterr().out
+
+
+#: The README's reproduction table: its row labels and the presets behind its columns.
+README_ROWS = {'C-GAIL': ('paper_code_cgail', 'cgail'), 'GAIL': ('paper_code_gail', 'gail'),
+               'mu = 0 (no BC)': (None, 'mu0'), 'lambda = 0 (no GAIL)': (None, 'lambda0'),
+               'nu = 0 (no curiosity)': (None, 'nu0')}
+
+
+def test_the_readme_reproduction_table_is_the_committed_study():
+    """Every figure of the README's "The paper's figures, reproduced" table is the committed
+    study's (``studies/insilico_authors/summary.csv``, training targets), every budget of a
+    preset when the cell says "at both"."""
+    import csv
+    with (WS / 'studies' / 'insilico_authors' / 'summary.csv').open() as f:
+        rows = [r for r in csv.DictReader(f) if r['targets'] == 'training']
+    lines = (WS / 'README.md').read_text().splitlines()
+    head = lines.index('| method | budget | static: paper | static: `paper_code` | static: '
+                       '`ours` | beating: paper | beating: `paper_code` | beating: `ours` |')
+    checked = 0
+    for line in lines[head + 2:]:
+        if not line.startswith('|'):
+            break
+        cells = [c.strip() for c in line.strip('|').split('|')]
+        presets = README_ROWS[cells[0]]
+        for mode, (theirs, ours) in (('static', cells[3:5]), ('dynamic', cells[6:8])):
+            for preset, cell in zip(presets, (theirs, ours), strict=True):
+                got = re.fullmatch(r'(\d+)% \(([\d, ]+)\)( at both)?', cell)
+                if preset is None or got is None:
+                    assert preset is None or cell in ('not run', 'C-GAIL itself', '-'), cell
+                    continue
+                study_rows = [r for r in rows if (r['preset'], r['mode']) == (preset, mode)]
+                assert len(study_rows) == (2 if got[3] else 1), (preset, mode)
+                for r in study_rows:
+                    assert (r['mean'], r['per seed']) == (
+                        f'{got[1]}%', ', '.join(f'{v}%' for v in got[2].split(', ')))
+                    checked += 1
+    assert checked >= 8
 
 
 # ---------------------------------------------------------------------------- tasks
