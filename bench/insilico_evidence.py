@@ -47,7 +47,7 @@ import insilico_study as study
 
 WS = study.WS
 BUDGET = re.compile(r'budget_(\d+)')
-SEED = re.compile(r'seed(\d+)')
+SEED = study.SEED_FOLDER
 #: The study's training target set (scenario seed 0).
 TRAINING = study.TRAINING_TARGETS
 #: The starts of the paper's scenario (trial k: start k % STARTS).

@@ -286,6 +286,10 @@ class Anatomy:
         return cls(name, ('--anatomy', spec), ('--anatomy', spec), tuple(demos))
 
 
+#: A seed's folder under its preset's (:meth:`Layout.run_root`); group 1 is the seed.
+SEED_FOLDER = re.compile(r'seed(\d+)')
+
+
 @dataclass(frozen=True)
 class Layout:
     """Where everything of a study lives under ``root``: the default anatomy's runs directly
@@ -1961,9 +1965,6 @@ def note_left_out(layout: Layout, plan: StudyPlan) -> None:
         say(f'note: {layout.root} also holds runs of {", ".join(others)}, which this command '
             'leaves out of the report and of .gitignore; add them to --methods to keep them')
 
-
-#: A seed's folder under its preset's (:meth:`Layout.run_root`).
-SEED_FOLDER = re.compile(r'seed\d+')
 
 
 def _terminate(signum: int, frame: Any) -> None:
